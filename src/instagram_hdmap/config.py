@@ -1,0 +1,373 @@
+"""Experiment configuration: nested dataclasses, one per component.
+
+A YAML file holds *overrides only* of the defaults below (the defaults are the paper's main
+setting: EfficientNet-B4, LSS, 128x352 images, 60 m x 30 m at 0.15 m, S = 8, N = 400, 7 GNN layers).
+A YAML file may name another one to start from with ``_base_: relative/path.yaml``. Command-line
+overrides use dotted keys, ``model.gnn.layers=9``, and are parsed as YAML values.
+
+Unknown keys and values of the wrong type are errors that name the key and list what is valid.
+
+    cfg = load_config("configs/paper/table1_b0_lss_128x352.yaml", ["train.batch_size=8"])
+    save_config(cfg, "run/config.yaml"); assert load_config("run/config.yaml") == cfg
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional, Union
+
+import yaml
+
+
+class UserError(Exception):
+    """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line
+    and exits with code 2. Library code raises subclasses with messages that say what to fix."""
+
+
+class ConfigError(UserError, ValueError):
+    """A configuration key or value the user must fix."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Components
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class GridConfig:
+    """The BEV grid (see geometry.BEVGrid). x points forward, y to the left, metres, ego frame."""
+
+    xbound: tuple[float, float] = (-30.0, 30.0)  # along the driving direction
+    ybound: tuple[float, float] = (-15.0, 15.0)  # lateral
+    resolution: float = 0.15  # metres per BEV pixel
+    cell_size: int = 8  # S: one vertex per SxS cell
+
+
+@dataclass
+class DataConfig:
+    dataroot: str = "data/nuscenes"
+    version: str = "v1.0-trainval"  # v1.0-trainval | v1.0-mini | any version folder of the dataroot
+    splits_file: Optional[str] = None  # custom splits.json {"train": [scene names], "val": [...]}
+    train_split: str = "train"
+    val_split: str = "val"
+    image_size: tuple[int, int] = (128, 352)  # (h, w) fed to the backbone
+    sample_dist: float = 1.5  # metres between resampled map vertices
+    classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
+    dt_clip: float = 10.0  # distance transform clipped to [0, dt_clip] BEV pixels
+    augment: bool = False  # train-time image augmentation (scale, crop, rotate)
+    aug_scale: tuple[float, float] = (0.95, 1.05)
+    aug_rotate_deg: float = 5.4
+    aug_crop_jitter: float = 0.05  # fraction of the image size
+    on_bad_sample: Literal["raise", "skip"] = "raise"
+    num_workers: int = 4
+
+
+@dataclass
+class BackboneConfig:
+    name: Literal["efficientnet-b0", "efficientnet-b4", "tiny"] = "efficientnet-b4"
+    weights: Optional[str] = None  # local ImageNet checkpoint in efficientnet_pytorch's format
+    out_channels: int = 64  # C of the per-camera features handed to the view transform
+
+
+@dataclass
+class ViewTransformConfig:
+    kind: Literal["lss", "ipm", "mlp"] = "lss"
+    depth_bound: tuple[float, float, float] = (4.0, 45.0, 1.0)  # LSS depth bins: start, stop, step (m)
+    # LSS / IPM splat onto a BEV grid of this resolution (metres); the BEV feature is at half the
+    # output resolution, as in the paper (W/2 x H/2 x 256).
+    bev_downsample: int = 2
+    zbound: tuple[float, float] = (-10.0, 10.0)  # LSS vertical extent of the voxel pillar
+    ipm_height: float = 0.0  # IPM ground-plane height in the ego frame (m)
+    mlp_bev_downsample: int = 5  # HDMapNet MLP: per-camera BEV of (H/5) x (W/5)
+
+
+@dataclass
+class BEVHeadsConfig:
+    channels: int = 256  # F_bev channels
+    num_res_blocks: int = 3
+    head_channels: int = 128
+
+
+@dataclass
+class GraphHeadConfig:
+    num_vertices: int = 400  # N, top-N vertices fed to the GNN
+    conf_threshold: float = 0.01
+    embedding: Literal["pe+dt", "pe", "dt", "pe+vd"] = "pe+dt"
+    dim: int = 256  # D
+    pe_frequencies: int = 10  # sinusoidal positional encoding bands per coordinate
+    layers: int = 7  # L attentional message-passing layers (0-11 in the paper)
+    heads: int = 4
+    sinkhorn_iters: int = 100
+    match_threshold: float = 0.1  # adjacency probability to follow an edge at inference
+
+
+@dataclass
+class ModelConfig:
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    view_transform: ViewTransformConfig = field(default_factory=ViewTransformConfig)
+    bev_heads: BEVHeadsConfig = field(default_factory=BEVHeadsConfig)
+    gnn: GraphHeadConfig = field(default_factory=GraphHeadConfig)
+
+
+@dataclass
+class LossConfig:
+    vertex_weight: float = 1.0  # lambda_1, vertex cross-entropy over S^2 + 1
+    distance_weight: float = 1.0  # lambda_2, distance-transform L2
+    adjacency_weight: float = 5e-3  # lambda_3, bidirectional adjacency NLL
+    class_weight: float = 1e-2  # lambda_4, vertex class NLL
+    match_dist: float = 1.5  # D_0, metres: a predicted vertex farther from every GT vertex is unmatched
+
+
+@dataclass
+class TrainConfig:
+    out_dir: str = "runs/instagram"
+    epochs: int = 30
+    batch_size: int = 32  # in total, over all processes
+    lr: float = 1e-3
+    weight_decay: float = 1e-7
+    lr_step: int = 10  # epochs between decays
+    lr_gamma: float = 0.1
+    grad_clip: float = 5.0
+    amp: Literal["none", "bf16", "fp16"] = "none"
+    seed: int = 0
+    on_nonfinite: Literal["stop", "skip"] = "stop"
+    log_every: int = 10
+    val_every: int = 1  # epochs
+    max_steps: Optional[int] = None  # stop early (demo, tests)
+    max_minutes: Optional[float] = None  # stop early by wall time
+    deterministic: bool = False
+
+
+@dataclass
+class EvalConfig:
+    protocol: Literal["vector", "raster"] = "vector"
+    thresholds: tuple[float, ...] = (0.5, 1.0, 1.5)
+    batch_size: int = 4
+
+
+@dataclass
+class ExperimentConfig:
+    name: str = "instagram"
+    grid: GridConfig = field(default_factory=GridConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading, overriding, saving
+# ---------------------------------------------------------------------------------------------
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    if tp is type(None):
+        return "null"
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"list of {_type_name(args[0])}"
+        return f"list of {len(args)} ({', '.join(_type_name(a) for a in args)})"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Check ``value`` against the annotation ``tp``; return it in canonical form (tuples)."""
+    origin = typing.get_origin(tp)
+    bad = ConfigError(f"config key '{key}': expected {_type_name(tp)}, got {value!r} ({type(value).__name__})")
+    if origin is Literal:
+        if value not in typing.get_args(tp):
+            raise bad
+        return value
+    if origin in (Union, types.UnionType):
+        for arg in typing.get_args(tp):
+            try:
+                return _coerce(value, arg, key)
+            except ConfigError:
+                continue
+        raise bad
+    if tp is type(None):
+        if value is not None:
+            raise bad
+        return None
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise bad
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise bad
+        return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise bad
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise bad
+        return value
+    raise ConfigError(f"config key '{key}': unsupported annotation {tp!r}")
+
+
+def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
+    """Return a copy of dataclass ``obj`` with the nested ``updates`` applied and checked."""
+    if not isinstance(updates, dict):
+        raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {updates!r}")
+    hints = typing.get_type_hints(type(obj))
+    names = [f.name for f in dataclasses.fields(obj)]
+    changes = {}
+    for name, value in updates.items():
+        key = prefix + str(name)
+        if name not in names:
+            raise ConfigError(
+                f"unknown config key '{key}'; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
+            )
+        current = getattr(obj, name)
+        if dataclasses.is_dataclass(current):
+            changes[name] = _merge(current, value, key + ".")
+        else:
+            changes[name] = _coerce(value, hints[name], key)
+    return dataclasses.replace(obj, **changes)
+
+
+def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    if path.resolve() in seen:
+        raise ConfigError(f"config file {path} includes itself through _base_")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {path} is not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping at the top level")
+    base = data.pop("_base_", None)
+    if base is None:
+        return data
+    merged = _read_yaml(path.parent / base, (*seen, path.resolve()))
+    _deep_update(merged, data)
+    return merged
+
+
+def _deep_update(dst: dict, src: dict) -> None:
+    for k, v in src.items():
+        if isinstance(v, dict) and isinstance(dst.get(k), dict):
+            _deep_update(dst[k], v)
+        else:
+            dst[k] = v
+
+
+def parse_overrides(overrides: list[str]) -> dict:
+    """``["model.gnn.layers=9", "data.image_size=[256,704]"]`` -> nested dict of YAML values."""
+    nested: dict = {}
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override '{item}' must look like key.sub=value")
+        key, raw = item.split("=", 1)
+        try:
+            value = yaml.safe_load(raw) if raw != "" else ""
+        except yaml.YAMLError:
+            value = raw
+        parts = key.strip().split(".")
+        node = nested
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override '{item}' sets a sub-key of a value")
+        node[parts[-1]] = value
+    return nested
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> ExperimentConfig:
+    """Defaults <- YAML file (and its ``_base_`` chain) <- command-line overrides; validated."""
+    cfg = ExperimentConfig()
+    if path is not None:
+        cfg = _merge(cfg, _read_yaml(Path(path)))
+    if overrides:
+        cfg = _merge(cfg, parse_overrides(overrides))
+    validate_config(cfg)
+    return cfg
+
+
+def validate_config(cfg: ExperimentConfig) -> None:
+    """Cross-field checks that a single type annotation cannot express."""
+    g = cfg.grid
+    for name in ("xbound", "ybound"):
+        lo, hi = getattr(g, name)
+        if not hi > lo:
+            raise ConfigError(f"config key 'grid.{name}': upper bound must exceed lower, got {(lo, hi)}")
+    if g.resolution <= 0:
+        raise ConfigError(f"config key 'grid.resolution' must be > 0, got {g.resolution}")
+    if g.cell_size < 1:
+        raise ConfigError(f"config key 'grid.cell_size' must be >= 1, got {g.cell_size}")
+    if cfg.model.gnn.num_vertices <= 0:
+        raise ConfigError(f"config key 'model.gnn.num_vertices' must be > 0, got {cfg.model.gnn.num_vertices}")
+    if not 0 <= cfg.model.gnn.layers:
+        raise ConfigError(f"config key 'model.gnn.layers' must be >= 0, got {cfg.model.gnn.layers}")
+    h, w = cfg.data.image_size
+    if h <= 0 or w <= 0:
+        raise ConfigError(f"config key 'data.image_size' must be positive, got {(h, w)}")
+    if any(t <= 0 for t in cfg.eval.thresholds):
+        raise ConfigError(f"config key 'eval.thresholds' must be > 0, got {cfg.eval.thresholds}")
+
+
+def config_to_dict(cfg: Any) -> dict:
+    """Plain nested dict (tuples as lists), as written to YAML."""
+
+    def plain(v: Any) -> Any:
+        if dataclasses.is_dataclass(v):
+            return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        return v
+
+    return plain(cfg)
+
+
+def config_from_dict(data: dict) -> ExperimentConfig:
+    cfg = _merge(ExperimentConfig(), data)
+    validate_config(cfg)
+    return cfg
+
+
+def save_config(cfg: ExperimentConfig, path: str | Path) -> None:
+    """Write the fully resolved config as YAML (atomically)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    tmp.replace(path)
+
+
+def diff_configs(a: ExperimentConfig, b: ExperimentConfig) -> list[str]:
+    """Dotted keys whose values differ between two configs."""
+    out: list[str] = []
+
+    def walk(x: Any, y: Any, prefix: str) -> None:
+        if isinstance(x, dict):
+            for k in x:
+                walk(x[k], y.get(k), f"{prefix}{k}.")
+        elif x != y:
+            out.append(prefix.rstrip("."))
+
+    walk(config_to_dict(a), config_to_dict(b), "")
+    return out

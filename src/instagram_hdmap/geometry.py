@@ -1,0 +1,129 @@
+"""The one BEV grid definition used everywhere: range, resolution, size, and conversions.
+
+Frames and conventions (the same as HDMapNet, MapTR and the official InstaGraM export):
+
+* metres (``*_m``): ego frame, x forward, y to the left.
+* BEV pixels (``*_px``): ``(u, v)`` with ``u`` the column along x and ``v`` the row along y.
+  A BEV tensor is laid out ``[..., H, W]``: H rows along y, W columns along x.
+  Integer pixel coordinates are pixel *centres*: pixel ``(j, i)`` covers
+  ``x in [xmin + j*res, xmin + (j+1)*res)``; ``u = (x - xmin) / res - 0.5``.
+  (InstaGraM's export uses ``x = u * 0.15 - 29.925``, the same mapping.)
+* normalised (``*_norm``): ``[-1, 1]`` over the grid extent, ``-1`` at xmin/ymin, the
+  ``align_corners=False`` convention of ``torch.nn.functional.grid_sample``.
+
+Paper default: x in [-30, 30], y in [-15, 15], 0.15 m -> W = 400, H = 200; S = 8 -> 50 x 25 cells.
+Long range: 100 m x 100 m at 0.25 m -> 400 x 400.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .config import ConfigError, GridConfig
+
+ArrayLike = np.ndarray | torch.Tensor
+
+
+@dataclass(frozen=True)
+class BEVGrid:
+    xmin: float
+    xmax: float
+    ymin: float
+    ymax: float
+    resolution: float
+    cell_size: int = 8
+
+    @classmethod
+    def from_config(cls, cfg: GridConfig) -> BEVGrid:
+        grid = cls(cfg.xbound[0], cfg.xbound[1], cfg.ybound[0], cfg.ybound[1], cfg.resolution, cfg.cell_size)
+        grid.check()
+        return grid
+
+    def check(self) -> None:
+        for name, extent in (("grid.xbound", self.xmax - self.xmin), ("grid.ybound", self.ymax - self.ymin)):
+            n = extent / self.resolution
+            if abs(n - round(n)) > 1e-6:
+                raise ConfigError(
+                    f"config key '{name}': extent {extent} m is not a whole number of "
+                    f"{self.resolution} m pixels"
+                )
+        if self.W % self.cell_size or self.H % self.cell_size:
+            raise ConfigError(
+                f"config key 'grid.cell_size': BEV size {self.H}x{self.W} (HxW) is not divisible by "
+                f"S={self.cell_size}; choose a cell size that divides both"
+            )
+
+    # --- sizes -------------------------------------------------------------------------------
+    @property
+    def W(self) -> int:  # columns, along x
+        return round((self.xmax - self.xmin) / self.resolution)
+
+    @property
+    def H(self) -> int:  # rows, along y
+        return round((self.ymax - self.ymin) / self.resolution)
+
+    @property
+    def Wc(self) -> int:
+        return self.W // self.cell_size
+
+    @property
+    def Hc(self) -> int:
+        return self.H // self.cell_size
+
+    @property
+    def patch_size_m(self) -> tuple[float, float]:
+        """(lateral extent along y, extent along x) in metres: nuScenes' ``patch_box`` order (h, w)."""
+        return (self.ymax - self.ymin, self.xmax - self.xmin)
+
+    @property
+    def center_m(self) -> tuple[float, float]:
+        return ((self.xmin + self.xmax) / 2, (self.ymin + self.ymax) / 2)
+
+    # --- conversions (numpy arrays or tensors, [..., 2] with (x, y) / (u, v) last) -------------
+    def _origin_scale(self, like: ArrayLike):
+        lo = [self.xmin, self.ymin]
+        if isinstance(like, torch.Tensor):
+            return like.new_tensor(lo), self.resolution
+        return np.asarray(lo, dtype=like.dtype if like.dtype.kind == "f" else np.float64), self.resolution
+
+    def m_to_px(self, pts_m: ArrayLike) -> ArrayLike:
+        lo, res = self._origin_scale(pts_m)
+        return (pts_m - lo) / res - 0.5
+
+    def px_to_m(self, pts_px: ArrayLike) -> ArrayLike:
+        lo, res = self._origin_scale(pts_px)
+        return (pts_px + 0.5) * res + lo
+
+    def px_to_norm(self, pts_px: ArrayLike) -> ArrayLike:
+        size = [self.W, self.H]
+        size = pts_px.new_tensor(size) if isinstance(pts_px, torch.Tensor) else np.asarray(size, dtype=float)
+        return (pts_px + 0.5) / size * 2 - 1
+
+    def norm_to_px(self, pts_norm: ArrayLike) -> ArrayLike:
+        size = [self.W, self.H]
+        size = pts_norm.new_tensor(size) if isinstance(pts_norm, torch.Tensor) else np.asarray(size, dtype=float)
+        return (pts_norm + 1) / 2 * size - 0.5
+
+    def m_to_norm(self, pts_m: ArrayLike) -> ArrayLike:
+        return self.px_to_norm(self.m_to_px(pts_m))
+
+    def norm_to_m(self, pts_norm: ArrayLike) -> ArrayLike:
+        return self.px_to_m(self.norm_to_px(pts_norm))
+
+    def px_index(self, pts_px: ArrayLike) -> ArrayLike:
+        """Integer (column, row) of the BEV pixel holding each point; callers check bounds."""
+        if isinstance(pts_px, torch.Tensor):
+            return torch.floor(pts_px + 0.5).long()
+        return np.floor(pts_px + 0.5).astype(np.int64)
+
+    def inside_m(self, pts_m: ArrayLike) -> ArrayLike:
+        x, y = pts_m[..., 0], pts_m[..., 1]
+        return (x >= self.xmin) & (x < self.xmax) & (y >= self.ymin) & (y < self.ymax)
+
+    def cell_centres_m(self) -> np.ndarray:
+        """Metre coordinates of every BEV pixel centre, [H, W, 2]."""
+        u, v = np.meshgrid(np.arange(self.W), np.arange(self.H))
+        return self.px_to_m(np.stack([u, v], -1).astype(np.float64))
