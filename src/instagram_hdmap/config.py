@@ -18,7 +18,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional, Union
+from typing import Any, Literal, Union
 
 import yaml
 
@@ -51,7 +51,7 @@ class GridConfig:
 class DataConfig:
     dataroot: str = "data/nuscenes"
     version: str = "v1.0-trainval"  # v1.0-trainval | v1.0-mini | any version folder of the dataroot
-    splits_file: Optional[str] = None  # custom splits.json {"train": [scene names], "val": [...]}
+    splits_file: str | None = None  # custom splits.json {"train": [scene names], "val": [...]}
     train_split: str = "train"
     val_split: str = "val"
     image_size: tuple[int, int] = (128, 352)  # (h, w) fed to the backbone
@@ -69,7 +69,7 @@ class DataConfig:
 @dataclass
 class BackboneConfig:
     name: Literal["efficientnet-b0", "efficientnet-b4", "tiny"] = "efficientnet-b4"
-    weights: Optional[str] = None  # local ImageNet checkpoint in efficientnet_pytorch's format
+    weights: str | None = None  # local ImageNet checkpoint in efficientnet_pytorch's format
     out_channels: int = 64  # C of the per-camera features handed to the view transform
 
 
@@ -137,9 +137,11 @@ class TrainConfig:
     on_nonfinite: Literal["stop", "skip"] = "stop"
     log_every: int = 10
     val_every: int = 1  # epochs
-    max_steps: Optional[int] = None  # stop early (demo, tests)
-    max_minutes: Optional[float] = None  # stop early by wall time
-    deterministic: bool = False
+    max_steps: int | None = None  # stop early (demo, tests)
+    max_minutes: float | None = None  # stop early by wall time
+    checkpoint_every: int = 500  # steps between mid-epoch saves of last.pt (0: epoch ends only)
+    deterministic: bool = False  # torch.use_deterministic_algorithms (exact resume on CPU)
+    device: Literal["auto", "cpu", "cuda"] = "auto"
 
 
 @dataclass

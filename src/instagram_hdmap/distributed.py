@@ -1,0 +1,125 @@
+"""torchrun-aware helpers: init from the environment, rank-aware printing, reductions, sampler.
+
+Works unchanged in a single process (world size 1). Under ``torchrun`` the environment variables
+``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK`` select NCCL on GPUs and gloo on CPU.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+
+import torch
+import torch.distributed as dist
+from torch.utils.data import Sampler
+
+
+def is_dist() -> bool:
+    return dist.is_available() and dist.is_initialized()
+
+
+def get_rank() -> int:
+    return dist.get_rank() if is_dist() else 0
+
+
+def get_world_size() -> int:
+    return dist.get_world_size() if is_dist() else 1
+
+
+def is_main_process() -> bool:
+    return get_rank() == 0
+
+
+def init_distributed(device_kind: str | None = None) -> torch.device:
+    """Initialise the process group if launched by torchrun; return this process's device.
+
+    ``device_kind``: "cpu" or "cuda"; ``None`` picks CUDA when available.
+    """
+    kind = device_kind or ("cuda" if torch.cuda.is_available() else "cpu")
+    if "RANK" in os.environ and "WORLD_SIZE" in os.environ and not is_dist():
+        local_rank = int(os.environ.get("LOCAL_RANK", 0))
+        backend = "nccl" if kind == "cuda" else "gloo"
+        if kind == "cuda":
+            torch.cuda.set_device(local_rank)
+        dist.init_process_group(backend=backend)
+    if kind == "cuda":
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+    return torch.device("cpu")
+
+
+def cleanup() -> None:
+    if is_dist():
+        dist.destroy_process_group()
+
+
+def barrier() -> None:
+    if is_dist():
+        dist.barrier()
+
+
+def print_main(*args, **kwargs) -> None:
+    if is_main_process():
+        print(*args, **kwargs)
+
+
+@torch.no_grad()
+def reduce_dict(values: dict[str, float | torch.Tensor], device: torch.device | None = None) -> dict[str, float]:
+    """Average scalar values over all processes (for logging); returns Python floats."""
+    keys = sorted(values)
+    if not keys:
+        return {}
+    t = torch.tensor([float(values[k]) for k in keys], dtype=torch.float64, device=device)
+    if is_dist():
+        dist.all_reduce(t)
+        t /= get_world_size()
+    return dict(zip(keys, t.tolist()))
+
+
+def all_gather_object(obj):
+    """List of ``obj`` from every rank (``[obj]`` in a single process)."""
+    if not is_dist():
+        return [obj]
+    out = [None] * get_world_size()
+    dist.all_gather_object(out, obj)
+    return out
+
+
+class ResumableSampler(Sampler[int]):
+    """DistributedSampler-like: a seeded permutation per epoch, split over ranks, that can start
+    part-way into an epoch so a resumed run sees exactly the batches it had not seen.
+
+    Like ``DistributedSampler(drop_last=False)``, the index list is padded by wrapping around so that
+    every rank gets the same number of samples.
+    """
+
+    def __init__(self, dataset_len: int, shuffle: bool = True, seed: int = 0,
+                 rank: int | None = None, world_size: int | None = None):
+        self.n = dataset_len
+        self.shuffle = shuffle
+        self.seed = seed
+        self.rank = get_rank() if rank is None else rank
+        self.world_size = get_world_size() if world_size is None else world_size
+        self.epoch = 0
+        self.start = 0  # samples of this rank's share to skip (set by the trainer on resume)
+        self.num_samples = -(-self.n // self.world_size)
+
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        self.epoch, self.start = epoch, start
+
+    def indices(self) -> list[int]:
+        if self.shuffle:
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+            order = torch.randperm(self.n, generator=g).tolist()
+        else:
+            order = list(range(self.n))
+        total = self.num_samples * self.world_size
+        order += order[: total - len(order)] if total > len(order) else []
+        while len(order) < total:  # tiny datasets with many ranks
+            order += order[: total - len(order)]
+        return order[self.rank : total : self.world_size]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.indices()[self.start :])
+
+    def __len__(self) -> int:
+        return self.num_samples - self.start

@@ -1,0 +1,194 @@
+"""The training and evaluation loops (DETR's engine.py pattern): ``train_one_epoch`` and ``evaluate``.
+
+Everything else (building parts, checkpoints, schedules) lives in train.py; these two functions
+only iterate, step, log and measure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import torch
+from tqdm import tqdm
+
+from . import distributed as du
+from .config import UserError
+
+
+class NonFiniteLossError(UserError):
+    """The loss became NaN/inf; the message names the step and the terms."""
+
+
+@dataclass
+class StepInfo:
+    epoch: int
+    step: int  # global optimisation step, after this step
+    step_in_epoch: int  # batches of this epoch consumed, after this step
+    losses: dict[str, float]
+
+
+def autocast_context(device: torch.device, amp: str):
+    """``torch.autocast`` for "bf16"/"fp16", a no-op for "none"."""
+    if amp == "none":
+        return contextlib.nullcontext()
+    dtype = torch.bfloat16 if amp == "bf16" else torch.float16
+    return torch.autocast(device_type=device.type, dtype=dtype)
+
+
+def move_to(batch: dict, device: torch.device) -> dict:
+    """Tensors of the batch to ``device``; lists (polylines, tokens) stay on the host."""
+    return {k: v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+
+
+def _scalars(d: dict) -> dict[str, float]:
+    return {k: float(v) for k, v in d.items() if isinstance(v, (int, float)) or (torch.is_tensor(v) and v.numel() == 1)}
+
+
+def train_one_epoch(
+    model: torch.nn.Module,
+    criterion: Callable[[dict, dict], dict],
+    loader: Iterable[dict],
+    optimizer: torch.optim.Optimizer,
+    device: torch.device,
+    epoch: int,
+    *,
+    global_step: int = 0,
+    step_in_epoch: int = 0,
+    amp: str = "none",
+    scaler: torch.amp.GradScaler | None = None,
+    grad_clip: float = 0.0,
+    on_nonfinite: str = "stop",
+    log_every: int = 10,
+    writer=None,
+    should_stop: Callable[[int], bool] | None = None,
+    on_step: Callable[[StepInfo], None] | None = None,
+    total: int | None = None,
+) -> dict:
+    """One pass over ``loader`` (which already starts at ``step_in_epoch`` on resume).
+
+    Returns ``{"stats": mean of each logged scalar, "global_step", "step_in_epoch", "stopped"}``;
+    ``stopped`` is True when ``should_stop(global_step)`` ended the epoch early.
+    """
+    model.train()
+    sums: dict[str, float] = defaultdict(float)
+    count = 0
+    stopped = False
+    t_last, n_last = time.perf_counter(), 0
+    bar = tqdm(loader, total=total, initial=step_in_epoch, desc=f"epoch {epoch}", dynamic_ncols=True,
+               disable=not du.is_main_process(), leave=False)
+    for batch in bar:
+        batch = move_to(batch, device)
+        with autocast_context(device, amp):
+            outputs = model(batch)
+        losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters
+        loss = losses["loss_total"]
+        global_step += 1
+        step_in_epoch += 1
+        if not torch.isfinite(loss):
+            terms = ", ".join(f"{k}={float(v):.4g}" for k, v in losses.items() if k.startswith("loss_"))
+            if on_nonfinite == "stop":
+                raise NonFiniteLossError(
+                    f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
+                    "train.amp=none, or set train.on_nonfinite=skip to skip such steps"
+                )
+            du.print_main(f"warning: skipping step {global_step} with non-finite loss ({terms})")
+            optimizer.zero_grad(set_to_none=True)
+            continue
+
+        optimizer.zero_grad(set_to_none=True)
+        if scaler is not None:
+            scaler.scale(loss).backward()
+            scaler.unscale_(optimizer)
+        else:
+            loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip if grad_clip > 0 else math.inf)
+        if scaler is not None:
+            scaler.step(optimizer)
+            scaler.update()
+        else:
+            optimizer.step()
+
+        values = _scalars(losses)
+        values["grad_norm"] = float(grad_norm)
+        if "pred_vertex_mask" in outputs:
+            values["num_vertices"] = float(outputs["pred_vertex_mask"].sum(1).float().mean())
+        for k, v in values.items():
+            sums[k] += v
+        count += 1
+
+        if global_step % log_every == 0 or step_in_epoch == 1:
+            logged = du.reduce_dict(values, device if device.type == "cuda" else None)
+            now = time.perf_counter()
+            batch_size = batch["images"].shape[0] * du.get_world_size()
+            throughput = batch_size * (count - n_last) / max(now - t_last, 1e-9)
+            t_last, n_last = now, count
+            bar.set_postfix(loss=f"{logged['loss_total']:.3f}",
+                            **{k[5:]: f"{v:.3f}" for k, v in logged.items()
+                               if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
+            if writer is not None:
+                for k, v in logged.items():
+                    writer.add_scalar(f"train/{k}", v, global_step)
+                writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
+                writer.add_scalar("train/samples_per_s", throughput, global_step)
+        if on_step is not None:
+            on_step(StepInfo(epoch, global_step, step_in_epoch, values))
+        if should_stop is not None and should_stop(global_step):
+            stopped = True
+            break
+    bar.close()
+    stats = du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
+                           device if device.type == "cuda" else None)
+    return {"stats": stats, "global_step": global_step, "step_in_epoch": step_in_epoch, "stopped": stopped}
+
+
+@torch.no_grad()
+def evaluate(
+    model: torch.nn.Module,
+    criterion: Callable[[dict, dict], dict] | None,
+    loader: Iterable[dict],
+    device: torch.device,
+    *,
+    postprocess: Callable[[dict], list[list[dict]]] | None = None,
+    evaluator=None,
+    amp: str = "none",
+    on_predictions: Callable[[list[str], list[list[dict]]], None] | None = None,
+    total: int | None = None,
+) -> dict:
+    """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
+
+    ``postprocess(outputs) -> per-sample polyline dicts`` (metres, ego frame);
+    ``evaluator.update(tokens, predictions, ground_truths)``, ``evaluator.compute()`` (gathers over ranks).
+    ``on_predictions(tokens, predictions)`` receives every batch's predictions (e.g. to write JSON).
+    """
+    model.eval()
+    sums: dict[str, float] = defaultdict(float)
+    count = 0
+    t0 = time.perf_counter()
+    n_samples = 0
+    for batch in tqdm(loader, total=total, desc="eval", dynamic_ncols=True, disable=not du.is_main_process(),
+                      leave=False):
+        batch = move_to(batch, device)
+        with autocast_context(device, amp):
+            outputs = model(batch)
+        if criterion is not None:
+            for k, v in _scalars(criterion(outputs, batch)).items():
+                sums[k] += v
+            count += 1
+        n_samples += batch["images"].shape[0]
+        if postprocess is not None:
+            preds = postprocess(outputs)
+            if evaluator is not None:
+                evaluator.update(batch["sample_token"], preds, batch["gt_polylines"])
+            if on_predictions is not None:
+                on_predictions(batch["sample_token"], preds)
+    result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
+                                       device if device.type == "cuda" else None)}
+    result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
+    if evaluator is not None:
+        result["metrics"] = evaluator.compute()
+    return result

@@ -1,0 +1,116 @@
+"""Config system: defaults, YAML overrides with _base_, CLI overrides, round trip, clear errors."""
+
+from pathlib import Path
+
+import pytest
+
+from instagram_hdmap.config import (
+    ConfigError,
+    ExperimentConfig,
+    config_to_dict,
+    diff_configs,
+    load_config,
+    parse_overrides,
+    save_config,
+)
+from instagram_hdmap.geometry import BEVGrid
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_defaults_are_the_paper_main_setting():
+    cfg = load_config()
+    assert cfg.grid.xbound == (-30.0, 30.0) and cfg.grid.ybound == (-15.0, 15.0)
+    assert cfg.grid.resolution == 0.15 and cfg.grid.cell_size == 8
+    assert cfg.model.gnn.num_vertices == 400 and cfg.model.gnn.layers == 7
+    assert (cfg.loss.vertex_weight, cfg.loss.distance_weight) == (1.0, 1.0)
+    assert (cfg.loss.adjacency_weight, cfg.loss.class_weight) == (5e-3, 1e-2)
+
+
+def test_yaml_base_and_cli_overrides(tmp_path):
+    (tmp_path / "base.yaml").write_text("model:\n  gnn:\n    layers: 3\ngrid:\n  resolution: 0.3\n")
+    (tmp_path / "exp.yaml").write_text("_base_: base.yaml\nmodel:\n  gnn:\n    num_vertices: 600\n")
+    cfg = load_config(tmp_path / "exp.yaml", ["model.gnn.layers=9", "data.image_size=[256,704]"])
+    assert cfg.model.gnn.layers == 9  # CLI beats the YAML chain
+    assert cfg.model.gnn.num_vertices == 600  # the file beats its base
+    assert cfg.grid.resolution == 0.3  # the base beats the defaults
+    assert cfg.data.image_size == (256, 704) and isinstance(cfg.data.image_size, tuple)
+
+
+def test_round_trip_save_load_is_identical(tmp_path):
+    cfg = load_config(None, ["model.gnn.embedding=pe", "train.amp=bf16", "data.splits_file=s.json"])
+    save_config(cfg, tmp_path / "config.yaml")
+    again = load_config(tmp_path / "config.yaml")
+    assert again == cfg
+    assert config_to_dict(again) == config_to_dict(cfg)
+    assert diff_configs(cfg, again) == []
+
+
+def test_unknown_key_names_it_and_lists_valid_keys():
+    with pytest.raises(ConfigError) as e:
+        load_config(None, ["model.gnn.layer=9"])
+    msg = str(e.value)
+    assert "model.gnn.layer" in msg and "layers" in msg and "num_vertices" in msg
+
+
+def test_unknown_key_in_yaml(tmp_path):
+    (tmp_path / "bad.yaml").write_text("train:\n  learning_rate: 0.1\n")
+    with pytest.raises(ConfigError, match=r"train\.learning_rate.*valid keys.*lr"):
+        load_config(tmp_path / "bad.yaml")
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("model.gnn.layers=seven", "model.gnn.layers"),
+        ("model.gnn.layers=7.5", "model.gnn.layers"),
+        ("train.lr=fast", "train.lr"),
+        ("data.augment=1", "data.augment"),
+        ("data.image_size=[128]", "data.image_size"),
+        ("model.view_transform.kind=bev", "model.view_transform.kind"),
+    ],
+)
+def test_wrong_type_names_the_key(override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(None, [override])
+
+
+def test_section_given_a_scalar_is_an_error():
+    with pytest.raises(ConfigError, match="model.gnn"):
+        load_config(None, ["model.gnn=3"])
+
+
+def test_int_is_accepted_for_float_and_normalised():
+    cfg = load_config(None, ["train.lr=1"])
+    assert cfg.train.lr == 1.0 and isinstance(cfg.train.lr, float)
+
+
+def test_cross_field_checks():
+    with pytest.raises(ConfigError, match="model.gnn.num_vertices"):
+        load_config(None, ["model.gnn.num_vertices=0"])
+    with pytest.raises(ConfigError, match="eval.thresholds"):
+        load_config(None, ["eval.thresholds=[0.5,0]"])
+    with pytest.raises(ConfigError, match="grid.xbound"):
+        load_config(None, ["grid.xbound=[30,-30]"])
+
+
+def test_override_syntax_error():
+    with pytest.raises(ConfigError, match="key.sub=value"):
+        parse_overrides(["model.gnn.layers"])
+
+
+def test_missing_file_and_cycle(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    (tmp_path / "a.yaml").write_text("_base_: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("_base_: a.yaml\n")
+    with pytest.raises(ConfigError, match="includes itself"):
+        load_config(tmp_path / "a.yaml")
+
+
+def test_every_shipped_config_loads():
+    files = sorted((REPO / "configs").rglob("*.yaml"))
+    for f in files:
+        cfg = load_config(f)
+        BEVGrid.from_config(cfg.grid)  # the grid is consistent
+    assert isinstance(ExperimentConfig(), ExperimentConfig)
