@@ -60,6 +60,18 @@ def _cmd_model_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- training --------------------------------------------------------------------------------
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .train import train
+
+    cfg = _load(args)
+    summary = train(cfg, resume=args.resume, force=args.force)
+    print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="instagram-hdmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -83,6 +95,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("model-summary", help="parameters per component and in total")
     _add_config_args(p)
     p.set_defaults(func=_cmd_model_summary)
+
+    p = sub.add_parser("train", help="train a model; torchrun-aware")
+    _add_config_args(p)
+    p.add_argument("--resume", help="checkpoint to continue from (e.g. OUT/last.pt)")
+    p.add_argument("--force", action="store_true", help="start over in an output folder that holds a run")
+    p.set_defaults(func=_cmd_train)
 
     return parser
 
