@@ -70,26 +70,31 @@ class DataConfig:
 class BackboneConfig:
     name: Literal["efficientnet-b0", "efficientnet-b4", "tiny"] = "efficientnet-b4"
     weights: str | None = None  # local ImageNet checkpoint in efficientnet_pytorch's format
-    out_channels: int = 64  # C of the per-camera features handed to the view transform
+    # C of the per-camera features handed to the view transform (reduction 4 + 5 fused by an up-block).
+    # The official code uses 256 with LSS and 64 with IPM / MLP (configs/paper/table5_*.yaml).
+    out_channels: int = 256
 
 
 @dataclass
 class ViewTransformConfig:
     kind: Literal["lss", "ipm", "mlp"] = "lss"
     depth_bound: tuple[float, float, float] = (4.0, 45.0, 1.0)  # LSS depth bins: start, stop, step (m)
-    # LSS / IPM splat onto a BEV grid of this resolution (metres); the BEV feature is at half the
-    # output resolution, as in the paper (W/2 x H/2 x 256).
+    # The view transform writes a BEV grid `bev_downsample` times coarser than the output grid: 2 (our
+    # default) splats straight onto the half-resolution grid of F_bev (W/2 x H/2); 1 splats at full
+    # resolution and the BEV encoder's stem convolution strides by 2 (the official layout, slower).
     bev_downsample: int = 2
     zbound: tuple[float, float] = (-10.0, 10.0)  # LSS vertical extent of the voxel pillar
     ipm_height: float = 0.0  # IPM ground-plane height in the ego frame (m)
     mlp_bev_downsample: int = 5  # HDMapNet MLP: per-camera BEV of (H/5) x (W/5)
+    num_cameras: int = 6  # MLP only: one fully connected view transform per camera
 
 
 @dataclass
 class BEVHeadsConfig:
     channels: int = 256  # F_bev channels
-    num_res_blocks: int = 3
-    head_channels: int = 128
+    # "3 residual blocks": ResNet-18 stages layer1..3, two BasicBlocks each, strides 1, 2, 2
+    stage_channels: tuple[int, ...] = (64, 128, 256)
+    head_channels: int = 128  # hidden width of the vertex and distance-transform heads
 
 
 @dataclass
@@ -120,6 +125,8 @@ class LossConfig:
     adjacency_weight: float = 5e-3  # lambda_3, bidirectional adjacency NLL
     class_weight: float = 1e-2  # lambda_4, vertex class NLL
     match_dist: float = 1.5  # D_0, metres: a predicted vertex farther from every GT vertex is unmatched
+    # adjacency targets skip GT vertices that no prediction represents (assignment.py); False: dustbin
+    skip_missed_vertices: bool = True
 
 
 @dataclass

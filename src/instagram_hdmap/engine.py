@@ -46,7 +46,14 @@ def move_to(batch: dict, device: torch.device) -> dict:
 
 
 def _scalars(d: dict) -> dict[str, float]:
-    return {k: float(v) for k, v in d.items() if isinstance(v, (int, float)) or (torch.is_tensor(v) and v.numel() == 1)}
+    """The scalar entries of a loss dict as Python floats (for logging)."""
+    out = {}
+    for k, v in d.items():
+        if torch.is_tensor(v) and v.numel() == 1:
+            out[k] = float(v.detach())
+        elif isinstance(v, (int, float)):
+            out[k] = float(v)
+    return out
 
 
 def train_one_epoch(

@@ -89,7 +89,10 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
     train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, collate_fn=collate_fn,
                               num_workers=cfg.data.num_workers, worker_init_fn=_worker_init,
-                              drop_last=False, persistent_workers=False)
+                              drop_last=False, persistent_workers=False,
+                              # its own generator: making an iterator must not draw from the global
+                              # torch RNG, whose state the checkpoint restores for exact resume
+                              generator=torch.Generator().manual_seed(cfg.train.seed))
     val_loader = None
     if with_val:
         val_set = NuScenesMapDataset(cfg, cfg.data.val_split, nusc=train_set.nusc, augment=False)

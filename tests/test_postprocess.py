@@ -1,0 +1,303 @@
+"""postprocess.py: log assignment -> polylines / polygons; round trip from the GT graph."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from instagram_hdmap.assignment import target_log_assignment
+from instagram_hdmap.postprocess import postprocess_batch, trace_instances, vertex_neighbours
+from test_assignment import GRID, graph_tensors, line, random_scene, run_assign, square
+
+K = 3
+
+
+def perfect_outputs(scenes, N: int, seed: int = 0, endpoint_mass: str = "dustbin"):
+    """Predicted vertices = GT vertices (shuffled, padded with junk), graph head = the assignment's
+    targets. ``endpoint_mass``: 'dustbin' (1/2 neighbour + 1/2 dustbin at a line end, the training
+    target) or 'neighbour' (log 1 on the single neighbour)."""
+    gen = torch.Generator().manual_seed(seed)
+    gt = graph_tensors(scenes)
+    B = len(scenes)
+    pred = torch.rand(B, N, 2, generator=gen) * 300  # junk on padding
+    mask = torch.zeros(B, N, dtype=torch.bool)
+    for b in range(B):
+        m = int(gt["gt_vertex_mask"][b].sum())
+        perm = torch.randperm(m, generator=gen)
+        pred[b, :m] = gt["gt_vertices_px"][b, perm]
+        mask[b, :m] = True
+    asg = run_assign(pred, mask, gt)
+    tn, tp = asg["target_next"], asg["target_prev"]
+    if endpoint_mass == "neighbour":
+        tn = torch.where((tn == N) & (tp != N), tp, tn)
+        tp = torch.where((tp == N) & (tn != N), tn, tp)
+    log_assignment = target_log_assignment(tn, tp)
+    labels = asg["target_class"].clamp(min=0)
+    class_log_probs = (torch.nn.functional.one_hot(labels, K).float() * 0.9 + 0.1 / K).log()
+    return {
+        "pred_vertices_px": pred,
+        "pred_vertex_mask": mask,
+        "pred_vertex_scores": mask.float() * 0.8,
+        "pred_class_log_probs": class_log_probs,
+        "pred_log_assignment": log_assignment,
+    }
+
+
+def canonical(pts: np.ndarray, closed: bool) -> tuple:
+    """A polyline up to its direction (and, if closed, its starting point), rounded to 1e-4 m."""
+    p = [tuple(np.round(q, 4)) for q in pts]
+    if closed:
+        assert p[0] == p[-1]
+        p = p[:-1]
+        cands = []
+        for seq in (p, p[::-1]):
+            for r in range(len(seq)):
+                cands.append(tuple(seq[r:] + seq[:r]))
+        return min(cands)
+    return min(tuple(p), tuple(p[::-1]))
+
+
+def as_set(instances) -> set:
+    return {(canonical(d["pts"], d["closed"]), d["label"], d["closed"]) for d in instances}
+
+
+def gt_set(scene) -> set:
+    out = set()
+    for pts, label, closed in scene:
+        pts_m = GRID.px_to_m(np.asarray(pts, np.float64))
+        if closed:
+            pts_m = np.concatenate([pts_m, pts_m[:1]])
+        out.add((canonical(pts_m, closed), label, closed))
+    return out
+
+
+SCENES = [
+    [(line([10, 10], [10, 70], 6), 0, False), (square(100, 50, 15), 1, True),
+     (line([200, 20], [260, 20], 5), 2, False), (line([300, 100], [320, 100], 2), 0, False),
+     (np.array([[150, 150], [180, 150], [165, 175]], np.float32), 1, True)],
+    [],
+    [(line([50, 150], [50, 100], 4), 2, False)],
+]
+
+
+@pytest.mark.parametrize("endpoint_mass", ["dustbin", "neighbour"])
+def test_round_trip_gt_graph_to_polylines(endpoint_mass):
+    out = postprocess_batch(perfect_outputs(SCENES, N=40, endpoint_mass=endpoint_mass), GRID)
+    assert len(out) == len(SCENES)
+    for scene, pred in zip(SCENES, out):
+        assert as_set(pred) == gt_set(scene)
+        for d in pred:
+            assert d["pts"].dtype == np.float64 and d["pts"].shape[1] == 2
+            assert d["score"] == pytest.approx(0.9 * 0.8 + 0.1 / K * 0.8, rel=1e-4)
+            if d["closed"]:
+                assert len(d["pts"]) >= 4 and np.array_equal(d["pts"][0], d["pts"][-1])
+
+
+def test_round_trip_on_random_scenes_and_batched_equals_one_by_one():
+    rng = np.random.default_rng(3)
+    scenes = [random_scene(rng, int(rng.integers(0, 6))) for _ in range(4)]
+    outputs = perfect_outputs(scenes, N=45, seed=1)
+    batched = postprocess_batch(outputs, GRID)
+    for b, scene in enumerate(scenes):
+        assert as_set(batched[b]) == gt_set(scene)
+        n = int(outputs["pred_vertex_mask"][b].sum())
+        # one sample alone, without padding (dustbin moved from 45 to n)
+        keep = list(range(n)) + [45]
+        one = {k: v[b : b + 1, :n] for k, v in outputs.items() if k != "pred_log_assignment"}
+        one["pred_log_assignment"] = outputs["pred_log_assignment"][b : b + 1][:, keep][:, :, keep]
+        single = postprocess_batch(one, GRID)[0]
+        assert len(single) == len(batched[b])
+        for x, y in zip(single, batched[b]):
+            assert np.array_equal(x["pts"], y["pts"]) and x["label"] == y["label"] and x["closed"] == y["closed"]
+            assert x["score"] == pytest.approx(y["score"], rel=1e-6)
+
+
+def test_empty_inputs():
+    for N in (0, 1, 5):
+        outputs = {
+            "pred_vertices_px": torch.zeros(2, N, 2),
+            "pred_vertex_mask": torch.zeros(2, N, dtype=torch.bool),
+            "pred_vertex_scores": torch.zeros(2, N),
+            "pred_class_log_probs": torch.zeros(2, N, K),
+            "pred_log_assignment": torch.zeros(2, N + 1, N + 1),
+        }
+        assert postprocess_batch(outputs, GRID) == [[], []]
+    with pytest.raises(KeyError, match="pred_log_assignment"):
+        postprocess_batch({"pred_vertex_mask": torch.zeros(1, 2, dtype=torch.bool)}, GRID)
+
+
+def chain_outputs(P: torch.Tensor, pts_px=None):
+    """Outputs for one sample with the given [N+1, N+1] assignment probabilities."""
+    N = P.shape[0] - 1
+    pts = torch.stack([torch.full((N,), 50.0), 20.0 + 10 * torch.arange(N, dtype=torch.float32)], 1)
+    return {
+        "pred_vertices_px": (pts if pts_px is None else pts_px)[None],
+        "pred_vertex_mask": torch.ones(1, N, dtype=torch.bool),
+        "pred_vertex_scores": torch.ones(1, N),
+        "pred_class_log_probs": torch.full((1, N, K), 1.0 / K).log(),
+        "pred_log_assignment": P.clamp(min=1e-9).log()[None],
+    }
+
+
+def line_probs(N: int) -> torch.Tensor:
+    """A chain 0 - 1 - ... - N-1 with the bidirectional target distribution."""
+    P = torch.zeros(N + 1, N + 1)
+    for i in range(N):
+        for j in (i - 1, i + 1):
+            P[i, j if 0 <= j < N else N] += 0.5
+    P[N] = 1.0 / (N + 1)
+    return P
+
+
+def test_a_weak_edge_splits_the_chain_and_isolated_vertices_are_dropped():
+    P = line_probs(6)
+    out = postprocess_batch(chain_outputs(P), GRID)[0]
+    assert len(out) == 1 and len(out[0]["pts"]) == 6
+    # edge 2-3 just below the threshold in both directions -> two polylines 0..2 and 3..5
+    Q = P.clone()
+    for i, j in ((2, 3), (3, 2)):
+        Q[i, j], Q[i, 6] = 0.09, 0.41
+    out = postprocess_batch(chain_outputs(Q), GRID, match_threshold=0.1)[0]
+    assert sorted(len(d["pts"]) for d in out) == [3, 3]
+    # a lower threshold keeps it
+    assert len(postprocess_batch(chain_outputs(Q), GRID, match_threshold=0.05)[0]) == 1
+    # weak in one direction only: not mutual -> split as well
+    Q = P.clone()
+    Q[2, 3], Q[2, 6] = 0.05, 0.45
+    assert sorted(len(d["pts"]) for d in postprocess_batch(chain_outputs(Q), GRID)[0]) == [3, 3]
+    # vertex 5's edge falls below the threshold: it is dropped, the rest stays one polyline
+    Q = P.clone()
+    for i, j in ((4, 5), (5, 4)):
+        Q[i, j], Q[i, 6] = 0.08, 0.42
+    out = postprocess_batch(chain_outputs(Q), GRID)[0]
+    assert len(out) == 1 and len(out[0]["pts"]) == 5
+    kept_y = sorted(np.round(out[0]["pts"][:, 1], 4).tolist())
+    all_y = GRID.px_to_m(chain_outputs(Q)["pred_vertices_px"][0].numpy().astype(np.float64))[:, 1]
+    assert kept_y == sorted(np.round(all_y[:5], 4).tolist())
+
+
+def test_only_the_two_best_columns_count():
+    # vertex 1 has three neighbours above the threshold: the weakest (to 3) is dropped
+    N = 4
+    P = torch.zeros(N + 1, N + 1)
+    P[0, 1], P[0, N] = 0.5, 0.5
+    P[1, 0], P[1, 2], P[1, 3] = 0.4, 0.35, 0.25
+    P[2, 1], P[2, N] = 0.5, 0.5
+    P[3, 1], P[3, N] = 0.6, 0.4
+    P[N] = 0.2
+    nbr = vertex_neighbours(P.log()[None], torch.ones(1, N, dtype=torch.bool))[0]
+    assert nbr.tolist() == [[1, -1], [0, 2], [1, -1], [-1, -1]]
+
+
+def test_instance_class_and_score_rule():
+    P = line_probs(3)
+    outputs = chain_outputs(P)
+    probs = torch.tensor([[0.6, 0.3, 0.1], [0.1, 0.5, 0.4], [0.1, 0.45, 0.45]])
+    outputs["pred_class_log_probs"] = probs.log()[None]
+    outputs["pred_vertex_scores"] = torch.tensor([[0.9, 0.6, 0.3]])
+    (inst,) = postprocess_batch(outputs, GRID)[0]
+    # mean probs = (0.2667, 0.4167, 0.3167) -> class 1; score = 0.4167 * mean(0.9, 0.6, 0.3) = 0.25
+    assert inst["label"] == 1
+    assert inst["score"] == pytest.approx((1.25 / 3) * 0.6, rel=1e-5)
+    # the official decoder's rule: edges only between vertices of the same argmax class
+    split = postprocess_batch(outputs, GRID, same_class_edges=True)[0]
+    # argmax classes 0, 1, 1 (a tie resolves to the first index): edge 0-1 goes, 1-2 stays
+    assert [(len(d["pts"]), d["label"]) for d in split] == [(2, 1)]
+
+
+def test_neighbours_are_symmetric_with_degree_at_most_two_on_random_assignments():
+    gen = torch.Generator().manual_seed(4)
+    B, N = 3, 30
+    logA = (torch.randn(B, N + 1, N + 1, generator=gen) * 3).log_softmax(-1)
+    mask = torch.rand(B, N, generator=gen) < 0.8
+    nbr = vertex_neighbours(logA, mask, 0.05)
+    assert (nbr[~mask] == -1).all()
+    assert ((nbr[..., 0] >= 0) | (nbr[..., 1] < 0)).all()  # a single neighbour sits in slot 0
+    P = logA.exp()
+    for b in range(B):
+        for i in range(N):
+            for j in nbr[b, i].tolist():
+                if j >= 0:
+                    assert mask[b, j] and j != i and i in nbr[b, j].tolist()
+                    assert P[b, i, j] > 0.05 and P[b, j, i] > 0.05
+    for b in range(B):  # batched equals one at a time
+        one = vertex_neighbours(logA[b : b + 1], mask[b : b + 1], 0.05)
+        assert torch.equal(one[0], nbr[b])
+
+
+def test_trace_instances_paths_cycles_and_min_vertices():
+    # path 4-0-2, cycle 1-3-5-6, pair 7-8, isolated 9
+    nbr = {0: (4, 2), 2: (0, -1), 4: (0, -1), 1: (3, 6), 3: (1, 5), 5: (3, 6), 6: (5, 1), 7: (8, -1),
+           8: (7, -1), 9: (-1, -1)}
+    n0 = [nbr[i][0] for i in range(10)]
+    n1 = [nbr[i][1] for i in range(10)]
+    out = trace_instances(n0, n1)
+    assert out == [([2, 0, 4], False), ([7, 8], False), ([1, 3, 5, 6], True)]
+    assert trace_instances(n0, n1, min_vertices=3) == [([2, 0, 4], False), ([1, 3, 5, 6], True)]
+    assert trace_instances([], []) == []
+
+
+def test_metres_follow_the_grid():
+    P = line_probs(2)
+    pts = torch.tensor([[0.0, 0.0], [399.0, 199.0]])
+    (inst,) = postprocess_batch(chain_outputs(P, pts), GRID)[0]
+    got = sorted(map(tuple, np.round(inst["pts"], 6)))
+    assert got == [(-29.925, -14.925), (29.925, 14.925)]
+    assert not math.isnan(inst["score"])
+
+
+def test_round_trip_through_the_target_builder():
+    """Polylines (metres) -> targets.vertex_graph -> assignment -> perfect log assignment ->
+    postprocess_batch gives back the GT graph's polylines (targets.graph_to_polylines)."""
+    from instagram_hdmap.targets import graph_to_polylines, vertex_graph
+
+    rng = np.random.default_rng(5)
+    samples = []
+    for _ in range(3):
+        polys = []
+        for k in range(int(rng.integers(1, 6))):
+            x0, y0 = rng.uniform(-25, 20), rng.uniform(-12, 10)
+            if k % 3 == 2:  # a crossing: closed rectangle, first point repeated
+                pts = np.array([[x0, y0], [x0 + 4, y0], [x0 + 4, y0 + 3], [x0, y0 + 3], [x0, y0]])
+                polys.append({"pts": pts, "label": 1, "closed": True})
+            else:
+                t = np.arange(int(rng.integers(2, 12)))[:, None] * 1.5
+                d = rng.normal(size=2)
+                pts = np.array([x0, y0]) + t * d / np.linalg.norm(d)
+                polys.append({"pts": pts, "label": int(rng.choice([0, 2])), "closed": False})
+        samples.append(polys)
+    graphs = [vertex_graph(p, GRID) for p in samples]
+    B, M, N = len(graphs), max(len(g["gt_vertices_px"]) for g in graphs), 64
+    gt = {"gt_vertices_px": torch.zeros(B, M, 2), "gt_vertex_mask": torch.zeros(B, M, dtype=torch.bool)}
+    for k in ("labels", "next", "prev"):
+        gt[f"gt_vertex_{k}"] = torch.full((B, M), -1, dtype=torch.long)
+    pred = torch.zeros(B, N, 2)
+    mask = torch.zeros(B, N, dtype=torch.bool)
+    for b, g in enumerate(graphs):
+        m = len(g["gt_vertices_px"])
+        gt["gt_vertices_px"][b, :m] = g["gt_vertices_px"]
+        gt["gt_vertex_mask"][b, :m] = True
+        for k in ("labels", "next", "prev"):
+            gt[f"gt_vertex_{k}"][b, :m] = g[f"gt_vertex_{k}"]
+        pred[b, :m] = g["gt_vertices_px"].flip(0)  # reversed order
+        mask[b, :m] = True
+    asg = run_assign(pred, mask, gt)
+    outputs = {
+        "pred_vertices_px": pred, "pred_vertex_mask": mask, "pred_vertex_scores": mask.float(),
+        "pred_class_log_probs": torch.nn.functional.one_hot(asg["target_class"].clamp(min=0), K).float()
+        .clamp(min=1e-6).log(),
+        "pred_log_assignment": target_log_assignment(asg["target_next"], asg["target_prev"]),
+    }
+    decoded = postprocess_batch(outputs, GRID)
+    n_closed = 0
+    for b, g in enumerate(graphs):
+        expect = graph_to_polylines(GRID.px_to_m(g["gt_vertices_px"].double().numpy()), g["gt_vertex_labels"],
+                                    g["gt_vertex_next"])
+        assert len(expect) > 0
+        assert as_set(decoded[b]) == as_set(expect)
+        assert sum(d["closed"] for d in decoded[b]) == sum(d["closed"] for d in expect)
+        n_closed += sum(d["closed"] for d in expect)
+    assert n_closed > 0  # the case exercises closed shapes

@@ -1,0 +1,175 @@
+"""Training: exact resume, refusal to overwrite, DDP weight agreement, and overfitting a few samples.
+
+The data here is a small in-memory dataset (random images, hand-made polylines turned into targets
+by targets.build_targets) so these tests exercise the engine, not the loader; the synthetic-world
+loader is covered in test_dataset.py and the demo test.
+"""
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint
+from instagram_hdmap.config import UserError, load_config
+from instagram_hdmap.data.nuscenes import collate_fn
+from instagram_hdmap.distributed import ResumableSampler
+from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.targets import build_targets
+from instagram_hdmap.train import train
+
+TINY = [
+    "model.backbone.name=tiny", "model.backbone.out_channels=16", "data.image_size=[32,64]",
+    "grid.xbound=[-8.0,8.0]", "grid.ybound=[-4.0,4.0]", "grid.resolution=0.25", "grid.cell_size=4",
+    "model.view_transform.depth_bound=[1.0,12.0,1.0]", "model.bev_heads.channels=32",
+    "model.bev_heads.stage_channels=[16,32,32]", "model.bev_heads.head_channels=16",
+    "model.gnn.num_vertices=48", "model.gnn.dim=32", "model.gnn.layers=1", "model.gnn.sinkhorn_iters=20",
+    "train.batch_size=2", "train.log_every=1", "train.checkpoint_every=0", "data.num_workers=0",
+    "train.deterministic=true",
+]
+
+
+def _tiny_cfg(tmp_path, *extra):
+    return load_config(None, [*TINY, f"train.out_dir={tmp_path / 'run'}", *extra])
+
+
+class ToyMaps(Dataset):
+    """n samples: one divider, one ped crossing (closed), one boundary at seeded random offsets."""
+
+    def __init__(self, cfg, n: int = 4, seed: int = 0):
+        self.cfg, self.grid = cfg, BEVGrid.from_config(cfg.grid)
+        self.items = []
+        rng = np.random.default_rng(seed)
+        h, w = cfg.data.image_size
+        for i in range(n):
+            dy = rng.uniform(-2, 2)
+            x = np.linspace(-7, 7, 12)
+            polys = [
+                {"pts": np.stack([x, np.full_like(x, dy)], 1), "label": 0, "closed": False},
+                {"pts": np.array([[2, -3.5], [4, -3.5], [4, -1.5], [2, -1.5], [2, -3.5]]) + [rng.uniform(-4, 2), 0],
+                 "label": 1, "closed": True},
+                {"pts": np.stack([x, np.full_like(x, 3.0 + 0.3 * dy)], 1), "label": 2, "closed": False},
+            ]
+            eye = torch.eye(3).expand(6, 3, 3).clone()
+            self.items.append({
+                "images": torch.from_numpy(rng.standard_normal((6, 3, h, w)).astype(np.float32)),
+                "intrinsics": torch.tensor([[30.0, 0, w / 2], [0, 30.0, h / 2], [0, 0, 1]]).expand(6, 3, 3).clone(),
+                "cam_to_ego_rot": torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]).expand(6, 3, 3).clone(),
+                "cam_to_ego_trans": torch.tensor([0.0, 0, 1.5]).expand(6, 3).clone(),
+                "post_rot": eye, "post_tran": torch.zeros(6, 3), "ego_pose": torch.eye(4),
+                "sample_token": f"toy{i}", "gt_polylines": polys,
+                **build_targets(polys, self.grid, 3, cfg.data.dt_clip),
+            })
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, i):
+        return self.items[i]
+
+
+def _loaders(cfg, n=4):
+    ds = ToyMaps(cfg, n)
+    sampler = ResumableSampler(len(ds), seed=cfg.train.seed)
+    loader = DataLoader(ds, batch_size=cfg.train.batch_size, sampler=sampler, collate_fn=collate_fn,
+                        generator=torch.Generator().manual_seed(0))
+    return loader, sampler, None
+
+
+def _weights(path):
+    return load_checkpoint(path)["model"]
+
+
+def test_resume_reaches_exactly_the_uninterrupted_weights(tmp_path):
+    # 3 epochs x 2 steps; the interrupted run stops after 3 steps (mid-epoch 1) and resumes.
+    full = _tiny_cfg(tmp_path / "a", "train.epochs=3")
+    train(full, loaders=_loaders(full), validate=False)
+    part = _tiny_cfg(tmp_path / "b", "train.epochs=3", "train.max_steps=3")
+    train(part, loaders=_loaders(part), validate=False)
+    state = load_checkpoint(tmp_path / "b" / "run" / "last.pt")
+    assert (state["epoch"], state["step"], state["step_in_epoch"]) == (1, 3, 1)
+    rest = _tiny_cfg(tmp_path / "b", "train.epochs=3")
+    train(rest, loaders=_loaders(rest), validate=False, resume=str(tmp_path / "b" / "run" / "last.pt"))
+    a, b = _weights(tmp_path / "a" / "run" / "last.pt"), _weights(tmp_path / "b" / "run" / "last.pt")
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert load_checkpoint(tmp_path / "b" / "run" / "last.pt")["step"] == 6
+
+
+def test_refuses_to_overwrite_a_run_and_checks_resume_config(tmp_path):
+    cfg = _tiny_cfg(tmp_path, "train.epochs=1")
+    train(cfg, loaders=_loaders(cfg), validate=False)
+    with pytest.raises(UserError, match="already holds a run"):
+        train(cfg, loaders=_loaders(cfg), validate=False)
+    other = _tiny_cfg(tmp_path, "train.epochs=2", "model.gnn.layers=2")
+    with pytest.raises(CheckpointError, match=r"model\.gnn\.layers: checkpoint 1 vs now 2"):
+        train(other, loaders=_loaders(other), validate=False, resume=str(tmp_path / "run" / "last.pt"))
+    with pytest.raises(CheckpointError, match="not found"):
+        train(cfg, loaders=_loaders(cfg), validate=False, resume=str(tmp_path / "missing.pt"))
+
+
+def _ddp_worker(rank: int, world: int, port: int, out: str, cfg_dir: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    from instagram_hdmap import distributed as du
+    from instagram_hdmap.engine import train_one_epoch
+    from instagram_hdmap.losses import Criterion
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(None, [*TINY, f"train.out_dir={cfg_dir}"])
+    device = du.init_distributed("cpu")
+    torch.manual_seed(0)  # same initial weights on both ranks (DDP also broadcasts them)
+    model = build_model(cfg)
+    net = torch.nn.parallel.DistributedDataParallel(model)
+    ds = ToyMaps(cfg, 4)
+    sampler = ResumableSampler(len(ds), seed=0)
+    loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate_fn)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    checks = []
+
+    def on_step(info):
+        flat = torch.cat([p.detach().flatten() for p in model.parameters()])
+        gathered = du.all_gather_object(flat)
+        checks.append(all(torch.equal(gathered[0], g) for g in gathered))
+
+    train_one_epoch(net, Criterion(cfg.loss, BEVGrid.from_config(cfg.grid)), loader, opt, device, 0, on_step=on_step)
+    if rank == 0:
+        torch.save({"checks": checks, "samples": len(sampler)}, out)
+    du.cleanup()
+
+
+def test_ddp_two_cpu_processes_keep_identical_weights(tmp_path):
+    import socket
+
+    import torch.multiprocessing as mp
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "ddp.pt"
+    mp.spawn(_ddp_worker, args=(2, port, str(out), str(tmp_path / "run")), nprocs=2, join=True)
+    res = torch.load(out, weights_only=True)
+    assert res["samples"] == 2  # each rank saw half of the 4 samples
+    assert res["checks"] == [True, True]  # identical weights on both ranks after each step
+
+
+def test_nonfinite_loss_stops_with_the_step_and_terms(tmp_path, monkeypatch):
+    from instagram_hdmap import losses
+    from instagram_hdmap.engine import NonFiniteLossError
+
+    cfg = _tiny_cfg(tmp_path, "train.epochs=1")
+    real = losses.Criterion.forward
+
+    def poisoned(self, outputs, batch, assignment=None):
+        out = real(self, outputs, batch, assignment)
+        out["loss_total"] = out["loss_total"] * math.nan
+        return out
+
+    monkeypatch.setattr(losses.Criterion, "forward", poisoned)
+    with pytest.raises(NonFiniteLossError, match=r"step 1: .*loss_vertex="):
+        train(cfg, loaders=_loaders(cfg), validate=False)
