@@ -49,9 +49,14 @@ class GridConfig:
 
 @dataclass
 class DataConfig:
+    """Dataset, local map, images and targets (data/nuscenes.py, data/local_map.py, data/transforms.py,
+    targets.py)."""
+
     dataroot: str = "data/nuscenes"
     version: str = "v1.0-trainval"  # v1.0-trainval | v1.0-mini | any version folder of the dataroot
-    splits_file: str | None = None  # custom splits.json {"train": [scene names], "val": [...]}
+    # custom splits.json {"train": [scene names], "val": [...]}, overrides the official splits; a
+    # relative path is looked up in the working directory, then in the dataroot
+    splits_file: str | None = None
     train_split: str = "train"
     val_split: str = "val"
     image_size: tuple[int, int] = (128, 352)  # (h, w) fed to the backbone
@@ -59,9 +64,10 @@ class DataConfig:
     classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
     dt_clip: float = 10.0  # distance transform clipped to [0, dt_clip] BEV pixels
     augment: bool = False  # train-time image augmentation (scale, crop, rotate)
-    aug_scale: tuple[float, float] = (0.95, 1.05)
-    aug_rotate_deg: float = 5.4
-    aug_crop_jitter: float = 0.05  # fraction of the image size
+    aug_scale: tuple[float, float] = (0.95, 1.05)  # uniform factor on the resize
+    aug_rotate_deg: float = 5.4  # uniform in [-aug_rotate_deg, aug_rotate_deg], about the image centre
+    aug_crop_jitter: float = 0.05  # crop window shift, uniform in +-fraction of the image size
+    # raise: a UserError naming the file and sample; skip: warn once per bad sample, use the next good one
     on_bad_sample: Literal["raise", "skip"] = "raise"
     num_workers: int = 4
 
@@ -156,6 +162,10 @@ class EvalConfig:
     protocol: Literal["vector", "raster"] = "vector"
     thresholds: tuple[float, ...] = (0.5, 1.0, 1.5)
     batch_size: int = 4
+    # raster protocol only: "ascending" reproduces the reference's PR curve order (a bug the
+    # InstaGraM paper's numbers carry), "descending" fixes it
+    rank_by: Literal["ascending", "descending"] = "ascending"
+    fix_instance_ids: bool = False  # raster only: int32 ids, each instance keeps its own confidence
 
 
 @dataclass

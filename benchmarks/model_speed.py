@@ -1,0 +1,166 @@
+"""Forward latency of InstaGraM per component (batch 1, six cameras), printed as a table.
+
+    python benchmarks/model_speed.py                      # CPU, 2 threads, B0 and B4 with LSS, 128x352
+    python benchmarks/model_speed.py --runs 9 --threads 2
+    python benchmarks/model_speed.py --device cuda        # + GPU latency / FPS, fp32 and bf16 autocast
+
+Each component is timed by calling the model's parts in the order of ``InstaGraM.forward`` (backbone,
+view transform, BEV heads, then the graph head's vertex extraction, embedding + GNN + class head,
+matching head + Sinkhorn); "total" times ``model(batch)`` itself. Medians over ``--runs`` after a
+warm-up. Random weights and images, a nuScenes-like six-camera rig; eval mode, no autograd.
+
+Reference (official implementation on the 2-core CPU machine of this project, 2 threads): B0 1.44 s,
+B4 1.62 s per forward; BEV encoder + heads 1.07 s; graph head 0.12 s (vertex extraction 27 ms, GNN
+47 ms, Sinkhorn 41 ms).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+
+from instagram_hdmap.config import load_config
+from instagram_hdmap.models import build_model
+from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
+
+CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
+GPU_CONFIGS = [*CPU_CONFIGS, "configs/paper/table1_b4_lss_256x704.yaml"]
+REFERENCE_MS = {"efficientnet-b0": 1440.0, "efficientnet-b4": 1620.0}
+
+
+def example_batch(image_size: tuple[int, int], device: torch.device, num_cameras: int = 6) -> dict:
+    """Batch of one sample: random images, a nuScenes-like rig (1266 px focal length on 1600x900
+    images resized to the network width and cropped at the top)."""
+    h, w = image_size
+    to_ego = torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera (x right, y down, z fwd) -> ego
+    rots, trans = [], []
+    for yaw_deg in (55, 0, -55, 110, 180, -110)[:num_cameras]:
+        a = math.radians(yaw_deg)
+        yaw = torch.tensor([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]])
+        rots.append(yaw @ to_ego)
+        trans.append(torch.tensor([math.cos(a), 0.5 * math.sin(a), 1.6]))
+    scale = w / 1600
+    batch = {
+        "images": torch.randn(1, num_cameras, 3, h, w),
+        "intrinsics": torch.tensor([[1266.0, 0, 800], [0, 1266, 450], [0, 0, 1]]).expand(1, num_cameras, 3, 3),
+        "cam_to_ego_rot": torch.stack(rots)[None],
+        "cam_to_ego_trans": torch.stack(trans)[None],
+        "post_rot": torch.diag(torch.tensor([scale, scale, 1.0])).expand(1, num_cameras, 3, 3),
+        "post_tran": torch.tensor([0.0, h - 900 * scale, 0]).expand(1, num_cameras, 3),
+    }
+    return {k: v.to(device) for k, v in batch.items()}
+
+
+def _median_ms(fn: Callable[[], object], runs: int, sync: Callable[[], None], warmup: int) -> float:
+    for _ in range(warmup):
+        fn()
+    sync()
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+@torch.inference_mode()
+def time_components(model, batch: dict, runs: int, sync: Callable[[], None], warmup: int = 1) -> dict[str, float]:
+    """Median milliseconds per component and for the whole forward."""
+    images = batch["images"]
+    B, V = images.shape[:2]
+    calib = {k: batch[k] for k in CALIBRATION_KEYS}
+    gh = model.graph_head
+    # Intermediate results, computed once, feed the next component's timing.
+    features = model.backbone(images.flatten(0, 1)).unflatten(0, (B, V))
+    bev = model.view_transform(features, calib)
+    heads = model.bev_heads(bev)
+    vertices = gh.extract(heads["pred_vertex_logits"])
+    g = gh.gnn(gh.embed(vertices, heads["pred_distance"], heads["bev_features"]), vertices["mask"])
+
+    def graph_network():
+        out = gh.gnn(gh.embed(vertices, heads["pred_distance"], heads["bev_features"]), vertices["mask"])
+        return F.log_softmax(gh.class_head(out), dim=-1)
+
+    parts = {
+        "backbone": lambda: model.backbone(images.flatten(0, 1)),
+        "view transform": lambda: model.view_transform(features, calib),
+        "BEV heads": lambda: model.bev_heads(bev),
+        "vertex extraction": lambda: gh.extract(heads["pred_vertex_logits"]),
+        "embedding + GNN": graph_network,
+        "Sinkhorn (+ match head)": lambda: gh.match(g, vertices["mask"]),
+        "total forward": lambda: model(batch),
+    }
+    return {name: _median_ms(fn, runs, sync, warmup) for name, fn in parts.items()}
+
+
+def _table(columns: dict[str, dict[str, float]], reference: dict[str, float] | None = None) -> str:
+    names = list(next(iter(columns.values())))
+    width = max(len(n) for n in names) + 2
+    lines = [f"{'ms (median)':<{width}}" + "".join(f"{c:>18}" for c in columns)]
+    lines += [f"{n:<{width}}" + "".join(f"{col[n]:>18.1f}" for col in columns.values()) for n in names]
+    if reference:
+        lines.append(f"{'official total':<{width}}" + "".join(f"{reference[c]:>18.1f}" for c in columns))
+        ratio = [columns[c]["total forward"] / reference[c] for c in columns]
+        lines.append(f"{'ratio to official':<{width}}" + "".join(f"{r:>18.2f}" for r in ratio))
+    return "\n".join(lines)
+
+
+def run_cpu(args: argparse.Namespace) -> None:
+    torch.set_num_threads(args.threads)
+    columns, reference = {}, {}
+    for path in args.configs or CPU_CONFIGS:
+        cfg = load_config(path)
+        model = build_model(cfg).eval()
+        name = cfg.model.backbone.name
+        columns[name] = time_components(model, example_batch(cfg.data.image_size, torch.device("cpu")), args.runs,
+                                        lambda: None)
+        reference[name] = REFERENCE_MS.get(name, math.nan)
+    print(f"CPU, {args.threads} threads, batch 1 x 6 cameras, LSS, {args.runs} runs")
+    print(_table(columns, reference))
+
+
+def run_gpu(args: argparse.Namespace) -> None:
+    device = torch.device(args.device)
+    sync = torch.cuda.synchronize
+    print(f"GPU {torch.cuda.get_device_name(device)}, batch 1 x 6 cameras, {args.runs} runs")
+    rows = []
+    for path in args.configs or GPU_CONFIGS:
+        cfg = load_config(path)
+        model = build_model(cfg).eval().to(device)
+        batch = example_batch(cfg.data.image_size, device)
+        label = f"{cfg.model.backbone.name} {cfg.data.image_size[0]}x{cfg.data.image_size[1]}"
+        for precision in ("fp32", "bf16"):
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bf16"):
+                parts = time_components(model, batch, args.runs, sync, warmup=5)
+            rows.append((label, precision, parts))
+    width = max(len(r[0]) for r in rows) + 2
+    short = ["backbone", "view", "BEV heads", "vertices", "GNN", "Sinkhorn", "total"]
+    print("ms (median)")
+    print(f"{'model':<{width}}{'prec':>6}" + "".join(f"{n:>11}" for n in short) + f"{'FPS':>8}")
+    for label, precision, parts in rows:
+        print(f"{label:<{width}}{precision:>6}" + "".join(f"{t:>11.2f}" for t in parts.values())
+              + f"{1000 / parts['total forward']:>8.1f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    parser.add_argument("--threads", type=int, default=2, help="CPU threads (torch.set_num_threads)")
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--configs", nargs="*", help="experiment YAMLs (default: the Table I LSS rows)")
+    args = parser.parse_args()
+    if args.device.startswith("cuda"):
+        run_gpu(args)
+    else:
+        run_cpu(args)
+
+
+if __name__ == "__main__":
+    main()

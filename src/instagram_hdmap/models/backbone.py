@@ -1,0 +1,153 @@
+"""Image backbones: per-camera image -> features at 1/16 of the input size.
+
+Lift-Splat-style multi-scale features (as in the official InstaGraM ``CamEncode``): the stride-16
+endpoint (``reduction_4``) and the stride-32 endpoint (``reduction_5``, the last MBConv block) of an
+EfficientNet are fused by an :class:`Up` block (upsample x2, concatenate, two conv3x3-BN-ReLU) to
+``out_channels`` channels. The classifier head of the EfficientNet (``_conv_head``, ``_bn1``,
+``_fc``) is never used and is deleted, so it does not count as parameters.
+
+The up-block goes straight to ``out_channels`` (256 for LSS, 64 for IPM / MLP), as the official
+InstaGraM code does; the original Lift-Splat first fuses to 512 channels (2.6 M parameters more with
+B4, which would put the LSS model 5 % above the paper's Table V).
+
+Shapes: B' = batch x cameras, h x w the network input size (a multiple of 32).
+
+``EfficientNetBackbone``: ``efficientnet-b0`` / ``efficientnet-b4`` from ``efficientnet_pytorch``,
+randomly initialised; ``load_imagenet_weights(path)`` loads a local checkpoint in that package's
+state-dict format (as written by ``torch.save(EfficientNet.from_pretrained(name).state_dict())``).
+``TinyBackbone``: five strided convolutions, for tests on CPU.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from efficientnet_pytorch import EfficientNet
+from torch import nn
+
+from ..config import UserError
+
+# The network input must be divisible by this: both backbones reach stride 32.
+IMAGE_DIVISOR = 32
+FEATURE_DOWNSAMPLE = 16  # the features handed to the view transform are at 1/16 of the input
+# Parts of efficientnet_pytorch's state dict that we do not build (the classifier head).
+_UNUSED_PREFIXES = ("_conv_head.", "_bn1.", "_fc.")
+
+
+def conv_bn_relu(cin: int, cout: int, kernel: int = 3, stride: int = 1) -> nn.Sequential:
+    """conv (no bias) -> BatchNorm -> ReLU; padding keeps ``size / stride`` for odd kernels."""
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
+
+
+class Up(nn.Module):
+    """Upsample the coarse input to the size of the skip input, concatenate [skip, coarse], and apply
+    two conv3x3-BN-ReLU: [B, c_skip, h, w], [B, c_coarse, h', w'] -> [B, cout, h, w]."""
+
+    def __init__(self, c_skip: int, c_coarse: int, cout: int):
+        super().__init__()
+        self.conv = nn.Sequential(conv_bn_relu(c_skip + c_coarse, cout), conv_bn_relu(cout, cout))
+
+    def forward(self, skip: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+        coarse = F.interpolate(coarse, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+        return self.conv(torch.cat([skip, coarse], dim=1))
+
+
+class EfficientNetBackbone(nn.Module):
+    """EfficientNet trunk up to its last MBConv block, reduction_4 + reduction_5 fused by ``Up``.
+
+    forward: images [B', 3, h, w] -> features [B', out_channels, h/16, w/16].
+    """
+
+    def __init__(self, name: str, out_channels: int, image_size: tuple[int, int]):
+        super().__init__()
+        # image_size sets the static "same" padding of efficientnet_pytorch's convolutions.
+        trunk = EfficientNet.from_name(name, image_size=list(image_size))
+        for unused in ("_conv_head", "_bn1", "_avg_pooling", "_dropout", "_fc"):
+            delattr(trunk, unused)
+        self.trunk = trunk
+        self.name = name
+        self.out_channels = out_channels
+        # The last block at stride 16 ends reduction_4; the last block overall is reduction_5.
+        stride, self._r4_index = 2, -1  # the stem has stride 2
+        for i, block in enumerate(trunk._blocks):
+            s = block._depthwise_conv.stride
+            stride *= s[0] if isinstance(s, (tuple, list)) else s
+            if stride == 16:
+                self._r4_index = i
+        c4 = trunk._blocks[self._r4_index]._block_args.output_filters
+        c5 = trunk._blocks[-1]._block_args.output_filters
+        self.up = Up(c4, c5, out_channels)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        t = self.trunk
+        x = t._swish(t._bn0(t._conv_stem(images)))
+        rate = t._global_params.drop_connect_rate or 0.0
+        n = len(t._blocks)
+        reduction_4 = x
+        for i, block in enumerate(t._blocks):
+            x = block(x, drop_connect_rate=rate * i / n)  # linearly scaled, as efficientnet_pytorch
+            if i == self._r4_index:
+                reduction_4 = x
+        return self.up(reduction_4, x)
+
+    def load_imagenet_weights(self, path: str | Path) -> None:
+        """Load an ImageNet checkpoint in efficientnet_pytorch's state-dict format from a local file.
+
+        The classifier head's entries (``_conv_head``, ``_bn1``, ``_fc``) are ignored; every other key
+        must be present with the right shape. Raises :class:`~instagram_hdmap.config.UserError`.
+        """
+        key = "model.backbone.weights"
+        path = Path(path)
+        if not path.is_file():
+            raise UserError(f"{key}: weight file not found: {path}")
+        device = self.trunk._conv_stem.weight.device
+        try:
+            state = torch.load(path, map_location=device, weights_only=True)
+        except Exception as e:  # any unreadable file is a user error
+            raise UserError(f"{key}: cannot read {path} as a torch checkpoint: {e}") from None
+        if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+            raise UserError(
+                f"{key}: {path} is not a state dict of tensors; save one with "
+                f"torch.save(EfficientNet.from_pretrained('{self.name}').state_dict(), path)"
+            )
+        state = {k: v for k, v in state.items() if not k.startswith(_UNUSED_PREFIXES)}
+        own = self.trunk.state_dict()
+        missing = sorted(set(own) - set(state))
+        unexpected = sorted(set(state) - set(own))
+        wrong_shape = [k for k in own if k in state and state[k].shape != own[k].shape]
+        if missing or unexpected or wrong_shape:
+            details = []
+            for label, keys in (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong_shape)):
+                if keys:
+                    details.append(f"{len(keys)} {label} (e.g. {', '.join(keys[:3])})")
+            raise UserError(
+                f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
+                f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?"
+            )
+        self.trunk.load_state_dict(state)
+
+
+class TinyBackbone(nn.Module):
+    """Five strided conv-BN-ReLU (stride 32 in total) and the same ``Up`` fusion; for tests.
+
+    forward: images [B', 3, h, w] -> features [B', out_channels, h/16, w/16].
+    """
+
+    def __init__(self, out_channels: int, widths: tuple[int, ...] = (8, 16, 24, 32, 48)):
+        super().__init__()
+        chans = (3, *widths)
+        self.stages = nn.ModuleList(conv_bn_relu(a, b, stride=2) for a, b in zip(chans[:-1], chans[1:]))
+        self.up = Up(widths[3], widths[4], out_channels)
+        self.out_channels = out_channels
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        x = images
+        for stage in self.stages[:4]:
+            x = stage(x)
+        return self.up(x, self.stages[4](x))

@@ -1,0 +1,88 @@
+"""Vertex heatmap -> top-N vertices with scores and a padding mask, and per-vertex local inputs.
+
+Shapes: B batch, S cell size, Hc x Wc cells, H x W = Hc*S x Wc*S BEV pixels, K classes,
+N padded vertices, C channels. Inside a cell the position index is ``c = dy * S + dx``
+(docs/conventions.md), ``c = S*S`` is the dustbin.
+
+All batched: one vertex per cell at the cell's most likely position (the paper's "one distinctive
+vertex per S x S cell, acting similar to NMS"), kept if its probability exceeds the threshold, the
+N most confident cells by ``torch.topk``, padded with ``mask = False``. The official code loops over
+the batch with ``nonzero`` and Python lists.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def depth_to_space(cell_values: torch.Tensor, cell_size: int) -> torch.Tensor:
+    """[B, S*S, Hc, Wc] -> [B, Hc*S, Wc*S], channel ``c = dy * S + dx`` to pixel offset (dy, dx)."""
+    B, _, Hc, Wc = cell_values.shape
+    S = cell_size
+    return cell_values.reshape(B, S, S, Hc, Wc).permute(0, 3, 1, 4, 2).reshape(B, Hc * S, Wc * S)
+
+
+def vertex_heatmap(vertex_logits: torch.Tensor, cell_size: int) -> torch.Tensor:
+    """Logits [B, S*S+1, Hc, Wc] -> heatmap [B, H, W]: softmax over S*S+1, dustbin dropped."""
+    return depth_to_space(vertex_logits.softmax(dim=1)[:, :-1], cell_size)
+
+
+def extract_vertices(
+    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float
+) -> dict[str, torch.Tensor]:
+    """Top-N vertices, one per cell.
+
+    vertex_logits [B, S*S+1, Hc, Wc] -> dict of
+      ``vertices_px`` [B, N, 2] float (u, v) BEV pixels (0 on padding),
+      ``scores``      [B, N] softmax probability of the vertex (0 on padding; differentiable),
+      ``mask``        [B, N] bool, True for real vertices (sorted first, by decreasing score),
+      ``cells``       [B, N] int64 flat cell index ``row * Wc + col`` (0 on padding).
+    """
+    B, _, Hc, Wc = vertex_logits.shape
+    S = cell_size
+    probs = vertex_logits.softmax(dim=1)[:, :-1].flatten(2)  # [B, S*S, Hc*Wc]
+    best_prob, best_pos = probs.max(dim=1)  # [B, Hc*Wc]: the one vertex of each cell
+    k = min(num_vertices, Hc * Wc)
+    # Cells below the threshold sort after every real vertex and are masked out below.
+    ranked = torch.where(best_prob > threshold, best_prob, best_prob - 2.0)
+    _, cells = ranked.topk(k, dim=1)  # [B, k], by decreasing probability
+    scores = best_prob.gather(1, cells)
+    pos = best_pos.gather(1, cells)
+    mask = scores > threshold
+    u = (cells % Wc) * S + pos % S
+    v = torch.div(cells, Wc, rounding_mode="floor") * S + torch.div(pos, S, rounding_mode="floor")
+    vertices = torch.stack([u, v], -1).to(scores.dtype)
+    zero = scores.new_zeros(())
+    out = {
+        "vertices_px": torch.where(mask[..., None], vertices, zero),
+        "scores": torch.where(mask, scores, zero),
+        "mask": mask,
+        "cells": torch.where(mask, cells, torch.zeros_like(cells)),
+    }
+    if k < num_vertices:  # fewer cells than N: pad
+        out = {name: torch.cat([t, t.new_zeros(B, num_vertices - k, *t.shape[2:])], 1) for name, t in out.items()}
+    return out
+
+
+def cell_patches(dense: torch.Tensor, cells: torch.Tensor, cell_size: int) -> torch.Tensor:
+    """The S x S patch of every channel under each vertex's cell (Eq. 1's d_i).
+
+    dense [B, K, H, W], cells [B, N] flat cell index -> [B, N, K*S*S] (class-major, then dy, dx).
+    """
+    B, K, H, W = dense.shape
+    S = cell_size
+    Hc, Wc = H // S, W // S
+    patches = dense.reshape(B, K, Hc, S, Wc, S).permute(0, 2, 4, 1, 3, 5).reshape(B, Hc * Wc, K * S * S)
+    return patches.gather(1, cells[..., None].expand(-1, -1, K * S * S))
+
+
+def sample_at_vertices(features: torch.Tensor, vertices_norm: torch.Tensor) -> torch.Tensor:
+    """Bilinear interpolation of a feature map covering the BEV grid at the vertices (the
+    "visual descriptor" of PolyWorld, paper Fig. 7).
+
+    features [B, C, h, w] (any resolution of the grid), vertices_norm [B, N, 2] in [-1, 1]
+    (``BEVGrid.px_to_norm``) -> [B, N, C].
+    """
+    sampled = F.grid_sample(features.float(), vertices_norm[:, :, None].float(), align_corners=False)
+    return sampled[..., 0].transpose(1, 2)
