@@ -29,7 +29,7 @@ def _load(args: argparse.Namespace):
 def _cmd_synth(args: argparse.Namespace) -> int:
     from .data.synthetic import generate_world
 
-    generate_world(
+    manifest = generate_world(
         out=args.out,
         scenes_train=args.scenes_train,
         scenes_val=args.scenes_val,
@@ -38,6 +38,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         image_size=args.image_size,
         force=args.force,
     )
+    print(f"wrote {manifest['scenes_train']} train + {manifest['scenes_val']} val scenes, "
+          f"{manifest['samples']} samples, version {manifest['version']} to {args.out}")
     return 0
 
 
@@ -46,6 +48,48 @@ def _cmd_synth_preview(args: argparse.Namespace) -> int:
 
     write_preview(args.dataroot, args.out, index=args.index)
     print(f"wrote {args.out}")
+    return 0
+
+
+# --- dataset ground truth --------------------------------------------------------------------
+
+
+def _load_data_cfg(args: argparse.Namespace):
+    """The experiment config with --dataroot / --version applied (they win over the YAML)."""
+    cfg = _load(args)
+    extra = [f"data.dataroot={args.dataroot}"] if args.dataroot else []
+    extra += [f"data.version={args.version}"] if args.version else []
+    if extra:
+        from .config import load_config
+
+        cfg = load_config(args.config, [*args.overrides, *extra])
+    return cfg
+
+
+def _cmd_export_gt(args: argparse.Namespace) -> int:
+    from .data.nuscenes import NuScenesMapDataset, gt_submission, write_json
+
+    cfg = _load_data_cfg(args)
+    dataset = NuScenesMapDataset(cfg, args.split, augment=False)
+    sub = gt_submission(dataset, progress=True)
+    write_json(sub, args.out)
+    n = sum(len(v) for v in sub["results"].values())
+    print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines")
+    return 0
+
+
+def _cmd_show_gt(args: argparse.Namespace) -> int:
+    from .data.nuscenes import CAMERAS, NuScenesMapDataset
+    from .visualize import write_sample_pngs
+
+    cfg = _load_data_cfg(args)
+    dataset = NuScenesMapDataset(cfg, args.split, augment=args.augment)
+    if not -len(dataset) <= args.index < len(dataset):
+        raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
+    sample = dataset.load_sample(args.index % len(dataset))
+    paths = write_sample_pngs(sample, dataset.grid, args.out, cfg.data.classes, CAMERAS)
+    print(f"sample {sample['sample_token']}: {len(sample['gt_polylines'])} polylines, "
+          f"{len(sample['gt_vertices_px'])} graph vertices; wrote {', '.join(str(p) for p in paths)}")
     return 0
 
 
@@ -72,6 +116,108 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- evaluation ------------------------------------------------------------------------------
+
+
+def _cmd_evaluate_json(args: argparse.Namespace) -> int:
+    import json
+
+    from tqdm import tqdm
+
+    from .evaluation import EvaluationInputError, Evaluator, SubmissionError, format_table, read_submission
+    from .geometry import BEVGrid
+
+    gt = read_submission(args.gt, "gt")
+    pred = read_submission(args.pred, "pred")
+    if not gt.samples:
+        raise SubmissionError(f"{args.gt}: the GT file holds no samples")
+    extra = [t for t in pred.samples if t not in gt.samples]
+    if extra and not args.ignore_extra_predictions:
+        raise SubmissionError(
+            f"{args.pred}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {args.gt} "
+            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
+        )
+    missing = sum(t not in pred.samples for t in gt.samples)
+    grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
+    grid.check()
+    ev = Evaluator(args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
+                   fix_instance_ids=args.fix_instance_ids, device=args.device)
+    tokens = list(gt.samples)  # the GT file's order is the pooling order
+    chunk = 64
+    try:
+        for s in tqdm(range(0, len(tokens), chunk), desc=f"evaluate-json ({args.protocol})", unit="chunk",
+                      disable=not sys.stderr.isatty()):
+            part = tokens[s : s + chunk]
+            ev.update([pred.samples.get(t, []) for t in part], [gt.samples[t] for t in part],
+                      sample_ids=range(s, s + len(part)), tokens=part)
+    except EvaluationInputError as e:
+        raise SubmissionError(f"evaluating {args.pred} against {args.gt}: {e}") from None
+    metrics = ev.compute()
+    notes = [*gt.notes, *pred.notes]
+    if missing:
+        notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {args.pred}: scored as samples "
+                     "without predictions")
+    if extra:
+        notes.append(f"{len(extra)} sample tokens only in {args.pred} were ignored (--ignore-extra-predictions)")
+    metrics["notes"] = notes + metrics["notes"]
+    metrics["inputs"] = {"pred": str(args.pred), "gt": str(args.gt)}
+    print(format_table(metrics))
+    for note in metrics["notes"]:
+        print(f"note: {note}")
+    if args.out:
+        from pathlib import Path
+
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(metrics, indent=2))  # NaN is written as NaN (Python's json reads it)
+        print(f"wrote {out}")
+    return 0
+
+
+# --- inference: evaluate, predict, benchmark -------------------------------------------------
+
+
+def _print_notes(notes: list[str]) -> None:
+    for note in notes:
+        print(f"note: {note}")
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import format_table
+    from .predict import run_evaluation
+
+    result = run_evaluation(_load(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
+    if not result["paths"]:  # not rank 0 under torchrun
+        return 0
+    metrics = result["metrics"]
+    print(f"evaluated {result['num_samples']} samples of split '{metrics['meta']['split']}' "
+          f"({result['samples_per_s']:.2f} samples/s) with protocol '{metrics['protocol']}'")
+    print(format_table(metrics))
+    _print_notes([*result["notes"], *metrics.get("notes", [])])
+    print(f"wrote {', '.join(str(p) for p in result['paths'])}")
+    return 0
+
+
+def _cmd_predict(args: argparse.Namespace) -> int:
+    from .predict import predict_sample
+
+    result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
+                            split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction)
+    _print_notes(result["notes"])
+    print(f"sample {result['sample_token']} (split '{result['split']}', index {result['index']}): "
+          f"{len(result['predictions'])} predicted instances; wrote {', '.join(str(p) for p in result['paths'])}")
+    return 0
+
+
+def _cmd_benchmark(args: argparse.Namespace) -> int:
+    from .benchmark import format_benchmark, run_benchmark
+
+    result = run_benchmark(_load(args), device=args.device, amp=args.amp, runs=args.runs, warmup=args.warmup,
+                           checkpoint=args.checkpoint, overrides=args.overrides)
+    print(format_benchmark(result, args.config))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="instagram-hdmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -92,6 +238,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--index", type=int, default=0, help="sample index in the dataroot")
     p.set_defaults(func=_cmd_synth_preview)
 
+    for name, help_ in (("export-gt", "write a split's GT polylines as HDMapNet submission JSON"),
+                        ("show-gt", "PNGs of one sample's GT: polylines, vertex cells, DT, cameras")):
+        p = sub.add_parser(name, help=help_)
+        _add_config_args(p)
+        p.add_argument("--dataroot", help="nuScenes dataroot (overrides data.dataroot)")
+        p.add_argument("--version", help="version folder, e.g. v1.0-mini (overrides data.version)")
+        p.add_argument("--split", default="val", help="split name (default val)")
+        p.add_argument("--out", required=True, help="output JSON file" if name == "export-gt" else "output folder")
+        if name == "export-gt":
+            p.set_defaults(func=_cmd_export_gt)
+        else:
+            p.add_argument("--index", type=int, default=0, help="sample index in the split")
+            p.add_argument("--augment", action="store_true", help="apply the train-time image augmentation")
+            p.set_defaults(func=_cmd_show_gt)
+
     p = sub.add_parser("model-summary", help="parameters per component and in total")
     _add_config_args(p)
     p.set_defaults(func=_cmd_model_summary)
@@ -101,6 +262,61 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", help="checkpoint to continue from (e.g. OUT/last.pt)")
     p.add_argument("--force", action="store_true", help="start over in an output folder that holds a run")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate-json", help="AP of a submission JSON against a GT JSON (vector or raster protocol)",
+                       description="Chamfer AP of PRED against GT, both in the HDMapNet submission format. Prints a "
+                       "table and writes --out as JSON (NaN, where the protocol yields 0/0, is written as NaN).")
+    p.add_argument("--pred", required=True, help="predictions JSON (confidence_level per vector)")
+    p.add_argument("--gt", required=True, help="ground-truth JSON (same format, no confidence_level)")
+    p.add_argument("--protocol", choices=["vector", "raster"], default="vector",
+                   help="vector: MapTR (default); raster: HDMapNet / InstaGraM paper")
+    p.add_argument("--thresholds", type=float, nargs="+", default=[0.5, 1.0, 1.5], help="Chamfer thresholds (m)")
+    p.add_argument("--out", help="metrics JSON to write")
+    p.add_argument("--rank-by", choices=["ascending", "descending"], default="ascending",
+                   help="raster: PR-curve order; ascending reproduces the reference's bug (default)")
+    p.add_argument("--fix-instance-ids", action="store_true",
+                   help="raster: int32 instance ids, each with its own confidence (fixes the reference's misalignment)")
+    p.add_argument("--xbound", type=float, nargs=2, default=[-30.0, 30.0], help="raster: canvas x range (m)")
+    p.add_argument("--ybound", type=float, nargs=2, default=[-15.0, 15.0], help="raster: canvas y range (m)")
+    p.add_argument("--resolution", type=float, default=0.15, help="raster: metres per pixel")
+    p.add_argument("--device", default="cpu",
+                   help="raster: where torch.cdist runs, cpu or cuda (the reference ran on CUDA)")
+    p.add_argument("--ignore-extra-predictions", action="store_true",
+                   help="ignore prediction tokens that are not in the GT file (default: error)")
+    p.set_defaults(func=_cmd_evaluate_json)
+
+    p = sub.add_parser("evaluate", help="run a checkpoint on the validation split: submission JSON + AP metrics",
+                       description="Runs CKPT on data.val_split, writes OUT/submission.json (HDMapNet format) and "
+                       "OUT/metrics.json, prints the AP table. The model settings come from the checkpoint's "
+                       "saved config; key=value overrides win. torchrun-aware.")
+    _add_config_args(p)
+    p.add_argument("--checkpoint", required=True, help="model checkpoint (e.g. runs/x/best.pt)")
+    p.add_argument("--protocol", choices=["vector", "raster"], help="AP protocol (default: eval.protocol)")
+    p.add_argument("--out", default="eval", help="output folder (default ./eval)")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("predict", help="PNGs of one sample: prediction vs GT in BEV, cameras, intermediate results",
+                       description="Writes OUT/prediction_bev.png, prediction_cameras.png, "
+                       "prediction_intermediate.png (the paper's Fig. 6) and prediction.json for one sample.")
+    _add_config_args(p)
+    p.add_argument("--checkpoint", help="model checkpoint (required unless --gt-as-prediction)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--index", type=int, help="sample index in the split (negative counts from the end)")
+    which.add_argument("--token", help="nuScenes sample token")
+    p.add_argument("--split", help="split to take the sample from (default: data.val_split)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--gt-as-prediction", action="store_true",
+                   help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
+    p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("benchmark", help="inference FPS, batch 1, six cameras, with and without post-processing")
+    _add_config_args(p)
+    p.add_argument("--device", help="cpu, cuda or cuda:i (default: train.device)")
+    p.add_argument("--amp", choices=["none", "bf16", "fp16"], default="none", help="autocast precision")
+    p.add_argument("--runs", type=int, help="timed runs (default 50 on a GPU, 10 on the CPU)")
+    p.add_argument("--warmup", type=int, help="untimed warm-up runs (default 10 on a GPU, 2 on the CPU)")
+    p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")
+    p.set_defaults(func=_cmd_benchmark)
 
     return parser
 

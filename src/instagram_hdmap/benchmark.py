@@ -1,0 +1,236 @@
+"""Inference speed (``instagram-hdmap benchmark``): FPS for batch 1 with six cameras.
+
+    result = run_benchmark(load_config("configs/paper/table1_b0_lss_128x352.yaml"), device="cuda", amp="bf16")
+    print(format_benchmark(result))
+
+Inputs: random images with a realistic calibration: the rig of the first sample of
+``data.val_split`` when ``data.dataroot`` holds a dataset, otherwise a nuScenes-like rig built here
+(``nuscenes_like_rig``: the published calibration of a nuScenes log, 1600 x 900 images). Timing: eval
+mode, ``torch.inference_mode``, autocast per ``--amp`` (``engine.autocast_context``), ``warmup``
+untimed runs, then ``runs`` timed runs, each bracketed by a device synchronisation
+(``torch.cuda.synchronize`` on a GPU), reported as the median and the 10th / 90th percentiles of
+the latency, and FPS = 1 / median. Two rows: the model's forward, and forward + post-processing
+(``postprocess.postprocess_batch``, which includes the copy of the outputs to the host).
+
+Random weights give a near-uniform assignment, i.e. few edges to follow, so post-processing is
+faster than with a trained model: pass ``--checkpoint`` for a trained model's post-processing cost.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .config import ExperimentConfig, UserError
+from .geometry import BEVGrid
+
+DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
+DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
+
+
+class BenchmarkError(UserError):
+    """A device or precision that cannot be benchmarked here."""
+
+
+def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
+    """Calibration of one sample [V = 6, ...] in the dataset's camera order: the published
+    calibration of a real nuScenes log (``data.synthetic.rig``: 1600 x 900 images) and the
+    ``post_rot`` / ``post_tran`` of the dataset's resize-and-crop to ``image_size`` (h, w)
+    (``data.transforms.image_affine``)."""
+    from .data.nuscenes import CAMERAS
+    from .data.synthetic.rig import NUSCENES_IMAGE_SIZE, rig
+    from .data.transforms import image_affine
+
+    sensors = rig(NUSCENES_IMAGE_SIZE)
+    A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
+    post_rot = torch.eye(3)
+    post_rot[:2, :2] = A[:2, :2]
+    post_tran = torch.zeros(3)
+    post_tran[:2] = A[:2, 2]
+    V = len(CAMERAS)
+    return {
+        "intrinsics": torch.stack([torch.from_numpy(sensors[c].intrinsic).float() for c in CAMERAS]),
+        "cam_to_ego_rot": torch.stack([torch.from_numpy(sensors[c].rot).float() for c in CAMERAS]),
+        "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
+        "post_rot": post_rot.expand(V, 3, 3).clone(),
+        "post_tran": post_tran.expand(V, 3).clone(),
+    }
+
+
+def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
+    """The calibration [V, ...] to benchmark with and where it came from."""
+    if Path(cfg.data.dataroot).is_dir():
+        from .data.nuscenes import NuScenesMapDataset
+
+        try:
+            dataset = NuScenesMapDataset(cfg, cfg.data.val_split, augment=False)
+            cams = dataset.load_cameras(0)
+        except UserError as e:
+            rig = nuscenes_like_rig(cfg.data.image_size)
+            return rig, f"nuScenes-like rig built in code (the dataset at {cfg.data.dataroot} failed: {e})"
+        cams.pop("images")
+        return cams, f"rig of sample {dataset.sample_tokens[0]} ({cfg.data.dataroot}, split {dataset.split})"
+    return nuscenes_like_rig(cfg.data.image_size), "nuScenes-like rig built in code (no data.dataroot)"
+
+
+def device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    name = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    return f"cpu ({name})"
+
+
+def _percentiles_ms(times_s: list[float]) -> dict[str, float]:
+    t = 1000 * np.asarray(times_s)
+    median = float(np.median(t))
+    return {"median_ms": median, "p10_ms": float(np.percentile(t, 10)), "p90_ms": float(np.percentile(t, 90)),
+            "fps": 1000.0 / median}
+
+
+def time_runs(fn: Callable[[], object], runs: int, warmup: int, sync: Callable[[], None]) -> list[float]:
+    """Seconds per call of ``fn`` over ``runs`` calls after ``warmup`` untimed ones; ``sync`` waits
+    for the device before the clock is read."""
+    for _ in range(warmup):
+        fn()
+    sync()
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def run_benchmark(
+    cfg: ExperimentConfig,
+    *,
+    device: str | None = None,
+    amp: str = "none",
+    runs: int | None = None,
+    warmup: int | None = None,
+    checkpoint: str | Path | None = None,
+    overrides: tuple[str, ...] | list[str] = (),
+    seed: int = 0,
+) -> dict:
+    """Time the model (and model + post-processing) on batch 1 with six cameras; see the module docstring.
+
+    ``device``: "cpu", "cuda" (or "cuda:i"); ``None`` uses ``train.device``. ``runs`` / ``warmup``
+    default to 50 / 10 on a GPU and 10 / 2 on the CPU. Returns a dict of settings and per-row
+    statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``).
+    """
+    from .engine import autocast_context
+    from .models import build_model
+    from .postprocess import postprocess_batch
+    from .train import resolve_device
+
+    if device is None:
+        device = resolve_device(cfg)
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise BenchmarkError("--device cuda but no CUDA device is available; use --device cpu")
+    if dev.type not in DEFAULT_RUNS:
+        raise BenchmarkError(f"--device {device}: choose cpu or cuda")
+    if amp not in ("none", "bf16", "fp16"):
+        raise BenchmarkError(f"--amp {amp}: choose none, bf16 or fp16")
+    runs = DEFAULT_RUNS[dev.type] if runs is None else runs
+    warmup = DEFAULT_WARMUP[dev.type] if warmup is None else warmup
+    if runs < 1 or warmup < 0:
+        raise BenchmarkError(f"--runs must be >= 1 and --warmup >= 0 (got {runs}, {warmup})")
+
+    notes: list[str] = []
+    if checkpoint is not None:
+        from .predict import load_model
+
+        model, cfg, notes = load_model(checkpoint, cfg, overrides, device=dev)
+    else:
+        with torch.random.fork_rng(devices=[]):  # reproducible random weights, global RNG untouched
+            torch.manual_seed(seed)
+            model = build_model(cfg).eval().to(dev)
+    grid = BEVGrid.from_config(cfg.grid)
+    rig, rig_source = benchmark_rig(cfg)
+    h, w = cfg.data.image_size
+    gen = torch.Generator().manual_seed(seed)
+    batch = {k: v[None].to(dev) for k, v in rig.items()}
+    V = rig["intrinsics"].shape[0]
+    batch["images"] = torch.randn(1, V, 3, h, w, generator=gen).to(dev)
+    threshold = cfg.model.gnn.match_threshold
+
+    def sync() -> None:
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    def forward() -> dict:
+        with autocast_context(dev, amp):
+            return model(batch)
+
+    def forward_post() -> list:
+        return postprocess_batch(forward(), grid, threshold)
+
+    try:
+        with torch.inference_mode():
+            model_times = time_runs(forward, runs, warmup, sync)
+            full_times = time_runs(forward_post, runs, warmup, sync)
+            outputs = forward()
+            num_vertices = int(outputs["pred_vertex_mask"].sum())
+            num_instances = len(postprocess_batch(outputs, grid, threshold)[0])
+    except RuntimeError as e:
+        if amp != "none" and ("autocast" in str(e).lower() or "not implemented" in str(e).lower()):
+            raise BenchmarkError(f"--amp {amp} is not supported on {dev.type} by this torch build: "
+                                 f"{str(e).splitlines()[0][:200]}") from None
+        raise
+    if checkpoint is None:
+        notes.append("random weights: few edges pass the match threshold, so post-processing is cheaper than "
+                      "with a trained model (pass --checkpoint)")
+    if runs < DEFAULT_RUNS[dev.type]:
+        notes.append(f"only {runs} runs (default {DEFAULT_RUNS[dev.type]} on {dev.type}): the spread is rough")
+    return {
+        "config_name": cfg.name,
+        "device": device_name(dev),
+        "dtype": {"none": "float32", "bf16": "bfloat16 autocast", "fp16": "float16 autocast"}[amp],
+        "threads": torch.get_num_threads(),
+        "batch": f"1 x {V} cameras x {h}x{w}",
+        "backbone": cfg.model.backbone.name,
+        "view_transform": cfg.model.view_transform.kind,
+        "num_vertices": f"{num_vertices} of N={cfg.model.gnn.num_vertices}",
+        "instances": num_instances,
+        "runs": runs,
+        "warmup": warmup,
+        "calibration": rig_source,
+        "weights": str(checkpoint) if checkpoint is not None else "random",
+        "rows": {"model": _percentiles_ms(model_times), "model + post-processing": _percentiles_ms(full_times)},
+        "notes": notes,
+    }
+
+
+def format_benchmark(result: dict, config_path: str | None = None) -> str:
+    """The settings, then one line per row: median / p10 / p90 latency and FPS (1 / median)."""
+    name = result["config_name"] + (f" ({config_path})" if config_path else "")
+    lines = [
+        f"config:      {name}; {result['backbone']}, {result['view_transform']}",
+        f"device:      {result['device']}",
+        f"dtype:       {result['dtype']}",
+        f"threads:     {result['threads']} (torch.get_num_threads)",
+        f"input:       batch {result['batch']}, calibration: {result['calibration']}",
+        f"weights:     {result['weights']}; vertices {result['num_vertices']}, {result['instances']} instances",
+        f"timing:      {result['runs']} runs after {result['warmup']} warm-up runs, synchronised",
+    ]
+    head = f"{'':<26}{'median ms':>11}{'p10 ms':>10}{'p90 ms':>10}{'FPS':>9}{'FPS (p90-p10)':>15}"
+    lines += ["", head, "-" * len(head)]
+    for row, s in result["rows"].items():
+        spread = f"{1000 / s['p90_ms']:.1f}-{1000 / s['p10_ms']:.1f}"
+        lines.append(f"{row:<26}{s['median_ms']:>11.1f}{s['p10_ms']:>10.1f}{s['p90_ms']:>10.1f}{s['fps']:>9.1f}"
+                     f"{spread:>15}")
+    lines += [f"note: {n}" for n in result["notes"]]
+    return "\n".join(lines)

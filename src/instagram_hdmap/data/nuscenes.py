@@ -1,0 +1,349 @@
+"""nuScenes dataset for HD-map learning: six camera images, calibration, ego pose, the local
+vectorized map (data/local_map.py) and the InstaGraM targets (targets.py), as a dict per sample
+with the keys of docs/conventions.md; ``collate_fn`` batches them.
+
+    ds = NuScenesMapDataset(cfg, "train")          # cfg.data.dataroot / version / splits_file
+    loader = DataLoader(ds, batch_size=4, collate_fn=collate_fn, num_workers=cfg.data.num_workers)
+
+Splits: ``v1.0-trainval`` uses the devkit's official train/val scenes, ``v1.0-mini`` its
+mini_train/mini_val (asked for as "train"/"val"), and ``data.splits_file`` (a JSON
+``{"train": [scene names], "val": [...]}``) overrides both and works with any version folder.
+
+Poses: the map and ``ego_pose`` use the ego pose of the sample's LIDAR_TOP record (the keyframe
+reference, as HDMapNet/MapTR; CAM_FRONT when a dataroot has no lidar). The cameras' ego poses at
+their own timestamps are not used (lift-splat-shoot's simplification): the camera -> ego transform is
+each camera's calibrated sensor.
+
+Bad input raises a ``UserError`` naming the file and sample token; with ``data.on_bad_sample=skip``
+a bad sample is replaced by the next good one (one warning per bad sample) instead.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ..config import ConfigError, ExperimentConfig, UserError
+from ..geometry import BEVGrid
+from ..targets import build_targets
+from .local_map import LocalMapBuilder, MapError
+from .transforms import ImageAug, load_image, sample_augmentation
+
+CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
+OFFICIAL_SPLITS = {
+    "v1.0-trainval": {"train": "train", "val": "val"},
+    "v1.0-mini": {"train": "mini_train", "val": "mini_val"},
+}
+# padding of the per-vertex keys in collate_fn (everything else is -1)
+VERTEX_KEYS = (
+    "gt_vertices_px",
+    "gt_vertex_mask",
+    "gt_vertex_labels",
+    "gt_vertex_instance",
+    "gt_vertex_order",
+    "gt_vertex_next",
+    "gt_vertex_prev",
+)
+_VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
+
+
+class DatasetError(UserError):
+    """The dataroot, version or split cannot be used."""
+
+
+def open_nuscenes(dataroot: str | Path, version: str):
+    """``NuScenes(version, dataroot)`` with errors that say what is wrong with the folder."""
+    from nuscenes.nuscenes import NuScenes
+
+    root = Path(dataroot)
+    if not root.is_dir():
+        raise DatasetError(f"nuScenes dataroot not found: {root} (set data.dataroot or --dataroot)")
+    table_root = root / version
+    if not (table_root / "sample.json").is_file():
+        found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
+        raise DatasetError(
+            f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; versions "
+            f"in {root}: {', '.join(found) or 'none'} (set data.version or --version)"
+        )
+    try:
+        return NuScenes(version=version, dataroot=str(root), verbose=False)
+    except (AssertionError, KeyError, ValueError, OSError, json.JSONDecodeError) as e:
+        raise DatasetError(f"cannot load nuScenes tables from {table_root}: {type(e).__name__}: {e}") from None
+
+
+def split_scene_names(nusc, version: str, split: str, splits_file: str | None = None) -> list[str]:
+    """Scene names of ``split``, in the order of the dataroot's scene table."""
+    present = [s["name"] for s in nusc.scene]
+    if splits_file is not None:
+        path = Path(splits_file)
+        if not path.is_file() and (Path(nusc.dataroot) / path).is_file():
+            path = Path(nusc.dataroot) / path
+        if not path.is_file():
+            raise DatasetError(f"splits file not found: {splits_file} (config key data.splits_file)")
+        try:
+            splits = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise DatasetError(f"splits file {path} is not valid JSON: {e}") from None
+        if not isinstance(splits, dict) or split not in splits or not isinstance(splits[split], list):
+            keys = ", ".join(splits) if isinstance(splits, dict) else "none"
+            raise DatasetError(
+                f"splits file {path} has no list of scene names for split '{split}'; it has: {keys}"
+            )
+        wanted = set(splits[split])
+        missing = sorted(wanted - set(present))
+        if missing:
+            raise DatasetError(
+                f"splits file {path}: split '{split}' names {len(missing)} scene(s) not in version "
+                f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}"
+            )
+    elif version in OFFICIAL_SPLITS:
+        from nuscenes.utils.splits import create_splits_scenes
+
+        official = create_splits_scenes()
+        name = OFFICIAL_SPLITS[version].get(split, split)
+        if name not in official:
+            raise DatasetError(
+                f"unknown split '{split}' for {version}; use one of {', '.join(OFFICIAL_SPLITS[version])}, "
+                f"{', '.join(official)}, or set data.splits_file"
+            )
+        wanted = set(official[name])
+    else:
+        raise DatasetError(
+            f"version '{version}' has no official split; set data.splits_file to a JSON file "
+            f'{{"train": [scene names], "val": [scene names]}}'
+        )
+    return [n for n in present if n in wanted]
+
+
+def quaternion_yaw(q_wxyz) -> float:
+    """Yaw (radians) of a rotation quaternion (w, x, y, z): the heading of its x axis in the xy plane."""
+    from pyquaternion import Quaternion
+
+    v = Quaternion(q_wxyz).rotation_matrix[:, 0]
+    return math.atan2(v[1], v[0])
+
+
+def _pose_matrix(rotation_wxyz, translation) -> torch.Tensor:
+    from pyquaternion import Quaternion
+
+    T = np.eye(4)
+    T[:3, :3] = Quaternion(rotation_wxyz).rotation_matrix
+    T[:3, 3] = translation
+    return torch.from_numpy(T).float()
+
+
+class NuScenesMapDataset(Dataset):
+    """Samples of one split as dicts (docs/conventions.md, per-sample: no batch dimension).
+
+    ``augment``: train-time image augmentation; default ``cfg.data.augment and split == train_split``.
+    ``nusc``: an already loaded ``NuScenes`` of ``cfg.data.version`` (shared between splits).
+    """
+
+    def __init__(self, cfg: ExperimentConfig, split: str, nusc=None, augment: bool | None = None):
+        self.cfg = cfg
+        self.data_cfg = d = cfg.data
+        self.split = split
+        self.grid = BEVGrid.from_config(cfg.grid)
+        self.augment = (d.augment and split == d.train_split) if augment is None else augment
+        if len(d.classes) != 3:
+            raise ConfigError(
+                f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, boundary) that "
+                f"the local map produces, got {list(d.classes)}"
+            )
+        self.nusc = nusc if nusc is not None else open_nuscenes(d.dataroot, d.version)
+        self.dataroot = Path(self.nusc.dataroot)
+        names = set(split_scene_names(self.nusc, d.version, split, d.splits_file))
+        self.sample_tokens: list[str] = []
+        self._scene_of: dict[str, dict] = {}
+        for scene in self.nusc.scene:
+            if scene["name"] not in names:
+                continue
+            token = scene["first_sample_token"]
+            while token:
+                self.sample_tokens.append(token)
+                self._scene_of[token] = scene
+                token = self.nusc.get("sample", token)["next"]
+        if not self.sample_tokens:
+            raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
+        self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist)
+        self._map_errors: dict[str, MapError] = {}
+        for loc in sorted({self._location(t) for t in self.sample_tokens}):
+            try:
+                self.map_builder.preload([loc])
+            except MapError as e:
+                if d.on_bad_sample == "raise":
+                    raise
+                warnings.warn(f"samples at location '{loc}' will be skipped: {e}", stacklevel=2)
+                self._map_errors[loc] = e
+        self._bad: set[int] = set()
+
+    def __len__(self) -> int:
+        return len(self.sample_tokens)
+
+    def _location(self, token: str) -> str:
+        return self.nusc.get("log", self._scene_of[token]["log_token"])["location"]
+
+    def _reference_pose(self, sample: dict) -> dict:
+        channel = "LIDAR_TOP" if "LIDAR_TOP" in sample["data"] else "CAM_FRONT"
+        sd = self.nusc.get("sample_data", sample["data"][channel])
+        return self.nusc.get("ego_pose", sd["ego_pose_token"])
+
+    # --- pieces -----------------------------------------------------------------------------------
+    def gt_polylines(self, index: int) -> list[dict]:
+        """The sample's local map (polyline dicts, metres, ego frame), without loading images."""
+        token = self.sample_tokens[index]
+        loc = self._location(token)
+        if loc in self._map_errors:
+            raise MapError(f"sample {token}: {self._map_errors[loc]}")
+        pose = self._reference_pose(self.nusc.get("sample", token))
+        x, y = pose["translation"][:2]
+        return self.map_builder(loc, x, y, quaternion_yaw(pose["rotation"]))
+
+    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
+        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
+        post_rot [V, 3, 3], post_tran [V, 3] of one sample (augmented when ``self.augment``)."""
+        sample = self.nusc.get("sample", self.sample_tokens[index])
+        out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}
+        out["post_rot"], out["post_tran"] = [], []
+        if self.augment and rng is None:
+            rng = self._rng()
+        for cam in CAMERAS:
+            if cam not in sample["data"]:
+                raise DatasetError(f"sample {sample['token']} has no {cam} image in {self.dataroot}")
+            sd = self.nusc.get("sample_data", sample["data"][cam])
+            cs = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+            aug = ImageAug()
+            if self.augment:
+                aug = sample_augmentation(self.data_cfg, rng)  # one draw per camera
+            image, post_rot, post_tran = load_image(
+                self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug
+            )
+            pose = _pose_matrix(cs["rotation"], cs["translation"])
+            out["images"].append(image)
+            out["intrinsics"].append(torch.tensor(cs["camera_intrinsic"], dtype=torch.float32))
+            out["cam_to_ego_rot"].append(pose[:3, :3])
+            out["cam_to_ego_trans"].append(pose[:3, 3])
+            out["post_rot"].append(post_rot)
+            out["post_tran"].append(post_tran)
+        return {k: torch.stack(v) for k, v in out.items()}
+
+    @staticmethod
+    def _rng() -> np.random.Generator:
+        # seeded from torch so that torch.manual_seed and DataLoader worker seeding apply
+        return np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
+
+    def load_sample(self, index: int) -> dict:
+        """The sample dict, raising ``UserError`` (naming the sample token) on bad input."""
+        token = self.sample_tokens[index]
+        try:
+            polylines = self.gt_polylines(index)
+            cams = self.load_cameras(index)
+        except UserError as e:
+            msg = str(e) if token in str(e) else f"sample {token}: {e}"
+            raise type(e)(msg) from None
+        pose = self._reference_pose(self.nusc.get("sample", token))
+        d = self.data_cfg
+        targets = build_targets(polylines, self.grid, len(d.classes), d.dt_clip)
+        return {
+            **cams,
+            "ego_pose": _pose_matrix(pose["rotation"], pose["translation"]),
+            "sample_token": token,
+            "gt_polylines": polylines,
+            **targets,
+        }
+
+    def __getitem__(self, index: int) -> dict:
+        if self.data_cfg.on_bad_sample == "raise":
+            return self.load_sample(index)
+        n = len(self)
+        for k in range(n):
+            j = (index + k) % n
+            if j in self._bad:
+                continue
+            try:
+                return self.load_sample(j)
+            except UserError as e:
+                self._bad.add(j)
+                warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip): {e}", stacklevel=2)
+        raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
+
+
+def collate_fn(samples: list[dict]) -> dict:
+    """Stack per-sample dicts into a batch (docs/conventions.md).
+
+    Same-shape tensors are stacked; ``sample_token`` and ``gt_polylines`` become per-sample lists;
+    the per-vertex keys are padded to the batch's largest M: ``gt_vertices_px`` with 0,
+    ``gt_vertex_mask`` with False, the integer keys (labels, instance, order, next, prev) with -1.
+    """
+    out: dict = {}
+    M = max(len(s["gt_vertices_px"]) for s in samples)
+    for key, first in samples[0].items():
+        values = [s[key] for s in samples]
+        if key in VERTEX_KEYS:
+            pad = _VERTEX_PAD.get(key, -1)
+            batch = first.new_full((len(samples), M, *first.shape[1:]), pad)
+            for b, v in enumerate(values):
+                batch[b, : len(v)] = v
+            out[key] = batch
+        elif isinstance(first, torch.Tensor):
+            out[key] = torch.stack(values)
+        else:
+            out[key] = values
+    return out
+
+
+def gt_submission(dataset: NuScenesMapDataset, progress: bool = False) -> dict:
+    """The split's GT polylines in HDMapNet's submission format:
+    ``{"meta": {...}, "results": {sample_token: [{"pts": [[x, y], ...], "pts_num": n, "type": k}]}}``
+    with points in metres in the ego frame (x forward, y left); a closed shape repeats its first point.
+    Images are not read. With ``data.on_bad_sample=skip`` a sample whose map cannot be built is left
+    out (with a warning)."""
+    from tqdm import tqdm
+
+    d, g = dataset.data_cfg, dataset.cfg.grid
+    results: dict[str, list] = {}
+    for i in tqdm(range(len(dataset)), desc="export-gt", disable=not progress):
+        token = dataset.sample_tokens[i]
+        try:
+            polylines = dataset.gt_polylines(i)
+        except UserError as e:
+            if d.on_bad_sample == "raise":
+                raise
+            warnings.warn(f"export-gt: skipping sample {token}: {e}", stacklevel=2)
+            continue
+        results[token] = [
+            {"pts": np.round(p["pts"], 4).tolist(), "pts_num": len(p["pts"]), "type": int(p["label"])}
+            for p in polylines
+        ]
+    meta = {
+        "use_camera": True,
+        "use_lidar": False,
+        "use_radar": False,
+        "use_external": False,
+        "vector": True,
+        "ground_truth": True,
+        "version": d.version,
+        "split": dataset.split,
+        "frame": "ego, x forward, y left, metres",
+        "classes": list(d.classes),
+        "xbound": list(g.xbound),
+        "ybound": list(g.ybound),
+        "sample_dist": d.sample_dist,
+    }
+    return {"meta": meta, "results": results}
+
+
+def write_json(obj: dict, path: str | Path) -> Path:
+    """Write JSON atomically (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj))
+    tmp.replace(path)
+    return path

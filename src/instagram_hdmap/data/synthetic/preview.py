@@ -1,0 +1,164 @@
+"""``write_preview``: the six camera images of one sample with the map's lines projected onto them,
+and the map around the ego vehicle from above -- a visual check of a dataroot.
+
+Everything is read back through the official devkit (``NuScenes``, ``NuScenesMap``), exactly as a
+dataset loader would, so the picture checks the files, not the generator's memory. Works on any
+nuScenes dataroot (real or synthetic).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path as FsPath
+
+import numpy as np
+from pyquaternion import Quaternion
+from shapely import segmentize
+from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon
+from shapely.ops import unary_union
+
+from ...config import UserError
+
+LAYOUT = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
+STYLE = {  # map element: (colour, line width)
+    "road_divider": ("#ffa500", 1.6),
+    "lane_divider": ("#00e5ff", 1.2),
+    "ped_crossing": ("#ff00ff", 1.2),
+    "boundary": ("#ff2020", 1.6),
+}
+RADIUS_M = 60.0
+
+
+def _version_of(dataroot: FsPath) -> str:
+    from .world import MANIFEST, read_manifest
+
+    if (dataroot / MANIFEST).is_file():
+        return read_manifest(dataroot)["version"]
+    for v in ("v1.0-trainval", "v1.0-mini"):
+        if (dataroot / v).is_dir():
+            return v
+    raise UserError(f"{dataroot}: no world.json and no v1.0-trainval / v1.0-mini folder; is it a nuScenes dataroot?")
+
+
+def _lines(geoms) -> list[np.ndarray]:
+    out = []
+    for g in geoms:
+        if isinstance(g, (LineString,)):
+            parts = [g]
+        elif isinstance(g, MultiLineString):
+            parts = list(g.geoms)
+        elif isinstance(g, (Polygon, MultiPolygon)):
+            polys = [g] if isinstance(g, Polygon) else list(g.geoms)
+            parts = [LineString(r.coords) for p in polys for r in [p.exterior, *p.interiors]]
+        else:
+            parts = [p for p in getattr(g, "geoms", []) if isinstance(p, LineString)]
+        out += [np.asarray(p.coords)[:, :2] for p in parts if not p.is_empty and len(p.coords) >= 2]
+    return out
+
+
+def map_elements_ego(nusc_map, pose_xy: np.ndarray, yaw: float, radius: float = RADIUS_M) -> dict[str, list]:
+    """Map lines around an ego pose in the ego frame (x forward, y left), by element, as polylines [P, 2]."""
+    ex = nusc_map.explorer
+    patch = (float(pose_xy[0]), float(pose_xy[1]), 2 * radius, 2 * radius)
+    angle = float(np.degrees(yaw))
+    out = {
+        "road_divider": _lines(ex._get_layer_line(patch, angle, "road_divider")),
+        "lane_divider": _lines(ex._get_layer_line(patch, angle, "lane_divider")),
+        "ped_crossing": _lines(ex._get_layer_polygon(patch, angle, "ped_crossing")),
+    }
+    road = unary_union(ex._get_layer_polygon(patch, angle, "road_segment")
+                       + ex._get_layer_polygon(patch, angle, "lane"))
+    out["boundary"] = _lines([road])
+    return out
+
+
+def _project(cam_rot: np.ndarray, cam_trans: np.ndarray, k: np.ndarray, line: np.ndarray) -> list[np.ndarray]:
+    """Ego-frame ground polyline [P, 2] -> image polylines (pieces in front of the camera)."""
+    dense = np.asarray(segmentize(LineString(line), 0.5).coords)[:, :2]
+    p = np.concatenate([dense, np.zeros((len(dense), 1))], axis=1)
+    pc = (p - cam_trans) @ cam_rot  # = R^T (p - t)
+    front = pc[:, 2] > 0.5
+    pieces, cur = [], []
+    for ok, q in zip(front, pc):
+        if ok:
+            cur.append(q)
+        elif len(cur) >= 2:
+            pieces.append(np.array(cur))
+            cur = []
+        else:
+            cur = []
+    if len(cur) >= 2:
+        pieces.append(np.array(cur))
+    return [(q[:, :2] / q[:, 2:3]) @ k[:2, :2].T + k[:2, 2] for q in pieces]
+
+
+def write_preview(dataroot, out_png, index: int = 0) -> None:
+    """Draw sample `index` of `dataroot`: 6 cameras with projected map lines, and the BEV map."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.image import imread
+    from nuscenes import NuScenes
+    from nuscenes.map_expansion.map_api import NuScenesMap
+
+    dataroot = FsPath(dataroot)
+    if not dataroot.is_dir():
+        raise UserError(f"{dataroot}: no such folder")
+    nusc = NuScenes(version=_version_of(dataroot), dataroot=str(dataroot), verbose=False)
+    if not 0 <= index < len(nusc.sample):
+        raise UserError(f"--index {index}: {dataroot} has {len(nusc.sample)} samples (0..{len(nusc.sample) - 1})")
+    sample = nusc.sample[index]
+    scene = nusc.get("scene", sample["scene_token"])
+    location = nusc.get("log", scene["log_token"])["location"]
+    nusc_map = NuScenesMap(dataroot=str(dataroot), map_name=location)
+    ref = nusc.get("sample_data", sample["data"]["CAM_FRONT"])
+    ego = nusc.get("ego_pose", ref["ego_pose_token"])
+    yaw = Quaternion(ego["rotation"]).yaw_pitch_roll[0]
+    elements = map_elements_ego(nusc_map, np.asarray(ego["translation"][:2]), yaw)
+
+    fig = plt.figure(figsize=(26, 8.2))
+    grid = fig.add_gridspec(2, 4, width_ratios=[1, 1, 1, 1.15], wspace=0.03, hspace=0.08)
+    for i, ch in enumerate(LAYOUT):
+        ax = fig.add_subplot(grid[i // 3, i % 3])
+        sd = nusc.get("sample_data", sample["data"][ch])
+        cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+        img = imread(nusc.get_sample_data_path(sd["token"]))
+        ax.imshow(img)
+        rot, trans, k = Quaternion(cs["rotation"]).rotation_matrix, np.asarray(cs["translation"]), np.asarray(
+            cs["camera_intrinsic"])
+        for name, lines in elements.items():
+            color, lw = STYLE[name]
+            for line in lines:
+                for uv in _project(rot, trans, k, line):
+                    ax.plot(uv[:, 0], uv[:, 1], "-", color=color, lw=lw, alpha=0.85)
+        ax.set_xlim(0, img.shape[1])
+        ax.set_ylim(img.shape[0], 0)
+        ax.set_title(ch, fontsize=9)
+        ax.axis("off")
+
+    ax = fig.add_subplot(grid[:, 3])
+    for name, lines in elements.items():
+        color, lw = STYLE[name]
+        for j, line in enumerate(lines):
+            ax.plot(line[:, 0], line[:, 1], "-", color=color, lw=lw, label=name if j == 0 else None)
+    _, boxes, _ = nusc.get_sample_data(sample["data"]["LIDAR_TOP"])
+    cs = nusc.get("calibrated_sensor", nusc.get("sample_data", sample["data"]["LIDAR_TOP"])["calibrated_sensor_token"])
+    for b in boxes:  # lidar frame -> ego frame
+        b.rotate(Quaternion(cs["rotation"]))
+        b.translate(np.asarray(cs["translation"]))
+        c = b.bottom_corners()[:2].T
+        ax.fill(c[:, 0], c[:, 1], color="#777777", alpha=0.6)
+    ax.fill([-1.0, 3.9, 3.9, -1.0], [-0.95, -0.95, 0.95, 0.95], color="#2060ff")
+    ax.plot([-30, 30, 30, -30, -30], [-15, -15, 15, 15, -15], "k--", lw=0.8, label="60 m x 30 m")
+    ax.set_xlim(-40, 40)
+    ax.set_ylim(-30, 30)
+    ax.set_aspect("equal")
+    ax.set_facecolor("#f4f4f4")
+    ax.set_xlabel("x forward (m)")
+    ax.set_ylabel("y left (m)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"{scene['name']} ({location}), sample {index}: map in the ego frame", fontsize=9)
+    out_png = FsPath(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=80, bbox_inches="tight")
+    plt.close(fig)

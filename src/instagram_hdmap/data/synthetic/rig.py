@@ -1,0 +1,91 @@
+"""The sensor rig of a real nuScenes log (n015, Singapore; the v1.0-mini calibrated_sensor records).
+
+Six cameras (1600 x 900) and LIDAR_TOP: sensor -> ego translation (m), rotation (w, x, y, z) and
+camera intrinsics, exactly as published. Intrinsics are scaled when images of another size are
+rendered. The ego frame: x forward, y left, z up, origin at the rear axle on the ground.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+from pyquaternion import Quaternion
+
+from ...config import UserError
+
+NUSCENES_IMAGE_SIZE = (1600, 900)  # (width, height)
+CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
+LIDAR = "LIDAR_TOP"
+
+# channel: (translation, rotation wxyz, (fx, cx, cy)) -- fx == fy on every nuScenes camera
+_RIG = {
+    "CAM_FRONT": ((1.70079118954, 0.0159456324149, 1.51095763913),
+                  (0.4998015430569128, -0.5030316162024876, 0.4997798114386805, -0.49737083824542755),
+                  (1266.417203046554, 816.2670197447984, 491.50706579294757)),
+    "CAM_FRONT_RIGHT": ((1.5508477543, -0.493404796419, 1.49574800619),
+                        (0.2060347966337182, -0.2026940577919598, 0.6824507824531167, -0.6713610884174485),
+                        (1260.8474446004698, 807.968244525554, 495.3344268742088)),
+    "CAM_FRONT_LEFT": ((1.52387798135, 0.494631336551, 1.50932822144),
+                       (0.6757265034669446, -0.6736266522251881, 0.21214015046209478, -0.21122827103904068),
+                       (1272.5979470598488, 826.6154927353808, 479.75165386361925)),
+    "CAM_BACK": ((0.0283260309358, 0.00345136761476, 1.57910346144),
+                 (0.5037872666382278, -0.49740249788611096, -0.4941850223835201, 0.5045496097725578),
+                 (809.2209905677063, 829.2196003259838, 481.77842384512485)),
+    "CAM_BACK_LEFT": ((1.03569100218, 0.484795032713, 1.59097014818),
+                      (0.6924185592174665, -0.7031619420114925, -0.11648342771943819, 0.11203317912370753),
+                      (1256.7414812095406, 792.1125740759628, 492.7757465151356)),
+    "CAM_BACK_RIGHT": ((1.0148780988, -0.480568219723, 1.56239545128),
+                       (0.12280980120078765, -0.132400842670559, -0.7004305821388234, 0.690496031265798),
+                       (1259.5137405846733, 807.2529053838625, 501.19579884916527)),
+}
+_LIDAR_TOP = ((0.943713, 0.0, 1.84023),
+              (0.7077955119163518, -0.006492242056004365, 0.010646214713995808, -0.7063073142877817))
+
+
+@dataclass(frozen=True)
+class Sensor:
+    channel: str
+    modality: str  # camera | lidar
+    translation: tuple[float, float, float]  # sensor -> ego
+    rotation: tuple[float, float, float, float]  # sensor -> ego, w x y z
+    intrinsic: np.ndarray | None  # [3, 3] for cameras
+
+    @property
+    def rot(self) -> np.ndarray:
+        """[3, 3] sensor -> ego rotation matrix."""
+        return Quaternion(self.rotation).rotation_matrix
+
+    @property
+    def trans(self) -> np.ndarray:
+        return np.array(self.translation)
+
+
+def parse_image_size(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
+    """'1600x900' (or (1600, 900)) -> (width, height); raises UserError naming the problem."""
+    if isinstance(text, (tuple, list)):
+        if len(text) != 2:
+            raise UserError(f"--image-size {text!r}: expected WIDTHxHEIGHT, e.g. 1600x900")
+        w, h = (int(v) for v in text)
+    else:
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
+        if m is None:
+            raise UserError(f"--image-size {text!r}: expected WIDTHxHEIGHT in pixels, e.g. 1600x900")
+        w, h = int(m.group(1)), int(m.group(2))
+    if not (32 <= w <= 8192 and 32 <= h <= 8192):
+        raise UserError(f"--image-size {w}x{h}: width and height must be between 32 and 8192 pixels")
+    return w, h
+
+
+def rig(image_size: tuple[int, int] = NUSCENES_IMAGE_SIZE) -> dict[str, Sensor]:
+    """The six cameras (intrinsics scaled to `image_size` = (w, h)) and LIDAR_TOP, by channel."""
+    sx = image_size[0] / NUSCENES_IMAGE_SIZE[0]
+    sy = image_size[1] / NUSCENES_IMAGE_SIZE[1]
+    out = {}
+    for ch in CAMERAS:
+        t, q, (f, cx, cy) = _RIG[ch]
+        k = np.array([[f * sx, 0.0, cx * sx], [0.0, f * sy, cy * sy], [0.0, 0.0, 1.0]])
+        out[ch] = Sensor(ch, "camera", t, q, k)
+    out[LIDAR] = Sensor(LIDAR, "lidar", *_LIDAR_TOP, None)
+    return out

@@ -1,0 +1,914 @@
+"""Procedural road network of one synthetic map, and its nuScenes map-expansion records.
+
+Layout: a jittered grid of 3-4 x 3-4 nodes 100-150 m apart; some grid edges are removed and some
+border nodes get a road running off the map, so nodes become 4-way junctions, T junctions, 90 deg
+corners (a circular curve) or straight pass-throughs. The roads between junctions ("stretches")
+are straight or curved (corners, gentle S-bends), with 2-6 lanes of 3.0-3.7 m; some wide roads
+have a median: a raised island, i.e. a hole in the road polygon whose ring is an island-shaped
+road boundary. Junctions have kerb fillets, zebra crossings and stop lines; lanes are joined by
+lane connectors. Boston drives on the right, Singapore on the left.
+
+Everything is built from one sampled cross-section grid per stretch (rows = lateral offsets of
+the road edges, lane boundaries, median edges and centre line; columns = samples along the
+centre path), so road polygons, lane polygons, divider lines and junction polygons share their
+nodes exactly, and the union of road_segment and lane polygons is the road surface with clean
+exterior and interior (island) rings. Painted markings are drawn from the same paths.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from shapely import prepared
+from shapely.geometry import LineString, MultiPolygon, Polygon, box
+from shapely.ops import unary_union
+
+from .map_writer import MapRecords, Ref, make_token
+from .paths import Path, Turtle, connect
+
+LOCATIONS = ("boston-seaport", "singapore-onenorth", "singapore-hollandvillage", "singapore-queenstown")
+DIRS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])  # direction codes 0..3 (E, N, W, S)
+STOP_LINE_WIDTH = 0.4
+
+
+def _left(code: int) -> np.ndarray:
+    """Unit normal to the left of direction `code`."""
+    return DIRS[(code + 1) % 4]
+
+
+def _yaw(code: int) -> float:
+    return code * math.pi / 2
+
+
+def as_polygons(geom) -> list[Polygon]:
+    """The non-empty polygons of a shapely geometry (Polygon, MultiPolygon or collection)."""
+    if geom.is_empty:
+        return []
+    if isinstance(geom, Polygon):
+        return [geom]
+    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
+
+
+# ---------------------------------------------------------------------------------------------
+# Data model
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MapStyle:
+    """Per-map painting and street-furniture parameters (scene-level colours live in render.py)."""
+
+    dash: float  # dashed lane divider: painted length (m)
+    gap: float  # dashed lane divider: gap (m)
+    line_width: float  # painted line width (m)
+    double_gap: float  # gap between the two lines of a double divider (m)
+    sidewalk: float  # sidewalk (walkway) width (m)
+    kerb: float  # kerb width (m)
+    island_ground: str  # 'grass' | 'paved'
+
+
+@dataclass
+class Chain:
+    """A road between two junctions (or a junction and the map edge) through corner nodes."""
+
+    nodes: list[tuple[int, int]]  # grid nodes from a junction to a junction (a stub: just its junction)
+    dirs: list[int]  # direction code leaving each node but the last (a stub: towards the map edge)
+    stub: bool
+    n_right: int = 0  # lanes right of the centre path
+    n_left: int = 0
+    lane_width: float = 3.5
+    median: float = 0.0  # median width (m), 0: none
+    divider: str = "double_yellow"  # double_yellow | single_yellow | single_white
+
+    @property
+    def w_right(self) -> float:
+        return self.median / 2 + self.n_right * self.lane_width
+
+    @property
+    def w_left(self) -> float:
+        return self.median / 2 + self.n_left * self.lane_width
+
+
+@dataclass
+class Stretch:
+    chain: Chain
+    path: Path  # centre path from the start junction arm (or map edge) to the end one
+    s: np.ndarray  # [n] sample arc lengths
+    pts: np.ndarray  # [n, 2] centre samples
+    nrm: np.ndarray  # [n, 2] left unit normals
+    rows: np.ndarray  # [J] lateral offsets, ascending
+    kinds: list[str]  # [J] 'edge' | 'lane' | 'median' | 'centre'
+    ids: np.ndarray  # [J, n] node ids, -1 where the row is absent (centre row across an island)
+    island: tuple[float, float] | None  # (s_a, s_b) nose tips of the island
+    start: tuple[tuple[int, int], int] | None  # (junction node, arm code) at s = 0
+    end: tuple[tuple[int, int], int] | None  # at s = length; None: map edge
+    shape: Polygon | None = None
+    segment: Ref | None = None
+    tone: float = 0.0  # asphalt tone offset of this stretch (render)
+
+
+@dataclass
+class Lane:
+    index: int
+    stretch: int
+    lo: int  # row index of the lower-offset boundary
+    hi: int
+    forward: bool  # travels along the stretch path
+    path: Path  # centre line in the direction of travel
+    kerb_rank: int  # 0 = next to the kerb
+    start: tuple[tuple[int, int], int] | None  # (junction, arm) where the lane begins, None: map edge
+    end: tuple[tuple[int, int], int] | None
+    width: float
+    ref: Ref | None = None
+
+
+@dataclass
+class Connector:
+    index: int
+    path: Path
+    src: int  # lane index
+    dst: int
+    turn: str  # straight | left | right
+    ref: Ref | None = None
+
+
+@dataclass
+class Junction:
+    node: tuple[int, int]
+    centre: np.ndarray
+    arms: list[int]
+    D: dict[int, float]  # arm end distance from the centre
+    wl: dict[int, float]  # half-width left of the outward direction
+    wr: dict[int, float]
+    crossing: dict[int, bool]
+    fillet: dict[int, float]  # kerb radius of the corner between arm a and arm a + 1
+    shape: Polygon | None = None
+    segment: Ref | None = None
+    tone: float = 0.0
+
+
+@dataclass
+class Box:
+    """An upright box: centre (x, y), yaw, length along yaw, width, z range, BGR colour, kind."""
+
+    x: float
+    y: float
+    yaw: float
+    length: float
+    width: float
+    z0: float
+    z1: float
+    color: tuple[int, int, int]
+    kind: str  # building | tree | trunk | pole | vehicle
+
+    def footprint(self) -> np.ndarray:
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        hl, hw = self.length / 2, self.width / 2
+        local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+        return local @ np.array([[c, s], [-s, c]]) + [self.x, self.y]
+
+
+@dataclass
+class Markings:
+    """Painted world-frame polygons (each [P, 2], not closed) by paint colour."""
+
+    white: list[np.ndarray] = field(default_factory=list)
+    yellow: list[np.ndarray] = field(default_factory=list)
+    patches: list[tuple[np.ndarray, float]] = field(default_factory=list)  # (polygon, tone offset)
+
+
+@dataclass
+class RoadNetwork:
+    location: str
+    seed: int
+    canvas: tuple[float, float]  # map extent (w, h) in metres: nuScenes canvas_edge
+    drive_right: bool
+    style: MapStyle
+    stretches: list[Stretch]
+    junctions: dict[tuple[int, int], Junction]
+    lanes: list[Lane]
+    connectors: list[Connector]
+    records: MapRecords
+    road: Polygon | MultiPolygon  # drivable road surface (holes: city blocks and median islands)
+    road_filled: Polygon | MultiPolygon  # the same without the median islands
+    islands: list[Polygon]
+    walkway: Polygon | MultiPolygon
+    ground: list[tuple[Polygon, str]]  # city blocks outside the sidewalks: (shape, 'grass'|'dirt'|'paved')
+    kerb: Polygon | MultiPolygon
+    markings: Markings
+    props: list[Box]
+
+    def lines(self, layer: str) -> list[LineString]:
+        """The generator's own road_divider / lane_divider lines, as written to the map."""
+        return [LineString(self.records.node_xy(self.records.lines[r["line_token"].index]))
+                for r in self.records.layers[layer]]
+
+    def polygons(self, layer: str) -> list[Polygon]:
+        """The generator's own polygons of a polygon layer (drivable_area: every polygon of it)."""
+        out = []
+        for r in self.records.layers[layer]:
+            refs = r["polygon_tokens"] if layer == "drivable_area" else [r["polygon_token"]]
+            out.extend(self.records.shape_of(ref.index) for ref in refs)
+        return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Layout
+# ---------------------------------------------------------------------------------------------
+
+
+def _connected(arms: dict, edges: set) -> bool:
+    nodes = list(arms)
+    seen = {nodes[0]}
+    todo = [nodes[0]]
+    adj: dict = {n: [] for n in nodes}
+    for a, b in edges:
+        adj[a].append(b)
+        adj[b].append(a)
+    while todo:
+        n = todo.pop()
+        for m in adj[n]:
+            if m not in seen:
+                seen.add(m)
+                todo.append(m)
+    return len(seen) == len(nodes)
+
+
+def _code(a: tuple[int, int], b: tuple[int, int]) -> int:
+    d = (b[0] - a[0], b[1] - a[1])
+    return {(1, 0): 0, (0, 1): 1, (-1, 0): 2, (0, -1): 3}[d]
+
+
+def _layout(rng: np.random.Generator):
+    nx, ny = int(rng.integers(3, 5)), int(rng.integers(3, 5))
+    margin = float(rng.uniform(70.0, 90.0))
+    xs = margin + np.concatenate([[0.0], np.cumsum(rng.uniform(100.0, 150.0, nx - 1))])
+    ys = margin + np.concatenate([[0.0], np.cumsum(rng.uniform(100.0, 150.0, ny - 1))])
+    canvas = (float(xs[-1] + margin), float(ys[-1] + margin))
+    pos = {(i, j): np.array([xs[i], ys[j]]) for i in range(nx) for j in range(ny)}
+    edges = {((i, j), (i + 1, j)) for i in range(nx - 1) for j in range(ny)}
+    edges |= {((i, j), (i, j + 1)) for i in range(nx) for j in range(ny - 1)}
+    arms: dict[tuple[int, int], set[int]] = {n: set() for n in pos}
+    for a, b in edges:
+        arms[a].add(_code(a, b))
+        arms[b].add(_code(b, a))
+    for e in sorted(edges):
+        if rng.random() > 0.3:
+            continue
+        a, b = e
+        if len(arms[a]) <= 2 or len(arms[b]) <= 2:
+            continue
+        edges.discard(e)
+        if not _connected(arms, edges):
+            edges.add(e)
+            continue
+        arms[a].discard(_code(a, b))
+        arms[b].discard(_code(b, a))
+    stubs = set()
+    for (i, j), codes in sorted(arms.items()):
+        outward = [c for c, cond in ((0, i == nx - 1), (1, j == ny - 1), (2, i == 0), (3, j == 0)) if cond]
+        for c in outward:
+            if rng.random() < 0.3:
+                stubs.add(((i, j), c))
+                codes.add(c)
+    return pos, arms, stubs, canvas
+
+
+def _chains(pos, arms, stubs) -> list[Chain]:
+    def kind(n):
+        a = arms[n]
+        if len(a) >= 3:
+            return "junction"
+        return "through" if (min(a) + 2) in a else "corner"
+
+    done: set = set()
+    chains = []
+    for j in sorted(pos):
+        if kind(j) != "junction":
+            continue
+        for a in sorted(arms[j]):
+            if (j, a) in done:
+                continue
+            done.add((j, a))
+            if (j, a) in stubs:
+                chains.append(Chain(nodes=[j], dirs=[a], stub=True))
+                continue
+            nodes, dirs = [j], [a]
+            cur, d = j, a
+            while True:
+                nxt = (cur[0] + int(DIRS[d][0]), cur[1] + int(DIRS[d][1]))
+                nodes.append(nxt)
+                if kind(nxt) == "junction":
+                    done.add((nxt, (d + 2) % 4))
+                    break
+                d = next(c for c in arms[nxt] if c != (d + 2) % 4)
+                dirs.append(d)
+                cur = nxt
+            chains.append(Chain(nodes=nodes, dirs=dirs, stub=False))
+    return chains
+
+
+def _chain_length(chain: Chain, pos) -> float:
+    if chain.stub:
+        return 0.0
+    return float(sum(np.abs(pos[b] - pos[a]).sum() for a, b in zip(chain.nodes[:-1], chain.nodes[1:])))
+
+
+def _assign_lanes(chains: list[Chain], pos, rng: np.random.Generator) -> None:
+    for ch in chains:
+        n = int(rng.choice([2, 3, 4, 5, 6], p=[0.3, 0.15, 0.3, 0.1, 0.15]))
+        if ch.stub:
+            n = min(n, 4)
+        n_fwd = n // 2 + (int(rng.random() < 0.5) if n % 2 else 0)
+        ch.n_right, ch.n_left = n_fwd, n - n_fwd
+        ch.lane_width = float(rng.uniform(3.0, 3.7))
+        if n >= 4 and not ch.stub and _chain_length(ch, pos) >= 120 and rng.random() < 0.5:
+            ch.median = float(rng.uniform(2.0, 4.0))
+        ch.divider = str(rng.choice(["double_yellow", "single_yellow", "single_white"], p=[0.55, 0.2, 0.25]))
+    if not any(ch.median > 0 for ch in chains):
+        longest = max(chains, key=lambda c: _chain_length(c, pos))
+        longest.n_right, longest.n_left = max(longest.n_right, 2), max(longest.n_left, 2)
+        longest.median = float(rng.uniform(2.0, 4.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Geometry
+# ---------------------------------------------------------------------------------------------
+
+
+def _junctions(chains, pos, arms, rng) -> dict:
+    wl: dict = {}
+    wr: dict = {}
+    for ch in chains:
+        j0, a0 = ch.nodes[0], ch.dirs[0]
+        wl[(j0, a0)], wr[(j0, a0)] = ch.w_left, ch.w_right
+        if not ch.stub:
+            j1, a1 = ch.nodes[-1], (ch.dirs[-1] + 2) % 4
+            wl[(j1, a1)], wr[(j1, a1)] = ch.w_right, ch.w_left
+    out = {}
+    for n in sorted(pos):
+        if len(arms[n]) < 3:
+            continue
+        codes = sorted(arms[n])
+        fillet = {a: float(rng.uniform(4.0, 9.0)) for a in codes}  # corner between a and a+1
+        crossing = {a: bool(rng.random() < 0.75) for a in codes}
+        if not any(crossing.values()):
+            crossing[codes[int(rng.integers(len(codes)))]] = True
+        D = {}
+        for a in codes:
+            ext = 2.0
+            if (a + 1) % 4 in arms[n]:
+                ext = max(ext, wr[(n, (a + 1) % 4)] + fillet[a])
+            if (a - 1) % 4 in arms[n]:
+                ext = max(ext, wl[(n, (a - 1) % 4)] + fillet[(a - 1) % 4])
+            D[a] = ext + (1.0 + 4.0 + 0.8 + STOP_LINE_WIDTH + 0.3 if crossing[a] else 1.0 + STOP_LINE_WIDTH + 0.3)
+        out[n] = Junction(node=n, centre=pos[n], arms=codes, D=D, wl={a: wl[(n, a)] for a in codes},
+                          wr={a: wr[(n, a)] for a in codes}, crossing=crossing, fillet=fillet)
+    return out
+
+
+def _straight_with_bend(t: Turtle, length: float, half_width: float, rng) -> None:
+    """Drive `length` metres straight ahead, sometimes as a gentle S-bend back onto the same line."""
+    if length >= 110 and rng.random() < 0.5:
+        theta = math.radians(float(rng.uniform(10.0, 22.0)))
+        r = float(rng.uniform(half_width + 20.0, 90.0))
+        r = min(r, (length - 30.0) / (4 * math.sin(theta)))
+        if r >= half_width + 15.0:
+            side = 1.0 if rng.random() < 0.5 else -1.0
+            lead = (length - 4 * r * math.sin(theta)) / 2
+            t.straight(lead).arc(side * theta, r).arc(-2 * side * theta, r).arc(side * theta, r)
+            t.straight(length - lead - 4 * r * math.sin(theta))
+            return
+    t.straight(length)
+
+
+def _chain_path(ch: Chain, pos, junctions, canvas, rng):
+    """Centre path of a chain and its exact end poses ((x, y), code)."""
+    j0, a0 = ch.nodes[0], ch.dirs[0]
+    start = pos[j0] + junctions[j0].D[a0] * DIRS[a0]
+    t = Turtle(float(start[0]), float(start[1]), _yaw(a0))
+    cur = start.copy()
+    half = max(ch.w_left, ch.w_right)
+    for k in range(1, len(ch.nodes) - 1):
+        din, dout = ch.dirs[k - 1], ch.dirs[k]
+        if din == dout:
+            continue
+        rc = float(rng.uniform(half + 8.0, half + 25.0))
+        length = float(np.dot(pos[ch.nodes[k]] - cur, DIRS[din])) - rc
+        _straight_with_bend(t, length, half, rng)
+        t.arc(math.pi / 2 if dout == (din + 1) % 4 else -math.pi / 2, rc)
+        cur = pos[ch.nodes[k]] + rc * DIRS[dout]
+    dlast = ch.dirs[-1]
+    if ch.stub:
+        end = cur.copy()
+        axis = 0 if dlast in (0, 2) else 1
+        end[axis] = canvas[axis] if dlast in (0, 1) else 0.0
+        t.straight(float(np.dot(end - cur, DIRS[dlast])))
+    else:
+        jn = ch.nodes[-1]
+        arm = (dlast + 2) % 4
+        end = pos[jn] + junctions[jn].D[arm] * DIRS[arm]
+        _straight_with_bend(t, float(np.dot(end - cur, DIRS[dlast])), half, rng)
+    return t.path(), (start, a0), (end, dlast)
+
+
+def _stretch(ch: Chain, path: Path, start, end, rng) -> Stretch:
+    length = path.length
+    r = ch.median / 2
+    island = None
+    extra = []
+    if ch.median > 0:
+        s_a = float(rng.uniform(10.0, 20.0))
+        s_b = length - float(rng.uniform(10.0, 20.0))
+        if s_b - s_a >= 2 * r + 15.0:
+            island = (s_a, s_b)
+            extra = [s_a, s_a + r, s_b - r, s_b]
+    s = np.unique(np.concatenate([path.sample_s(4.0, 0.004), extra]))
+    s = s[np.concatenate([[True], np.diff(s) > 1e-6])]
+    s[-1] = length
+    poses = path.pose_at(s)
+    pts = poses[:, :2].copy()
+    nrm = np.stack([-np.sin(poses[:, 2]), np.cos(poses[:, 2])], axis=-1)
+    pts[0], nrm[0] = start[0], _left(start[1])
+    pts[-1], nrm[-1] = end[0], _left(end[1])
+
+    rows: list[tuple[float, str]] = [(-ch.w_right, "edge"), (ch.w_left, "edge")]
+    rows += [(-(r + k * ch.lane_width), "lane") for k in range(1, ch.n_right)]
+    rows += [(r + k * ch.lane_width, "lane") for k in range(1, ch.n_left)]
+    rows.append((0.0, "centre"))
+    if ch.median > 0:
+        rows += [(-r, "median"), (r, "median")]
+    rows.sort()
+    offsets = np.array([d for d, _ in rows])
+    kinds = [k for _, k in rows]
+    return Stretch(chain=ch, path=path, s=s, pts=pts, nrm=nrm, rows=offsets, kinds=kinds,
+                   ids=np.full((len(rows), len(s)), -1), island=island, start=None, end=None)
+
+
+def _register_stretch(st: Stretch, rec: MapRecords) -> list[int]:
+    """Add the stretch's grid nodes; returns the island ring node ids (empty if none)."""
+    n = len(st.s)
+    centre = st.kinds.index("centre")
+    for j, d in enumerate(st.rows):
+        xy = st.pts + d * st.nrm
+        keep = np.ones(n, bool)
+        if j == centre and st.island is not None:
+            s_a, s_b = st.island
+            keep = (st.s <= s_a + 1e-9) | (st.s >= s_b - 1e-9)
+        st.ids[j, keep] = rec.add_nodes(xy[keep])
+    if st.island is None:
+        return []
+    s_a, s_b = st.island
+    r = st.chain.median / 2
+    jr, jl = st.kinds.index("median"), len(st.kinds) - 1 - st.kinds[::-1].index("median")
+    side = (st.s >= s_a + r - 1e-9) & (st.s <= s_b - r + 1e-9)
+    i_a = int(np.argmin(np.abs(st.s - s_a)))
+    i_b = int(np.argmin(np.abs(st.s - s_b)))
+
+    def nose(s_c, phis):
+        poses = st.path.pose_at(s_c + r * np.cos(phis))
+        nrm = np.stack([-np.sin(poses[:, 2]), np.cos(poses[:, 2])], axis=-1)
+        return rec.add_nodes(poses[:, :2] + (r * np.sin(phis))[:, None] * nrm)
+
+    m = max(3, int(math.ceil(math.pi * r / 0.5)) // 2)
+    half1 = np.linspace(-math.pi / 2, 0.0, m + 1)[1:-1]
+    half2 = np.linspace(0.0, math.pi / 2, m + 1)[1:-1]
+    ring = list(st.ids[jr, side])
+    ring += list(nose(s_b - r, half1)) + [int(st.ids[centre, i_b])] + list(nose(s_b - r, half2))
+    ring += list(st.ids[jl, side][::-1])
+    ring += list(nose(s_a + r, half1 + math.pi)) + [int(st.ids[centre, i_a])] + list(nose(s_a + r, half2 + math.pi))
+    return [int(i) for i in ring]
+
+
+def _cross_section(st: Stretch, at_start: bool) -> list[int]:
+    """Node ids across the stretch end, ordered from the outward-right to the outward-left."""
+    col = st.ids[:, 0] if at_start else st.ids[:, -1][::-1]
+    return [int(i) for i in col if i >= 0]
+
+
+def _band_ring(st: Stretch, j0: int, j1: int) -> list[int]:
+    """Ring of the band between rows j0 < j1, including the intermediate row nodes at the ends."""
+    ring = list(st.ids[j0])
+    ring += [int(st.ids[j, -1]) for j in range(j0 + 1, j1) if st.ids[j, -1] >= 0]
+    ring += list(st.ids[j1][::-1])
+    ring += [int(st.ids[j, 0]) for j in range(j1 - 1, j0, -1) if st.ids[j, 0] >= 0]
+    return [int(i) for i in ring]
+
+
+def _edge_line(rec: MapRecords, st: Stretch, j0: int, j1: int, col: int) -> Ref:
+    return rec.add_line([int(st.ids[j0, col]), int(st.ids[j1, col])])
+
+
+# ---------------------------------------------------------------------------------------------
+# Network
+# ---------------------------------------------------------------------------------------------
+
+
+def build_network(location: str, seed: int) -> RoadNetwork:
+    """The road network of `location` in the world of `seed` (deterministic)."""
+    if location not in LOCATIONS:
+        raise ValueError(f"unknown location {location!r}; expected one of {LOCATIONS}")
+    for attempt in range(50):
+        rng = np.random.default_rng([seed, LOCATIONS.index(location), attempt])
+        net = _try_build(location, seed, rng)
+        if net is not None:
+            return net
+    raise RuntimeError(f"could not lay out a valid road network for {location} (seed {seed})")
+
+
+def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwork | None:
+    drive_right = location.startswith("boston")
+    pos, arms, stubs, canvas = _layout(rng)
+    kinds = [len(a) for a in arms.values()]
+    if 3 not in kinds or 4 not in kinds:
+        return None
+    chains = _chains(pos, arms, stubs)
+    _assign_lanes(chains, pos, rng)
+    style = MapStyle(
+        dash=float(rng.choice([2.0, 3.0, 3.0, 4.0])), gap=float(rng.uniform(4.0, 6.5)),
+        line_width=float(rng.uniform(0.12, 0.18)), double_gap=float(rng.uniform(0.1, 0.2)),
+        sidewalk=float(rng.uniform(2.0, 4.0)), kerb=float(rng.uniform(0.2, 0.3)),
+        island_ground=str(rng.choice(["grass", "paved"])),
+    )
+    junctions = _junctions(chains, pos, arms, rng)
+    rec = MapRecords(namespace=f"{seed}/{location}")
+
+    stretches: list[Stretch] = []
+    for ch in chains:
+        path, start, end = _chain_path(ch, pos, junctions, canvas, rng)
+        st = _stretch(ch, path, start, end, rng)
+        st.start = (ch.nodes[0], ch.dirs[0])
+        st.end = None if ch.stub else (ch.nodes[-1], (ch.dirs[-1] + 2) % 4)
+        st.tone = float(rng.uniform(-8.0, 8.0))
+        stretches.append(st)
+    if not any(st.island is not None for st in stretches):
+        return None
+
+    # --- road segments: stretches (with island holes) and junctions ---------------------------
+    drivable = Ref("drivable_area", 0)
+    arm_ids: dict = {}
+    for st in stretches:
+        island_ring = _register_stretch(st, rec)
+        ring = _band_ring(st, 0, len(st.rows) - 1)
+        holes = [island_ring] if island_ring else []
+        poly = rec.add_polygon(ring, holes, "road_segment")
+        st.shape = rec.shape_of(poly.index)
+        st.segment = rec.add("road_segment", polygon_token=poly, is_intersection=False, drivable_area_token=drivable)
+        arm_ids[st.start] = _cross_section(st, True)
+        if st.end is not None:
+            arm_ids[st.end] = _cross_section(st, False)
+
+    for jn in junctions.values():
+        ring: list[int] = []
+        codes = jn.arms
+        for idx, a in enumerate(codes):
+            ring += arm_ids[(jn.node, a)]
+            b = codes[(idx + 1) % len(codes)]
+            if (b - a) % 4 == 1:
+                r = jn.fillet[a]
+                q = jn.centre + jn.wr[b] * DIRS[a] + jn.wl[a] * DIRS[b]
+                o = q + r * DIRS[a] + r * DIRS[b]
+                phi0 = math.atan2(-DIRS[b][1], -DIRS[b][0])
+                m = max(4, int(math.ceil(r * math.pi / 2 / math.sqrt(8 * r * 0.004))))
+                phis = phi0 - np.linspace(0.0, math.pi / 2, m + 1)
+                ring += list(rec.add_nodes(o + r * np.stack([np.cos(phis), np.sin(phis)], axis=-1)))
+        poly = rec.add_polygon(ring, (), "junction road_segment")
+        jn.shape = rec.shape_of(poly.index)
+        jn.segment = rec.add("road_segment", polygon_token=poly, is_intersection=True, drivable_area_token=drivable)
+        jn.tone = float(rng.uniform(-8.0, 8.0))
+
+    pieces = [st.shape for st in stretches] + [jn.shape for jn in junctions.values()]
+    road = unary_union(pieces)
+    road_filled = unary_union([Polygon(st.shape.exterior) for st in stretches]
+                              + [jn.shape for jn in junctions.values()])
+    if not road.is_valid or not isinstance(road, Polygon):
+        return None
+    islands = [Polygon(st.shape.interiors[0]) for st in stretches if st.island is not None]
+    if len(road.interiors) < len(islands):
+        return None
+    rec.add("drivable_area", polygon_tokens=[rec.add_shapely(p, "drivable_area") for p in as_polygons(road)])
+
+    # --- lanes, road blocks, dividers --------------------------------------------------------
+    lanes: list[Lane] = []
+    for si, st in enumerate(stretches):
+        ch = st.chain
+        centre = st.kinds.index("centre")
+        inner_r = st.kinds.index("median") if ch.median > 0 else centre
+        inner_l = (len(st.kinds) - 1 - st.kinds[::-1].index("median")) if ch.median > 0 else centre
+        last = len(st.rows) - 1
+        # road blocks: one per travel direction (right side, left side)
+        for j0, j1, forward_side in ((0, inner_r, True), (inner_l, last, False)):
+            poly = rec.add_polygon(_band_ring(st, j0, j1), (), "road_block")
+            right_side = forward_side
+            forward = right_side == drive_right
+            col_from, col_to = (0, -1) if forward else (-1, 0)
+            rec.add("road_block", polygon_token=poly, from_edge_line_token=_edge_line(rec, st, j0, j1, col_from),
+                    to_edge_line_token=_edge_line(rec, st, j0, j1, col_to), road_segment_token=st.segment)
+        lane_bands = [(j, j + 1, True) for j in range(0, inner_r)] + [(j, j + 1, False) for j in range(inner_l, last)]
+        for j0, j1, right_side in lane_bands:
+            forward = right_side == drive_right
+            d_c = (st.rows[j0] + st.rows[j1]) / 2
+            path = st.path.offset(d_c)
+            kerb_rank = j0 if right_side else last - j1
+            lane = Lane(index=len(lanes), stretch=si, lo=j0, hi=j1, forward=forward,
+                        path=path if forward else path.reversed(), kerb_rank=kerb_rank,
+                        start=st.start if forward else st.end, end=st.end if forward else st.start,
+                        width=float(st.rows[j1] - st.rows[j0]))
+            poly = rec.add_polygon(list(st.ids[j0]) + list(st.ids[j1][::-1]), (), "lane")
+            col_from, col_to = (0, -1) if forward else (-1, 0)
+            # left / right boundary of the lane in its direction of travel
+            left_row, right_row = (j1, j0) if forward else (j0, j1)
+
+            order = slice(None) if forward else slice(None, None, -1)
+            lane.ref = rec.add(
+                "lane", polygon_token=poly, lane_type="CAR",
+                from_edge_line_token=_edge_line(rec, st, j0, j1, col_from),
+                to_edge_line_token=_edge_line(rec, st, j0, j1, col_to),
+                left_lane_divider_segments=_segments(st.ids[left_row][order], _segment_type(st, left_row)),
+                right_lane_divider_segments=_segments(st.ids[right_row][order], _segment_type(st, right_row)),
+            )
+            rec.arclines[lane.ref] = lane.path.arclines()
+            lanes.append(lane)
+        for j, kind in enumerate(st.kinds):
+            if kind == "lane":
+                line = rec.add_line(st.ids[j])
+                rec.add("lane_divider", line_token=line,
+                        lane_divider_segments=_segments(st.ids[j], "SINGLE_DASHED_WHITE"))
+        row = st.ids[centre]
+        for part in _runs(row):
+            rec.add("road_divider", line_token=rec.add_line(part), road_segment_token=st.segment)
+
+    # --- crossings and stop lines -------------------------------------------------------------
+    markings = Markings()
+    chain_of_arm = {}
+    for st in stretches:
+        chain_of_arm[st.start] = st.chain
+        if st.end is not None:
+            chain_of_arm[st.end] = st.chain
+    for jn in junctions.values():
+        for a in jn.arms:
+            ch = chain_of_arm[(jn.node, a)]
+            u, n = DIRS[a], _left(a)
+            wl, wr = jn.wl[a], jn.wr[a]
+            t_stop = jn.D[a] - 0.3 - STOP_LINE_WIDTH
+            crossing_ref = None
+            if jn.crossing[a]:
+                t1 = t_stop - 0.8
+                t0 = t1 - 4.0
+                corners = [(t0, -wr), (t1, -wr), (t1, wl), (t0, wl)]
+                xy = np.array([jn.centre + t * u + lat * n for t, lat in corners])
+                poly = rec.add_polygon(rec.add_nodes(xy), (), "ped_crossing")
+                crossing_ref = rec.add("ped_crossing", polygon_token=poly, road_segment_token=jn.segment)
+                markings.white.extend(_zebra(jn.centre, u, n, t0, t1, -wr, wl))
+            # incoming traffic drives towards the junction (-u): its lanes are on the outward-left
+            # side when driving on the right, on the outward-right side when driving on the left
+            half_m = ch.median / 2
+            lat0, lat1 = (half_m, wl) if drive_right else (-wr, -half_m)
+            corners = [(t_stop, lat0), (t_stop + STOP_LINE_WIDTH, lat0), (t_stop + STOP_LINE_WIDTH, lat1),
+                       (t_stop, lat1)]
+            xy = np.array([jn.centre + t * u + lat * n for t, lat in corners])
+            poly = rec.add_polygon(rec.add_nodes(xy), (), "stop_line")
+            markings.white.append(xy)
+            rec.add("stop_line", polygon_token=poly,
+                    stop_line_type="PED_CROSSING" if crossing_ref is not None else "STOP_SIGN",
+                    ped_crossing_tokens=[crossing_ref] if crossing_ref is not None else [],
+                    traffic_light_tokens=[], road_block_token="")
+
+    # --- lane connectors ----------------------------------------------------------------------
+    connectors = _connect_lanes(lanes, junctions, drive_right, rec)
+
+    # --- sidewalks, ground, kerbs -------------------------------------------------------------
+    canvas_box = box(0.0, 0.0, canvas[0], canvas[1])
+    outer = road_filled.buffer(style.sidewalk, quad_segs=4)
+    walkway = unary_union(as_polygons(outer.difference(road_filled).intersection(canvas_box)))
+    cell = 50.0
+    for cx in np.arange(0.0, canvas[0], cell):
+        for cy in np.arange(0.0, canvas[1], cell):
+            for piece in as_polygons(walkway.intersection(box(cx, cy, cx + cell, cy + cell))):
+                if piece.area > 0.5:
+                    rec.add("walkway", polygon_token=rec.add_shapely(piece, "walkway"))
+    ground = []
+    for piece in as_polygons(canvas_box.difference(outer)):
+        ground.append((piece, str(rng.choice(["grass", "grass", "dirt", "paved"]))))
+    kerb = road.boundary.buffer(style.kerb / 2, quad_segs=2)
+
+    for st in stretches:
+        _paint_stretch(st, style, markings)
+    _add_patches(stretches, style, markings, rng)
+
+    net = RoadNetwork(
+        location=location, seed=seed, canvas=canvas, drive_right=drive_right, style=style, stretches=stretches,
+        junctions=junctions, lanes=lanes, connectors=connectors, records=rec, road=road, road_filled=road_filled,
+        islands=islands, walkway=walkway, ground=ground, kerb=kerb, markings=markings, props=[],
+    )
+    net.props = _place_props(net, outer, rng)
+    return net
+
+
+def _segment_type(st: Stretch, j: int) -> str:
+    """nuScenes segment_type of the painted line along row j of a stretch."""
+    if st.kinds[j] == "edge":
+        return "NIL"
+    if st.kinds[j] == "lane":
+        return "SINGLE_DASHED_WHITE"
+    return {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SINGLE_SOLID_YELLOW",
+            "single_white": "SINGLE_SOLID_WHITE"}[st.chain.divider]
+
+
+def _segments(ids, segment_type: str) -> list[dict]:
+    return [{"node_token": Ref("node", int(i)), "segment_type": segment_type} for i in ids]
+
+
+def _runs(row: np.ndarray) -> list[list[int]]:
+    """Maximal runs of present ids (>= 0) of length >= 2."""
+    runs, cur = [], []
+    for i in row:
+        if i >= 0:
+            cur.append(int(i))
+        else:
+            if len(cur) >= 2:
+                runs.append(cur)
+            cur = []
+    if len(cur) >= 2:
+        runs.append(cur)
+    return runs
+
+
+def _connect_lanes(lanes: list[Lane], junctions, drive_right: bool, rec: MapRecords) -> list[Connector]:
+    incoming: dict = {}
+    outgoing: dict = {}
+    for lane in lanes:
+        if lane.end is not None:
+            incoming.setdefault(lane.end, []).append(lane)
+        if lane.start is not None:
+            outgoing.setdefault(lane.start, []).append(lane)
+    near = "right" if drive_right else "left"
+    connectors: list[Connector] = []
+    for jn in junctions.values():
+        for a in jn.arms:
+            ins = sorted(incoming.get((jn.node, a), []), key=lambda ln: ln.kerb_rank)
+            for b in jn.arms:
+                if b == a or not ins:
+                    continue
+                outs = sorted(outgoing.get((jn.node, b), []), key=lambda ln: ln.kerb_rank)
+                if not outs:
+                    continue
+                probe = connect(ins[0].path.end_pose(), outs[0].path.start_pose())
+                if probe is None:
+                    continue
+                dyaw = (outs[0].path.start_pose()[2] - ins[0].path.end_pose()[2] + math.pi) % (2 * math.pi) - math.pi
+                turn = "straight" if abs(dyaw) < 0.1 else ("left" if dyaw > 0 else "right")
+                if turn == "straight":
+                    pairs = [(i, min(i, len(outs) - 1)) for i in range(len(ins))]
+                elif turn == near:
+                    pairs = [(0, 0)]
+                else:
+                    pairs = [(len(ins) - 1, len(outs) - 1)]
+                for i, o in pairs:
+                    path = connect(ins[i].path.end_pose(), outs[o].path.start_pose())
+                    if path is None:
+                        continue
+                    con = Connector(index=len(connectors), path=path, src=ins[i].index, dst=outs[o].index, turn=turn)
+                    xy = path.pose_at(path.sample_s(1.0, 0.01))[:, :2]
+                    shape = LineString(xy).buffer(ins[i].width / 2, cap_style="flat", quad_segs=4)
+                    con.ref = rec.add("lane_connector", polygon_token=rec.add_shapely(shape, "lane_connector"))
+                    rec.arclines[con.ref] = path.arclines()
+                    connectors.append(con)
+    for lane in lanes:
+        rec.connectivity[lane.ref] = {"incoming": [], "outgoing": []}
+    for con in connectors:
+        src, dst = lanes[con.src].ref, lanes[con.dst].ref
+        rec.connectivity[con.ref] = {"incoming": [src], "outgoing": [dst]}
+        rec.connectivity[src]["outgoing"].append(con.ref)
+        rec.connectivity[dst]["incoming"].append(con.ref)
+    return connectors
+
+
+# ---------------------------------------------------------------------------------------------
+# Paint
+# ---------------------------------------------------------------------------------------------
+
+
+def _strip(path: Path, s0: float, s1: float, d: float, width: float) -> np.ndarray:
+    """Polygon [P, 2] of a painted strip of `width` centred `d` m left of `path`, over s in [s0, s1]."""
+    n = max(2, int(math.ceil((s1 - s0) / 0.5)) + 1)
+    poses = path.pose_at(np.linspace(s0, s1, n))
+    nrm = np.stack([-np.sin(poses[:, 2]), np.cos(poses[:, 2])], axis=-1)
+    left = poses[:, :2] + (d + width / 2) * nrm
+    right = poses[:, :2] + (d - width / 2) * nrm
+    return np.concatenate([left, right[::-1]])
+
+
+def _paint_stretch(st: Stretch, style: MapStyle, out: Markings) -> None:
+    w = style.line_width
+    for j, kind in enumerate(st.kinds):
+        if kind != "lane":
+            continue
+        s = 0.5
+        while s + style.dash <= st.path.length - 0.5:
+            out.white.append(_strip(st.path, s, s + style.dash, float(st.rows[j]), w))
+            s += style.dash + style.gap
+    spans = [(0.0, st.path.length)]
+    if st.island is not None:
+        spans = [(0.0, st.island[0]), (st.island[1], st.path.length)]
+    for s0, s1 in spans:
+        if s1 - s0 < 0.2:
+            continue
+        if st.chain.divider == "double_yellow":
+            off = (style.double_gap + w) / 2
+            out.yellow += [_strip(st.path, s0, s1, off, w), _strip(st.path, s0, s1, -off, w)]
+        elif st.chain.divider == "single_yellow":
+            out.yellow.append(_strip(st.path, s0, s1, 0.0, w))
+        else:
+            out.white.append(_strip(st.path, s0, s1, 0.0, w))
+
+
+def _zebra(c, u, n, t0, t1, lat0, lat1, bar: float = 0.5, gap: float = 0.5) -> list[np.ndarray]:
+    span = lat1 - lat0 - 0.4
+    count = int((span + gap) // (bar + gap))
+    first = lat0 + 0.2 + (span - (count * bar + (count - 1) * gap)) / 2
+    out = []
+    for k in range(count):
+        l0 = first + k * (bar + gap)
+        corners = [(t0, l0), (t1, l0), (t1, l0 + bar), (t0, l0 + bar)]
+        out.append(np.array([c + t * u + lat * n for t, lat in corners]))
+    return out
+
+
+def _add_patches(stretches: list[Stretch], style: MapStyle, out: Markings, rng) -> None:
+    """Asphalt repair patches (world-fixed): they darken/lighten the road and wear markings away."""
+    for st in stretches:
+        for _ in range(int(rng.integers(0, 4))):
+            s0 = float(rng.uniform(0.0, max(st.path.length - 4.0, 0.1)))
+            s1 = min(st.path.length, s0 + float(rng.uniform(1.0, 4.0)))
+            d0 = float(rng.uniform(st.rows[0], st.rows[-1] - 1.0))
+            d1 = min(float(st.rows[-1]), d0 + float(rng.uniform(0.8, 3.0)))
+            poly = np.concatenate([_strip(st.path, s0, s1, (d0 + d1) / 2, d1 - d0)])
+            out.patches.append((poly, float(rng.uniform(-20.0, 12.0))))
+
+
+# ---------------------------------------------------------------------------------------------
+# Static props: buildings, trees, poles
+# ---------------------------------------------------------------------------------------------
+
+BUILDING_COLORS = [(150, 160, 170), (120, 130, 150), (90, 110, 160), (170, 175, 180), (140, 120, 100),
+                   (200, 190, 170), (110, 100, 95), (160, 140, 120)]
+TREE_COLORS = [(40, 90, 50), (30, 80, 60), (50, 110, 70), (35, 70, 45)]
+
+
+def _place_props(net: RoadNetwork, outer, rng) -> list[Box]:
+    props: list[Box] = []
+    free = prepared.prep(box(0, 0, *net.canvas).difference(outer.buffer(1.0)))
+    road_near = prepared.prep(net.road_filled.buffer(0.3))
+    placed: list[tuple[np.ndarray, float, Polygon]] = []  # (centre, radius, footprint)
+    for st in net.stretches:
+        for side in (-1.0, 1.0):
+            half = st.chain.w_left if side > 0 else st.chain.w_right
+            s = float(rng.uniform(0.0, 10.0))
+            while s < st.path.length:
+                front, depth = float(rng.uniform(8.0, 30.0)), float(rng.uniform(8.0, 25.0))
+                setback = float(rng.uniform(1.0, 6.0))
+                x, y, yaw = st.path.pose_at(s + front / 2)[0]
+                nrm = np.array([-math.sin(yaw), math.cos(yaw)])
+                c = np.array([x, y]) + side * (half + net.style.sidewalk + setback + depth / 2) * nrm
+                b = Box(float(c[0]), float(c[1]), float(yaw), front, depth, 0.0, float(rng.uniform(6.0, 30.0)),
+                        BUILDING_COLORS[int(rng.integers(len(BUILDING_COLORS)))], "building")
+                fp = Polygon(b.footprint())
+                radius = math.hypot(front, depth) / 2
+                clear = all(np.hypot(*(c - c2)) > radius + r2 + 1.0 or fp.distance(p2) >= 1.0
+                            for c2, r2, p2 in placed)
+                if clear and free.contains(fp):
+                    placed.append((c, radius, fp))
+                    props.append(b)
+                s += front + float(rng.uniform(2.0, 15.0))
+            s = float(rng.uniform(0.0, 15.0))
+            while s < st.path.length:  # trees on the sidewalk, poles at the kerb
+                x, y, yaw = st.path.pose_at(s)[0]
+                nrm = np.array([-math.sin(yaw), math.cos(yaw)])
+                if rng.random() < 0.5:
+                    c = np.array([x, y]) + side * (half + net.style.sidewalk - 0.7) * nrm
+                    if not road_near.intersects(_square(c, yaw, 0.4)):
+                        top = float(rng.uniform(4.5, 8.0))
+                        size = float(rng.uniform(2.5, 4.5))
+                        props.append(Box(float(c[0]), float(c[1]), float(yaw), 0.35, 0.35, 0.0, 2.8, (40, 60, 80),
+                                         "trunk"))
+                        props.append(Box(float(c[0]), float(c[1]), float(yaw + rng.uniform(0, 1)), size, size,
+                                         2.4, top, TREE_COLORS[int(rng.integers(len(TREE_COLORS)))], "tree"))
+                else:
+                    c = np.array([x, y]) + side * (half + 0.6) * nrm
+                    if not road_near.intersects(_square(c, yaw, 0.3)):
+                        props.append(Box(float(c[0]), float(c[1]), float(yaw), 0.25, 0.25, 0.0,
+                                         float(rng.uniform(4.5, 7.5)), (120, 125, 128), "pole"))
+                s += float(rng.uniform(12.0, 30.0))
+    return props
+
+
+def _square(c: np.ndarray, yaw: float, size: float) -> Polygon:
+    return Polygon(Box(float(c[0]), float(c[1]), yaw, size, size, 0.0, 1.0, (0, 0, 0), "").footprint())
+
+
+def map_token(location: str, seed: int) -> str:
+    """Token of the v1.0 map table record (and name of its semantic prior PNG) of `location`."""
+    return make_token(seed, location, "map")

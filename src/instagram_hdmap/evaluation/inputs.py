@@ -1,0 +1,113 @@
+"""Checking the per-sample polyline lists handed to the evaluators.
+
+A sample's map is a list of polyline dicts (docs/conventions.md): ``{"pts": [P, 2] metres,
+"label": int}``, predictions add ``"score": float``. Rules (the same for both protocols unless
+said otherwise):
+
+* NaN or infinite coordinates or scores, an unknown class id, or ``pts`` not of shape [P, 2]:
+  :class:`EvaluationInputError` naming the sample and the polyline index.
+* A prediction with fewer than two points is dropped and counted (both references drop it
+  silently: MapTR ``mean_ap.py:82-83``, HDMapNet ``rasterize.py:183``).
+* A GT polyline with fewer than two points: the vector protocol raises (the MapTR reference
+  crashes on it, ``LineString`` needs two points); the raster protocol drops and counts it
+  (the HDMapNet reference drops it, ``rasterize.py:183``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from ..config import UserError
+
+
+class EvaluationInputError(UserError, ValueError):
+    """A prediction or GT polyline the evaluation cannot use; the message names the sample and index."""
+
+
+@dataclass
+class PolylineSet:
+    """One sample's polylines of one role, checked. n polylines, each with P_i >= 2 points."""
+
+    pts: list[np.ndarray] = field(default_factory=list)  # each [P_i, 2] float64, metres
+    labels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [n]
+    scores: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # [n] (predictions)
+    num_short: int = 0  # polylines dropped because they had fewer than two points
+
+
+def sample_name(index: int, token: str | None) -> str:
+    return f"sample '{token}'" if token is not None else f"sample #{index}"
+
+
+def read_polylines(
+    items: Sequence[dict],
+    *,
+    role: Literal["prediction", "GT"],
+    num_classes: int,
+    where: str,
+    short: Literal["drop", "error"],
+) -> PolylineSet:
+    """Check one sample's polyline dicts and return them as arrays.
+
+    Args:
+        items: list of ``{"pts", "label"[, "score"]}`` dicts.
+        role: "prediction" (needs a finite ``score``) or "GT".
+        num_classes: K; labels must lie in [0, K).
+        where: the sample's name for error messages, e.g. ``"sample 'abc'"``.
+        short: what to do with a polyline of fewer than two points.
+    """
+    if items is None:
+        items = []
+    if isinstance(items, dict) or not isinstance(items, Sequence):
+        raise EvaluationInputError(f"{where}: expected a list of {role} polyline dicts, got {type(items).__name__}")
+    out = PolylineSet()
+    labels, scores = [], []
+    for i, item in enumerate(items):
+        what = f"{where}, {role} polyline {i}"
+        if not isinstance(item, dict) or "pts" not in item or "label" not in item:
+            raise EvaluationInputError(f"{what}: expected a dict with keys 'pts' and 'label', got {item!r:.120}")
+        try:
+            pts = np.asarray(item["pts"], dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise EvaluationInputError(f"{what}: 'pts' is not a numeric [P, 2] array ({e})") from None
+        if pts.size == 0:
+            pts = pts.reshape(0, 2)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise EvaluationInputError(f"{what}: 'pts' must have shape [P, 2] (x, y in metres), got {pts.shape}")
+        if not np.isfinite(pts).all():
+            raise EvaluationInputError(f"{what}: 'pts' contains NaN or infinite coordinates; fix the polyline")
+        label = item["label"]
+        if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)):
+            raise EvaluationInputError(f"{what}: 'label' must be an integer class id, got {label!r}")
+        if not 0 <= int(label) < num_classes:
+            raise EvaluationInputError(
+                f"{what}: unknown class id {int(label)}; expected 0..{num_classes - 1} "
+                "(0 divider, 1 ped_crossing, 2 boundary)"
+            )
+        score = 1.0
+        if role == "prediction":
+            if "score" not in item:
+                raise EvaluationInputError(f"{what}: a prediction needs a 'score'")
+            try:
+                score = float(item["score"])
+            except (TypeError, ValueError):
+                raise EvaluationInputError(f"{what}: 'score' must be a number, got {item['score']!r}") from None
+            if not np.isfinite(score):
+                raise EvaluationInputError(f"{what}: 'score' is {score}; scores must be finite")
+        if len(pts) < 2:
+            if short == "error":
+                raise EvaluationInputError(
+                    f"{what}: has {len(pts)} point(s); a {role} polyline needs at least two (the vector "
+                    "protocol's reference cannot represent it). Remove it from the GT"
+                )
+            out.num_short += 1
+            continue
+        out.pts.append(pts)
+        labels.append(int(label))
+        scores.append(score)
+    out.labels = np.asarray(labels, dtype=np.int64)
+    out.scores = np.asarray(scores, dtype=np.float64)
+    return out

@@ -1,0 +1,178 @@
+"""Read and write the HDMapNet submission JSON.
+
+Format (x forward, y left, metres, ego frame)::
+
+    {"meta": {...},
+     "results": {sample_token: [{"pts": [[x, y], ...], "pts_num": n, "type": k,
+                                 "confidence_level": s}, ...]}}
+
+``confidence_level`` is absent in GT files. Also accepted: ``results`` as a list of
+``{"sample_token", "vectors"}`` (InstaGraM's and MapTR's form), a dict value ``{"vectors": [...]}``,
+and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_crossing,
+2 boundary. Rules:
+
+* ``pts_num`` may be absent (= ``len(pts)``); if smaller than ``len(pts)`` only the first
+  ``pts_num`` points are used (the HDMapNet reference's ``pts[:pts_num]``) and a note says how
+  many; larger is an error.
+* A prediction without ``confidence_level`` gets 1.0 (the HDMapNet reference's default) and a
+  note says how many.
+* Malformed JSON, a missing ``results``, a repeated sample token, coordinates that are not
+  finite numbers of shape [P, 2], a non-integer or unknown ``type``: :class:`SubmissionError`
+  naming the file, the token and the vector index.
+* Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
+
+Python's ``json`` reads and writes ``NaN`` (not strict JSON): metrics files use it for the raster
+protocol's 0/0 cases.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from ..config import UserError
+
+
+class SubmissionError(UserError, ValueError):
+    """A submission / GT JSON file that cannot be read; the message names the file, token and index."""
+
+
+@dataclass
+class Submission:
+    path: str
+    meta: dict
+    samples: dict[str, list[dict]]  # token -> polyline dicts {"pts" [P, 2], "label"[, "score"]}, file order
+    notes: list[str] = field(default_factory=list)
+
+
+def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: int = 3) -> Submission:
+    """Read a submission (role "pred") or GT (role "gt") file into polyline dicts per token."""
+    path = Path(path)
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        raise SubmissionError(f"{path}: no such file") from None
+    except json.JSONDecodeError as e:
+        raise SubmissionError(f"{path}: not valid JSON ({e}); expected the HDMapNet submission format") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SubmissionError(f"{path}: cannot read ({e})") from None
+    if not isinstance(data, dict):
+        raise SubmissionError(f"{path}: expected a JSON object with 'meta' and 'results', got {type(data).__name__}")
+    key = "results" if "results" in data else "GTs" if "GTs" in data else None
+    if key is None:
+        raise SubmissionError(
+            f"{path}: no 'results' key; expected {{'meta': {{...}}, 'results': {{token: [vectors]}}}}"
+        )
+    results = data[key]
+    meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
+    if isinstance(results, dict):
+        items = list(results.items())
+    elif isinstance(results, list):
+        items = []
+        for i, entry in enumerate(results):
+            if not isinstance(entry, dict) or "sample_token" not in entry or "vectors" not in entry:
+                raise SubmissionError(f"{path}: {key}[{i}] must be a dict with 'sample_token' and 'vectors'")
+            items.append((entry["sample_token"], entry["vectors"]))
+    else:
+        raise SubmissionError(f"{path}: '{key}' must be a dict token -> vectors or a list of "
+                              f"{{'sample_token', 'vectors'}}, got {type(results).__name__}")
+    samples: dict[str, list[dict]] = {}
+    counts = {"defaulted_confidence": 0, "truncated": 0}
+    for token, vectors in items:
+        if not isinstance(token, str):
+            raise SubmissionError(f"{path}: sample token {token!r} is not a string")
+        if token in samples:
+            raise SubmissionError(f"{path}: sample token '{token}' appears twice")
+        if isinstance(vectors, dict) and "vectors" in vectors:
+            vectors = vectors["vectors"]
+        samples[token] = vectors_to_polylines(vectors, role, num_classes, f"{path}: sample '{token}'", counts)
+    notes = []
+    if counts["defaulted_confidence"]:
+        notes.append(f"{path}: {counts['defaulted_confidence']} predictions without 'confidence_level' scored 1.0 "
+                     "(the HDMapNet reference's default)")
+    if counts["truncated"]:
+        notes.append(
+            f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
+        )
+    return Submission(str(path), meta, samples, notes)
+
+
+def vectors_to_polylines(
+    vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str, counts: dict | None = None
+) -> list[dict]:
+    """One sample's submission vectors -> polyline dicts, checked (see the module docstring)."""
+    counts = counts if counts is not None else {"defaulted_confidence": 0, "truncated": 0}
+    if not isinstance(vectors, list):
+        raise SubmissionError(f"{where}: expected a list of vectors, got {type(vectors).__name__}")
+    out = []
+    for i, v in enumerate(vectors):
+        what = f"{where}, vector {i}"
+        if not isinstance(v, dict) or "pts" not in v or "type" not in v:
+            raise SubmissionError(f"{what}: expected a dict with 'pts' and 'type', got {v!r:.120}")
+        pts = _points(v["pts"], what)
+        n = v.get("pts_num", len(pts))
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n > len(pts):
+            raise SubmissionError(f"{what}: 'pts_num' must be an integer in 0..{len(pts)} (len(pts)), got {n!r}")
+        if n < len(pts):
+            counts["truncated"] += 1
+            pts = pts[:n]
+        k = v["type"]
+        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < num_classes:
+            raise SubmissionError(f"{what}: 'type' must be a class id 0..{num_classes - 1} "
+                                  f"(0 divider, 1 ped_crossing, 2 boundary), got {k!r}")
+        poly = {"pts": pts, "label": k}
+        if role == "pred":
+            s = v.get("confidence_level")
+            if s is None:
+                counts["defaulted_confidence"] += 1
+                s = 1.0
+            if isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s):
+                raise SubmissionError(f"{what}: 'confidence_level' must be a finite number, got {s!r}")
+            poly["score"] = float(s)
+        out.append(poly)
+    return out
+
+
+def _points(raw: object, what: str) -> np.ndarray:
+    try:
+        pts = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SubmissionError(f"{what}: 'pts' must be a list of [x, y] numbers") from None
+    if pts.size == 0:
+        return pts.reshape(0, 2)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise SubmissionError(f"{what}: 'pts' must be a list of [x, y] pairs, got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise SubmissionError(f"{what}: 'pts' contains NaN or infinite coordinates")
+    return pts
+
+
+def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
+    """Polyline dicts -> submission vectors (``confidence_level`` from "score" when present)."""
+    out = []
+    for p in polylines:
+        pts = np.asarray(p["pts"], dtype=np.float64)
+        v = {"pts": pts.tolist(), "pts_num": len(pts), "type": int(p["label"])}
+        if "score" in p:
+            v["confidence_level"] = float(p["score"])
+        out.append(v)
+    return out
+
+
+def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: dict | None = None) -> None:
+    """Write polyline dicts per token in the submission format (``results`` as a dict)."""
+    data = {"meta": {"vector": True, **(meta or {})},
+            "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump(data, f)
+    tmp.replace(path)

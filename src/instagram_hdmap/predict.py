@@ -1,0 +1,435 @@
+"""Inference with a trained model: one sample's pictures (``predict``) and a split's AP (``evaluate``).
+
+    model, cfg, notes = load_model("runs/x/best.pt", load_config("configs/synthetic/tiny.yaml"))
+    predict_sample(cfg, "out/", checkpoint="runs/x/best.pt", index=3)   # PNGs + prediction.json
+    run_evaluation(cfg, "runs/x/best.pt", protocol="vector", out="eval/")  # submission + metrics JSON
+
+Which config a checkpoint runs with: the keys that shape the weights and their meaning
+(``MODEL_KEYS``: the grid, the model, the image size, the classes, the distance-transform clip) come
+from the config saved in the checkpoint; everything else (dataroot, splits, eval settings) from the
+CONFIG file. Command-line ``key=value`` overrides win over both, so
+``model.gnn.num_vertices=600`` or ``model.gnn.match_threshold=0.2`` change the inference of a
+trained model. Where the CONFIG file disagrees with the checkpoint on a model key, a note says so.
+
+``gt_outputs`` builds what a perfect model would output from a batch's GT targets (vertex cells,
+distance transform, vertex graph -> ``assignment.target_log_assignment``), so the pictures and the
+evaluation path can be checked without a trained model (``predict --gt-as-prediction``).
+
+Predictions are written in HDMapNet's submission format: ``{"meta": {...}, "results":
+{sample_token: [{"pts": [[x, y], ...], "pts_num", "type", "confidence_level"}]}}`` (metres, ego
+frame, x forward, y left; a closed shape repeats its first point).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .checkpoint import CheckpointError, load_checkpoint
+from .config import (
+    ExperimentConfig,
+    UserError,
+    config_from_dict,
+    config_to_dict,
+    diff_configs,
+    parse_overrides,
+)
+from .geometry import BEVGrid
+
+# Config keys that define the weights and how the model's outputs are read: taken from the checkpoint.
+MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
+
+
+class PredictError(UserError):
+    """A bad sample index or token, or a bad combination of arguments."""
+
+
+# --- model and config -------------------------------------------------------------------------------
+
+
+def _flatten(nested: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k, v in nested.items():
+        out += _flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
+    return out
+
+
+def _deep_update(dst: dict, src: dict) -> None:
+    for k, v in src.items():
+        if isinstance(v, dict) and isinstance(dst.get(k), dict):
+            _deep_update(dst[k], v)
+        else:
+            dst[k] = v
+
+
+def _get(d: dict, dotted: str):
+    for part in dotted.split("."):
+        d = d[part]
+    return d
+
+
+def _set(d: dict, dotted: str, value) -> None:
+    *parents, last = dotted.split(".")
+    for part in parents:
+        d = d[part]
+    d[last] = value
+
+
+def _is_under(key: str, prefixes: Sequence[str]) -> bool:
+    return any(key == p or key.startswith(p + ".") for p in prefixes)
+
+
+def inference_config(
+    cfg: ExperimentConfig, saved: dict, overrides: Sequence[str] = (), source: str = "the checkpoint"
+) -> tuple[ExperimentConfig, list[str]]:
+    """The config to run a checkpoint with: ``cfg`` (CONFIG file + overrides) with the ``MODEL_KEYS``
+    of the checkpoint's ``saved`` config, then the command-line ``overrides`` again (they win).
+
+    Returns the config and human-readable notes on where the CONFIG file was overruled.
+    """
+    try:
+        trained = config_from_dict(saved)
+    except UserError as e:
+        raise CheckpointError(f"{source} holds a config this version cannot read: {e}") from None
+    explicit = parse_overrides(list(overrides))
+    explicit_keys = _flatten(explicit)
+    merged, trained_d = config_to_dict(cfg), config_to_dict(trained)
+    for key in MODEL_KEYS:
+        _set(merged, key, copy.deepcopy(_get(trained_d, key)))
+    _deep_update(merged, explicit)
+    out = config_from_dict(merged)
+    notes = []
+    ignored = [k for k in diff_configs(cfg, trained)
+               if _is_under(k, MODEL_KEYS) and not _is_under(k, explicit_keys)]
+    if ignored:
+        cfg_d = config_to_dict(cfg)
+        notes.append("the CONFIG file's model settings differ from those the checkpoint was trained with; using "
+                     "the checkpoint's: " + ", ".join(f"{k}={_get(trained_d, k)!r} (CONFIG: {_get(cfg_d, k)!r})"
+                                                       for k in ignored))
+    changed = [k for k in diff_configs(trained, out) if _is_under(k, MODEL_KEYS)]
+    if changed:
+        out_d = config_to_dict(out)
+        notes.append("overriding the checkpoint's " + ", ".join(
+            f"{k}={_get(trained_d, k)!r} with {_get(out_d, k)!r}" for k in changed))
+    return out, notes
+
+
+def resolve_inference_device(cfg: ExperimentConfig) -> torch.device:
+    from .train import resolve_device
+
+    return torch.device(resolve_device(cfg))
+
+
+def load_model(
+    checkpoint: str | Path, cfg: ExperimentConfig, overrides: Sequence[str] = (), device: torch.device | None = None
+) -> tuple[torch.nn.Module, ExperimentConfig, list[str]]:
+    """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode.
+
+    Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
+    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit.
+    """
+    from .models import build_model
+
+    state = load_checkpoint(checkpoint)
+    notes: list[str] = []
+    if isinstance(state.get("config"), dict):
+        cfg, notes = inference_config(cfg, state["config"], overrides, f"checkpoint {checkpoint}")
+    else:
+        notes.append(f"checkpoint {checkpoint} holds no config; building the model from the CONFIG file")
+    model = build_model(cfg)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        first = " ".join(str(e).split())[:300]
+        raise CheckpointError(
+            f"the weights in {checkpoint} do not fit the model built from its config and the overrides "
+            f"({first}); drop overrides that change layer sizes"
+        ) from None
+    device = device if device is not None else resolve_inference_device(cfg)
+    return model.eval().to(device), cfg, notes
+
+
+# --- predictions from the GT ------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def gt_outputs(batch: dict, grid: BEVGrid, num_classes: int, floor: float = 1e-6) -> dict[str, torch.Tensor]:
+    """The outputs (docs/conventions.md keys) of a perfect model for the batch's GT targets.
+
+    Vertices = the GT graph vertices (M of them, so N = M), scores 1, class = the GT class, log
+    assignment = ``target_log_assignment`` of the assignment targets (each vertex matched to itself),
+    vertex logits = the log of the one-hot ``gt_vertex_cells``, distance = ``gt_distance``.
+    ``floor`` keeps every log finite. Post-processing these gives back the GT graph's polylines.
+    """
+    from .assignment import assign, target_log_assignment
+    from .models.vertices import vertex_heatmap
+
+    S = grid.cell_size
+    verts = batch["gt_vertices_px"].float()  # [B, M, 2]
+    mask = batch["gt_vertex_mask"].bool()  # [B, M]
+    # a vertex's nearest GT vertex is itself (distance 0); distinct vertices are >= 1 px apart
+    asg = assign(verts, mask, verts, mask, batch["gt_vertex_labels"], batch["gt_vertex_next"],
+                 batch["gt_vertex_prev"], grid, match_dist_m=0.5 * grid.resolution)
+    cells = F.one_hot(batch["gt_vertex_cells"].long(), S * S + 1).permute(0, 3, 1, 2).float()  # [B, S*S+1, Hc, Wc]
+    vertex_logits = (cells * (1 - floor) + floor / (S * S + 1)).log()
+    labels = F.one_hot(batch["gt_vertex_labels"].long().clamp(min=0), num_classes).float()  # [B, M, K]
+    return {
+        "pred_vertex_logits": vertex_logits,
+        "pred_heatmap": vertex_heatmap(vertex_logits, S),
+        "pred_distance": batch["gt_distance"].float(),
+        "pred_vertices_px": verts,
+        "pred_vertex_mask": mask,
+        "pred_vertex_scores": mask.float(),
+        "pred_class_log_probs": (labels * (1 - floor) + floor / num_classes).log(),
+        "pred_log_assignment": target_log_assignment(asg["target_next"], asg["target_prev"]),
+    }
+
+
+# --- submission format --------------------------------------------------------------------------------
+
+
+def submission_meta(cfg: ExperimentConfig, split: str, source: str) -> dict:
+    g = cfg.grid
+    return {
+        "use_camera": True, "use_lidar": False, "use_radar": False, "use_external": False, "vector": True,
+        "ground_truth": False, "source": source, "config_name": cfg.name, "version": cfg.data.version,
+        "split": split, "frame": "ego, x forward, y left, metres", "classes": list(cfg.data.classes),
+        "xbound": list(g.xbound), "ybound": list(g.ybound),
+    }
+
+
+# --- one sample: predict -------------------------------------------------------------------------------
+
+
+def find_sample(dataset, index: int | None = None, token: str | None = None) -> int:
+    """The dataset index of ``token``, or ``index`` checked against the split (negative counts back)."""
+    n = len(dataset)
+    if token is not None:
+        try:
+            return dataset.sample_tokens.index(token)
+        except ValueError:
+            raise PredictError(
+                f"sample token '{token}' is not in split '{dataset.split}' of {dataset.dataroot} ({n} samples, "
+                f"e.g. '{dataset.sample_tokens[0]}'); pass --split to look in another split, or use --index"
+            ) from None
+    if index is None:
+        raise PredictError("pass --index I or --token T to choose the sample")
+    if not -n <= index < n:
+        raise PredictError(f"--index {index} is out of range: split '{dataset.split}' of {dataset.dataroot} "
+                           f"has {n} samples (0..{n - 1})")
+    return index % n
+
+
+def display_cameras(dataset, index: int, width: int = 480) -> dict[str, torch.Tensor]:
+    """The sample's original camera images, whole, resized to ``width`` for drawing: ``images``
+    [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
+    from .data.nuscenes import CAMERAS
+    from .data.transforms import load_image
+
+    sample = dataset.nusc.get("sample", dataset.sample_tokens[index])
+    images, rots, trans = [], [], []
+    for cam in CAMERAS:
+        sd = dataset.nusc.get("sample_data", sample["data"][cam])
+        W, H = sd["width"], sd["height"]
+        w = min(width, W)
+        image, post_rot, post_tran = load_image(dataset.dataroot / sd["filename"], (W, H), (round(w * H / W), w))
+        images.append(image)
+        rots.append(post_rot)
+        trans.append(post_tran)
+    return {"images": torch.stack(images), "post_rot": torch.stack(rots), "post_tran": torch.stack(trans)}
+
+
+def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_threshold: float,
+                    neighbours: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges for the adjacency picture of one sample.
+
+    log_assignment [N+1, N+1], mask [N] bool, neighbours [N, 2] (``postprocess.vertex_neighbours``).
+    Returns ``edges`` [E, 2] (indices into the *real* vertices, i < j) of the pairs whose assignment
+    probability exceeds ``match_threshold`` in either direction, and ``kept`` [E] bool: the edge is one
+    the post-processing follows.
+    """
+    real = torch.nonzero(mask.bool()).flatten()
+    n = len(real)
+    device = log_assignment.device
+    upper = torch.ones(n, n, dtype=torch.bool, device=device).triu(1)
+    probs = log_assignment[real][:, real].float().exp()  # [n, n]
+    above = (probs > match_threshold) | (probs > match_threshold).T
+    pos = torch.full((mask.shape[0] + 1,), -1, dtype=torch.long, device=device)  # vertex -> real index
+    pos[real] = torch.arange(n, device=device)
+    nbr = pos[neighbours[real]]  # [n, 2]; -1 stays -1 (pos[-1] is the unused last slot)
+    followed = torch.zeros(n, n, dtype=torch.bool, device=device)
+    ok = nbr >= 0
+    followed[torch.arange(n, device=device)[:, None].expand(n, 2)[ok], nbr[ok]] = True
+    followed = followed | followed.T
+    i, j = torch.nonzero((above | followed) & upper, as_tuple=True)
+    edges = torch.stack([i, j], 1)
+    return edges.cpu().numpy(), followed[i, j].cpu().numpy()
+
+
+def predict_sample(
+    cfg: ExperimentConfig,
+    out: str | Path,
+    *,
+    checkpoint: str | Path | None = None,
+    index: int | None = None,
+    token: str | None = None,
+    split: str | None = None,
+    overrides: Sequence[str] = (),
+    gt_as_prediction: bool = False,
+    camera_width: int = 480,
+) -> dict:
+    """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
+
+    * ``prediction_bev.png``: predicted polylines next to the GT (x forward up, y left, metres);
+    * ``prediction_cameras.png``: the six original camera images with the predictions (and, dashed,
+      the GT) projected from the ground plane z = 0 of the ego frame;
+    * ``prediction_intermediate.png``: the paper's Fig. 6 (vertex heatmap, distance transform per
+      class, vertices by GNN class, adjacency edges);
+    * ``prediction.json``: the sample's predictions in the submission format.
+
+    Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
+    """
+    from .data.nuscenes import CAMERAS, NuScenesMapDataset, collate_fn
+    from .engine import move_to
+    from .evaluation import write_submission
+    from .postprocess import postprocess_batch, vertex_neighbours
+    from .visualize import intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
+
+    if gt_as_prediction and checkpoint is not None:
+        raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
+                           "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
+    if not gt_as_prediction and checkpoint is None:
+        raise PredictError("pass --checkpoint CKPT, or --gt-as-prediction to draw GT-derived predictions")
+    notes: list[str] = []
+    model = None
+    source = "GT-derived predictions (--gt-as-prediction)"  # computed where the dataset puts them
+    if checkpoint is not None:
+        model, cfg, notes = load_model(checkpoint, cfg, overrides)
+        source = f"checkpoint {checkpoint}"
+    grid = BEVGrid.from_config(cfg.grid)
+    split = split or cfg.data.val_split
+    dataset = NuScenesMapDataset(cfg, split, augment=False)
+    i = find_sample(dataset, index, token)
+    sample = dataset.load_sample(i)
+    batch = collate_fn([sample])
+    classes = cfg.data.classes
+    with torch.no_grad():
+        if model is None:
+            outputs = gt_outputs(batch, grid, len(classes))
+        else:
+            outputs = model(move_to(batch, next(model.parameters()).device))
+    threshold = cfg.model.gnn.match_threshold
+    preds = postprocess_batch(outputs, grid, threshold)[0]
+    gts = sample["gt_polylines"]
+
+    mask = outputs["pred_vertex_mask"][0]
+    neighbours = vertex_neighbours(outputs["pred_log_assignment"][:1], outputs["pred_vertex_mask"][:1], threshold)[0]
+    edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, neighbours)
+    heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
+    out = Path(out)
+    figures = {
+        "prediction_bev.png": prediction_bev_figure(preds, gts, grid, classes, heading),
+        "prediction_cameras.png": prediction_cameras_figure(
+            **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
+            cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
+            predictions=preds, ground_truth=gts, camera_names=CAMERAS, classes=classes),
+        "prediction_intermediate.png": intermediate_figure(
+            outputs["pred_heatmap"][0], outputs["pred_distance"][0], outputs["pred_vertices_px"][0][mask],
+            outputs["pred_class_log_probs"][0][mask].argmax(-1), edges, kept, grid, classes, cfg.data.dt_clip,
+            f"{heading}; match threshold {threshold}"),
+    }
+    paths = [save_figure(fig, out / name) for name, fig in figures.items()]
+    write_submission(out / "prediction.json", {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
+    paths.append(out / "prediction.json")
+    return {"sample_token": sample["sample_token"], "index": i, "split": split, "predictions": preds,
+            "paths": paths, "notes": notes}
+
+
+# --- a split: evaluate ---------------------------------------------------------------------------------
+
+
+def run_evaluation(
+    cfg: ExperimentConfig,
+    checkpoint: str | Path,
+    protocol: str | None = None,
+    out: str | Path = "eval",
+    *,
+    overrides: Sequence[str] = (),
+    amp: str = "none",
+) -> dict:
+    """Run ``checkpoint`` on the validation split (``data.val_split``), post-process, evaluate.
+
+    Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's
+    metrics: ``protocol``, ``thresholds``, ``classes``, ``AP``, ``AP_class``, ``mAP``, ``notes``, ...,
+    plus ``meta``: checkpoint, config name, split, sample count, speed, config notes). ``protocol``
+    overrides ``eval.protocol``. Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
+
+    Under torchrun each rank runs every world-size-th sample; the sampler's wrap-around padding is
+    not scored twice (a sample is scored by the rank ``index % world_size``, once), the evaluator
+    states are gathered and rank 0 writes the files. Samples are scored with their dataset index as
+    ``sample_ids``, so the result does not depend on the batch size or the number of processes.
+    """
+    from torch.utils.data import DataLoader
+
+    from . import distributed as du
+    from .data.nuscenes import NuScenesMapDataset, collate_fn, write_json
+    from .engine import evaluate
+    from .evaluation import Evaluator, write_submission
+    from .postprocess import postprocess_batch
+
+    device = du.init_distributed(resolve_inference_device(cfg).type)
+    model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
+    if protocol is not None:
+        cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
+    grid = BEVGrid.from_config(cfg.grid)
+    split = cfg.data.val_split
+    dataset = NuScenesMapDataset(cfg, split, augment=False)
+    index_of = {t: i for i, t in enumerate(dataset.sample_tokens)}
+    sampler = du.ResumableSampler(len(dataset), shuffle=False)
+    loader = DataLoader(dataset, batch_size=cfg.eval.batch_size, sampler=sampler, collate_fn=collate_fn,
+                        num_workers=cfg.data.num_workers)
+    evaluator = Evaluator.from_config(cfg)
+    rank, world = du.get_rank(), du.get_world_size()
+    results: dict[str, list[dict]] = {}
+    pending_gt: dict[str, list[dict]] = {}
+
+    def tap(batches):  # keeps each batch's GT until its predictions arrive (no second GT load)
+        for batch in batches:
+            pending_gt.update(zip(batch["sample_token"], batch["gt_polylines"]))
+            yield batch
+
+    def score(tokens: list[str], preds: list[list[dict]]) -> None:
+        gts = [pending_gt.pop(t) for t in tokens]
+        keep = [k for k, t in enumerate(tokens) if index_of[t] % world == rank and t not in results]
+        results.update((tokens[k], preds[k]) for k in keep)
+        if keep:
+            evaluator.update([preds[k] for k in keep], [gts[k] for k in keep],
+                             sample_ids=[index_of[tokens[k]] for k in keep], tokens=[tokens[k] for k in keep])
+
+    threshold = cfg.model.gnn.match_threshold
+    val = evaluate(model, None, tap(loader), device,
+                   postprocess=lambda outputs: postprocess_batch(outputs, grid, threshold),
+                   amp=amp, on_predictions=score, total=math.ceil(len(sampler) / cfg.eval.batch_size))
+    evaluator.gather()
+    for part in du.all_gather_object(results)[1:]:
+        results.update(part)
+    results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
+    metrics = evaluator.compute()
+    samples_per_s = round(val["samples_per_s"] * world, 3)
+    metrics["meta"] = {"checkpoint": str(checkpoint), "config_name": cfg.name, "dataroot": cfg.data.dataroot,
+                       "version": cfg.data.version, "split": split, "num_samples": len(dataset),
+                       "samples_per_s": samples_per_s, "match_threshold": threshold, "config_notes": notes}
+    out = Path(out)
+    paths = []
+    if du.is_main_process():
+        write_submission(out / "submission.json", results, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
+        paths = [out / "submission.json", write_json(metrics, out / "metrics.json")]
+    return {"metrics": metrics, "paths": paths, "notes": notes, "num_samples": len(dataset),
+            "samples_per_s": samples_per_s}
