@@ -114,3 +114,9 @@ def test_every_shipped_config_loads():
         cfg = load_config(f)
         BEVGrid.from_config(cfg.grid)  # the grid is consistent
     assert isinstance(ExperimentConfig(), ExperimentConfig)
+
+
+def test_exponent_floats_on_the_command_line():
+    assert load_config(None, ["train.lr=3e-3"]).train.lr == 0.003
+    with pytest.raises(ConfigError, match="train.amp"):
+        load_config(None, ["train.amp=1e3"])  # a number is still not one of the choices

@@ -173,3 +173,15 @@ def test_nonfinite_loss_stops_with_the_step_and_terms(tmp_path, monkeypatch):
     monkeypatch.setattr(losses.Criterion, "forward", poisoned)
     with pytest.raises(NonFiniteLossError, match=r"step 1: .*loss_vertex="):
         train(cfg, loaders=_loaders(cfg), validate=False)
+
+
+def test_training_with_validation_on_the_synthetic_world(tiny_world, tmp_path):
+    from instagram_hdmap.train import build_loaders
+
+    cfg = load_config(None, [*TINY, f"train.out_dir={tmp_path / 'run'}", f"data.dataroot={tiny_world}",
+                             "data.version=v1.0-trainval", "train.epochs=1", "train.max_steps=2"])
+    summary = train(cfg, loaders=build_loaders(cfg, 1), validate=True)
+    metrics = summary["val"]["metrics"]
+    assert metrics["protocol"] == "vector" and set(metrics["AP"]) == {"divider", "ped_crossing", "boundary"}
+    assert 0.0 <= metrics["mAP"] <= 1.0
+    assert (tmp_path / "run" / "best.pt").is_file() and (tmp_path / "run" / "config.yaml").is_file()

@@ -97,7 +97,7 @@ def train_one_epoch(
         global_step += 1
         step_in_epoch += 1
         if not torch.isfinite(loss):
-            terms = ", ".join(f"{k}={float(v):.4g}" for k, v in losses.items() if k.startswith("loss_"))
+            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items() if k.startswith("loss_"))
             if on_nonfinite == "stop":
                 raise NonFiniteLossError(
                     f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
@@ -169,7 +169,7 @@ def evaluate(
     """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
 
     ``postprocess(outputs) -> per-sample polyline dicts`` (metres, ego frame);
-    ``evaluator.update(tokens, predictions, ground_truths)``, ``evaluator.compute()`` (gathers over ranks).
+    ``evaluator.update(predictions, ground_truths, tokens=...)``; ``evaluator.gather()`` then ``compute()``.
     ``on_predictions(tokens, predictions)`` receives every batch's predictions (e.g. to write JSON).
     """
     model.eval()
@@ -190,12 +190,13 @@ def evaluate(
         if postprocess is not None:
             preds = postprocess(outputs)
             if evaluator is not None:
-                evaluator.update(batch["sample_token"], preds, batch["gt_polylines"])
+                evaluator.update(preds, batch["gt_polylines"], tokens=batch["sample_token"])
             if on_predictions is not None:
                 on_predictions(batch["sample_token"], preds)
     result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                                        device if device.type == "cuda" else None)}
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
     if evaluator is not None:
+        evaluator.gather()
         result["metrics"] = evaluator.compute()
     return result

@@ -105,10 +105,10 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
 ResumableSampler = du.ResumableSampler
 
 
-def make_evaluator(cfg: ExperimentConfig, grid: BEVGrid):
+def make_evaluator(cfg: ExperimentConfig):
     from .evaluation import Evaluator
 
-    return Evaluator(protocol=cfg.eval.protocol, thresholds=cfg.eval.thresholds, grid=grid)
+    return Evaluator.from_config(cfg)
 
 
 def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = False,
@@ -219,7 +219,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             if validate and val_loader is not None and (finished or epoch % cfg.train.val_every == 0):
                 val = evaluate(net, criterion, val_loader, device,
                                postprocess=lambda out: postprocess_batch(out, grid, cfg.model.gnn.match_threshold),
-                               evaluator=make_evaluator(cfg, grid), amp=cfg.train.amp)
+                               evaluator=make_evaluator(cfg), amp=cfg.train.amp)
                 summary["val"] = val
                 score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
                 if writer is not None:
