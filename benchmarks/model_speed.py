@@ -19,12 +19,12 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import time
 from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 
+from instagram_hdmap.benchmark import time_runs
 from instagram_hdmap.config import load_config
 from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
@@ -58,16 +58,7 @@ def example_batch(image_size: tuple[int, int], device: torch.device, num_cameras
 
 
 def _median_ms(fn: Callable[[], object], runs: int, sync: Callable[[], None], warmup: int) -> float:
-    for _ in range(warmup):
-        fn()
-    sync()
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        sync()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
+    return 1000 * statistics.median(time_runs(fn, runs, warmup, sync))
 
 
 @torch.inference_mode()

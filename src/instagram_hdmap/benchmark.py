@@ -1,6 +1,6 @@
 """Inference speed (``instagram-hdmap benchmark``): FPS for batch 1 with six cameras.
 
-    result = run_benchmark(load_config("configs/paper/table1_b0_lss_128x352.yaml"), device="cuda", amp="bf16")
+    result = run_benchmark(load_config("configs/paper/table1_b0_lss_128x352.yaml"), device=DEVICE, amp="bf16")
     print(format_benchmark(result))
 
 Inputs: random images with a realistic calibration: the rig of the first sample of

@@ -283,14 +283,15 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if base is None:
         return data
     merged = _read_yaml(path.parent / base, (*seen, path.resolve()))
-    _deep_update(merged, data)
+    deep_update(merged, data)
     return merged
 
 
-def _deep_update(dst: dict, src: dict) -> None:
+def deep_update(dst: dict, src: dict) -> None:
+    """Merge the nested dict ``src`` into ``dst`` in place (``src`` wins)."""
     for k, v in src.items():
         if isinstance(v, dict) and isinstance(dst.get(k), dict):
-            _deep_update(dst[k], v)
+            deep_update(dst[k], v)
         else:
             dst[k] = v
 

@@ -38,6 +38,7 @@ from .config import (
     UserError,
     config_from_dict,
     config_to_dict,
+    deep_update,
     diff_configs,
     parse_overrides,
 )
@@ -61,12 +62,6 @@ def _flatten(nested: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def _deep_update(dst: dict, src: dict) -> None:
-    for k, v in src.items():
-        if isinstance(v, dict) and isinstance(dst.get(k), dict):
-            _deep_update(dst[k], v)
-        else:
-            dst[k] = v
 
 
 def _get(d: dict, dotted: str):
@@ -103,7 +98,7 @@ def inference_config(
     merged, trained_d = config_to_dict(cfg), config_to_dict(trained)
     for key in MODEL_KEYS:
         _set(merged, key, copy.deepcopy(_get(trained_d, key)))
-    _deep_update(merged, explicit)
+    deep_update(merged, explicit)
     out = config_from_dict(merged)
     notes = []
     ignored = [k for k in diff_configs(cfg, trained)
