@@ -2,18 +2,25 @@
 records, as written by ``instagram-hdmap synth``. Target: <= 1.5 s per sample on 2 CPU cores.
 
     python benchmarks/synth_speed.py [--scenes 2] [--samples-per-scene 10] [--image-size 1600x900]
+                                     [--workers W]
 
 Rows:
   fixed            a world of 1 scene x 1 sample: imports, 4 maps (geometry, JSON, PNG) and 1 sample
   world            a world of SCENES x SAMPLES; per sample = (wall - fixed wall) / samples
+  world, W workers the same world with ``generate_world(workers=W)`` (only with --workers other than 1);
+                   the last column is its speed-up: world wall / this wall (W spawned processes
+                   share the cores; W is at most SCENES)
   render, N thr.   SceneRenderer.render alone (images + lidar, no file writes), OpenCV on N threads
-CPU is the process CPU time (all threads), so CPU / wall > 1 means OpenCV used several cores.
-The machine may be shared: compare CPU with wall when the numbers look noisy.
+CPU is the CPU time of the process and its finished worker processes (all threads), so CPU / wall > 1
+means several cores were used. The machine may be shared: compare CPU with wall when the numbers
+look noisy.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import shutil
 import tempfile
 import time
@@ -27,18 +34,25 @@ from instagram_hdmap.data.synthetic.render import MapPainter, SceneRenderer, sce
 from instagram_hdmap.data.synthetic.rig import parse_image_size, rig
 from instagram_hdmap.data.synthetic.roads import build_network
 from instagram_hdmap.data.synthetic.traffic import place_vehicles, plan_drive
+from instagram_hdmap.data.synthetic.world import available_cpus
+
+
+def _cpu() -> float:
+    """CPU seconds of this process and of its children that have been waited for."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def _timed(fn) -> tuple[float, float]:
-    w0, c0 = time.perf_counter(), time.process_time()
+    w0, c0 = time.perf_counter(), _cpu()
     fn()
-    return time.perf_counter() - w0, time.process_time() - c0
+    return time.perf_counter() - w0, _cpu() - c0
 
 
-def _world(tmp: Path, scenes: int, samples: int, size: str) -> tuple[float, float]:
+def _world(tmp: Path, scenes: int, samples: int, size: str, workers: int = 1) -> tuple[float, float]:
     out = tmp / f"w{scenes}x{samples}"
     t = _timed(lambda: generate_world(out, scenes_train=scenes, scenes_val=0, samples_per_scene=samples,
-                                      image_size=size, progress=False))
+                                      image_size=size, progress=False, workers=workers))
     shutil.rmtree(out)
     return t
 
@@ -60,6 +74,8 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--samples-per-scene", type=int, default=10)
     ap.add_argument("--image-size", default="1600x900")
+    ap.add_argument("--workers", type=int, default=1, help="also time the world with this many worker processes "
+                    "(0: one per CPU core)")
     args = ap.parse_args()
     size = parse_image_size(args.image_size)
     default_threads = cv2.getNumThreads()
@@ -72,6 +88,10 @@ def main() -> None:
         ww, wc = _world(tmp, args.scenes, args.samples_per_scene, args.image_size)
         rows.append((f"world ({args.scenes} x {args.samples_per_scene})", n, ww, wc, (ww - fw) / (n - 1),
                      (wc - fc) / (n - 1)))
+        if args.workers != 1:
+            pw, pc = _world(tmp, args.scenes, args.samples_per_scene, args.image_size, args.workers)
+            used = min(args.workers or available_cpus(), args.scenes)
+            rows.append((f"world, {used} workers", n, pw, pc, (pw - fw) / (n - 1), (pc - fc) / (n - 1), ww / pw))
     for threads in sorted({default_threads, 1}, reverse=True):
         rw, rc = _render_only(size, args.samples_per_scene, threads)
         k = args.samples_per_scene
@@ -79,11 +99,14 @@ def main() -> None:
     cv2.setNumThreads(default_threads)
 
     print(f"\nsynthetic world speed, images {size[0]}x{size[1]} (6 cameras + LIDAR_TOP per sample)\n")
-    print(f"{'run':<32} {'samples':>7} {'wall s':>8} {'CPU s':>8} {'wall s/sample':>14} {'CPU s/sample':>13}")
-    for name, k, w, c, ws, cs in rows:
+    print(f"{'run':<32} {'samples':>7} {'wall s':>8} {'CPU s':>8} {'wall s/sample':>14} {'CPU s/sample':>13}"
+          f"{' speed-up' if args.workers != 1 else ''}")
+    for name, k, w, c, ws, cs, *speedup in rows:
         ws_s = f"{ws:14.3f}" if ws is not None else f"{'':>14}"
         cs_s = f"{cs:13.3f}" if cs is not None else f"{'':>13}"
-        print(f"{name:<32} {k:>7} {w:8.2f} {c:8.2f} {ws_s} {cs_s}")
+        sp_s = f" {speedup[0]:8.2f}x" if speedup else ""
+        print(f"{name:<32} {k:>7} {w:8.2f} {c:8.2f} {ws_s} {cs_s}{sp_s}")
+    print(f"\n{available_cpus()} CPU cores available; 1-minute load average {os.getloadavg()[0]:.2f} at the end")
 
 
 if __name__ == "__main__":

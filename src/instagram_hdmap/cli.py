@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from .config import UserError
 
@@ -37,6 +38,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         image_size=args.image_size,
         force=args.force,
+        workers=args.workers,
     )
     print(f"wrote {manifest['scenes_train']} train + {manifest['scenes_val']} val scenes, "
           f"{manifest['samples']} samples, version {manifest['version']} to {args.out}")
@@ -165,7 +167,6 @@ def _cmd_evaluate_json(args: argparse.Namespace) -> int:
     for note in metrics["notes"]:
         print(f"note: {note}")
     if args.out:
-        from pathlib import Path
 
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -218,6 +219,19 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    try:
+        run_demo(args.out, minutes=args.minutes, cache_dir=args.cache, config=args.config,
+                 overrides=args.overrides, workers=args.workers, raster=not args.no_raster)
+    except KeyboardInterrupt:
+        print(f"instagram-hdmap demo: interrupted; the world cache is intact and the run resumes from "
+              f"{Path(args.out) / 'run' / 'last.pt'}: run the same command again", file=sys.stderr)
+        return 130
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="instagram-hdmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -230,6 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", default="1600x900", help="camera image WIDTHxHEIGHT")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes rendering scenes in parallel (0: one per CPU core); same output for any value")
     p.set_defaults(func=_cmd_synth)
 
     p = sub.add_parser("synth-preview", help="PNG of one synthetic sample: cameras with map lines, and BEV")
@@ -317,6 +333,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup", type=int, help="untimed warm-up runs (default 10 on a GPU, 2 on the CPU)")
     p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")
     p.set_defaults(func=_cmd_benchmark)
+
+    p = sub.add_parser("demo", help="the whole pipeline on the synthetic world on a CPU: train, evaluate, draw",
+                       description="Generates (once, cached) a synthetic world, trains configs/synthetic/demo.yaml "
+                       "within --minutes, evaluates it (vector and raster protocols, and a random-training-map "
+                       "baseline), writes OUT/metrics.json, OUT/run (checkpoint, TensorBoard) and OUT/predict PNGs. "
+                       "Run it again to resume an interrupted demo.")
+    p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
+    p.add_argument("--minutes", type=float, default=20.0, help="wall-time budget, set-up included (default 20)")
+    p.add_argument("--cache", help="world cache folder (default $INSTAGRAM_HDMAP_CACHE or ~/.cache/instagram_hdmap)")
+    p.add_argument("--config", help="training config (default configs/synthetic/demo.yaml)")
+    p.add_argument("--workers", type=int, default=2, help="processes generating the world (default 2)")
+    p.add_argument("--no-raster", action="store_true", help="skip the raster-protocol evaluation")
+    p.add_argument("overrides", nargs="*", help="key=value config overrides")
+    p.set_defaults(func=_cmd_demo)
 
     return parser
 

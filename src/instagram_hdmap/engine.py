@@ -83,7 +83,7 @@ def train_one_epoch(
     """
     model.train()
     sums: dict[str, float] = defaultdict(float)
-    count = 0
+    count, n_samples, t_epoch = 0, 0, time.perf_counter()
     stopped = False
     t_last, n_last = time.perf_counter(), 0
     bar = tqdm(loader, total=total, initial=step_in_epoch, desc=f"epoch {epoch}", dynamic_ncols=True,
@@ -127,6 +127,7 @@ def train_one_epoch(
         for k, v in values.items():
             sums[k] += v
         count += 1
+        n_samples += batch["images"].shape[0] * du.get_world_size()
 
         if global_step % log_every == 0 or step_in_epoch == 1:
             logged = du.reduce_dict(values, device if device.type == "cuda" else None)
@@ -150,7 +151,9 @@ def train_one_epoch(
     bar.close()
     stats = du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                            device if device.type == "cuda" else None)
-    return {"stats": stats, "global_step": global_step, "step_in_epoch": step_in_epoch, "stopped": stopped}
+    seconds = time.perf_counter() - t_epoch
+    return {"stats": stats, "global_step": global_step, "step_in_epoch": step_in_epoch, "stopped": stopped,
+            "seconds": seconds, "samples_per_s": n_samples / max(seconds, 1e-9)}
 
 
 @torch.no_grad()

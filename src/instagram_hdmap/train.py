@@ -4,7 +4,9 @@ The output folder holds ``config.yaml`` (resolved), ``log.jsonl`` (one line per 
 validation), ``tb/`` (TensorBoard events), ``last.pt`` and ``best.pt``.
 A run killed at any point resumes with ``--resume OUT/last.pt`` on the next unseen batch, with
 the same optimizer, scheduler, scaler and RNG states: on CPU with ``train.deterministic=true``
-the resumed weights equal those of an uninterrupted run bit for bit.
+the resumed weights equal those of an uninterrupted run bit for bit, with augmentation and data
+workers too, since each sample's augmentation is drawn from (train.seed, epoch, index) alone
+(``NuScenesMapDataset.augmentation_rng``).
 """
 
 from __future__ import annotations
@@ -199,6 +201,8 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     try:
         while epoch < cfg.train.epochs and not stopped:
             sampler.set_epoch(epoch, start=step_in_epoch * train_loader.batch_size)
+            if hasattr(train_loader.dataset, "set_epoch"):
+                train_loader.dataset.set_epoch(epoch)  # augmentation draws follow (seed, epoch, index)
             result = train_one_epoch(
                 net, criterion, train_loader, optimizer, device, epoch, global_step=global_step,
                 step_in_epoch=step_in_epoch, amp=cfg.train.amp, scaler=scaler, grad_clip=cfg.train.grad_clip,
@@ -208,7 +212,8 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             )
             global_step, step_in_epoch, stopped = result["global_step"], result["step_in_epoch"], result["stopped"]
             progress.update(epoch=epoch, step=global_step, in_epoch=step_in_epoch)
-            summary = {"epoch": epoch, "step": global_step, "train": result["stats"]}
+            summary = {"epoch": epoch, "step": global_step, "train": result["stats"],
+                       "train_seconds": round(result["seconds"], 2), "samples_per_s": round(result["samples_per_s"], 2)}
             if stopped:  # part-way through the epoch: resume continues it
                 checkpoint(out_dir / "last.pt", epoch, global_step, step_in_epoch)
             else:

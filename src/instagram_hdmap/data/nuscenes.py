@@ -151,6 +151,7 @@ class NuScenesMapDataset(Dataset):
         self.split = split
         self.grid = BEVGrid.from_config(cfg.grid)
         self.augment = (d.augment and split == d.train_split) if augment is None else augment
+        self.epoch = 0  # see set_epoch
         if len(d.classes) != 3:
             raise ConfigError(
                 f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, boundary) that "
@@ -212,7 +213,7 @@ class NuScenesMapDataset(Dataset):
         out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}
         out["post_rot"], out["post_tran"] = [], []
         if self.augment and rng is None:
-            rng = self._rng()
+            rng = self.augmentation_rng(index)
         for cam in CAMERAS:
             if cam not in sample["data"]:
                 raise DatasetError(f"sample {sample['token']} has no {cam} image in {self.dataroot}")
@@ -233,10 +234,15 @@ class NuScenesMapDataset(Dataset):
             out["post_tran"].append(post_tran)
         return {k: torch.stack(v) for k, v in out.items()}
 
-    @staticmethod
-    def _rng() -> np.random.Generator:
-        # seeded from torch so that torch.manual_seed and DataLoader worker seeding apply
-        return np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
+    def set_epoch(self, epoch: int) -> None:
+        """Select the augmentation draws of ``epoch`` (the training loop calls it before each epoch)."""
+        self.epoch = epoch
+
+    def augmentation_rng(self, index: int) -> np.random.Generator:
+        """The augmentation stream of sample ``index`` in the current epoch: a function of
+        (``train.seed``, epoch, index) alone, so the same sample is augmented the same way whatever
+        the worker count, the process or the resume point (exact resume with augmentation)."""
+        return np.random.default_rng([self.cfg.train.seed, self.epoch, index])
 
     def load_sample(self, index: int) -> dict:
         """The sample dict, raising ``UserError`` (naming the sample token) on bad input."""

@@ -68,6 +68,12 @@ def yaw_quaternion(yaw: float) -> list[float]:
     return [float(v) for v in Quaternion(axis=[0.0, 0.0, 1.0], angle=float(yaw)).elements]
 
 
+def sample_filename(logfile: str, channel: str, timestamp: int) -> str:
+    """Path of one key frame's file, relative to the dataroot (as in nuScenes)."""
+    ext = "jpg" if channel in CAMERAS else "pcd.bin"
+    return f"samples/{channel}/{logfile}__{channel}__{timestamp}.{ext}"
+
+
 def visibility_level(num_lidar_pts: int) -> str:
     """Visibility token from the number of lidar points on the box (a proxy for how much is seen)."""
     return "4" if num_lidar_pts >= 20 else "3" if num_lidar_pts >= 8 else "2" if num_lidar_pts >= 2 else "1"
@@ -136,8 +142,7 @@ class SceneRecorder:
         self.categories: dict[int, str] = {}
 
     def filename(self, channel: str, timestamp: int) -> str:
-        ext = "jpg" if channel in CAMERAS else "pcd.bin"
-        return f"samples/{channel}/{self.logfile}__{channel}__{timestamp}.{ext}"
+        return sample_filename(self.logfile, channel, timestamp)
 
     def add_sample(self, timestamp: int, pose: np.ndarray, image_size: tuple[int, int]) -> str:
         """A key frame at ego pose (x, y, yaw): the sample, one sample_data and ego_pose per channel."""

@@ -1,0 +1,95 @@
+"""``instagram-hdmap demo`` end to end on a minute-sized budget: a tiny world, a few steps."""
+
+from __future__ import annotations
+
+import json
+from collections import namedtuple
+
+import pytest
+
+from instagram_hdmap import demo
+from instagram_hdmap.cli import main
+
+WORLD = {"scenes_train": 2, "scenes_val": 1, "samples_per_scene": 3, "seed": 0, "image_size": "240x135"}
+FAST = ["train.max_steps=3", "train.batch_size=2", "data.num_workers=0", "train.log_every=1"]
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("demo")
+    metrics = demo.run_demo(root / "out", minutes=10, cache_dir=root / "cache", overrides=FAST, world=WORLD,
+                            progress=False)
+    return root, metrics
+
+
+def test_demo_writes_every_output(demo_run):
+    root, metrics = demo_run
+    out = root / "out"
+    def no_nan(name):
+        raise AssertionError(f"metrics.json holds {name}: not standard JSON")
+
+    on_disk = json.loads((out / "metrics.json").read_text(), parse_constant=no_nan)
+    assert on_disk == metrics
+    for key in ("vector", "raster", "baseline_vector", "baseline_raster"):
+        m = on_disk[key]
+        assert set(m["AP_class"]) == {"divider", "ped_crossing", "boundary"}
+        # None: a class without GT in the split (the raster protocol's NaN)
+        assert all(v is None or 0.0 <= v <= 1.0 for v in m["AP_class"].values())
+        assert m["mAP"] is None or 0.0 <= m["mAP"] <= 1.0
+        assert m["thresholds"] == [0.5, 1.0, 1.5]
+    assert on_disk["vector"]["mAP"] is not None
+    assert on_disk["train"]["steps"] == 3
+    assert set(on_disk["learned"]) == {"divider", "ped_crossing", "boundary"}
+    assert (out / "run" / "last.pt").is_file()
+    assert (out / "run" / "config.yaml").is_file()
+    assert any((out / "run" / "tb").glob("events.out.tfevents.*"))
+    assert (out / "eval_vector" / "submission.json").is_file()
+    pngs = on_disk["pictures"]
+    assert len(pngs) == 3 * demo.PREDICT_SAMPLES
+    assert all(p.endswith(".png") and (out / "predict").as_posix() in p for p in pngs)
+    for p in pngs:
+        with open(p, "rb") as f:
+            assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_baseline_scores_the_training_maps_it_draws(demo_run):
+    """The random-training-map baseline is real AP: drawing, for each validation sample, the map of
+    that very sample (train split = val split, picks = identity) scores AP 1 on every class present;
+    the random draw over the real training split scores less."""
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset
+
+    root, metrics = demo_run
+    dataroot = root / "cache" / demo.world_key(WORLD)
+    cfg = load_config(demo.default_config_path(), [*demo.world_overrides(dataroot), "data.train_split=val"])
+    n_val = WORLD["scenes_val"] * WORLD["samples_per_scene"]
+    perfect = demo.random_map_baseline(cfg, "vector", picks=list(range(n_val)))
+    val = NuScenesMapDataset(cfg, "val", augment=False)
+    labels = {p["label"] for i in range(len(val)) for p in val.gt_polylines(i)}
+    present = [cfg.data.classes[k] for k in sorted(labels)]
+    assert present and all(perfect["AP_class"][c] == pytest.approx(1.0) for c in present)
+    assert metrics["baseline_vector"]["mAP"] < perfect["mAP"]
+
+
+def test_second_run_reuses_the_world_and_the_run(demo_run, capsys):
+    root, _ = demo_run
+    stamp = (root / "cache" / demo.world_key(WORLD) / "world.json").stat().st_mtime_ns
+    demo.run_demo(root / "out", minutes=10, cache_dir=root / "cache", overrides=FAST, world=WORLD, progress=False,
+                  raster=False)
+    text = capsys.readouterr().out
+    assert "reused" in text and "already holds 3 steps" in text
+    assert (root / "cache" / demo.world_key(WORLD) / "world.json").stat().st_mtime_ns == stamp
+
+
+def test_not_enough_disk_fails_before_generating(tmp_path, monkeypatch):
+    Usage = namedtuple("Usage", "total used free")
+    monkeypatch.setattr(demo.shutil, "disk_usage", lambda p: Usage(10**9, 10**9 - 1000, 1000))
+    with pytest.raises(demo.DemoError, match="not enough free disk"):
+        demo.ensure_world(tmp_path / "cache", WORLD, progress=False)
+    assert not (tmp_path / "cache").exists()
+
+
+def test_cli_rejects_a_budget_below_the_evaluation_reserve(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "o"), "--minutes", "1", "--cache", str(tmp_path / "c")]) == 2
+    assert "--minutes 1.0" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
