@@ -46,29 +46,53 @@ def test_cli_bad_workers_exits_2(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
-def _fail_scene_1(monkeypatch):
-    """Scene #1 raises inside _render_scene, the others render nothing (so that no forked worker
-    runs OpenCV); under 'fork' the workers inherit the patch."""
+def _render_failing_scene_1(job, *args, **kwargs):
+    """Scene #1 raises inside _render_scene; the others render nothing (fast)."""
+    if job.index == 1:
+        raise ValueError("paint ran out")
 
-    def render_scene(job, *args, **kwargs):
-        if job.index == 1:
-            raise ValueError("paint ran out")
 
-    monkeypatch.setattr(world, "_render_scene", render_scene)
+def _worker_failing_scene_1(*args):
+    """A worker target for 'spawn': the child imports this module by name, patches its own copy of the
+    world module, then runs the real worker loop. (Patching in the parent reaches a spawned child only
+    this way; 'fork' would copy the patch but also the parent's OpenCV and OpenMP thread pools, whose
+    locks can deadlock the child: that hung CI once.)"""
+    world._render_scene = _render_failing_scene_1
+    _REAL_WORKER_MAIN(*args)
+
+
+def _worker_hangs(*args):
+    """A worker that takes its scene and then never reports again (a deadlocked child)."""
+    import time
+
+    tasks, events, _ = args
+    job = tasks.get()
+    events.put(("start", __import__("os").getpid(), job.index, None))
+    time.sleep(3600)
+
+
+_REAL_WORKER_MAIN = world._worker_main
 
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_scene_error_names_the_scene_and_leaves_nothing(tmp_path, monkeypatch, workers):
-    if workers > 1:
-        if "fork" not in multiprocessing.get_all_start_methods():
-            pytest.skip("needs the 'fork' start method to pass the injected failure to workers")
-        monkeypatch.setattr(world, "MP_START_METHOD", "fork")
-    _fail_scene_1(monkeypatch)
+    assert world.MP_START_METHOD == "spawn"
+    monkeypatch.setattr(world, "_render_scene", _render_failing_scene_1)  # the in-process path (workers=1)
+    monkeypatch.setattr(world, "_worker_main", _worker_failing_scene_1)  # the worker processes
     name = world.scene_names(ARGS["scenes_train"], ARGS["scenes_val"])[0][1]
     with pytest.raises(world.SceneGenerationError, match=rf"{name} \(train scene #1.*ValueError: paint ran out") as e:
         generate_world(tmp_path / "w", workers=workers, **ARGS)
     assert ("worker process" in str(e.value)) == (workers > 1)
     assert "paint ran out" in str(e.value.__cause__)  # the worker's traceback, or the original error
+    assert list(tmp_path.iterdir()) == []
+    assert multiprocessing.active_children() == []
+
+
+def test_hung_worker_is_stopped_with_a_message(tmp_path, monkeypatch):
+    monkeypatch.setattr(world, "_worker_main", _worker_hangs)
+    monkeypatch.setattr(world, "STALL_S", 8.0)  # spawning a worker (imports) takes a few seconds
+    with pytest.raises(world.SceneGenerationError, match=r"no progress .* for 8 s \(rendering: .*scene #\d.*hung"):
+        generate_world(tmp_path / "w", workers=2, **ARGS)
     assert list(tmp_path.iterdir()) == []
     assert multiprocessing.active_children() == []
 

@@ -37,6 +37,7 @@ import os
 import queue
 import shutil
 import signal
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -63,6 +64,7 @@ BASE_TIMESTAMP_US = 1532402927647951  # 2018-07-24 03:28:47 UTC, the first mini 
 SCENE_SPACING_US = 3600 * 1_000_000
 MP_START_METHOD = "spawn"  # workers start clean: no copied locks or threads (torch, OpenCV) from the caller
 POLL_S = 0.5  # how often the main process checks that its workers are alive while it waits
+STALL_S = 600.0  # a worker that sends nothing for this long (a sample takes seconds) is declared hung
 
 
 def scene_names(n_train: int, n_val: int) -> tuple[list[str], list[str]]:
@@ -305,12 +307,19 @@ def _render_parallel(jobs: list[_SceneJob], workers: int, on_sample) -> dict[int
     try:
         for p in procs:
             p.start()
+        last_event = time.monotonic()
         while len(results) < len(jobs):
             try:
                 kind, pid, index, payload = events.get(timeout=POLL_S)
             except queue.Empty:
                 _check_workers_alive(procs, running, by_index, results)
+                if time.monotonic() - last_event > STALL_S:
+                    busy = [by_index[i].describe() for i in running.values()] or ["no scene yet"]
+                    raise SceneGenerationError(f"no progress from the worker processes for {STALL_S:.0f} s "
+                                               f"(rendering: {', '.join(busy)}); they look hung: stopped them. "
+                                               "Try --workers 1") from None
                 continue
+            last_event = time.monotonic()
             if kind == "start":
                 running[pid] = index
             elif kind == "sample":
