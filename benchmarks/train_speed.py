@@ -75,8 +75,8 @@ OFFICIAL = {  # batch 1, the official implementation on this project's CPU machi
     "efficientnet-b4": {"step_s": 6.20, "memory_gb": 3.1},
 }
 TIME_TARGET, MEMORY_TARGET = 0.7, 0.8
-DEFAULTS = {"cpu": {"batch": [1, 2], "amp": ["none"], "steps": 5, "warmup": 2},
-            "cuda": {"batch": [8], "amp": ["none", "bf16"], "steps": 20, "warmup": 5}}
+DEFAULTS = {"cpu": {"batch": [1, 2], "amp": ["none"], "ckpt": ["off", "on"], "steps": 5, "warmup": 2},
+            "cuda": {"batch": [8], "amp": ["none", "bf16"], "ckpt": ["off"], "steps": 20, "warmup": 5}}
 RESULT_TAG = "RESULT "
 DIVIDER, PED_CROSSING, BOUNDARY = 0, 1, 2
 EDGE_MARGIN_M = 0.2  # boundaries stop this far inside the patch (HDMapNet, data/local_map.py)
@@ -223,6 +223,7 @@ def measure_training(cfg: ExperimentConfig, batch_size: int, *, steps: int, warm
         "image_size": list(cfg.data.image_size),
         "device": device_name(dev),
         "amp": amp,
+        "ckpt": "on" if cfg.model.backbone.grad_checkpoint else "off",
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "batch": batch_size,
@@ -243,20 +244,23 @@ def measure_training(cfg: ExperimentConfig, batch_size: int, *, steps: int, warm
     }
 
 
-def run_variant(config: str, batch: int, args: argparse.Namespace, amp: str) -> dict:
+def run_variant(config: str, batch: int, args: argparse.Namespace, amp: str, ckpt: str) -> dict:
     """``measure_training`` in a fresh Python process (so that its peak RSS is this variant's alone)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--one", str(Path(config).resolve()), "--batch", str(batch),
-           "--amp", amp, "--device", args.device, "--steps", str(args.steps), "--warmup", str(args.warmup),
+           "--amp", amp, "--grad-checkpoint", ckpt, "--device", args.device, "--steps", str(args.steps),
+           "--warmup", str(args.warmup),
            "--seed", str(args.seed), *(["--threads", str(args.threads)] if args.threads else [])]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=ROOT)
     except subprocess.TimeoutExpired:
-        return {"config": config, "batch": batch, "amp": amp, "error": f"timed out after {args.timeout} s"}
+        return {"config": config, "batch": batch, "amp": amp, "ckpt": ckpt,
+                "error": f"timed out after {args.timeout} s"}
     for line in proc.stdout.splitlines():
         if line.startswith(RESULT_TAG):
             return {"config": config, **json.loads(line[len(RESULT_TAG):])}
     tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-    return {"config": config, "batch": batch, "amp": amp, "error": f"exit {proc.returncode}: {tail[:200]}"}
+    return {"config": config, "batch": batch, "amp": amp, "ckpt": ckpt,
+            "error": f"exit {proc.returncode}: {tail[:200]}"}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -270,17 +274,17 @@ def _verdict(ratio: float, target: float) -> str:
 
 def format_cpu_table(rows: list[dict]) -> str:
     """Step time and peak RSS against the official batch-1 figures (module docstring)."""
-    head = (f"{'config':<30}{'params':>8}{'batch':>6}{'amp':>5}{'step s':>8}{'p10-p90 s':>12}{'CPU s':>7}"
+    head = (f"{'config':<30}{'params':>8}{'batch':>6}{'amp':>5}{'ckpt':>5}{'step s':>8}{'p10-p90 s':>12}{'CPU s':>7}"
             f"{'x offic.':>9}{'<=0.7x':>7}{'peak GB':>9}{'x offic.':>9}{'<=0.8x':>7}{'GT/pred vtx':>13}")
     lines = [head, "-" * len(head)]
     starred = False
     for r in rows:
         name = Path(r["config"]).stem
         if "error" in r:
-            lines.append(f"{name:<30}{'':>8}{r['batch']:>6}{r['amp']:>5}  failed: {r['error']}")
+            lines.append(f"{name:<30}{'':>8}{r['batch']:>6}{r['amp']:>5}{r['ckpt']:>5}  failed: {r['error']}")
             continue
         ref = OFFICIAL.get(r["backbone"]) if r["amp"] == "none" else None
-        cells = f"{name:<30}{r['params_m']:>7.2f}M{r['batch']:>6}{r['amp']:>5}{r['step_s']:>8.2f}"
+        cells = f"{name:<30}{r['params_m']:>7.2f}M{r['batch']:>6}{r['amp']:>5}{r['ckpt']:>5}{r['step_s']:>8.2f}"
         cells += f"{r['p10_s']:>6.2f}-{r['p90_s']:<5.2f}{r['cpu_s']:>7.2f}"
         if ref is None:
             cells += f"{'-':>9}{'':>7}{r['peak_rss_gb']:>9.2f}{'-':>9}{'':>7}"
@@ -294,7 +298,8 @@ def format_cpu_table(rows: list[dict]) -> str:
         lines.append(cells)
     lines.append("official (batch 1, 2-core CPU): B0 4.72 s, 2.1 GB; B4 6.20 s, 3.1 GB. step s: wall time (median); "
                  "CPU s: the process's CPU time per step (median; with 1 thread ~ the wall time of an idle machine, "
-                 "with more it includes OpenMP spinning). peak GB: the process's peak RSS (ru_maxrss), 1 GB = 1e9 B")
+                 "with more it includes OpenMP spinning). peak GB: the process's peak RSS (ru_maxrss), 1 GB = 1e9 B. "
+                 "ckpt: model.backbone.grad_checkpoint (recompute the EfficientNet blocks in backward)")
     if starred:
         lines.append("* batch 2 compared with the official batch-1 figure (no official batch-2 figure): information "
                      "only, no verdict")
@@ -303,16 +308,17 @@ def format_cpu_table(rows: list[dict]) -> str:
 
 def format_gpu_table(rows: list[dict]) -> str:
     """Samples/s and memory per config x precision."""
-    head = (f"{'config':<30}{'params':>8}{'batch':>6}{'amp':>6}{'step ms':>9}{'p10-p90 ms':>14}{'samples/s':>11}"
-            f"{'max alloc GB':>14}{'peak RSS GB':>13}")
+    head = (f"{'config':<30}{'params':>8}{'batch':>6}{'amp':>6}{'ckpt':>5}{'step ms':>9}{'p10-p90 ms':>14}"
+            f"{'samples/s':>11}{'max alloc GB':>14}{'peak RSS GB':>13}")
     lines = [head, "-" * len(head)]
     for r in rows:
         name = Path(r["config"]).stem
         if "error" in r:
-            lines.append(f"{name:<30}{'':>8}{r['batch']:>6}{r['amp']:>6}  failed: {r['error']}")
+            lines.append(f"{name:<30}{'':>8}{r['batch']:>6}{r['amp']:>6}{r['ckpt']:>5}  failed: {r['error']}")
             continue
         alloc = r["peak_allocated_gb"]
-        lines.append(f"{name:<30}{r['params_m']:>7.2f}M{r['batch']:>6}{r['amp']:>6}{1000 * r['step_s']:>9.1f}"
+        lines.append(f"{name:<30}{r['params_m']:>7.2f}M{r['batch']:>6}{r['amp']:>6}{r['ckpt']:>5}"
+                     f"{1000 * r['step_s']:>9.1f}"
                      f"{1000 * r['p10_s']:>7.1f}-{1000 * r['p90_s']:<6.1f}{r['samples_per_s']:>11.2f}"
                      f"{(f'{alloc:.2f}' if alloc is not None else '-'):>14}{r['peak_rss_gb']:>13.2f}")
     lines.append("amp none = fp32; bf16 = torch.autocast bfloat16 (engine.autocast_context); max alloc: "
@@ -327,6 +333,8 @@ def main() -> int:
     parser.add_argument("--batch", type=int, nargs="+", help="batch sizes (default 1 2 on the CPU, 8 on a GPU)")
     parser.add_argument("--amp", nargs="+", choices=["none", "bf16", "fp16"],
                         help="precisions (default none on the CPU, none bf16 on a GPU)")
+    parser.add_argument("--grad-checkpoint", nargs="+", choices=["off", "on"],
+                        help="model.backbone.grad_checkpoint variants (default off on on the CPU, off on a GPU)")
     parser.add_argument("--steps", type=int, help="timed steps (default 5 on the CPU, 20 on a GPU)")
     parser.add_argument("--warmup", type=int, help="untimed steps first (default 2 on the CPU, 5 on a GPU)")
     parser.add_argument("--seed", type=int, default=0)
@@ -338,13 +346,14 @@ def main() -> int:
     d = DEFAULTS[kind]
     args.batch = args.batch or d["batch"]
     args.amp = args.amp or d["amp"]
+    args.grad_checkpoint = args.grad_checkpoint or d["ckpt"]
     args.steps = d["steps"] if args.steps is None else args.steps
     args.warmup = d["warmup"] if args.warmup is None else args.warmup
 
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.one:
-        cfg = load_config(args.one)
+        cfg = load_config(args.one, [f"model.backbone.grad_checkpoint={args.grad_checkpoint[0] == 'on'}"])
         r = measure_training(cfg, args.batch[0], steps=args.steps, warmup=args.warmup, device=args.device,
                              amp=args.amp[0], seed=args.seed)
         print(RESULT_TAG + json.dumps(r))
@@ -361,13 +370,14 @@ def main() -> int:
     for config in args.configs:
         for batch in args.batch:
             for amp in args.amp:
-                rows.append(run_variant(config, batch, args, amp))
-                r = rows[-1]
-                if "error" in r:
-                    print(f"  {config} batch {batch} {amp}: failed ({r['error']})", flush=True)
-                else:
-                    print(f"  {config} batch {batch} {amp}: {r['step_s']:.3f} s/step, peak RSS "
-                          f"{r['peak_rss_gb']:.2f} GB", flush=True)
+                for ckpt in args.grad_checkpoint:
+                    rows.append(run_variant(config, batch, args, amp, ckpt))
+                    r = rows[-1]
+                    what = f"  {config} batch {batch} {amp} grad checkpoint {ckpt}"
+                    if "error" in r:
+                        print(f"{what}: failed ({r['error']})", flush=True)
+                    else:
+                        print(f"{what}: {r['step_s']:.3f} s/step, peak RSS {r['peak_rss_gb']:.2f} GB", flush=True)
     if rows and "error" not in rows[0]:
         print(f"{rows[0]['device']}; child processes used {rows[0]['threads']} torch threads")
     print(f"load average {os.getloadavg()[0]:.1f} at the end (the machine is shared: CPU times are upper bounds)")

@@ -465,6 +465,51 @@ def test_no_device_literals_in_model_code():
 # ---------------------------------------------------------------------------------------------
 
 
+def _saved_bytes_and_grads(backbone, images, seed):
+    """One forward + backward in train mode: bytes autograd saved for backward, the gradients."""
+    storages = {}
+
+    def pack(t):
+        storages[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+        return t
+
+    torch.manual_seed(seed)  # drop-connect masks
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        out = backbone(images)
+    out.square().mean().backward()
+    return sum(storages.values()), [p.grad.clone() for p in backbone.parameters()]
+
+
+def test_backbone_checkpointing_gives_identical_gradients_and_buffers_with_less_saved():
+    from instagram_hdmap.models.backbone import EfficientNetBackbone
+
+    torch.manual_seed(0)
+    plain = EfficientNetBackbone("efficientnet-b0", 32, (64, 96), grad_checkpoint=False).train()
+    ckpt = EfficientNetBackbone("efficientnet-b0", 32, (64, 96), grad_checkpoint=True).train()
+    ckpt.load_state_dict(plain.state_dict())
+    assert plain.trunk._global_params.drop_connect_rate > 0  # the masks must be replayed, not redrawn
+    images = torch.randn(2, 3, 64, 96)
+    saved_plain, grads_plain = _saved_bytes_and_grads(plain, images, seed=3)
+    saved_ckpt, grads_ckpt = _saved_bytes_and_grads(ckpt, images, seed=3)
+    for a, b in zip(grads_plain, grads_ckpt):
+        assert torch.equal(a, b)
+    # BatchNorm running statistics were updated once, not again by the recomputation.
+    state_plain, state_ckpt = plain.state_dict(), ckpt.state_dict()
+    assert all(torch.equal(state_plain[k], state_ckpt[k]) for k in state_plain)
+    assert int(state_ckpt["trunk._bn0.num_batches_tracked"]) == 1
+    assert saved_ckpt < 0.4 * saved_plain, (saved_ckpt, saved_plain)
+    # Evaluation and no-grad forwards never checkpoint (nothing to save) and agree with the plain model.
+    with torch.no_grad():
+        torch.testing.assert_close(ckpt.eval()(images), plain.eval()(images), rtol=0, atol=0)
+
+
+def test_backbone_checkpointing_is_on_by_default_and_switchable_from_the_config():
+    on = build_model(load_config(None, ["model.backbone.name=efficientnet-b0", "data.image_size=[64,96]"]))
+    off = build_model(load_config(None, ["model.backbone.name=efficientnet-b0", "data.image_size=[64,96]",
+                                         "model.backbone.grad_checkpoint=false"]))
+    assert on.backbone.grad_checkpoint is True and off.backbone.grad_checkpoint is False
+
+
 def test_imagenet_weights_load_from_a_local_file_and_bad_files_are_user_errors(tmp_path):
     torch.manual_seed(0)
     reference = EfficientNet.from_name("efficientnet-b0")

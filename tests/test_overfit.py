@@ -80,6 +80,7 @@ def test_train_speed_measures_fp32_and_bf16_steps_on_the_tiny_config(one_thread)
         assert r["peak_allocated_gb"] is None and r["threads"] == torch.get_num_threads()
         assert all(math.isfinite(v) for v in r["losses"].values()) and r["losses"]["loss_adjacency"] > 0
         rows.append({"config": str(TINY_CONFIG), **r})
-    rows.append({"config": "configs/paper/table1_b4_lss_128x352.yaml", "batch": 1, "amp": "none", "error": "boom"})
+    rows.append({"config": "configs/paper/table1_b4_lss_128x352.yaml", "batch": 1, "amp": "none", "ckpt": "on",
+                 "error": "boom"})
     for table in (format_cpu_table(rows), format_gpu_table(rows)):
         assert table.count("tiny") == 2 and "failed: boom" in table

@@ -91,7 +91,8 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     if m.backbone.name == "tiny":
         backbone: nn.Module = TinyBackbone(channels)
     else:
-        backbone = EfficientNetBackbone(m.backbone.name, channels, image_size)
+        backbone = EfficientNetBackbone(m.backbone.name, channels, image_size,
+                                        grad_checkpoint=m.backbone.grad_checkpoint)
         if m.backbone.weights:
             backbone.load_imagenet_weights(m.backbone.weights)
 

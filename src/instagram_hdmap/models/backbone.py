@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from efficientnet_pytorch import EfficientNet
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from ..config import UserError
 
@@ -58,14 +59,38 @@ class Up(nn.Module):
         return self.conv(torch.cat([skip, coarse], dim=1))
 
 
+class _RecomputeOnce:
+    """``block(x, drop_connect_rate)`` for ``torch.utils.checkpoint``: the first call is the forward,
+    later calls are the recomputation in backward, which must not update the BatchNorm running
+    statistics a second time: their buffers are restored after it (bit-exact, unlike momentum 0)."""
+
+    def __init__(self, block: nn.Module, drop_connect_rate: float):
+        self.block, self.rate, self.calls = block, drop_connect_rate, 0
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        self.calls += 1
+        if self.calls == 1:
+            return self.block(x, drop_connect_rate=self.rate)
+        stats = [b for m in self.block.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)
+                 for b in (m.running_mean, m.running_var, m.num_batches_tracked) if b is not None]
+        saved = [b.clone() for b in stats]
+        try:  # checkpoint may stop the recomputation early (by raising) once it has what backward needs
+            return self.block(x, drop_connect_rate=self.rate)
+        finally:
+            with torch.no_grad():
+                for b, old in zip(stats, saved):
+                    b.copy_(old)
+
+
 class EfficientNetBackbone(nn.Module):
     """EfficientNet trunk up to its last MBConv block, reduction_4 + reduction_5 fused by ``Up``.
 
     forward: images [B', 3, h, w] -> features [B', out_channels, h/16, w/16].
     """
 
-    def __init__(self, name: str, out_channels: int, image_size: tuple[int, int]):
+    def __init__(self, name: str, out_channels: int, image_size: tuple[int, int], grad_checkpoint: bool = False):
         super().__init__()
+        self.grad_checkpoint = grad_checkpoint
         # image_size sets the static "same" padding of efficientnet_pytorch's convolutions.
         trunk = EfficientNet.from_name(name, image_size=list(image_size))
         for unused in ("_conv_head", "_bn1", "_avg_pooling", "_dropout", "_fc"):
@@ -90,8 +115,13 @@ class EfficientNetBackbone(nn.Module):
         rate = t._global_params.drop_connect_rate or 0.0
         n = len(t._blocks)
         reduction_4 = x
+        checkpointing = self.grad_checkpoint and self.training and torch.is_grad_enabled()
         for i, block in enumerate(t._blocks):
-            x = block(x, drop_connect_rate=rate * i / n)  # linearly scaled, as efficientnet_pytorch
+            r = rate * i / n  # linearly scaled, as efficientnet_pytorch
+            if checkpointing:
+                x = checkpoint(_RecomputeOnce(block, r), x, use_reentrant=False)  # same drop-connect mask
+            else:
+                x = block(x, drop_connect_rate=r)
             if i == self._r4_index:
                 reduction_4 = x
         return self.up(reduction_4, x)
