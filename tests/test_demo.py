@@ -93,3 +93,35 @@ def test_cli_rejects_a_budget_below_the_evaluation_reserve(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "o"), "--minutes", "1", "--cache", str(tmp_path / "c")]) == 2
     assert "--minutes 1.0" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+
+
+def test_ctrl_c_during_training_leaves_a_usable_cache_and_a_resumable_run(tmp_path, monkeypatch, capsys):
+    """Ctrl-C in the middle of step 3: the CLI exits 130 having saved the weights of step 2; the next
+    demo run reuses the cached world and resumes at step 2 instead of starting over."""
+    from instagram_hdmap.checkpoint import load_checkpoint
+    from instagram_hdmap.losses import Criterion
+
+    forward = Criterion.forward
+    calls = {"n": 0}
+
+    def interrupted_on_the_third_step(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return forward(self, *args, **kwargs)
+
+    monkeypatch.setattr(demo, "WORLD", WORLD)
+    monkeypatch.setattr(Criterion, "forward", interrupted_on_the_third_step)
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    argv = ["demo", "--out", str(out), "--cache", str(cache), "--minutes", "10", "--no-raster", *FAST]
+    assert main(argv) == 130
+    assert (cache / demo.world_key(WORLD) / "world.json").is_file()  # the world is complete
+    assert load_checkpoint(out / "run" / "last.pt")["step"] == 2
+    assert not (out / "metrics.json").exists()
+    capsys.readouterr()
+
+    monkeypatch.setattr(Criterion, "forward", forward)
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "reused" in text and "resuming" in text and "at step 2" in text
+    assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 3

@@ -132,14 +132,15 @@ def _budget_left(t0: float, minutes: float) -> float:
 
 def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | None = None,
              config: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
-             world: dict = WORLD, workers: int = 1, raster: bool = True, progress: bool = True) -> dict:
-    """Generate or reuse the world, train (resuming ``OUT/run/last.pt``), evaluate, draw. Returns the
-    metrics dict also written to ``OUT/metrics.json``."""
+             world: dict | None = None, workers: int = 1, raster: bool = True, progress: bool = True) -> dict:
+    """Generate or reuse the world (default ``WORLD``), train (resuming ``OUT/run/last.pt``), evaluate,
+    draw. Returns the metrics dict also written to ``OUT/metrics.json``."""
     from .data.nuscenes import write_json
     from .predict import predict_sample, run_evaluation
     from .train import train
 
     t0 = time.perf_counter()
+    world = WORLD if world is None else world
     if minutes <= EVAL_RESERVE_MIN:
         raise DemoError(f"--minutes {minutes}: the budget must exceed the {EVAL_RESERVE_MIN} min kept for evaluation")
     out = Path(out)
