@@ -324,6 +324,51 @@ def test_sinkhorn_inference_fast_path_equals_the_autograd_path():
     assert bin_score.grad is not None and torch.isfinite(bin_score.grad)
 
 
+def test_floored_cpu_logsumexp_matches_torch_on_confident_and_padded_rows():
+    """The CPU Sinkhorn's log-sum-exp floors exp()'s argument at EXP_FLOOR (speed, see matching.py):
+    values and gradients equal torch.logsumexp's to float32 precision, also where most entries lie
+    far below the row maximum (a confident model) or at NEG_SCORE (padding, the masked diagonal)."""
+    from instagram_hdmap.models.matching import EXP_FLOOR, NEG_SCORE, _logsumexp
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 41, 41, generator=gen) * 40  # most entries e^-30 or more below their row max
+    x[:, :, 30:] = NEG_SCORE  # padded columns
+    x[:, torch.arange(41), torch.arange(41)] = NEG_SCORE
+    assert ((x - x.amax(2, keepdim=True)) < EXP_FLOOR).float().mean() > 0.5
+    upstream = torch.randn(3, 41, generator=gen)
+    for dim in (1, 2):
+        ours, ref = x.clone().requires_grad_(), x.clone().requires_grad_()
+        out_ours, out_ref = _logsumexp(ours, dim), torch.logsumexp(ref, dim=dim)
+        torch.testing.assert_close(out_ours, out_ref, rtol=1e-6, atol=1e-6)
+        (out_ours * upstream).sum().backward()
+        (out_ref * upstream).sum().backward()
+        torch.testing.assert_close(ours.grad, ref.grad, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("spread", [3.0, 12.0])  # a fresh model's scores; a confident one's (hundreds)
+def test_exp_floor_leaves_the_sinkhorn_unchanged(monkeypatch, spread):
+    from instagram_hdmap.models import matching
+
+    gen = torch.Generator().manual_seed(1)
+    scores = score_matrix(torch.randn(2, 24, 16, generator=gen) * spread)
+    mask = torch.arange(24)[None] < torch.tensor([24, 9])[:, None]
+    valid = torch.cat([mask, torch.ones(2, 1, dtype=torch.bool)], 1)
+    block = valid[:, :, None] & valid[:, None]
+    runs = {}
+    for floor in (matching.EXP_FLOOR, float("-inf")):  # -inf: no floor, torch.logsumexp's arithmetic
+        monkeypatch.setattr(matching, "EXP_FLOOR", floor)
+        bin_score = torch.tensor(1.0, requires_grad=True)
+        with torch.no_grad():
+            fast = log_optimal_transport(scores, bin_score, mask, iters=100)
+        slow = log_optimal_transport(scores, bin_score, mask, iters=100)
+        slow[block].exp().sum().backward()
+        runs[floor] = (fast[block], slow.detach()[block], bin_score.grad)
+    (fast_a, slow_a, grad_a), (fast_b, slow_b, grad_b) = runs.values()
+    torch.testing.assert_close(fast_a, fast_b, rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(slow_a, slow_b, rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(grad_a, grad_b, rtol=1e-4, atol=1e-6)
+
+
 def test_positional_encoding_bands():
     xy = torch.tensor([[0.25, -0.5]])
     pe = positional_encoding(xy, 3)  # bands 1/2, 1, 2 rad per unit
