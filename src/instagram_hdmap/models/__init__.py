@@ -119,7 +119,7 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     gh = m.gnn
     graph_head = GraphHead(
         grid, num_classes, cfg.data.dt_clip, bh.channels, gh.num_vertices, gh.conf_threshold, gh.embedding,
-        gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters,
+        gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters, gh.sinkhorn_grad,
     )
     return InstaGraM(backbone, view_transform, bev_heads, graph_head)
 

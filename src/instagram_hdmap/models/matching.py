@@ -26,6 +26,7 @@ NEG_SCORE = -1e9  # log-space "minus infinity" that stays finite (exp() underflo
 # largest one adds at most N * 9.4e-14 to a sum >= 1 (float32 resolves 1.2e-7) and at most 9.4e-14
 # to a gradient weight. benchmarks/sinkhorn_speed.py measures the difference.
 EXP_FLOOR = -30.0
+RIDGE = 1e-9  # relative ridge of the implicit backward's linear solve (float64)
 
 
 def score_matrix(embeddings: torch.Tensor) -> torch.Tensor:
@@ -39,7 +40,7 @@ def score_matrix(embeddings: torch.Tensor) -> torch.Tensor:
 
 
 def log_optimal_transport(
-    scores: torch.Tensor, bin_score: torch.Tensor, mask: torch.Tensor, iters: int
+    scores: torch.Tensor, bin_score: torch.Tensor, mask: torch.Tensor, iters: int, grad: str = "implicit"
 ) -> torch.Tensor:
     """SuperGlue's log-space optimal transport with a dustbin row and column, adapted to padding.
 
@@ -48,6 +49,12 @@ def log_optimal_transport(
     sample, each real row and real column has mass 1 and the dustbins have mass n (SuperGlue's
     marginals with m = n), so ``exp()`` of a real row or column sums to 1. Padded rows and columns
     are finite and meaningless. Always float32, also under autocast.
+
+    ``grad`` says how gradients flow back through the iterations (the forward values are the same):
+    ``"unrolled"`` backpropagates through every iteration (SuperGlue, the official code: 2 x iters
+    log-sum-exps kept for backward and replayed); ``"implicit"`` differentiates the fixed point
+    instead (``_ImplicitSinkhorn``): one small linear solve per sample, a few percent of the time
+    and none of the memory, equal to the unrolled gradient once the iterations have converged.
     """
     with torch.autocast(scores.device.type, enabled=False):
         scores = scores.float()
@@ -62,6 +69,10 @@ def log_optimal_transport(
         norm = -(2 * n).log()  # [B]
         log_mu = torch.cat([norm[:, None].expand(B, N), (n.log() + norm)[:, None]], 1)  # [B, N+1]
         if torch.is_grad_enabled() and (couplings.requires_grad or bin_score.requires_grad):
+            if grad == "implicit":
+                return _ImplicitSinkhorn.apply(couplings, log_mu, valid, norm, iters)
+            if grad != "unrolled":
+                raise ValueError(f"grad must be 'implicit' or 'unrolled', got {grad!r}")
             u, v = _sinkhorn_potentials(couplings, log_mu, valid, iters)
         else:
             u, v = _sinkhorn_potentials_inplace(couplings, log_mu, valid, iters)
@@ -127,3 +138,53 @@ def _sinkhorn_potentials_inplace(
         u = torch.where(valid, log_mu - row_logsumexp(couplings, v), NEG_SCORE)
         v = torch.where(valid, log_mu - row_logsumexp(transposed, u), NEG_SCORE)
     return u, v
+
+
+class _ImplicitSinkhorn(torch.autograd.Function):
+    """Log-space Sinkhorn whose backward differentiates the fixed point (implicit function theorem).
+
+    Forward: the no-grad potentials (``_sinkhorn_potentials_inplace``), output
+    ``Z = C + u 1^T + 1 v^T - norm``. With ``P = exp(C + u 1^T + 1 v^T)`` (marginals r = P 1, c = P^T 1
+    over the real rows / columns), the fixed point F(u, v, C) = (P 1 - mu, P^T 1 - mu) = 0 has the
+    symmetric Jacobian ``J = [[diag r, P], [P^T, diag c]]`` in (u, v), and dF/dC_kl puts P_kl in row k
+    and in column l. For an upstream gradient G = dL/dZ with row sums g_r and column sums g_c, the
+    adjoint (a, b) = J^-1 (g_r, g_c) gives
+
+        dL/dC = G - (a 1^T + 1 b^T) * P.
+
+    J is singular along the gauge (u + t, v - t); (g_r, g_c) is orthogonal to it once G is zero on
+    entries with a padded row or column (meaningless outputs that no loss reads, and whose
+    couplings are masked constants), so the Schur complement in b, regularised along the gauge,
+    has a unique solution orthogonal to it: S b = g_c - P^T (g_r / r), S = diag c - P^T diag(1/r) P.
+    Solved in float64, size N+1 per sample.
+    """
+
+    @staticmethod
+    def forward(ctx, couplings, log_mu, valid, norm, iters):
+        u, v = _sinkhorn_potentials_inplace(couplings.detach(), log_mu, valid, iters)
+        z = couplings + u[:, :, None] + v[:, None, :] - norm[:, None, None]
+        ctx.save_for_backward(z, valid, norm)
+        return z
+
+    @staticmethod
+    def backward(ctx, grad):
+        z, valid, norm = ctx.saved_tensors
+        pair = valid[:, :, None] & valid[:, None, :]
+        g = torch.where(pair, grad, torch.zeros_like(grad)).double()
+        p = torch.where(pair, (z + norm[:, None, None]).double().exp(), torch.zeros_like(g))  # [B, N+1, N+1]
+        fv = valid.double()
+        r = torch.where(valid, p.sum(2), torch.ones_like(fv))  # padded rows: 1 (their a is 0)
+        c = torch.where(valid, p.sum(1), torch.ones_like(fv))
+        g_r, g_c = g.sum(2), g.sum(1)
+        schur = torch.diag_embed(c) - p.transpose(1, 2) @ (p / r[:, :, None])
+        gauge = fv / fv.sum(1, keepdim=True).sqrt()  # unit vector along the gauge direction of b
+        scale = c.mean(1, keepdim=True)[:, :, None]
+        # + a ridge of RIDGE x c: a near-permutation plan makes S nearly singular beyond the gauge
+        # (independent blocks, each with its own gauge, along which dL/dC does not change)
+        schur = schur + scale * gauge[:, :, None] * gauge[:, None, :] + torch.diag_embed(RIDGE * c)
+        rhs = g_c - (p.transpose(1, 2) @ (g_r / r)[:, :, None])[..., 0]
+        b = torch.linalg.solve_ex(schur, rhs[..., None])[0][..., 0]
+        b = torch.where(torch.isfinite(b), b, torch.zeros_like(b)) * fv
+        a = (g_r - (p @ b[:, :, None])[..., 0]) / r * fv
+        dc = g - (a[:, :, None] + b[:, None, :]) * p
+        return dc.to(grad.dtype), None, None, None, None
