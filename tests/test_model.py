@@ -376,6 +376,36 @@ def test_implicit_sinkhorn_padding_changes_no_real_gradient():
     assert torch.isfinite(g_few).all() and torch.isfinite(b_few)
 
 
+@pytest.mark.parametrize("spread", [1.0, 6.0, 400.0])  # 400: beyond the scaling form's float64 range
+def test_cpu_scaling_sinkhorn_equals_the_log_space_iterations(spread):
+    """The CPU's float64 scaling-form iterations give the log-space iterations' potentials (same
+    iterates); where the scores span more than float64's exp() range they decline and the
+    log-space path runs."""
+    from instagram_hdmap.models import matching
+
+    gen = torch.Generator().manual_seed(4)
+    scores = score_matrix(torch.randn(3, 20, 8, generator=gen) * spread)
+    mask = torch.arange(20)[None] < torch.tensor([20, 11, 1])[:, None]
+    B, N = mask.shape
+    bins = torch.full((B, 1, 1), 0.5)
+    couplings = torch.cat([torch.cat([scores, bins.expand(B, N, 1)], 2), torch.cat([bins.expand(B, 1, N), bins], 2)], 1)
+    valid = torch.cat([mask, torch.ones(B, 1, dtype=torch.bool)], 1)
+    couplings = couplings.masked_fill(~(valid[:, :, None] & valid[:, None, :]), matching.NEG_SCORE)
+    n = mask.sum(1).float().clamp(min=1)
+    norm = -(2 * n).log()
+    log_mu = torch.cat([norm[:, None].expand(B, N), (n.log() + norm)[:, None]], 1)
+    scaled = matching._sinkhorn_potentials_scaling(couplings, log_mu, valid, 50)
+    if spread > 100:
+        assert scaled is None
+        return
+    logspace = matching._sinkhorn_potentials_inplace(couplings, log_mu, valid, 50)
+    block = valid[:, :, None] & valid[:, None]
+    z_s = couplings + scaled[0][:, :, None] + scaled[1][:, None, :]
+    z_l = couplings + logspace[0][:, :, None] + logspace[1][:, None, :]
+    torch.testing.assert_close(z_s[block], z_l[block], atol=2e-4, rtol=1e-5)
+    assert (scaled[0][~valid] == matching.NEG_SCORE).all() and (scaled[1][~valid] == matching.NEG_SCORE).all()
+
+
 def test_floored_cpu_logsumexp_matches_torch_on_confident_and_padded_rows():
     """The CPU Sinkhorn's log-sum-exp floors exp()'s argument at EXP_FLOOR (speed, see matching.py):
     values and gradients equal torch.logsumexp's to float32 precision, also where most entries lie

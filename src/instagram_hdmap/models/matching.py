@@ -75,7 +75,7 @@ def log_optimal_transport(
                 raise ValueError(f"grad must be 'implicit' or 'unrolled', got {grad!r}")
             u, v = _sinkhorn_potentials(couplings, log_mu, valid, iters)
         else:
-            u, v = _sinkhorn_potentials_inplace(couplings, log_mu, valid, iters)
+            u, v = _sinkhorn_potentials_fast(couplings, log_mu, valid, iters)
         return couplings + u[:, :, None] + v[:, None, :] - norm[:, None, None]
 
 
@@ -112,6 +112,56 @@ def _sinkhorn_potentials(
         u = torch.where(valid, log_mu - _logsumexp(couplings + v[:, None, :], dim=2), NEG_SCORE)
         v = torch.where(valid, log_mu - _logsumexp(couplings + u[:, :, None], dim=1), NEG_SCORE)
     return u, v
+
+
+@torch.no_grad()
+def _sinkhorn_potentials_fast(
+    couplings: torch.Tensor, log_mu: torch.Tensor, valid: torch.Tensor, iters: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """No-grad potentials by the fastest exact route: on the CPU the scaling form in float64
+    (``_sinkhorn_potentials_scaling``), which falls back to the log-space iterations where the
+    scores' range is too wide for it; on other devices, and while tracing or exporting, the
+    log-space in-place iterations."""
+    tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+    if couplings.is_cpu and not tracing:
+        out = _sinkhorn_potentials_scaling(couplings, log_mu, valid, iters)
+        if out is not None:
+            return out
+    return _sinkhorn_potentials_inplace(couplings, log_mu, valid, iters)
+
+
+@torch.no_grad()
+def _sinkhorn_potentials_scaling(
+    couplings: torch.Tensor, log_mu: torch.Tensor, valid: torch.Tensor, iters: int
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The same iterations in Sinkhorn's original scaling form: with K = exp(C - max C) (float64)
+    and scalings a, b, each half-iteration is a = mu / (K b) (resp. b = mu / (K^T a)): one
+    matrix-vector product instead of a log-sum-exp with an exp() of the whole matrix, ~10x less CPU
+    time. u = log a - max C, v = log b are the log-space potentials (same iterates, in float64).
+    Returns None when a scaling under- or overflows (scores spanning > ~700 in one sample); the
+    caller then runs the log-space iterations."""
+    pair = valid[:, :, None] & valid[:, None, :]
+    c = couplings.double().masked_fill(~pair, -math.inf)
+    peak = c.flatten(1).amax(1).clamp(min=-1e300)[:, None, None]  # [B, 1, 1]
+    kernel = (c - peak).exp()  # [B, N+1, N+1], 0 outside the valid block
+    kernel_t = kernel.transpose(1, 2).contiguous()
+    # row vectors [B, 1, N+1]: x^T M is MKL's fast batched product here (3x faster than M x)
+    mu = torch.where(valid, log_mu.double().exp(), torch.zeros_like(log_mu, dtype=torch.float64))[:, None, :]
+    one = torch.ones_like(mu)
+    row_valid = valid[:, None, :]
+    b = valid.double()[:, None, :]
+    a = b
+    for _ in range(iters):
+        a = mu / torch.where(row_valid, torch.bmm(b, kernel_t), one)  # (K b)^T = b^T K^T
+        b = mu / torch.where(row_valid, torch.bmm(a, kernel), one)  # (K^T a)^T = a^T K
+    a, b = a[:, 0], b[:, 0]
+    ok = torch.where(valid, (a > 0) & torch.isfinite(a) & (b > 0) & torch.isfinite(b), True)
+    if not bool(ok.all()):
+        return None
+    neg = torch.full_like(a, NEG_SCORE)
+    u = torch.where(valid, a.log() - peak[:, 0], neg)
+    v = torch.where(valid, b.log(), neg)
+    return u.float(), v.float()
 
 
 @torch.no_grad()
@@ -161,7 +211,7 @@ class _ImplicitSinkhorn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, couplings, log_mu, valid, norm, iters):
-        u, v = _sinkhorn_potentials_inplace(couplings.detach(), log_mu, valid, iters)
+        u, v = _sinkhorn_potentials_fast(couplings.detach(), log_mu, valid, iters)
         z = couplings + u[:, :, None] + v[:, None, :] - norm[:, None, None]
         ctx.save_for_backward(z, valid, norm)
         return z
