@@ -33,7 +33,8 @@ from instagram_hdmap.postprocess import postprocess_batch
 from instagram_hdmap.predict import load_model
 
 
-def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int | None = None) -> dict:
+def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int | None = None,
+             split: str | None = None) -> dict:
     from instagram_hdmap.demo import world_overrides
 
     if threads:
@@ -43,7 +44,7 @@ def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int
                                device=torch.device("cpu"))
     grid = BEVGrid.from_config(cfg.grid)
     criterion = Criterion(cfg.loss, grid)
-    dataset = NuScenesMapDataset(cfg, cfg.data.val_split, augment=False)
+    dataset = NuScenesMapDataset(cfg, split or cfg.data.val_split, augment=False)
     n = len(dataset) if limit is None else min(limit, len(dataset))
     loader = DataLoader(torch.utils.data.Subset(dataset, range(n)), batch_size=4, collate_fn=collate_fn)
     diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, cfg.model.gnn.match_threshold)
@@ -70,13 +71,14 @@ def main() -> None:
     ap.add_argument("checkpoints", nargs="+", help="NAME=CHECKPOINT")
     ap.add_argument("--world", required=True, help="dataroot of a synthetic world (its val split is used)")
     ap.add_argument("--limit", type=int, default=None, help="first samples of the split only")
+    ap.add_argument("--split", default=None, help="split of the world (default: the config's val split)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--json", default=None, help="also write the results here")
     args = ap.parse_args()
     results = {}
     for item in args.checkpoints:
         name, _, path = item.partition("=")
-        results[name] = diagnose(path or name, args.world, args.limit, args.threads)
+        results[name] = diagnose(path or name, args.world, args.limit, args.threads, args.split)
     classes = next(iter(results.values()))["classes"]
     print(format_table(results, classes))
     print()

@@ -89,7 +89,9 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     channels = m.backbone.out_channels
 
     if m.backbone.name == "tiny":
-        backbone: nn.Module = TinyBackbone(channels)
+        _require(len(m.backbone.tiny_widths) == 5 and min(m.backbone.tiny_widths) > 0,
+                 "model.backbone.tiny_widths", "must be 5 positive channel counts")
+        backbone: nn.Module = TinyBackbone(channels, tuple(m.backbone.tiny_widths))
     else:
         backbone = EfficientNetBackbone(m.backbone.name, channels, image_size,
                                         grad_checkpoint=m.backbone.grad_checkpoint)
