@@ -713,3 +713,41 @@ def test_model_summary_lists_components_and_total():
     text = summarize_parameters(tiny_model())
     for word in ("backbone", "view_transform", "bev_heads", "graph_head", "gnn (2 layers", "total"):
         assert word in text
+
+
+@pytest.mark.parametrize("radius", [0.0, 1.5, 3.0, 5.0])
+def test_neighbour_suppression_equals_a_loop_over_cells(radius):
+    """Batched cross-cell suppression against a plain loop: a cell winner is dropped iff a stronger
+    winner (ties: lower flat index) of one of its 8 neighbouring cells lies within ``radius`` px;
+    radius 0 keeps the one-vertex-per-cell extraction unchanged."""
+    gen = torch.Generator().manual_seed(5)
+    B, S, Hc, Wc = 2, 4, 5, 7
+    logits = torch.randn(B, S * S + 1, Hc, Wc, generator=gen) * 3
+    logits[0, :, 2, 3] = logits[0, :, 2, 4]  # a tie between neighbours
+    out = extract_vertices(logits, S, num_vertices=Hc * Wc, threshold=0.0, nms_radius=radius)
+    probs = logits.softmax(1)[:, :-1]
+    best, pos = probs.max(1)
+    for b in range(B):
+        keep = set()
+        for r in range(Hc):
+            for c in range(Wc):
+                u, v = c * S + int(pos[b, r, c]) % S, r * S + int(pos[b, r, c]) // S
+                gone = False
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        rr, cc = r + dr, c + dc
+                        if (dr, dc) == (0, 0) or not (0 <= rr < Hc and 0 <= cc < Wc):
+                            continue
+                        nu, nv = cc * S + int(pos[b, rr, cc]) % S, rr * S + int(pos[b, rr, cc]) // S
+                        stronger = best[b, rr, cc] > best[b, r, c] or (
+                            best[b, rr, cc] == best[b, r, c] and rr * Wc + cc < r * Wc + c)
+                        if radius > 0 and stronger and (nu - u) ** 2 + (nv - v) ** 2 <= radius**2:
+                            gone = True
+                if not gone:
+                    keep.add((u, v))
+        got = {tuple(int(x) for x in p) for p, m in zip(out["vertices_px"][b], out["mask"][b]) if m}
+        assert got == keep
+    if radius == 0:
+        plain = extract_vertices(logits, S, num_vertices=Hc * Wc, threshold=0.0)
+        for k in plain:
+            assert torch.equal(plain[k], out[k])

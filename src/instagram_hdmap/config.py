@@ -116,6 +116,9 @@ class BEVHeadsConfig:
 class GraphHeadConfig:
     num_vertices: int = 400  # N, top-N vertices fed to the GNN
     conf_threshold: float = 0.01
+    # BEV pixels: a cell's vertex within this distance of a stronger one in a neighbouring cell is
+    # dropped (0: one vertex per cell only, the paper's rule; models/vertices.py)
+    nms_radius: float = 0.0
     embedding: Literal["pe+dt", "pe", "dt", "pe+vd"] = "pe+dt"
     dim: int = 256  # D
     pe_frequencies: int = 10  # sinusoidal positional encoding bands per coordinate
