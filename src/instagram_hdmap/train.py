@@ -3,9 +3,11 @@
 The output folder holds ``config.yaml`` (resolved), ``log.jsonl`` (one line per epoch and
 validation), ``tb/`` (TensorBoard events), ``last.pt`` and ``best.pt``.
 A run killed at any point resumes with ``--resume OUT/last.pt`` on the next unseen batch, with
-the same optimizer, scheduler, scaler and RNG states: on CPU with ``train.deterministic=true``
-the resumed weights equal those of an uninterrupted run bit for bit, with augmentation and data
-workers too, since each sample's augmentation is drawn from (train.seed, epoch, index) alone
+the same optimizer, schedule progress, scaler and RNG states: on CPU with
+``train.deterministic=true`` the resumed weights equal those of an uninterrupted run to float32
+rounding (oneDNN's convolutions may round a last bit differently in a new process), with
+augmentation and data workers too, since each sample's augmentation is drawn from
+(train.seed, epoch, index) alone
 (``NuScenesMapDataset.augmentation_rng``).
 """
 
