@@ -109,11 +109,11 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     """Metrics of the *random training map*: each validation sample predicted by the GT polylines
     of a uniformly drawn training sample (score 1): the map prior without looking at the images.
     ``picks`` (one training index per validation sample) replaces the random draw."""
-    from .data.nuscenes import NuScenesMapDataset
+    from .data import build_dataset
     from .evaluation import Evaluator
 
-    train_set = NuScenesMapDataset(cfg, cfg.data.train_split, augment=False)
-    val_set = NuScenesMapDataset(cfg, cfg.data.val_split, nusc=train_set.nusc, augment=False)
+    train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
+    val_set = build_dataset(cfg, cfg.data.val_split, augment=False, like=train_set)
     rng = random.Random(seed)
     if picks is None:
         picks = [rng.randrange(len(train_set)) for _ in range(len(val_set))]
