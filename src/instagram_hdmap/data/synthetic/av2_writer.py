@@ -435,18 +435,3 @@ def map_archive(net: RoadNetwork, region: Polygon | None = None) -> dict:
             areas[str(ID_AREA + i)] = {"id": ID_AREA + i, "area_boundary": _xyz(ring[:-1])}
     return {"pedestrian_crossings": crossings, "lane_segments": lanes, "drivable_areas": areas}
 
-
-def read_av2_manifest(dataroot) -> dict:
-    """The world.json of a synthetic AV2 dataroot (or an error naming it)."""
-    from ...config import UserError
-
-    path = FsPath(dataroot) / MANIFEST
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise UserError(f"{path}: cannot read it ({e}); is {dataroot} a world written by "
-                        "'instagram-hdmap synth --format av2'?") from e
-    if manifest.get("dataset") != "av2":
-        raise UserError(f"{path}: not a synthetic AV2 world (format {manifest.get('format')!r})")
-    return manifest
-
