@@ -13,7 +13,9 @@ cameras of ``data.av2_cameras`` (default all seven; ``V = len(data.av2_cameras)`
 av2 synchronisation picks for the sweep (``get_closest_img_fpath``: the nearest within 25 ms), with the
 log's calibration (``PinholeCamera.from_feather``: intrinsics, camera -> ego). As for nuScenes, one ego
 pose serves all cameras (lift-splat-shoot's simplification). AV2's ring_front_center is portrait
-(1550 x 2048) and the others landscape (2048 x 1550): use ``data.image_fit=contain`` (configs/av2/).
+(1550 x 2048) and the others landscape (2048 x 1550): at about AV2's aspect ratio the default crop
+(``data.image_fit=cover``) only cuts the portrait camera's sky; for a wide window such as 128 x 352,
+fit the cameras inside instead (``contain``; configs/av2/).
 
 Map (``AV2LocalMapBuilder``): each log's ``map/log_map_archive_*.json`` through
 ``ArgoverseStaticMap.from_json``, turned into the three classes of the field's AV2 setting
