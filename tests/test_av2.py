@@ -179,13 +179,15 @@ def test_frame_step_subsamples_the_sweeps(av2_world):
     assert second.samples == want and len(want) == 2 * 2  # sweeps 0 and 2 of each 3-sweep log
 
 
-def test_calibration_round_trip(av2_train):
+@pytest.mark.parametrize("fit", ["contain", "cover"])
+def test_calibration_round_trip(av2_world, fit):
     """Ground points in front of each AV2 camera -> network image (AV2 intrinsics, extrinsics and the
-    contain-fit warp) -> ground plane: the same points; and our projection agrees with av2's own."""
-    s = av2_train[1]
-    log, _ = av2_train.samples[1]
-    cams = av2_train._log_cameras(log)
-    for v, cam in enumerate(av2_train.camera_names):
+    fit's warp) -> ground plane: the same points; and our projection agrees with av2's own."""
+    ds = AV2MapDataset(_cfg(av2_world, f"data.image_fit={fit}"), "train")
+    s = ds[1]
+    log, _ = ds.samples[1]
+    cams = ds._log_cameras(log)
+    for v, cam in enumerate(ds.camera_names):
         axis = s["cam_to_ego_rot"][v][:, 2]
         fwd, left = axis[:2] / axis[:2].norm(), torch.stack([-axis[1], axis[0]]) / axis[:2].norm()
         d, lat = torch.meshgrid(torch.linspace(4, 20, 9), torch.linspace(-2, 2, 5), indexing="ij")
@@ -196,7 +198,8 @@ def test_calibration_round_trip(av2_train):
         uv, depth = project_to_image(pts, *calib)
         assert (depth > 0).all()
         h, w = s["images"].shape[-2:]
-        assert ((uv >= 0) & (uv <= uv.new_tensor([w - 1, h - 1]))).all(), cam  # inside the network image
+        inside = ((uv >= 0) & (uv <= uv.new_tensor([w - 1, h - 1]))).all(-1)
+        assert inside.sum() >= 30, cam  # most of the 45 points are in view (the portrait camera is narrow)
         assert torch.allclose(image_to_ground(uv, *calib), pts, atol=1e-3 * 20), cam
         # av2's projection of the same points (original image pixels) -> our network pixels
         uv_av2, _, _ = cams[cam].project_ego_to_img(pts.double().numpy())
