@@ -11,6 +11,11 @@ training step doubled in time over a run. ``models/matching.py`` floors exp()'s 
 ``torch.logsumexp``. Rows: the elementwise exp() cost by argument, then ``log_optimal_transport``
 forward + backward (training) and under no_grad (inference), on scores scaled like a fresh model's
 (spread 3) and a confident one's (spread 12), with ``--real`` of ``--vertices`` real vertices.
+
+The last table compares the ways through the Sinkhorn (all floored): the unrolled backward through
+the log-space iterations (SuperGlue's; ``model.gnn.sinkhorn_grad=unrolled``), the implicit backward
+(``implicit``, the default) on the log-space forward, and on the CPU's float64 scaling-form forward
+(the default on the CPU); under no_grad, the log-space vs the scaling-form iterations.
 """
 
 from __future__ import annotations
@@ -38,7 +43,8 @@ def exp_rows(n: int, runs: int) -> list[tuple[str, float]]:
     return rows
 
 
-def sinkhorn_ms(batch: int, vertices: int, real: int, iters: int, spread: float, train: bool, runs: int) -> float:
+def sinkhorn_ms(batch: int, vertices: int, real: int, iters: int, spread: float, train: bool, runs: int,
+                grad: str = "unrolled") -> float:
     gen = torch.Generator().manual_seed(0)
     emb = torch.randn(batch, vertices, 32, generator=gen) * spread
     mask = torch.arange(vertices)[None] < torch.full((batch, 1), real)
@@ -47,7 +53,7 @@ def sinkhorn_ms(batch: int, vertices: int, real: int, iters: int, spread: float,
     def step():
         scores = score_matrix(emb.requires_grad_(train))
         if train:
-            log_optimal_transport(scores, bin_score, mask, iters).sum().backward()
+            log_optimal_transport(scores, bin_score, mask, iters, grad=grad).sum().backward()
         else:
             with torch.no_grad():
                 log_optimal_transport(scores, bin_score, mask, iters)
@@ -84,6 +90,24 @@ def main() -> int:
             kind = "fresh" if spread == 3.0 else "confident"
             label = f"{'fwd+bwd' if train else 'no_grad'}, {kind} (spread {spread:g})"
             print(f"{label:<34}{times[0]:>12.1f}{times[1]:>10.1f}{times[1] / times[0]:>7.2f}x")
+    scaling = matching._sinkhorn_potentials_scaling
+    print(f"\n{'ms (x unrolled log-space)':<34}{'unrolled':>12}{'implicit':>12}{'implicit+scaling':>18}")
+    for spread in (3.0, 12.0):
+        kind = "fresh" if spread == 3.0 else "confident"
+        times = []
+        for grad, use_scaling in (("unrolled", False), ("implicit", False), ("implicit", True)):
+            matching._sinkhorn_potentials_scaling = scaling if use_scaling else (lambda *args: None)
+            times.append(sinkhorn_ms(a.batch, a.vertices, a.real, a.iters, spread, True, a.runs, grad))
+        matching._sinkhorn_potentials_scaling = scaling
+        cells = "".join(f"{t:>8.1f} ({t / times[0]:.2f})" for t in times)
+        print(f"{'fwd+bwd, ' + kind:<34}{cells}")
+        nograd = []
+        for use_scaling in (False, True):
+            matching._sinkhorn_potentials_scaling = scaling if use_scaling else (lambda *args: None)
+            nograd.append(sinkhorn_ms(a.batch, a.vertices, a.real, a.iters, spread, False, a.runs))
+        matching._sinkhorn_potentials_scaling = scaling
+        print(f"{'no_grad, ' + kind + ' (log / scaling)':<34}{nograd[0]:>12.1f}{'':>12}{nograd[1]:>10.1f} "
+              f"({nograd[1] / nograd[0]:.2f})")
     return 0
 
 

@@ -11,6 +11,7 @@ from instagram_hdmap import demo
 from instagram_hdmap.cli import main
 
 WORLD = {"scenes_train": 2, "scenes_val": 1, "samples_per_scene": 3, "seed": 0, "image_size": "240x135"}
+VAL_WORLD = {"scenes_train": 0, "scenes_val": 1, "samples_per_scene": 3, "seed": 1, "image_size": "240x135"}
 FAST = ["train.max_steps=3", "train.batch_size=2", "data.num_workers=0", "train.log_every=1"]
 
 
@@ -18,7 +19,7 @@ FAST = ["train.max_steps=3", "train.batch_size=2", "data.num_workers=0", "train.
 def demo_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("demo")
     metrics = demo.run_demo(root / "out", minutes=10, cache_dir=root / "cache", overrides=FAST, world=WORLD,
-                            progress=False)
+                            val_world=VAL_WORLD, progress=False)
     return root, metrics
 
 
@@ -74,10 +75,10 @@ def test_baseline_scores_the_training_maps_it_draws(demo_run):
 def test_second_run_reuses_the_world_and_the_run(demo_run, capsys):
     root, _ = demo_run
     stamp = (root / "cache" / demo.world_key(WORLD) / "world.json").stat().st_mtime_ns
-    demo.run_demo(root / "out", minutes=10, cache_dir=root / "cache", overrides=FAST, world=WORLD, progress=False,
-                  raster=False)
+    demo.run_demo(root / "out", minutes=10, cache_dir=root / "cache", overrides=FAST, world=WORLD,
+                  val_world=VAL_WORLD, progress=False, raster=False)
     text = capsys.readouterr().out
-    assert "reused" in text and "already holds 3 steps" in text
+    assert "reused" in text and "already completed its schedule (3 steps)" in text
     assert (root / "cache" / demo.world_key(WORLD) / "world.json").stat().st_mtime_ns == stamp
 
 
@@ -89,9 +90,11 @@ def test_not_enough_disk_fails_before_generating(tmp_path, monkeypatch):
     assert not (tmp_path / "cache").exists()
 
 
-def test_cli_rejects_a_budget_below_the_evaluation_reserve(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path / "o"), "--minutes", "1", "--cache", str(tmp_path / "c")]) == 2
-    assert "--minutes 1.0" in capsys.readouterr().err
+@pytest.mark.parametrize("minutes", ["1", "0", "-5", "2.2"])
+def test_cli_rejects_a_budget_below_the_evaluation_reserve(tmp_path, capsys, minutes):
+    assert main(["demo", "--out", str(tmp_path / "o"), "--minutes", minutes, "--cache", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert f"--minutes {float(minutes)}" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "c").exists()
 
 
@@ -111,6 +114,7 @@ def test_ctrl_c_during_training_leaves_a_usable_cache_and_a_resumable_run(tmp_pa
         return forward(self, *args, **kwargs)
 
     monkeypatch.setattr(demo, "WORLD", WORLD)
+    monkeypatch.setattr(demo, "VAL_WORLD", VAL_WORLD)
     monkeypatch.setattr(Criterion, "forward", interrupted_on_the_third_step)
     out, cache = tmp_path / "out", tmp_path / "cache"
     argv = ["demo", "--out", str(out), "--cache", str(cache), "--minutes", "10", "--no-raster", *FAST]
@@ -125,3 +129,55 @@ def test_ctrl_c_during_training_leaves_a_usable_cache_and_a_resumable_run(tmp_pa
     text = capsys.readouterr().out
     assert "reused" in text and "resuming" in text and "at step 2" in text
     assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 3
+
+
+def test_damaged_or_half_written_worlds_are_named_not_used(tmp_path):
+    """A world folder without its manifest (not written by the generator's final rename) and one
+    whose camera files went missing are reported with the recovery (delete, run again)."""
+    cache = tmp_path / "cache"
+    root = cache / demo.world_key(WORLD)
+    root.mkdir(parents=True)
+    (root / "samples").mkdir()
+    with pytest.raises(demo.DemoError, match="not a complete synthetic world.*delete it"):
+        demo.ensure_world(cache, WORLD, progress=False)
+
+
+def test_a_world_missing_images_is_reported(demo_run, tmp_path):
+    import shutil
+
+    root, _ = demo_run
+    copy = tmp_path / "cache" / demo.world_key(WORLD)
+    shutil.copytree(root / "cache" / demo.world_key(WORLD), copy)
+    next((copy / "samples" / "CAM_FRONT").glob("*.jpg")).unlink()
+    with pytest.raises(demo.DemoError, match="damaged: 8 of its 9 CAM_FRONT images"):
+        demo.ensure_world(tmp_path / "cache", WORLD, progress=False)
+
+
+def test_an_unwritable_cache_or_out_folder_is_one_line(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    argv = ["demo", "--out", str(tmp_path / "o"), "--cache", str(blocker / "cache"), "--minutes", "10"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "cannot create the cache folder" in err and "Traceback" not in err
+    argv = ["demo", "--out", str(blocker / "out"), "--cache", str(tmp_path / "c"), "--minutes", "10"]
+    assert main(argv) == 2
+    assert "cannot write there" in capsys.readouterr().err
+
+
+def test_no_time_left_to_train_after_the_worlds_is_an_error(demo_run, tmp_path, monkeypatch):
+    root, _ = demo_run
+    monkeypatch.setattr(demo, "_budget_left", lambda t0, minutes: demo.EVAL_RESERVE_MIN + 0.1)
+    with pytest.raises(demo.DemoError, match="leaves 0.10 min to train; the worlds are cached now"):
+        demo.run_demo(tmp_path / "out", minutes=10, cache_dir=root / "cache", overrides=FAST, world=WORLD,
+                      val_world=VAL_WORLD, progress=False)
+
+
+def test_metrics_name_the_unseen_validation_world_and_the_schedule(demo_run):
+    _, metrics = demo_run
+    v = metrics["validation"]
+    assert v["seed"] == VAL_WORLD["seed"] != WORLD["seed"] and "unseen" in v["roads"]
+    assert "vector_seen_roads" in metrics
+    t = metrics["train"]
+    # FAST cuts the run at 3 steps: the metrics must say the schedule did not complete
+    assert t["final_lr_reached"] is False and 0 < t["progress"] < 1

@@ -314,7 +314,7 @@ def test_sinkhorn_inference_fast_path_equals_the_autograd_path():
     scores = score_matrix(torch.randn(2, 10, 8, generator=gen) * 3)
     mask = torch.arange(10)[None] < torch.tensor([10, 4])[:, None]
     bin_score = torch.tensor(0.5, requires_grad=True)
-    slow = log_optimal_transport(scores, bin_score, mask, iters=50)  # grad enabled -> autograd path
+    slow = log_optimal_transport(scores, bin_score, mask, iters=50, grad="unrolled")  # grad enabled -> autograd path
     with torch.no_grad():
         fast = log_optimal_transport(scores, bin_score, mask, iters=50)
     valid = torch.cat([mask, torch.ones(2, 1, dtype=torch.bool)], 1)
@@ -322,6 +322,88 @@ def test_sinkhorn_inference_fast_path_equals_the_autograd_path():
     torch.testing.assert_close(fast[block], slow.detach()[block], atol=1e-5, rtol=1e-5)
     slow[block].sum().backward()
     assert bin_score.grad is not None and torch.isfinite(bin_score.grad)
+
+
+def _converged_gradients(scores, bin_value, mask, grad, iters, weights):
+    scores = scores.clone().requires_grad_(True)
+    bin_score = torch.tensor(bin_value, requires_grad=True)
+    out = log_optimal_transport(scores, bin_score, mask, iters=iters, grad=grad)
+    valid = torch.cat([mask, torch.ones(len(mask), 1, dtype=torch.bool)], 1)
+    block = valid[:, :, None] & valid[:, None]
+    (torch.where(block, out, torch.zeros_like(out)) * weights).sum().backward()
+    return out.detach(), scores.grad, bin_score.grad
+
+
+@pytest.mark.parametrize("spread", [1.0, 2.0])
+def test_implicit_sinkhorn_gradient_equals_the_converged_unrolled_one(spread):
+    """The implicit backward (fixed-point differentiation) against an independent reference: plain
+    autograd through the same 3000 iterations, which have converged by then. Same forward values."""
+    gen = torch.Generator().manual_seed(2)
+    B, N = 3, 30
+    scores = score_matrix(torch.randn(B, N, 8, generator=gen) * spread)
+    mask = torch.arange(N)[None] < torch.tensor([30, 19, 6])[:, None]
+    weights = torch.randn(B, N + 1, N + 1, generator=gen)
+    out_i, grad_i, bin_i = _converged_gradients(scores, 0.7, mask, "implicit", 3000, weights)
+    out_u, grad_u, bin_u = _converged_gradients(scores, 0.7, mask, "unrolled", 3000, weights)
+    valid = torch.cat([mask, torch.ones(B, 1, dtype=torch.bool)], 1)
+    block = valid[:, :, None] & valid[:, None]
+    torch.testing.assert_close(out_i[block], out_u[block], atol=2e-4, rtol=1e-4)
+    assert ((grad_i - grad_u).norm() / grad_u.norm()) < 1e-4
+    torch.testing.assert_close(bin_i, bin_u, rtol=1e-4, atol=1e-5)
+    assert (grad_i[~(mask[:, :, None] & mask[:, None])] == 0).all()  # nothing flows into padding
+
+
+def test_implicit_sinkhorn_padding_changes_no_real_gradient():
+    """Appending padded vertices leaves the gradients of the real scores and of the dustbin score
+    unchanged; samples with zero or one real vertex give finite gradients."""
+    gen = torch.Generator().manual_seed(3)
+    n, N = 9, 14
+    base = score_matrix(torch.randn(1, n, 8, generator=gen) * 3)
+    padded = torch.full((1, N, N), 5.0)
+    padded[:, :n, :n] = base
+    w_small = torch.randn(1, n + 1, n + 1, generator=gen)
+    w_big = torch.zeros(1, N + 1, N + 1)
+    idx = torch.cat([torch.arange(n), torch.tensor([N])])
+    w_big[0][idx[:, None], idx[None]] = w_small[0]
+    _, g_small, b_small = _converged_gradients(base, 1.0, torch.ones(1, n, dtype=torch.bool), "implicit", 100,
+                                               w_small)
+    _, g_big, b_big = _converged_gradients(padded, 1.0, torch.arange(N)[None] < n, "implicit", 100, w_big)
+    torch.testing.assert_close(g_big[:, :n, :n], g_small, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(b_big, b_small, atol=1e-6, rtol=1e-5)
+    few = torch.arange(N)[None] < torch.tensor([0, 1])[:, None]
+    _, g_few, b_few = _converged_gradients(padded.expand(2, N, N), 1.0, few, "implicit", 100,
+                                           torch.randn(2, N + 1, N + 1, generator=gen))
+    assert torch.isfinite(g_few).all() and torch.isfinite(b_few)
+
+
+@pytest.mark.parametrize("spread", [1.0, 6.0, 400.0])  # 400: beyond the scaling form's float64 range
+def test_cpu_scaling_sinkhorn_equals_the_log_space_iterations(spread):
+    """The CPU's float64 scaling-form iterations give the log-space iterations' potentials (same
+    iterates); where the scores span more than float64's exp() range they decline and the
+    log-space path runs."""
+    from instagram_hdmap.models import matching
+
+    gen = torch.Generator().manual_seed(4)
+    scores = score_matrix(torch.randn(3, 20, 8, generator=gen) * spread)
+    mask = torch.arange(20)[None] < torch.tensor([20, 11, 1])[:, None]
+    B, N = mask.shape
+    bins = torch.full((B, 1, 1), 0.5)
+    couplings = torch.cat([torch.cat([scores, bins.expand(B, N, 1)], 2), torch.cat([bins.expand(B, 1, N), bins], 2)], 1)
+    valid = torch.cat([mask, torch.ones(B, 1, dtype=torch.bool)], 1)
+    couplings = couplings.masked_fill(~(valid[:, :, None] & valid[:, None, :]), matching.NEG_SCORE)
+    n = mask.sum(1).float().clamp(min=1)
+    norm = -(2 * n).log()
+    log_mu = torch.cat([norm[:, None].expand(B, N), (n.log() + norm)[:, None]], 1)
+    scaled = matching._sinkhorn_potentials_scaling(couplings, log_mu, valid, 50)
+    if spread > 100:
+        assert scaled is None
+        return
+    logspace = matching._sinkhorn_potentials_inplace(couplings, log_mu, valid, 50)
+    block = valid[:, :, None] & valid[:, None]
+    z_s = couplings + scaled[0][:, :, None] + scaled[1][:, None, :]
+    z_l = couplings + logspace[0][:, :, None] + logspace[1][:, None, :]
+    torch.testing.assert_close(z_s[block], z_l[block], atol=2e-4, rtol=1e-5)
+    assert (scaled[0][~valid] == matching.NEG_SCORE).all() and (scaled[1][~valid] == matching.NEG_SCORE).all()
 
 
 def test_floored_cpu_logsumexp_matches_torch_on_confident_and_padded_rows():
@@ -360,7 +442,7 @@ def test_exp_floor_leaves_the_sinkhorn_unchanged(monkeypatch, spread):
         bin_score = torch.tensor(1.0, requires_grad=True)
         with torch.no_grad():
             fast = log_optimal_transport(scores, bin_score, mask, iters=100)
-        slow = log_optimal_transport(scores, bin_score, mask, iters=100)
+        slow = log_optimal_transport(scores, bin_score, mask, iters=100, grad="unrolled")
         slow[block].exp().sum().backward()
         runs[floor] = (fast[block], slow.detach()[block], bin_score.grad)
     (fast_a, slow_a, grad_a), (fast_b, slow_b, grad_b) = runs.values()
@@ -631,3 +713,41 @@ def test_model_summary_lists_components_and_total():
     text = summarize_parameters(tiny_model())
     for word in ("backbone", "view_transform", "bev_heads", "graph_head", "gnn (2 layers", "total"):
         assert word in text
+
+
+@pytest.mark.parametrize("radius", [0.0, 1.5, 3.0, 5.0])
+def test_neighbour_suppression_equals_a_loop_over_cells(radius):
+    """Batched cross-cell suppression against a plain loop: a cell winner is dropped iff a stronger
+    winner (ties: lower flat index) of one of its 8 neighbouring cells lies within ``radius`` px;
+    radius 0 keeps the one-vertex-per-cell extraction unchanged."""
+    gen = torch.Generator().manual_seed(5)
+    B, S, Hc, Wc = 2, 4, 5, 7
+    logits = torch.randn(B, S * S + 1, Hc, Wc, generator=gen) * 3
+    logits[0, :, 2, 3] = logits[0, :, 2, 4]  # a tie between neighbours
+    out = extract_vertices(logits, S, num_vertices=Hc * Wc, threshold=0.0, nms_radius=radius)
+    probs = logits.softmax(1)[:, :-1]
+    best, pos = probs.max(1)
+    for b in range(B):
+        keep = set()
+        for r in range(Hc):
+            for c in range(Wc):
+                u, v = c * S + int(pos[b, r, c]) % S, r * S + int(pos[b, r, c]) // S
+                gone = False
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        rr, cc = r + dr, c + dc
+                        if (dr, dc) == (0, 0) or not (0 <= rr < Hc and 0 <= cc < Wc):
+                            continue
+                        nu, nv = cc * S + int(pos[b, rr, cc]) % S, rr * S + int(pos[b, rr, cc]) // S
+                        stronger = best[b, rr, cc] > best[b, r, c] or (
+                            best[b, rr, cc] == best[b, r, c] and rr * Wc + cc < r * Wc + c)
+                        if radius > 0 and stronger and (nu - u) ** 2 + (nv - v) ** 2 <= radius**2:
+                            gone = True
+                if not gone:
+                    keep.add((u, v))
+        got = {tuple(int(x) for x in p) for p, m in zip(out["vertices_px"][b], out["mask"][b]) if m}
+        assert got == keep
+    if radius == 0:
+        plain = extract_vertices(logits, S, num_vertices=Hc * Wc, threshold=0.0)
+        for k in plain:
+            assert torch.equal(plain[k], out[k])

@@ -13,6 +13,7 @@ Unknown keys and values of the wrong type are errors that name the key and list 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import types
 import typing
@@ -96,6 +97,8 @@ class BackboneConfig:
     # CPU, 128x352, batch 1 (benchmarks/train_speed.py): peak memory B0 2.04 -> 1.54 GB, B4 3.40 ->
     # 1.97 GB, for +6 % / +22 % step time. Set false when memory is plentiful (a large GPU).
     grad_checkpoint: bool = True
+    # name=tiny only: channels of its five stride-2 conv stages (the CPU demo's image encoder)
+    tiny_widths: tuple[int, ...] = (8, 16, 24, 32, 48)
 
 
 @dataclass
@@ -124,12 +127,19 @@ class BEVHeadsConfig:
 class GraphHeadConfig:
     num_vertices: int = 400  # N, top-N vertices fed to the GNN
     conf_threshold: float = 0.01
+    # BEV pixels: a cell's vertex within this distance of a stronger one in a neighbouring cell is
+    # dropped (0: one vertex per cell only, the paper's rule; models/vertices.py)
+    nms_radius: float = 0.0
     embedding: Literal["pe+dt", "pe", "dt", "pe+vd"] = "pe+dt"
     dim: int = 256  # D
     pe_frequencies: int = 10  # sinusoidal positional encoding bands per coordinate
     layers: int = 7  # L attentional message-passing layers (0-11 in the paper)
     heads: int = 4
     sinkhorn_iters: int = 100
+    # gradient through the Sinkhorn: "implicit" (fixed-point differentiation: one small solve per
+    # sample, ~none of the memory) or "unrolled" (through every iteration, as SuperGlue); the
+    # forward is the same (models/matching.py)
+    sinkhorn_grad: Literal["implicit", "unrolled"] = "implicit"
     match_threshold: float = 0.1  # adjacency probability to follow an edge at inference
 
 
@@ -159,16 +169,24 @@ class TrainConfig:
     batch_size: int = 32  # in total, over all processes
     lr: float = 1e-3
     weight_decay: float = 1e-7
+    # LR schedule as a function of progress = max(steps / total steps, elapsed / time budget)
+    # (schedule.py): "step" decays x lr_gamma every lr_step epochs' worth of progress (the paper's
+    # StepLR), "cosine" to lr * min_lr_factor; both after a linear warm-up over `warmup` progress
+    schedule: Literal["step", "cosine"] = "step"
     lr_step: int = 10  # epochs between decays
     lr_gamma: float = 0.1
+    warmup: float = 0.0  # fraction of progress
+    min_lr_factor: float = 0.0  # cosine only
     grad_clip: float = 5.0
     amp: Literal["none", "bf16", "fp16"] = "none"
     seed: int = 0
     on_nonfinite: Literal["stop", "skip"] = "stop"
     log_every: int = 10
     val_every: int = 1  # epochs
-    max_steps: int | None = None  # stop early (demo, tests)
-    max_minutes: float | None = None  # stop early by wall time
+    max_steps: int | None = None  # stop after this many steps (tests); does not shorten the schedule
+    # wall-time budget of the training loop: the schedule completes within it (fewer steps on a
+    # slower machine) and training stops when it is spent
+    time_budget_min: float | None = None
     checkpoint_every: int = 500  # steps between mid-epoch saves of last.pt (0: epoch ends only)
     deterministic: bool = False  # torch.use_deterministic_algorithms (exact resume on CPU)
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -375,6 +393,15 @@ def validate_config(cfg: ExperimentConfig) -> None:
     if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
         raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "
                           f"{', '.join(AV2_RING_CAMERAS)}; got {list(d.av2_cameras)}")
+    t = cfg.train
+    if t.time_budget_min is not None and not t.time_budget_min > 0:
+        raise ConfigError(f"config key 'train.time_budget_min' must be > 0 (or null for none), got {t.time_budget_min}")
+    if t.max_steps is not None and t.max_steps <= 0:
+        raise ConfigError(f"config key 'train.max_steps' must be > 0 (or null), got {t.max_steps}")
+    if not 0 <= t.warmup < 1:
+        raise ConfigError(f"config key 'train.warmup' must be in [0, 1) (a fraction of training), got {t.warmup}")
+    if t.lr_step < 1:
+        raise ConfigError(f"config key 'train.lr_step' must be >= 1 (epochs between decays), got {t.lr_step}")
     if any(t <= 0 for t in cfg.eval.thresholds):
         raise ConfigError(f"config key 'eval.thresholds' must be > 0, got {cfg.eval.thresholds}")
 
@@ -392,8 +419,26 @@ def config_to_dict(cfg: Any) -> dict:
     return plain(cfg)
 
 
+# Keys renamed since a release: (old dotted key, new dotted key). Old saved configs still load.
+RENAMED_KEYS = (("train.max_minutes", "train.time_budget_min"),)
+
+
+def _rename_old_keys(data: dict) -> dict:
+    data = copy.deepcopy(data)
+    for old, new in RENAMED_KEYS:
+        *path, leaf = old.split(".")
+        section = data
+        for p in path:
+            section = section.get(p) if isinstance(section, dict) else None
+        if isinstance(section, dict) and leaf in section:
+            value = section.pop(leaf)
+            section.setdefault(new.rsplit(".", 1)[1], value)
+    return data
+
+
 def config_from_dict(data: dict) -> ExperimentConfig:
-    cfg = _merge(ExperimentConfig(), data)
+    """A config saved by ``save_config`` / in a checkpoint (renamed keys of older versions accepted)."""
+    cfg = _merge(ExperimentConfig(), _rename_old_keys(data))
     validate_config(cfg)
     return cfg
 

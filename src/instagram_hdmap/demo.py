@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import random
 import shutil
@@ -34,11 +35,17 @@ from pathlib import Path
 
 from .config import ExperimentConfig, UserError, load_config
 
-# The demo world: 480 x 270 camera images (the network sees 64 x 192), about 0.1 s per sample on
-# one core. Changing a value here names a new cache folder.
+# The demo's worlds: 480 x 270 camera images (the network sees 64 x 192), about 0.1 s per sample on
+# one core. Training uses WORLD's train split. Validation uses VAL_WORLD, a world of another seed:
+# its four road networks (layouts, lane counts, junctions, crossings) and its looks (paint, kerbs,
+# buildings) were never seen in training, so its mAP measures generalisation, not memorised
+# geometry. WORLD's own val split (the same road networks as training, other drives) is scored
+# too, vector protocol only, to show the gap. Changing a value here names a new cache folder.
 WORLD = {"scenes_train": 24, "scenes_val": 4, "samples_per_scene": 20, "seed": 0, "image_size": "480x270"}
+VAL_WORLD = {"scenes_train": 0, "scenes_val": 4, "samples_per_scene": 20, "seed": 1, "image_size": "480x270"}
 WORLD_BYTES_PER_SAMPLE = 450_000  # measured: ~400 kB per sample at 480 x 270 (6 JPEGs + the lidar file)
-EVAL_RESERVE_MIN = 1.5  # minutes kept for evaluation and pictures after training
+EVAL_RESERVE_MIN = 2.0  # minutes kept for evaluation and pictures after training
+MIN_TRAIN_MIN = 0.25  # below this much training time left after the worlds, the demo refuses to start
 PREDICT_SAMPLES = 3
 
 
@@ -82,18 +89,35 @@ def check_disk(folder: Path, need_bytes: int) -> None:
 
 
 def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, workers: int = 1) -> tuple[Path, bool]:
-    """The cached world's dataroot, generating it first if absent. Returns (dataroot, reused)."""
+    """The cached world's dataroot, generating it first if absent. Returns (dataroot, reused).
+
+    A world is written under a temporary name and renamed when complete, so a folder of the final
+    name is complete unless it was altered later; a folder whose manifest or camera files do not
+    match is reported (delete it and run again) rather than used."""
     from .data.synthetic import generate_world, read_manifest
 
     root = Path(cache_dir) / world_key(world)
+    if root.exists() and not (root / "world.json").is_file():
+        raise DemoError(f"{root} is not a complete synthetic world (no world.json); delete it and run the demo "
+                        "again to regenerate it")
     if (root / "world.json").is_file():
         manifest = read_manifest(root)
-        if all(manifest.get(k) == world[k] for k in ("scenes_train", "scenes_val", "samples_per_scene", "seed")):
-            return root, True
-        raise DemoError(f"{root} holds another world than the demo's ({manifest}); delete it or use another --cache")
+        if not all(manifest.get(k) == world[k] for k in ("scenes_train", "scenes_val", "samples_per_scene", "seed")):
+            raise DemoError(f"{root} holds another world than the demo's ({manifest}); delete it or use another "
+                            "--cache")
+        cams = root / "samples" / "CAM_FRONT"
+        found = sum(1 for _ in cams.glob("*.jpg")) if cams.is_dir() else 0
+        if found != world_samples(world):
+            raise DemoError(f"{root} is damaged: {found} of its {world_samples(world)} CAM_FRONT images are there; "
+                            "delete the folder and run the demo again to regenerate it")
+        return root, True
     # twice the estimate: the temporary folder and the margin other writers need
     check_disk(root.parent, 2 * world_samples(world) * WORLD_BYTES_PER_SAMPLE)
-    root.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        root.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise DemoError(f"cannot create the cache folder {root.parent} ({e.strerror or e}); point --cache (or "
+                        "$INSTAGRAM_HDMAP_CACHE) to a writable folder") from None
     kwargs = {"workers": workers} if workers != 1 else {}
     generate_world(out=root, progress=progress, force=True, **world, **kwargs)
     return root, False
@@ -102,18 +126,25 @@ def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, wo
 def world_overrides(dataroot: Path) -> list[str]:
     from .data.synthetic import VERSION
 
+    dataroot = Path(dataroot)
     return [f"data.dataroot={dataroot}", f"data.version={VERSION}", f"data.splits_file={dataroot / 'splits.json'}"]
 
 
-def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, picks: list[int] | None = None) -> dict:
+def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, picks: list[int] | None = None,
+                        val_cfg: ExperimentConfig | None = None) -> dict:
     """Metrics of the *random training map*: each validation sample predicted by the GT polylines
     of a uniformly drawn training sample (score 1): the map prior without looking at the images.
-    ``picks`` (one training index per validation sample) replaces the random draw."""
+    The training split comes from ``cfg``'s world, the validation split from ``val_cfg``'s (default
+    the same world). ``picks`` (one training index per validation sample) replaces the random draw."""
     from .data import build_dataset
     from .evaluation import Evaluator
 
     train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
-    val_set = build_dataset(cfg, cfg.data.val_split, augment=False, like=train_set)
+    if val_cfg is None or val_cfg.data.dataroot == cfg.data.dataroot:
+        val_cfg = cfg if val_cfg is None else val_cfg
+        val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False, like=train_set)
+    else:
+        val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False)
     rng = random.Random(seed)
     if picks is None:
         picks = [rng.randrange(len(train_set)) for _ in range(len(val_set))]
@@ -130,62 +161,106 @@ def _budget_left(t0: float, minutes: float) -> float:
     return minutes - (time.perf_counter() - t0) / 60
 
 
+def _check_out(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise DemoError(f"--out {out}: cannot write there ({e.strerror or e}); choose a writable folder") from None
+
+
 def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | None = None,
              config: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
-             world: dict | None = None, workers: int = 1, raster: bool = True, progress: bool = True) -> dict:
-    """Generate or reuse the world (default ``WORLD``), train (resuming ``OUT/run/last.pt``), evaluate,
-    draw. Returns the metrics dict also written to ``OUT/metrics.json``."""
+             world: dict | None = None, val_world: dict | None = None, workers: int = 1, raster: bool = True,
+             progress: bool = True) -> dict:
+    """Generate or reuse the worlds (default ``WORLD`` for training, ``VAL_WORLD`` for validation),
+    train (resuming ``OUT/run/last.pt``) within the budget, evaluate, draw. Returns the metrics
+    dict also written to ``OUT/metrics.json``."""
     from .data.nuscenes import write_json
     from .predict import predict_sample, run_evaluation
     from .train import train
 
     t0 = time.perf_counter()
     world = WORLD if world is None else world
-    if minutes <= EVAL_RESERVE_MIN:
-        raise DemoError(f"--minutes {minutes}: the budget must exceed the {EVAL_RESERVE_MIN} min kept for evaluation")
+    val_world = VAL_WORLD if val_world is None else val_world
+    if not minutes > EVAL_RESERVE_MIN + MIN_TRAIN_MIN:
+        raise DemoError(f"--minutes {minutes}: the budget must exceed {EVAL_RESERVE_MIN + MIN_TRAIN_MIN:g} min "
+                        f"({EVAL_RESERVE_MIN:g} min are kept for evaluation, and training needs some time)")
     out = Path(out)
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     config = Path(config) if config is not None else default_config_path()
+    _check_out(out)
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
-    print(f"world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples)", flush=True)
+    print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "
+          f"seed {world['seed']})", flush=True)
+    val_root, val_reused = ensure_world(cache_dir, val_world, progress=progress, workers=workers)
+    print(f"validation world: {val_root} ({'reused' if val_reused else 'generated'}, "
+          f"{world_samples(val_world)} samples, seed {val_world['seed']}: roads never seen in training)", flush=True)
 
     run_dir = out / "run"
     last = run_dir / "last.pt"
     resume = str(last) if last.is_file() else None
     train_minutes = _budget_left(t0, minutes) - EVAL_RESERVE_MIN
+    state = _checkpoint_state(last) if resume else None
+    if state is None and train_minutes < MIN_TRAIN_MIN:
+        spent = minutes - _budget_left(t0, minutes)
+        raise DemoError(f"--minutes {minutes}: preparing the worlds took {spent:.1f} min, "
+                        f"which leaves {max(train_minutes, 0):.2f} min to train; the worlds are cached now, so run the "
+                        "same command again (or give more minutes)")
+    budget = train_minutes
+    if state is not None:  # continue the interrupted schedule: the same total budget, if this run has the time
+        old_budget = state["config"]["train"].get("time_budget_min") or train_minutes
+        budget = min(old_budget, state.get("clock", {}).get("elapsed_s", 0.0) / 60 + max(train_minutes, 0.0))
     cfg = load_config(config, [*world_overrides(dataroot), f"train.out_dir={run_dir}",
-                               f"train.max_minutes={max(train_minutes, 0.05):.3f}", *overrides])
-    steps_done = _checkpoint_step(last) if resume else 0
-    target = cfg.train.max_steps
+                               f"train.time_budget_min={max(budget, 0.01):.3f}", *overrides])
+    val_cfg = load_config(config, [*world_overrides(val_root), f"train.out_dir={run_dir}", *overrides])
+    steps_done = int(state["step"]) if state else 0
+    done = state is not None and (state.get("clock", {}).get("progress", 0.0) >= 1.0
+                                  or (cfg.train.max_steps is not None and steps_done >= cfg.train.max_steps))
     t_train = time.perf_counter()
-    if target is not None and steps_done >= target:
-        print(f"training: {last} already holds {steps_done} steps (max_steps {target}); evaluating it", flush=True)
+    if done:
+        print(f"training: {last} already completed its schedule ({steps_done} steps); evaluating it", flush=True)
         summary = {"step": steps_done}
     else:
         if resume:
             print(f"training: resuming {last} at step {steps_done}", flush=True)
-        print(f"training: {config} for at most {cfg.train.max_steps} steps / {cfg.train.max_minutes:.1f} min "
-              f"in {run_dir} (Ctrl-C saves a resumable checkpoint)", flush=True)
+        print(f"training: {config}, {cfg.train.schedule} schedule over {cfg.train.epochs} epochs or "
+              f"{cfg.train.time_budget_min:.1f} min, whichever is shorter, in {run_dir} (Ctrl-C saves a resumable "
+              "checkpoint)", flush=True)
         summary = train(cfg, resume=resume, force=resume is None, validate=False)
     train_s = time.perf_counter() - t_train
-    steps = summary.get("step", steps_done)
+    final = _checkpoint_state(last)
+    steps = int(final["step"])
+    clock = final.get("clock") or {}
+    schedule = _schedule_report(cfg, final, summary)
 
     new_steps = steps - steps_done
-    metrics: dict = {"world": {"dataroot": str(dataroot), **world}, "config": str(config), "train": {
-        "steps": steps, "steps_this_run": new_steps, "seconds_this_run": round(train_s, 1),
-        "samples_per_s": round(new_steps * cfg.train.batch_size / max(train_s, 1e-9), 2),
-        "batch_size": cfg.train.batch_size, "checkpoint": str(last)}}
+    metrics: dict = {
+        "world": {"dataroot": str(dataroot), **world},
+        "validation": {"dataroot": str(val_root), **val_world,
+                       "roads": f"unseen: a world of seed {val_world['seed']} (training: seed {world['seed']}), "
+                                "whose road networks and looks training never saw"},
+        "config": str(config),
+        "train": {"steps": steps, "steps_this_run": new_steps, "seconds_this_run": round(train_s, 1),
+                  "samples_per_s": round(new_steps * cfg.train.batch_size / max(train_s, 1e-9), 2),
+                  "batch_size": cfg.train.batch_size, "checkpoint": str(last),
+                  "training_minutes": round(clock.get("elapsed_s", train_s) / 60, 2), **schedule}}
     protocols = ["vector", "raster"] if raster else ["vector"]
     for protocol in protocols:
-        result = run_evaluation(cfg, last, protocol, out / f"eval_{protocol}")
+        result = run_evaluation(val_cfg, last, protocol, out / f"eval_{protocol}")
         metrics[protocol] = _brief(result["metrics"])
         metrics[protocol]["samples_per_s"] = result["samples_per_s"]
-        metrics[f"baseline_{protocol}"] = _brief(random_map_baseline(cfg, protocol))
+        metrics[f"baseline_{protocol}"] = _brief(random_map_baseline(cfg, protocol, val_cfg=val_cfg))
+    if world["scenes_val"] > 0:  # the same road networks as training: the generalisation gap
+        seen = run_evaluation(cfg, last, "vector", out / "eval_vector_seen_roads")
+        metrics["vector_seen_roads"] = _brief(seen["metrics"])
     pngs = []
-    stride = max(1, _val_len(cfg) // PREDICT_SAMPLES)
+    stride = max(1, world_samples({**val_world, "scenes_train": 0}) // PREDICT_SAMPLES)
     for i in range(PREDICT_SAMPLES):
-        r = predict_sample(cfg, out / "predict" / str(i), checkpoint=last, index=i * stride)
+        r = predict_sample(val_cfg, out / "predict" / str(i), checkpoint=last, index=i * stride)
         pngs += [str(p) for p in r["paths"] if str(p).endswith(".png")]
     metrics["pictures"] = pngs
     metrics["seconds_total"] = round(time.perf_counter() - t0, 1)
@@ -195,6 +270,19 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     write_json(metrics, out / "metrics.json")
     print(format_summary(metrics, out))
     return metrics
+
+
+def _schedule_report(cfg: ExperimentConfig, state: dict, summary: dict) -> dict:
+    """Whether the run went through its whole LR schedule (the final LR reached)."""
+    from .schedule import final_lr_factor
+
+    clock = state.get("clock") or {}
+    lrs = [g["lr"] for g in state["optimizer"]["param_groups"]]
+    final = cfg.train.lr * final_lr_factor(cfg.train)
+    progress = float(clock.get("progress", 0.0))
+    return {"schedule": cfg.train.schedule, "progress": round(progress, 4), "lr": lrs[0], "final_lr": final,
+            "final_lr_reached": bool(progress >= 1.0 and math.isclose(lrs[0], final, rel_tol=1e-6)),
+            "time_budget_min": cfg.train.time_budget_min, "epochs": cfg.train.epochs}
 
 
 def _strict_json(obj):
@@ -209,17 +297,10 @@ def _strict_json(obj):
     return obj
 
 
-def _checkpoint_step(path: Path) -> int:
+def _checkpoint_state(path: Path) -> dict:
     from .checkpoint import load_checkpoint
 
-    return int(load_checkpoint(path)["step"])
-
-
-def _val_len(cfg: ExperimentConfig) -> int:
-    from .data.synthetic import read_manifest
-
-    m = read_manifest(cfg.data.dataroot)
-    return m["scenes_val"] * m["samples_per_scene"]
+    return load_checkpoint(path)
 
 
 def _brief(m: dict) -> dict:
@@ -233,16 +314,24 @@ def _cell(v: float | None, width: int) -> str:
 def format_summary(metrics: dict, out: Path) -> str:
     classes = metrics["vector"]["classes"]
     protos = [p for p in ("vector", "raster") if p in metrics]
-    head = f"{'':<26}" + "".join(f"{c:>14}" for c in classes) + f"{'mAP':>10}"
-    lines = ["", head, "-" * len(head)]
+    head = f"{'':<30}" + "".join(f"{c:>14}" for c in classes) + f"{'mAP':>10}"
+    v = metrics["validation"]
+    lines = ["", f"validation: {v['roads']} ({world_samples({**v, 'scenes_train': 0})} samples)", head, "-" * len(head)]
+    rows = []
     for p in protos:
-        for name, key in ((f"InstaGraM ({p})", p), (f"random training map ({p})", f"baseline_{p}")):
-            m = metrics[key]
-            lines.append(f"{name:<26}" + "".join(_cell(m["AP_class"][c], 14) for c in classes) + _cell(m["mAP"], 10))
+        rows += [(f"InstaGraM ({p})", p), (f"random training map ({p})", f"baseline_{p}")]
+    if "vector_seen_roads" in metrics:
+        rows.append(("InstaGraM (vector, seen roads)", "vector_seen_roads"))
+    for name, key in rows:
+        m = metrics[key]
+        lines.append(f"{name:<30}" + "".join(_cell(m["AP_class"][c], 14) for c in classes) + _cell(m["mAP"], 10))
     t = metrics["train"]
+    complete = ("whole schedule run, final LR reached" if t["final_lr_reached"]
+                else f"schedule NOT complete (progress {t['progress']:.2f}, lr {t['lr']:.2g}, "
+                     f"final {t['final_lr']:.2g})")
     lines += ["-" * len(head),
-              f"trained {t['steps']} steps (batch {t['batch_size']}; this run {t['steps_this_run']} steps in "
-              f"{t['seconds_this_run'] / 60:.1f} min, {t['samples_per_s']:.1f} samples/s); demo took "
+              f"trained {t['steps']} steps in {t['training_minutes']:.1f} min (batch {t['batch_size']}; this run "
+              f"{t['steps_this_run']} steps, {t['samples_per_s']:.1f} samples/s); {complete}; demo took "
               f"{metrics['seconds_total'] / 60:.1f} min",
               f"metrics: {out / 'metrics.json'}   TensorBoard: tensorboard --logdir {out / 'run' / 'tb'}",
               f"pictures: {out / 'predict'}/*/prediction_*.png"]

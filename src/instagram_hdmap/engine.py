@@ -74,11 +74,14 @@ def train_one_epoch(
     writer=None,
     should_stop: Callable[[int], bool] | None = None,
     on_step: Callable[[StepInfo], None] | None = None,
+    before_step: Callable[[int], None] | None = None,
     total: int | None = None,
 ) -> dict:
     """One pass over ``loader`` (which already starts at ``step_in_epoch`` on resume).
 
-    Returns ``{"stats": mean of each logged scalar, "global_step", "step_in_epoch", "stopped"}``;
+    ``before_step(global_step)`` runs before each step with the number of steps done so far (the
+    LR schedule sets the learning rate there). Returns ``{"stats": mean of each logged scalar,
+    "global_step", "step_in_epoch", "stopped"}``;
     ``stopped`` is True when ``should_stop(global_step)`` ended the epoch early.
     """
     model.train()
@@ -90,6 +93,8 @@ def train_one_epoch(
                disable=not du.is_main_process(), leave=False)
     for batch in bar:
         batch = move_to(batch, device)
+        if before_step is not None:
+            before_step(global_step)
         with autocast_context(device, amp):
             outputs = model(batch)
         losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters

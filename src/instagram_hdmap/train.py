@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import random
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from .checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkp
 from .config import ExperimentConfig, UserError, config_from_dict, config_to_dict, diff_configs, save_config
 from .engine import evaluate, train_one_epoch
 from .geometry import BEVGrid
+from .schedule import ProgressClock, final_lr_factor, lr_factor
 
 # Config sections that must match for a checkpoint to be resumed (training knobs may change).
 _RESUME_MUST_MATCH = ("grid", "model", "loss", "data.image_size", "data.classes", "data.sample_dist")
@@ -145,14 +145,16 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     model = build_model(cfg).to(device)
     criterion = Criterion(cfg.loss, grid)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.train.lr_step, gamma=cfg.train.lr_gamma)
+    steps_per_epoch = math.ceil(sampler.num_samples / train_loader.batch_size)
+    total_steps = cfg.train.epochs * steps_per_epoch  # the schedule's length; max_steps only cuts it
+    clock = ProgressClock(cfg.train, total_steps)
     scaler = torch.amp.GradScaler(device.type) if cfg.train.amp == "fp16" else None
 
     epoch, global_step, step_in_epoch, best = 0, 0, 0, {"score": -math.inf}
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
+        clock.load_state_dict(state.get("clock") or {})
         if scaler is not None and state.get("scaler") is not None:
             scaler.load_state_dict(state["scaler"])
         epoch, global_step, step_in_epoch = state["epoch"], state["step"], state["step_in_epoch"]
@@ -176,19 +178,30 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
         if du.is_main_process():
             save_checkpoint({
                 "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(), "scaler": scaler.state_dict() if scaler else None,
+                "clock": clock.state_dict(), "scaler": scaler.state_dict() if scaler else None,
                 "epoch": ep, "step": step, "step_in_epoch": in_epoch, "rng": rng_state(),
                 "config": config_to_dict(cfg), "metrics": metrics or {}, "best": best,
             }, path)
 
-    t_start = time.perf_counter()
+    sync = device if world > 1 and cfg.train.time_budget_min is not None else None
+
+    def set_lr(step: int) -> None:
+        lr = cfg.train.lr * lr_factor(clock.progress(step, sync), cfg.train)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
 
     def should_stop(step: int) -> bool:
-        if cfg.train.max_steps is not None and step >= cfg.train.max_steps:
-            return True
-        return cfg.train.max_minutes is not None and (time.perf_counter() - t_start) / 60 >= cfg.train.max_minutes
+        done = clock.progress(step, sync) >= 1.0  # always: clock.last is then the progress of `step` steps
+        return done or (cfg.train.max_steps is not None and step >= cfg.train.max_steps)
 
     progress = {"epoch": epoch, "step": global_step, "in_epoch": step_in_epoch}
+
+    def schedule_summary() -> dict:
+        lr = optimizer.param_groups[0]["lr"]
+        final = cfg.train.lr * final_lr_factor(cfg.train)
+        return {"progress": round(clock.last, 4), "lr": lr, "final_lr": final,
+                "schedule_complete": bool(clock.last >= 1.0 and math.isclose(lr, final, rel_tol=1e-6)),
+                "elapsed_s": round(clock.elapsed(), 1)}
 
     def on_step(info) -> None:
         progress.update(epoch=info.epoch, step=info.step, in_epoch=info.step_in_epoch)
@@ -199,8 +212,14 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     log = (out_dir / "log.jsonl").open("a") if du.is_main_process() else None
     summary: dict = {}
     stopped = False
+    clock.start()
+    set_lr(global_step)
+    du.print_main(f"schedule: {cfg.train.schedule}, {total_steps} steps"
+                  + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
+                  + f"; progress {clock.last:.3f}, lr {optimizer.param_groups[0]['lr']:.3g}")
     try:
-        while epoch < cfg.train.epochs and not stopped:
+        finished = should_stop(global_step)
+        while not finished:
             sampler.set_epoch(epoch, start=step_in_epoch * train_loader.batch_size)
             if hasattr(train_loader.dataset, "set_epoch"):
                 train_loader.dataset.set_epoch(epoch)  # augmentation draws follow (seed, epoch, index)
@@ -208,20 +227,19 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
                 net, criterion, train_loader, optimizer, device, epoch, global_step=global_step,
                 step_in_epoch=step_in_epoch, amp=cfg.train.amp, scaler=scaler, grad_clip=cfg.train.grad_clip,
                 on_nonfinite=cfg.train.on_nonfinite, log_every=cfg.train.log_every, writer=writer,
-                should_stop=should_stop, on_step=on_step,
-                total=math.ceil(sampler.num_samples / train_loader.batch_size),
+                should_stop=should_stop, on_step=on_step, before_step=set_lr, total=steps_per_epoch,
             )
             global_step, step_in_epoch, stopped = result["global_step"], result["step_in_epoch"], result["stopped"]
             progress.update(epoch=epoch, step=global_step, in_epoch=step_in_epoch)
             summary = {"epoch": epoch, "step": global_step, "train": result["stats"],
-                       "train_seconds": round(result["seconds"], 2), "samples_per_s": round(result["samples_per_s"], 2)}
+                       "train_seconds": round(result["seconds"], 2), "samples_per_s": round(result["samples_per_s"], 2),
+                       **schedule_summary()}
             if stopped:  # part-way through the epoch: resume continues it
                 checkpoint(out_dir / "last.pt", epoch, global_step, step_in_epoch)
             else:
-                scheduler.step()
                 epoch, step_in_epoch = epoch + 1, 0
                 progress.update(epoch=epoch, in_epoch=0)
-            finished = stopped or epoch >= cfg.train.epochs
+            finished = stopped or should_stop(global_step)  # also refreshes the clock saved below
             if validate and val_loader is not None and (finished or epoch % cfg.train.val_every == 0):
                 val = evaluate(net, criterion, val_loader, device,
                                postprocess=lambda out: postprocess_batch(out, grid, cfg.model.gnn.match_threshold),
@@ -252,5 +270,6 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             log.close()
         if writer is not None:
             writer.close()
+    summary.update(schedule_summary())
     summary["out_dir"] = str(out_dir)
     return summary

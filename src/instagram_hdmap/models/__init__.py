@@ -73,6 +73,8 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     gh = m.gnn
     _require(gh.num_vertices > 0, "model.gnn.num_vertices", f"N must be > 0, got {gh.num_vertices}")
     _require(0 <= gh.conf_threshold < 1, "model.gnn.conf_threshold", "must be in [0, 1)")
+    _require(0 <= gh.nms_radius < 2 * grid.cell_size, "model.gnn.nms_radius",
+             f"must be in [0, 2 x grid.cell_size = {2 * grid.cell_size}) BEV pixels")
     _require(gh.embedding in EMBEDDINGS, "model.gnn.embedding", f"choose one of {', '.join(EMBEDDINGS)}")
     _require(gh.layers >= 0, "model.gnn.layers", "must be >= 0")
     _require(gh.pe_frequencies >= 0, "model.gnn.pe_frequencies", "must be >= 0")
@@ -89,7 +91,9 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     channels = m.backbone.out_channels
 
     if m.backbone.name == "tiny":
-        backbone: nn.Module = TinyBackbone(channels)
+        _require(len(m.backbone.tiny_widths) == 5 and min(m.backbone.tiny_widths) > 0,
+                 "model.backbone.tiny_widths", "must be 5 positive channel counts")
+        backbone: nn.Module = TinyBackbone(channels, tuple(m.backbone.tiny_widths))
     else:
         backbone = EfficientNetBackbone(m.backbone.name, channels, image_size,
                                         grad_checkpoint=m.backbone.grad_checkpoint)
@@ -119,7 +123,8 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     gh = m.gnn
     graph_head = GraphHead(
         grid, num_classes, cfg.data.dt_clip, bh.channels, gh.num_vertices, gh.conf_threshold, gh.embedding,
-        gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters,
+        gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters, gh.sinkhorn_grad,
+        gh.nms_radius,
     )
     return InstaGraM(backbone, view_transform, bev_heads, graph_head)
 

@@ -100,11 +100,13 @@ class GraphHead(nn.Module):
         layers: int = 7,
         heads: int = 4,
         sinkhorn_iters: int = 100,
+        sinkhorn_grad: str = "implicit",
+        nms_radius: float = 0.0,
     ):
         super().__init__()
         self.grid, self.dt_clip, self.embedding = grid, dt_clip, embedding
-        self.num_vertices, self.conf_threshold = num_vertices, conf_threshold
-        self.pe_frequencies, self.sinkhorn_iters = pe_frequencies, sinkhorn_iters
+        self.num_vertices, self.conf_threshold, self.nms_radius = num_vertices, conf_threshold, nms_radius
+        self.pe_frequencies, self.sinkhorn_iters, self.sinkhorn_grad = pe_frequencies, sinkhorn_iters, sinkhorn_grad
         hidden = [64, 128, 256]
         S = grid.cell_size
         if embedding.startswith("pe"):
@@ -120,7 +122,8 @@ class GraphHead(nn.Module):
 
     def extract(self, vertex_logits: torch.Tensor) -> dict[str, torch.Tensor]:
         """[B, S*S+1, Hc, Wc] -> vertices_px, scores, mask, cells (see ``extract_vertices``)."""
-        return extract_vertices(vertex_logits, self.grid.cell_size, self.num_vertices, self.conf_threshold)
+        return extract_vertices(vertex_logits, self.grid.cell_size, self.num_vertices, self.conf_threshold,
+                                self.nms_radius)
 
     def embed(
         self, vertices: dict[str, torch.Tensor], distance: torch.Tensor, bev_features: torch.Tensor
@@ -141,7 +144,8 @@ class GraphHead(nn.Module):
 
     def match(self, g: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Final graph [B, N, D], mask [B, N] -> log assignment [B, N+1, N+1] float32."""
-        return log_optimal_transport(score_matrix(self.match_head(g)), self.bin_score, mask, self.sinkhorn_iters)
+        return log_optimal_transport(score_matrix(self.match_head(g)), self.bin_score, mask, self.sinkhorn_iters,
+                                     self.sinkhorn_grad)
 
     def associate(
         self, vertices: dict[str, torch.Tensor], distance: torch.Tensor, bev_features: torch.Tensor

@@ -28,10 +28,40 @@ def vertex_heatmap(vertex_logits: torch.Tensor, cell_size: int) -> torch.Tensor:
     return depth_to_space(vertex_logits.softmax(dim=1)[:, :-1], cell_size)
 
 
+def neighbour_suppression(best_prob: torch.Tensor, u: torch.Tensor, v: torch.Tensor, radius: float) -> torch.Tensor:
+    """Cross-cell suppression of the cell winners: [B, Hc, Wc] probabilities and pixel coordinates
+    -> [B, Hc, Wc] bool, True where a *stronger* winner of one of the 8 neighbouring cells lies
+    within ``radius`` pixels (ties: the lower flat cell index wins).
+
+    One vertex per cell is the paper's NMS; a line that runs along a cell border (or whose position
+    the image side knows to +-1 cell) still fires in two cells side by side, and the weaker copy is
+    a duplicate the graph head must send to the dustbin (assignment.py). Batched: 8 shifted copies.
+    """
+    B, Hc, Wc = best_prob.shape
+    idx = torch.arange(Hc * Wc, device=best_prob.device).view(1, Hc, Wc).expand(B, Hc, Wc)
+    pad = (1, 1, 1, 1)
+    P = F.pad(best_prob, pad, value=-1.0)
+    U = F.pad(u.float(), pad, value=1e9)
+    V = F.pad(v.float(), pad, value=1e9)
+    I = F.pad(idx.float(), pad, value=-1.0)
+    suppressed = torch.zeros_like(best_prob, dtype=torch.bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+            sl = (slice(None), slice(1 + dy, 1 + dy + Hc), slice(1 + dx, 1 + dx + Wc))
+            p, nu, nv, ni = P[sl], U[sl], V[sl], I[sl]
+            stronger = (p > best_prob) | ((p == best_prob) & (ni < idx) & (ni >= 0))
+            close = (nu - u) ** 2 + (nv - v) ** 2 <= radius**2
+            suppressed |= stronger & close
+    return suppressed
+
+
 def extract_vertices(
-    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float
+    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float, nms_radius: float = 0.0
 ) -> dict[str, torch.Tensor]:
-    """Top-N vertices, one per cell.
+    """Top-N vertices, one per cell (and, with ``nms_radius`` > 0 pixels, none within that distance
+    of a stronger vertex of a neighbouring cell: ``neighbour_suppression``).
 
     vertex_logits [B, S*S+1, Hc, Wc] -> dict of
       ``vertices_px`` [B, N, 2] float (u, v) BEV pixels (0 on padding),
@@ -43,6 +73,13 @@ def extract_vertices(
     S = cell_size
     probs = vertex_logits.softmax(dim=1)[:, :-1].flatten(2)  # [B, S*S, Hc*Wc]
     best_prob, best_pos = probs.max(dim=1)  # [B, Hc*Wc]: the one vertex of each cell
+    if nms_radius > 0:
+        cell = torch.arange(Hc * Wc, device=best_pos.device)
+        cu = (cell % Wc) * S + best_pos % S  # [B, Hc*Wc] pixel u, v of each cell's winner
+        cv = torch.div(cell, Wc, rounding_mode="floor") * S + torch.div(best_pos, S, rounding_mode="floor")
+        grid = (B, Hc, Wc)
+        gone = neighbour_suppression(best_prob.view(grid), cu.view(grid), cv.view(grid), nms_radius).flatten(1)
+        best_prob = torch.where(gone, torch.zeros_like(best_prob), best_prob)  # below any threshold
     k = min(num_vertices, Hc * Wc)
     # Cells below the threshold sort after every real vertex and are masked out below.
     ranked = torch.where(best_prob > threshold, best_prob, best_prob - 2.0)

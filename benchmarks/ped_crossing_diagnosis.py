@@ -1,0 +1,95 @@
+"""Per-class diagnosis of trained checkpoints: why does a class (ped crossings) score low?
+
+For each ``NAME=CHECKPOINT`` the model runs over the validation split of a world and the table
+gives, per class, vertex recall / precision, distance-transform error, adjacency accuracy, decoded
+edge recall, whole-instance and closed-polygon rates (instagram_hdmap/diagnostics.py defines
+them) and the vector-protocol AP.
+
+    python benchmarks/ped_crossing_diagnosis.py --world DATAROOT before=runs/a/run/last.pt after=runs/b/run/last.pt
+
+The config of each checkpoint is the one saved in it; ``--world`` points the data keys at a
+synthetic world (its ``splits.json``, split ``val``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from instagram_hdmap.checkpoint import load_checkpoint
+from instagram_hdmap.config import config_from_dict
+from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+from instagram_hdmap.diagnostics import ClassDiagnostics, format_table
+from instagram_hdmap.engine import move_to
+from instagram_hdmap.evaluation import Evaluator
+from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.losses import Criterion
+from instagram_hdmap.postprocess import postprocess_batch
+from instagram_hdmap.predict import load_model
+
+
+def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int | None = None,
+             split: str | None = None) -> dict:
+    from instagram_hdmap.demo import world_overrides
+
+    if threads:
+        torch.set_num_threads(threads)
+    saved = config_from_dict(load_checkpoint(checkpoint)["config"])
+    model, cfg, _ = load_model(checkpoint, saved, [*world_overrides(world), "train.device=cpu"],
+                               device=torch.device("cpu"))
+    grid = BEVGrid.from_config(cfg.grid)
+    criterion = Criterion(cfg.loss, grid)
+    dataset = NuScenesMapDataset(cfg, split or cfg.data.val_split, augment=False)
+    n = len(dataset) if limit is None else min(limit, len(dataset))
+    loader = DataLoader(torch.utils.data.Subset(dataset, range(n)), batch_size=4, collate_fn=collate_fn)
+    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, cfg.model.gnn.match_threshold)
+    evaluator = Evaluator.from_config(cfg)
+    seen = 0
+    with torch.no_grad():
+        for batch in tqdm(loader, desc=checkpoint, total=math.ceil(n / 4), leave=False):
+            batch = move_to(batch, torch.device("cpu"))
+            outputs = model(batch)
+            diag.update(outputs, batch, criterion.assign(outputs, batch))
+            preds = postprocess_batch(outputs, grid, cfg.model.gnn.match_threshold)
+            evaluator.update(preds, batch["gt_polylines"], sample_ids=list(range(seen, seen + len(preds))))
+            seen += len(preds)
+    result = diag.compute()
+    metrics = evaluator.compute()
+    result["AP"] = [metrics["AP_class"][c] for c in metrics["classes"]]
+    result["mAP"] = metrics["mAP"]
+    result["classes"] = list(metrics["classes"])
+    return result
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("checkpoints", nargs="+", help="NAME=CHECKPOINT")
+    ap.add_argument("--world", required=True, help="dataroot of a synthetic world (its val split is used)")
+    ap.add_argument("--limit", type=int, default=None, help="first samples of the split only")
+    ap.add_argument("--split", default=None, help="split of the world (default: the config's val split)")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--json", default=None, help="also write the results here")
+    args = ap.parse_args()
+    results = {}
+    for item in args.checkpoints:
+        name, _, path = item.partition("=")
+        results[name] = diagnose(path or name, args.world, args.limit, args.threads, args.split)
+    classes = next(iter(results.values()))["classes"]
+    print(format_table(results, classes))
+    print()
+    print("| model | " + " | ".join(f"AP {c}" for c in classes) + " | mAP |")
+    print("|" + " --- |" * (len(classes) + 2))
+    for name, r in results.items():
+        print(f"| {name} | " + " | ".join(f"{v:.3f}" for v in r["AP"]) + f" | {r['mAP']:.3f} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

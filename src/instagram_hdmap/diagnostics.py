@@ -1,0 +1,142 @@
+"""Where a trained model fails, per class: vertex detection, distance transform, adjacency, instances.
+
+Shapes: B batch, N padded predicted vertices, M padded GT vertices, K classes, H x W BEV grid.
+
+``ClassDiagnostics`` accumulates, over batches of model outputs and their GT, per class k:
+
+* ``vertex_recall``: GT vertices of class k that some predicted vertex represents (nearest within
+  ``loss.match_dist``, assignment.py) / GT vertices of class k;
+* ``vertex_precision``: predicted vertices whose argmax class is k and whose nearest GT vertex
+  within ``match_dist`` has class k / predicted vertices of argmax class k;
+* ``dt_error_px``: mean |predicted - GT distance| (BEV pixels) of channel k over the pixels within
+  ``dt_clip`` of a class-k line (the band the distance transform describes); ``dt_line_recall``:
+  GT line pixels of class k where the prediction is below 1 px;
+* ``adjacency_accuracy``: predicted vertices representing a class-k GT vertex whose two best
+  assignment columns are exactly their {next, prev} targets (losses.adjacency_correct);
+* ``edge_recall``: target edges i -> next(i) between two representatives of class k that the
+  decoded graph (post-processing's mutual neighbours) contains;
+* ``instance_complete``: GT instances of class k with >= 2 represented vertices whose represented
+  vertices all lie on one decoded path / cycle and nothing else; for closed GT shapes also
+  ``closed_as_cycle``: such an instance decoded as a cycle (the polygon's closing edge found).
+
+All counts are batched tensor code except the per-instance check, a loop over the decoded
+components of each sample (tens per sample).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+import torch
+
+from .assignment import IGNORE_INDEX, UNMATCHED
+from .losses import adjacency_correct
+from .postprocess import trace_instances, vertex_neighbours
+
+METRICS = ("vertex_recall", "vertex_precision", "dt_error_px", "dt_line_recall", "adjacency_accuracy",
+           "edge_recall", "instance_complete", "closed_as_cycle")
+
+
+class ClassDiagnostics:
+    """``update(outputs, batch, assignment)`` per batch, then ``compute() -> {metric: [K floats]}``."""
+
+    def __init__(self, num_classes: int, dt_clip: float, match_threshold: float = 0.1):
+        self.K = num_classes
+        self.dt_clip = dt_clip
+        self.match_threshold = match_threshold
+        self.hits: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
+        self.totals: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
+
+    def _add(self, name: str, hits: torch.Tensor, over: torch.Tensor, cls: torch.Tensor) -> None:
+        """Count ``hits & over`` and ``over`` per class ``cls`` (all the same shape)."""
+        c = cls[over].long().clamp(min=0).cpu()
+        self.hits[name] += np.bincount(c[hits[over].cpu()].numpy(), minlength=self.K)[: self.K]
+        self.totals[name] += np.bincount(c.numpy(), minlength=self.K)[: self.K]
+
+    @torch.no_grad()
+    def update(self, outputs: dict, batch: dict, assignment: dict) -> None:
+        pred_mask = outputs["pred_vertex_mask"].bool()
+        gt_mask = batch["gt_vertex_mask"].bool()
+        gt_labels = batch["gt_vertex_labels"].long()
+        B, N = pred_mask.shape
+        # vertices
+        self._add("vertex_recall", assignment["gt_to_pred"] >= 0, gt_mask, gt_labels)
+        pred_cls = outputs["pred_class_log_probs"].argmax(2)
+        pred_to_gt = assignment["pred_to_gt"]
+        matched_cls = gt_labels.gather(1, pred_to_gt.clamp(min=0)) if gt_labels.shape[1] else pred_cls
+        ok = (pred_to_gt != UNMATCHED) & (matched_cls == pred_cls)
+        self._add("vertex_precision", ok, pred_mask, pred_cls)
+        # distance transform
+        pred_dt, gt_dt = outputs["pred_distance"].float(), batch["gt_distance"].float()
+        band = gt_dt < self.dt_clip
+        err = (pred_dt - gt_dt).abs()
+        for k in range(self.K):
+            n = int(band[:, k].sum())
+            self.hits["dt_error_px"][k] += float(err[:, k][band[:, k]].sum())
+            self.totals["dt_error_px"][k] += n
+            line = gt_dt[:, k] == 0
+            self.hits["dt_line_recall"][k] += int((pred_dt[:, k][line] < 1.0).sum())
+            self.totals["dt_line_recall"][k] += int(line.sum())
+        # adjacency (representatives of GT vertices of class k)
+        rep = assignment["pred_is_representative"]
+        rep_cls = gt_labels.gather(1, pred_to_gt.clamp(min=0)) if gt_labels.shape[1] else pred_cls
+        correct = adjacency_correct(outputs["pred_log_assignment"], pred_mask,
+                                    assignment["target_next"], assignment["target_prev"])
+        self._add("adjacency_accuracy", correct, rep, rep_cls)
+        nbr = vertex_neighbours(outputs["pred_log_assignment"], pred_mask, self.match_threshold)  # [B, N, 2]
+        tnext = assignment["target_next"]
+        edge = rep & (tnext >= 0) & (tnext < N) & (tnext != IGNORE_INDEX)
+        found = (nbr == tnext.clamp(min=0)[..., None]).any(2)
+        self._add("edge_recall", found, edge, rep_cls)
+        self._instances(nbr, assignment, batch, rep)
+
+    def _instances(self, nbr: torch.Tensor, assignment: dict, batch: dict, rep: torch.Tensor) -> None:
+        gt_to_pred = assignment["gt_to_pred"].cpu().numpy()
+        inst = batch["gt_vertex_instance"].cpu().numpy()
+        labels = batch["gt_vertex_labels"].cpu().numpy()
+        gt_mask = batch["gt_vertex_mask"].cpu().numpy()
+        closed_of = [[bool(p.get("closed", False)) for p in polys] for polys in batch["gt_polylines"]]
+        nbr_l = nbr.cpu().tolist()
+        for b in range(len(nbr_l)):
+            comp = {}  # predicted vertex -> (component id, is cycle)
+            traced = trace_instances([r[0] for r in nbr_l[b]], [r[1] for r in nbr_l[b]], 2)
+            for cid, (path, closed) in enumerate(traced):
+                for i in path:
+                    comp[i] = (cid, closed, len(path))
+            for g_inst in np.unique(inst[b][gt_mask[b]]):
+                sel = gt_mask[b] & (inst[b] == g_inst)
+                preds = gt_to_pred[b][sel]
+                preds = preds[preds >= 0]
+                if len(preds) < 2:
+                    continue
+                k = int(labels[b][sel][0])
+                comps = {comp.get(int(i), (None, False, 0)) for i in preds}
+                whole = len(comps) == 1 and next(iter(comps))[0] is not None and next(iter(comps))[2] == len(preds)
+                self.hits["instance_complete"][k] += whole
+                self.totals["instance_complete"][k] += 1
+                if closed_of[b][int(g_inst)] and len(preds) >= 3:
+                    self.hits["closed_as_cycle"][k] += whole and next(iter(comps))[1]
+                    self.totals["closed_as_cycle"][k] += 1
+
+    def compute(self) -> dict[str, list[float]]:
+        out = {}
+        for name in METRICS:
+            h, t = self.hits[name], self.totals[name]
+            out[name] = [float(h[k] / t[k]) if t[k] > 0 else float("nan") for k in range(self.K)]
+        out["counts"] = {name: [int(v) for v in self.totals[name]] for name in METRICS}
+        return out
+
+
+def format_table(results: dict[str, dict], classes: list[str]) -> str:
+    """``{row name: compute() result}`` -> a markdown table, one row per (name, class)."""
+    head = "| model | class | " + " | ".join(METRICS) + " |"
+    lines = [head, "|" + " --- |" * (len(METRICS) + 2)]
+    for name, res in results.items():
+        for k, c in enumerate(classes):
+            cells = []
+            for m in METRICS:
+                v = res[m][k]
+                cells.append("-" if v != v else (f"{v:.2f}" if m == "dt_error_px" else f"{v:.3f}"))
+            lines.append(f"| {name} | {c} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
