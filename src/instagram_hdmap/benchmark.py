@@ -65,10 +65,10 @@ def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
 def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
     """The calibration [V, ...] to benchmark with and where it came from."""
     if Path(cfg.data.dataroot).is_dir():
-        from .data.nuscenes import NuScenesMapDataset
+        from .data import build_dataset
 
         try:
-            dataset = NuScenesMapDataset(cfg, cfg.data.val_split, augment=False)
+            dataset = build_dataset(cfg, cfg.data.val_split, augment=False)
             cams = dataset.load_cameras(0)
         except UserError as e:
             rig = nuscenes_like_rig(cfg.data.image_size)

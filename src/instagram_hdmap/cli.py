@@ -28,20 +28,24 @@ def _load(args: argparse.Namespace):
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from .data.synthetic import generate_world
+    if args.format == "av2":
+        from .data.synthetic.av2_writer import generate_av2_world as generate
+    else:
+        from .data.synthetic import generate_world as generate
 
-    manifest = generate_world(
+    manifest = generate(
         out=args.out,
         scenes_train=args.scenes_train,
         scenes_val=args.scenes_val,
         samples_per_scene=args.samples_per_scene,
         seed=args.seed,
-        image_size=args.image_size,
+        image_size=args.image_size or ("2048x1550" if args.format == "av2" else "1600x900"),
         force=args.force,
         workers=args.workers,
     )
+    layout = "the AV2 sensor layout" if args.format == "av2" else f"version {manifest['version']}"
     print(f"wrote {manifest['scenes_train']} train + {manifest['scenes_val']} val scenes, "
-          f"{manifest['samples']} samples, version {manifest['version']} to {args.out}")
+          f"{manifest['samples']} samples, {layout} to {args.out}")
     return 0
 
 
@@ -69,10 +73,11 @@ def _load_data_cfg(args: argparse.Namespace):
 
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
-    from .data.nuscenes import NuScenesMapDataset, gt_submission, write_json
+    from .data import build_dataset
+    from .data.nuscenes import gt_submission, write_json
 
     cfg = _load_data_cfg(args)
-    dataset = NuScenesMapDataset(cfg, args.split, augment=False)
+    dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
     write_json(sub, args.out)
     n = sum(len(v) for v in sub["results"].values())
@@ -81,15 +86,15 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
 
 
 def _cmd_show_gt(args: argparse.Namespace) -> int:
-    from .data.nuscenes import CAMERAS, NuScenesMapDataset
+    from .data import build_dataset
     from .visualize import write_sample_pngs
 
     cfg = _load_data_cfg(args)
-    dataset = NuScenesMapDataset(cfg, args.split, augment=args.augment)
+    dataset = build_dataset(cfg, args.split, augment=args.augment)
     if not -len(dataset) <= args.index < len(dataset):
         raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
     sample = dataset.load_sample(args.index % len(dataset))
-    paths = write_sample_pngs(sample, dataset.grid, args.out, cfg.data.classes, CAMERAS)
+    paths = write_sample_pngs(sample, dataset.grid, args.out, cfg.data.classes, dataset.camera_names)
     print(f"sample {sample['sample_token']}: {len(sample['gt_polylines'])} polylines, "
           f"{len(sample['gt_vertices_px'])} graph vertices; wrote {', '.join(str(p) for p in paths)}")
     return 0
@@ -236,13 +241,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="instagram-hdmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("synth", help="write a synthetic world in the nuScenes on-disk format")
+    p = sub.add_parser("synth", help="write a synthetic world in the nuScenes (or Argoverse 2) on-disk format")
     p.add_argument("--out", required=True, help="output dataroot (must be empty or absent)")
+    p.add_argument("--format", choices=["nuscenes", "av2"], default="nuscenes",
+                   help="on-disk layout: nuscenes (default) or av2, the Argoverse 2 sensor dataset (extra [av2])")
     p.add_argument("--scenes-train", type=int, default=8)
     p.add_argument("--scenes-val", type=int, default=2)
     p.add_argument("--samples-per-scene", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--image-size", default="1600x900", help="camera image WIDTHxHEIGHT")
+    p.add_argument("--image-size", help="camera image WIDTHxHEIGHT (default 1600x900; av2: 2048x1550, the "
+                   "landscape ring cameras, ring_front_center is HEIGHTxWIDTH)")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     p.add_argument("--workers", type=int, default=1,
                    help="processes rendering scenes in parallel (0: one per CPU core); same output for any value")
@@ -258,7 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
                         ("show-gt", "PNGs of one sample's GT: polylines, vertex cells, DT, cameras")):
         p = sub.add_parser(name, help=help_)
         _add_config_args(p)
-        p.add_argument("--dataroot", help="nuScenes dataroot (overrides data.dataroot)")
+        p.add_argument("--dataroot", help="dataset root (overrides data.dataroot)")
         p.add_argument("--version", help="version folder, e.g. v1.0-mini (overrides data.version)")
         p.add_argument("--split", default="val", help="split name (default val)")
         p.add_argument("--out", required=True, help="output JSON file" if name == "export-gt" else "output folder")

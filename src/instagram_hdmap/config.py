@@ -48,11 +48,17 @@ class GridConfig:
     cell_size: int = 8  # S: one vertex per SxS cell
 
 
+# The seven ring cameras of the Argoverse 2 sensor dataset, clockwise from the front left (data/av2.py)
+AV2_RING_CAMERAS = ("ring_front_left", "ring_front_center", "ring_front_right", "ring_side_right",
+                    "ring_rear_right", "ring_rear_left", "ring_side_left")
+
+
 @dataclass
 class DataConfig:
-    """Dataset, local map, images and targets (data/nuscenes.py, data/local_map.py, data/transforms.py,
-    targets.py)."""
+    """Dataset, local map, images and targets (data/nuscenes.py, data/av2.py, data/local_map.py,
+    data/transforms.py, targets.py)."""
 
+    dataset: Literal["nuscenes", "av2"] = "nuscenes"  # av2: the Argoverse 2 sensor dataset (extra [av2])
     dataroot: str = "data/nuscenes"
     version: str = "v1.0-trainval"  # v1.0-trainval | v1.0-mini | any version folder of the dataroot
     # custom splits.json {"train": [scene names], "val": [...]}, overrides the official splits; a
@@ -61,6 +67,11 @@ class DataConfig:
     train_split: str = "train"
     val_split: str = "val"
     image_size: tuple[int, int] = (128, 352)  # (h, w) fed to the backbone
+    # cover: resize to cover (h, w), crop (lift-splat-shoot); contain: resize to fit inside, pad with
+    # black (for cameras of different aspect ratios, e.g. AV2's portrait ring_front_center)
+    image_fit: Literal["cover", "contain"] = "cover"
+    av2_cameras: tuple[str, ...] = AV2_RING_CAMERAS  # av2: the ring cameras fed to the model, in this order
+    av2_frame_step: int = 5  # av2: one lidar sweep in N is a sample (AV2's sweeps come at 10 Hz)
     sample_dist: float = 1.5  # metres between resampled map vertices
     classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
     dt_clip: float = 10.0  # distance transform clipped to [0, dt_clip] BEV pixels
@@ -375,6 +386,13 @@ def validate_config(cfg: ExperimentConfig) -> None:
     h, w = cfg.data.image_size
     if h <= 0 or w <= 0:
         raise ConfigError(f"config key 'data.image_size' must be positive, got {(h, w)}")
+    d = cfg.data
+    if d.av2_frame_step < 1:
+        raise ConfigError(f"config key 'data.av2_frame_step' must be >= 1, got {d.av2_frame_step}")
+    bad = [c for c in d.av2_cameras if c not in AV2_RING_CAMERAS]
+    if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
+        raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "
+                          f"{', '.join(AV2_RING_CAMERAS)}; got {list(d.av2_cameras)}")
     t = cfg.train
     if t.time_budget_min is not None and not t.time_budget_min > 0:
         raise ConfigError(f"config key 'train.time_budget_min' must be > 0 (or null for none), got {t.time_budget_min}")

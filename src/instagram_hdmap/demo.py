@@ -136,15 +136,15 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     of a uniformly drawn training sample (score 1): the map prior without looking at the images.
     The training split comes from ``cfg``'s world, the validation split from ``val_cfg``'s (default
     the same world). ``picks`` (one training index per validation sample) replaces the random draw."""
-    from .data.nuscenes import NuScenesMapDataset
+    from .data import build_dataset
     from .evaluation import Evaluator
 
-    train_set = NuScenesMapDataset(cfg, cfg.data.train_split, augment=False)
+    train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
     if val_cfg is None or val_cfg.data.dataroot == cfg.data.dataroot:
         val_cfg = cfg if val_cfg is None else val_cfg
-        val_set = NuScenesMapDataset(val_cfg, val_cfg.data.val_split, nusc=train_set.nusc, augment=False)
+        val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False, like=train_set)
     else:
-        val_set = NuScenesMapDataset(val_cfg, val_cfg.data.val_split, augment=False)
+        val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False)
     rng = random.Random(seed)
     if picks is None:
         picks = [rng.randrange(len(train_set)) for _ in range(len(val_set))]

@@ -194,9 +194,9 @@ def submission_meta(cfg: ExperimentConfig, split: str, source: str) -> dict:
     g = cfg.grid
     return {
         "use_camera": True, "use_lidar": False, "use_radar": False, "use_external": False, "vector": True,
-        "ground_truth": False, "source": source, "config_name": cfg.name, "version": cfg.data.version,
-        "split": split, "frame": "ego, x forward, y left, metres", "classes": list(cfg.data.classes),
-        "xbound": list(g.xbound), "ybound": list(g.ybound),
+        "ground_truth": False, "source": source, "config_name": cfg.name, "dataset": cfg.data.dataset,
+        "version": cfg.data.version, "split": split, "frame": "ego, x forward, y left, metres",
+        "classes": list(cfg.data.classes), "xbound": list(g.xbound), "ybound": list(g.ybound),
     }
 
 
@@ -225,16 +225,18 @@ def find_sample(dataset, index: int | None = None, token: str | None = None) -> 
 def display_cameras(dataset, index: int, width: int = 480) -> dict[str, torch.Tensor]:
     """The sample's original camera images, whole, resized to ``width`` for drawing: ``images``
     [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
-    from .data.nuscenes import CAMERAS
     from .data.transforms import load_image
 
-    sample = dataset.nusc.get("sample", dataset.sample_tokens[index])
+    files = dataset.camera_files(index)
+    # one picture size for all cameras, of the median aspect ratio; cameras of another one fit inside
+    # (AV2's portrait front camera)
+    aspects = sorted(H / W for _, (W, H) in files)
+    w = min(width, max(W for _, (W, _) in files))
+    out_hw = (round(w * aspects[len(aspects) // 2]), w)
+    fit = "cover" if aspects[0] == aspects[-1] else "contain"
     images, rots, trans = [], [], []
-    for cam in CAMERAS:
-        sd = dataset.nusc.get("sample_data", sample["data"][cam])
-        W, H = sd["width"], sd["height"]
-        w = min(width, W)
-        image, post_rot, post_tran = load_image(dataset.dataroot / sd["filename"], (W, H), (round(w * H / W), w))
+    for path, (W, H) in files:
+        image, post_rot, post_tran = load_image(path, (W, H), out_hw, fit=fit)
         images.append(image)
         rots.append(post_rot)
         trans.append(post_tran)
@@ -291,7 +293,8 @@ def predict_sample(
 
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
-    from .data.nuscenes import CAMERAS, NuScenesMapDataset, collate_fn
+    from .data import build_dataset
+    from .data.nuscenes import collate_fn
     from .engine import move_to
     from .evaluation import write_submission
     from .postprocess import postprocess_batch, vertex_neighbours
@@ -310,7 +313,7 @@ def predict_sample(
         source = f"checkpoint {checkpoint}"
     grid = BEVGrid.from_config(cfg.grid)
     split = split or cfg.data.val_split
-    dataset = NuScenesMapDataset(cfg, split, augment=False)
+    dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
     sample = dataset.load_sample(i)
     batch = collate_fn([sample])
@@ -334,7 +337,7 @@ def predict_sample(
         "prediction_cameras.png": prediction_cameras_figure(
             **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
             cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
-            predictions=preds, ground_truth=gts, camera_names=CAMERAS, classes=classes),
+            predictions=preds, ground_truth=gts, camera_names=dataset.camera_names, classes=classes),
         "prediction_intermediate.png": intermediate_figure(
             outputs["pred_heatmap"][0], outputs["pred_distance"][0], outputs["pred_vertices_px"][0][mask],
             outputs["pred_class_log_probs"][0][mask].argmax(-1), edges, kept, grid, classes, cfg.data.dt_clip,
@@ -374,7 +377,8 @@ def run_evaluation(
     from torch.utils.data import DataLoader
 
     from . import distributed as du
-    from .data.nuscenes import NuScenesMapDataset, collate_fn, write_json
+    from .data import build_dataset
+    from .data.nuscenes import collate_fn, write_json
     from .engine import evaluate
     from .evaluation import Evaluator, write_submission
     from .postprocess import postprocess_batch
@@ -385,7 +389,7 @@ def run_evaluation(
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
     grid = BEVGrid.from_config(cfg.grid)
     split = cfg.data.val_split
-    dataset = NuScenesMapDataset(cfg, split, augment=False)
+    dataset = build_dataset(cfg, split, augment=False)
     index_of = {t: i for i, t in enumerate(dataset.sample_tokens)}
     sampler = du.ResumableSampler(len(dataset), shuffle=False)
     loader = DataLoader(dataset, batch_size=cfg.eval.batch_size, sampler=sampler, collate_fn=collate_fn,

@@ -86,9 +86,10 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
 
 
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
-    from .data.nuscenes import NuScenesMapDataset, collate_fn
+    from .data import build_dataset
+    from .data.nuscenes import collate_fn
 
-    train_set = NuScenesMapDataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
+    train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
     train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, collate_fn=collate_fn,
@@ -99,7 +100,7 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
                               generator=torch.Generator().manual_seed(cfg.train.seed))
     val_loader = None
     if with_val:
-        val_set = NuScenesMapDataset(cfg, cfg.data.val_split, nusc=train_set.nusc, augment=False)
+        val_set = build_dataset(cfg, cfg.data.val_split, augment=False, like=train_set)
         val_sampler = ResumableSampler(len(val_set), shuffle=False)
         val_loader = DataLoader(val_set, batch_size=cfg.eval.batch_size, sampler=val_sampler,
                                 collate_fn=collate_fn, num_workers=cfg.data.num_workers)

@@ -15,7 +15,7 @@ their own timestamps are not used (lift-splat-shoot's simplification): the camer
 each camera's calibrated sensor.
 
 Bad input raises a ``UserError`` naming the file and sample token; with ``data.on_bad_sample=skip``
-a bad sample is replaced by the next good one (one warning per bad sample) instead.
+a bad sample is replaced by the next good one (one warning per bad sample) instead (data/base.py).
 """
 
 from __future__ import annotations
@@ -27,11 +27,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
 from ..config import ConfigError, ExperimentConfig, UserError
 from ..geometry import BEVGrid
-from ..targets import build_targets
+from .base import DatasetError, MapDataset
 from .local_map import LocalMapBuilder, MapError
 from .transforms import ImageAug, load_image, sample_augmentation
 
@@ -51,10 +50,6 @@ VERTEX_KEYS = (
     "gt_vertex_prev",
 )
 _VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
-
-
-class DatasetError(UserError):
-    """The dataroot, version or split cannot be used."""
 
 
 def open_nuscenes(dataroot: str | Path, version: str):
@@ -138,20 +133,22 @@ def _pose_matrix(rotation_wxyz, translation) -> torch.Tensor:
     return torch.from_numpy(T).float()
 
 
-class NuScenesMapDataset(Dataset):
-    """Samples of one split as dicts (docs/conventions.md, per-sample: no batch dimension).
+class NuScenesMapDataset(MapDataset):
+    """Samples of one split as dicts (docs/conventions.md, per-sample: no batch dimension; data/base.py).
 
     ``augment``: train-time image augmentation; default ``cfg.data.augment and split == train_split``.
     ``nusc``: an already loaded ``NuScenes`` of ``cfg.data.version`` (shared between splits).
     """
 
+    camera_names = CAMERAS
+
     def __init__(self, cfg: ExperimentConfig, split: str, nusc=None, augment: bool | None = None):
+        super().__init__()
         self.cfg = cfg
         self.data_cfg = d = cfg.data
         self.split = split
         self.grid = BEVGrid.from_config(cfg.grid)
         self.augment = (d.augment and split == d.train_split) if augment is None else augment
-        self.epoch = 0  # see set_epoch
         if len(d.classes) != 3:
             raise ConfigError(
                 f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, boundary) that "
@@ -182,10 +179,6 @@ class NuScenesMapDataset(Dataset):
                     raise
                 warnings.warn(f"samples at location '{loc}' will be skipped: {e}", stacklevel=2)
                 self._map_errors[loc] = e
-        self._bad: set[int] = set()
-
-    def __len__(self) -> int:
-        return len(self.sample_tokens)
 
     def _location(self, token: str) -> str:
         return self.nusc.get("log", self._scene_of[token]["log_token"])["location"]
@@ -223,7 +216,8 @@ class NuScenesMapDataset(Dataset):
             if self.augment:
                 aug = sample_augmentation(self.data_cfg, rng)  # one draw per camera
             image, post_rot, post_tran = load_image(
-                self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug
+                self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug,
+                fit=self.data_cfg.image_fit,
             )
             pose = _pose_matrix(cs["rotation"], cs["translation"])
             out["images"].append(image)
@@ -234,50 +228,19 @@ class NuScenesMapDataset(Dataset):
             out["post_tran"].append(post_tran)
         return {k: torch.stack(v) for k, v in out.items()}
 
-    def set_epoch(self, epoch: int) -> None:
-        """Select the augmentation draws of ``epoch`` (the training loop calls it before each epoch)."""
-        self.epoch = epoch
+    def ego_pose(self, index: int) -> torch.Tensor:
+        """[4, 4] ego -> global of the sample's reference pose (LIDAR_TOP, else CAM_FRONT)."""
+        pose = self._reference_pose(self.nusc.get("sample", self.sample_tokens[index]))
+        return _pose_matrix(pose["rotation"], pose["translation"])
 
-    def augmentation_rng(self, index: int) -> np.random.Generator:
-        """The augmentation stream of sample ``index`` in the current epoch: a function of
-        (``train.seed``, epoch, index) alone, so the same sample is augmented the same way whatever
-        the worker count, the process or the resume point (exact resume with augmentation)."""
-        return np.random.default_rng([self.cfg.train.seed, self.epoch, index])
-
-    def load_sample(self, index: int) -> dict:
-        """The sample dict, raising ``UserError`` (naming the sample token) on bad input."""
-        token = self.sample_tokens[index]
-        try:
-            polylines = self.gt_polylines(index)
-            cams = self.load_cameras(index)
-        except UserError as e:
-            msg = str(e) if token in str(e) else f"sample {token}: {e}"
-            raise type(e)(msg) from None
-        pose = self._reference_pose(self.nusc.get("sample", token))
-        d = self.data_cfg
-        targets = build_targets(polylines, self.grid, len(d.classes), d.dt_clip)
-        return {
-            **cams,
-            "ego_pose": _pose_matrix(pose["rotation"], pose["translation"]),
-            "sample_token": token,
-            "gt_polylines": polylines,
-            **targets,
-        }
-
-    def __getitem__(self, index: int) -> dict:
-        if self.data_cfg.on_bad_sample == "raise":
-            return self.load_sample(index)
-        n = len(self)
-        for k in range(n):
-            j = (index + k) % n
-            if j in self._bad:
-                continue
-            try:
-                return self.load_sample(j)
-            except UserError as e:
-                self._bad.add(j)
-                warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip): {e}", stacklevel=2)
-        raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
+    def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
+        """``[(image path, (W, H))]`` of the sample's cameras, in ``CAMERAS`` order."""
+        sample = self.nusc.get("sample", self.sample_tokens[index])
+        out = []
+        for cam in CAMERAS:
+            sd = self.nusc.get("sample_data", sample["data"][cam])
+            out.append((self.dataroot / sd["filename"], (sd["width"], sd["height"])))
+        return out
 
 
 def collate_fn(samples: list[dict]) -> dict:
@@ -304,7 +267,7 @@ def collate_fn(samples: list[dict]) -> dict:
     return out
 
 
-def gt_submission(dataset: NuScenesMapDataset, progress: bool = False) -> dict:
+def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
     """The split's GT polylines in HDMapNet's submission format:
     ``{"meta": {...}, "results": {sample_token: [{"pts": [[x, y], ...], "pts_num": n, "type": k}]}}``
     with points in metres in the ego frame (x forward, y left); a closed shape repeats its first point.
@@ -334,6 +297,7 @@ def gt_submission(dataset: NuScenesMapDataset, progress: bool = False) -> dict:
         "use_external": False,
         "vector": True,
         "ground_truth": True,
+        "dataset": d.dataset,
         "version": d.version,
         "split": dataset.split,
         "frame": "ego, x forward, y left, metres",

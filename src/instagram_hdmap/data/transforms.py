@@ -5,9 +5,11 @@ affine warp of the original image: ``p_net = post_rot[:2, :2] @ p_orig + post_tr
 ``p = (u, v)`` in original-image pixels (the frame of the calibration intrinsics). post_rot/post_tran
 are 3x3 / 3 as in LSS (third row/entry identity/zero, so they act on (u, v, depth)).
 
-The warp, in original pixels: uniform resize ``r = max(h / H, w / W) * scale`` (cover the output,
-as lift-splat-shoot), crop a (h, w) window (horizontally centred, vertically at the bottom so the
-road is kept and the sky cut; jittered by augmentation), rotate about the output centre.
+The warp, in original pixels: uniform resize ``r = max(h / H, w / W) * scale`` (``fit="cover"``: cover
+the output, as lift-splat-shoot), crop a (h, w) window (horizontally centred, vertically at the bottom
+so the road is kept and the sky cut; jittered by augmentation), rotate about the output centre. With
+``fit="contain"`` (``data.image_fit``) the resize is ``r = min(h / H, w / W) * scale``: the whole image
+fits, centred, and the rest of the window is black (cameras of mixed aspect ratios, e.g. AV2's).
 
 Decoding: JPEG images are decoded with OpenCV's reduced-resolution DCT decode
 (``cv2.IMREAD_REDUCED_COLOR_{2,4,8}``) at the largest factor f in {1, 2, 4, 8} with ``r * f <= 1``
@@ -74,14 +76,16 @@ def _scale_matrix(sx: float, sy: float) -> np.ndarray:
     return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], dtype=np.float64)
 
 
-def image_affine(orig_wh: tuple[int, int], out_hw: tuple[int, int], aug: ImageAug = ImageAug()) -> np.ndarray:
+def image_affine(orig_wh: tuple[int, int], out_hw: tuple[int, int], aug: ImageAug = ImageAug(),
+                 fit: str = "cover") -> np.ndarray:
     """3x3 affine: original-image pixel (u, v, 1) -> network-input pixel (see module docstring)."""
     W, H = orig_wh
     h, w = out_hw
-    r = max(h / H, w / W) * aug.scale
+    r = (max if fit == "cover" else min)(h / H, w / W) * aug.scale
     new_w, new_h = W * r, H * r
     crop_x = (new_w - w) / 2 + aug.crop_dx * w
-    crop_y = max(new_h - h, 0.0) + aug.crop_dy * h  # keep the bottom of the image
+    # keep the bottom of a taller image; centre a shorter one (contain)
+    crop_y = (new_h - h if new_h >= h else (new_h - h) / 2) + aug.crop_dy * h
     crop_x = min(max(crop_x, min(0.0, new_w - w)), max(0.0, new_w - w))
     crop_y = min(max(crop_y, min(0.0, new_h - h)), max(0.0, new_h - h))
     A = _scale_matrix(r, r)
@@ -130,16 +134,18 @@ def load_image(
     out_hw: tuple[int, int],
     aug: ImageAug = ImageAug(),
     reduced_decode: bool = True,
+    fit: str = "cover",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Decode, warp and normalise one camera image.
 
     orig_wh: (W, H) of the image file (as in its nuScenes ``sample_data`` record).
+    fit: "cover" or "contain" (module docstring).
     Returns ``image`` [3, h, w] float32 (RGB, ImageNet-normalised), ``post_rot`` [3, 3] and
     ``post_tran`` [3] float32 mapping original pixels to network pixels.
     """
     W, H = orig_wh
     h, w = out_hw
-    A = image_affine(orig_wh, out_hw, aug)
+    A = image_affine(orig_wh, out_hw, aug, fit)
     scale = math.hypot(A[0, 0], A[0, 1])  # the uniform resize r (rotation aside)
     f = decode_factor(scale, reduced_decode)
     img = read_image(path, f)
@@ -147,7 +153,7 @@ def load_image(
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
         raise ImageError(
             f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected "
-            f"{exp_w}x{exp_h} from its sample_data size {W}x{H}"
+            f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather)"
         )
     # decoded pixel -> original pixel (the inverse of a resize by s is the resize by 1 / s)
     to_orig = _scale_matrix(f, f)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .rig import CAMERAS, LIDAR, Sensor
+from .rig import CAMERAS, Sensor
 from .roads import Box, RoadNetwork, as_polygons
 
 JPEG_QUALITY = 90
@@ -56,7 +56,7 @@ class SceneLook:
     noise_sigma: float
 
 
-def scene_look(rng: np.random.Generator) -> SceneLook:
+def scene_look(rng: np.random.Generator, cameras: tuple[str, ...] = CAMERAS) -> SceneLook:
     overcast = rng.random() < 0.4
     asphalt_grey = rng.uniform(55.0, 115.0)
     asphalt = asphalt_grey + rng.uniform(-6.0, 6.0, 3)
@@ -71,7 +71,7 @@ def scene_look(rng: np.random.Generator) -> SceneLook:
     horizon = np.array([200.0, 190.0, 185.0]) if overcast else np.array([235.0, 205.0, 175.0])
     return SceneLook(
         gain=float(rng.uniform(0.75, 1.2)),
-        cam_gain={ch: float(rng.uniform(0.92, 1.08)) for ch in CAMERAS},
+        cam_gain={ch: float(rng.uniform(0.92, 1.08)) for ch in cameras},
         asphalt=asphalt,
         white=white,
         yellow=yellow,
@@ -274,29 +274,39 @@ def vehicle_render_boxes(b: Box) -> list[Box]:
 
 
 class SceneRenderer:
-    """Renders the six cameras and the lidar of one scene (fixed map, look and image size)."""
+    """Renders the cameras and the lidar of one scene (fixed map, look and image sizes).
+
+    ``sensors``: the rig, by channel: its cameras in order, and one lidar. ``image_size`` (w, h) is
+    the size of every camera without a ``Sensor.size`` of its own, and at least the largest one."""
 
     def __init__(self, painter: MapPainter, look: SceneLook, sensors: dict[str, Sensor],
                  image_size: tuple[int, int], rng: np.random.Generator):
         self.painter = painter
         self.look = look
         self.sensors = sensors
+        self.cameras = [ch for ch, s in sensors.items() if s.modality == "camera"]
+        self.lidar = next(s for s in sensors.values() if s.modality == "lidar")
         self.w, self.h = image_size
         self.fine = GroundCanvas(FINE_RES, FINE_HALF)
         self.coarse = GroundCanvas(COARSE_RES, COARSE_HALF)
         self.noise = np.clip(rng.normal(0.0, look.noise_sigma, (self.h + 32, self.w + 32, 3)), -60, 60).astype(np.int16)
         self.noise_rng = rng
-        self.sky: dict[str, tuple] = {ch: self._sky(sensors[ch]) for ch in CAMERAS}
+        self.sky: dict[str, tuple] = {ch: self._sky(sensors[ch]) for ch in self.cameras}
         props = painter.props
         self.prop_xy = np.array([[b.x, b.y] for b in props]).reshape(-1, 2)
         self.prop_r = np.array([math.hypot(b.length, b.width) / 2 for b in props])
+
+    def size(self, cam: Sensor) -> tuple[int, int]:
+        """(w, h) of a camera's images."""
+        return cam.size or (self.w, self.h)
 
     def _sky(self, cam: Sensor):
         """Per camera: sky image, sky mask (ray above the horizon), haze rows and alpha."""
         look, g = self.look, self.look.gain
         m = (cam.rot @ np.linalg.inv(cam.intrinsic)).astype(np.float32)  # pixel (u, v, 1) -> ego ray
-        u = (np.arange(self.w, dtype=np.float32) + 0.5)[None, :]
-        v = (np.arange(self.h, dtype=np.float32) + 0.5)[:, None]
+        w, h = self.size(cam)
+        u = (np.arange(w, dtype=np.float32) + 0.5)[None, :]
+        v = (np.arange(h, dtype=np.float32) + 0.5)[:, None]
         rx, ry, rz = (m[i, 0] * u + m[i, 1] * v + m[i, 2] for i in range(3))
         horiz = np.sqrt(rx * rx + ry * ry)
         t = np.clip(np.arctan2(rz, horiz) / 0.6, 0.0, 1.0)[..., None]
@@ -312,8 +322,8 @@ class SceneRenderer:
 
     def render(self, pose: np.ndarray, vehicles: list[Box]):
         """One key frame at ego pose (x, y, yaw) with the given vehicle boxes. Returns
-        (JPEG bytes per camera channel, lidar points [N, 5] float32 in the LIDAR_TOP frame
-        (x, y, z, intensity, ring), lidar points on each vehicle [len(vehicles)])."""
+        (JPEG bytes per camera channel, lidar points [N, 5] float32 in the lidar's frame (LIDAR_TOP
+        in the nuScenes rig) (x, y, z, intensity, ring), lidar points on each vehicle [len(vehicles)])."""
         look, g = self.look, self.look.gain
         shadows = [np.asarray(_grow(b, 0.25)) for b in vehicles]
         centre = np.asarray(pose[:2])
@@ -326,12 +336,13 @@ class SceneRenderer:
         corners, normals = _render_boxes(boxes) if boxes else (np.zeros((0, 8, 3)), np.zeros((0, 6, 3)))
         haze = _bgr(look.haze, g)
         out = {}
-        for ch in CAMERAS:
+        for ch in self.cameras:
             cam = self.sensors[ch]
+            w, h = self.size(cam)
             H = ground_homography(cam, pose)
-            img = cv2.warpPerspective(coarse, H @ a_coarse, (self.w, self.h), flags=cv2.INTER_LINEAR,
+            img = cv2.warpPerspective(coarse, H @ a_coarse, (w, h), flags=cv2.INTER_LINEAR,
                                       borderMode=cv2.BORDER_CONSTANT, borderValue=haze)
-            cv2.warpPerspective(fine, H @ a_fine, (self.w, self.h), dst=img, flags=cv2.INTER_LINEAR,
+            cv2.warpPerspective(fine, H @ a_fine, (w, h), dst=img, flags=cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_TRANSPARENT)
             sky, mask, (r0, r1), band = self.sky[ch]
             if r1 > r0:
@@ -341,12 +352,12 @@ class SceneRenderer:
             self._draw_boxes(img, cam, pose, boxes, corners, normals)
             img = cv2.convertScaleAbs(img, alpha=look.cam_gain[ch])
             dy, dx = (int(v) for v in self.noise_rng.integers(0, 32, 2))
-            img = cv2.add(img, self.noise[dy:dy + self.h, dx:dx + self.w], dtype=cv2.CV_8U)
+            img = cv2.add(img, self.noise[dy:dy + h, dx:dx + w], dtype=cv2.CV_8U)
             ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
             if not ok:
                 raise RuntimeError(f"JPEG encoding failed for {ch}")
             out[ch] = buf.tobytes()
-        points, counts = self._lidar(self.sensors[LIDAR], pose, vehicles, coarse, a_coarse)
+        points, counts = self._lidar(self.lidar, pose, vehicles, coarse, a_coarse)
         return out, points, counts
 
     def _draw_boxes(self, img, cam: Sensor, pose, boxes, corners, normals) -> None:
@@ -371,8 +382,8 @@ class SceneRenderer:
                 continue
             proj = pc[i, :, :2] / np.maximum(pc[i, :, 2:3], NEAR) @ k[:2, :2].T + k[:2, 2]
             ok = pc[i, :, 2] > NEAR
-            if ok.all() and ((proj[:, 0] < 0).all() or (proj[:, 0] > self.w).all() or (proj[:, 1] < 0).all()
-                             or (proj[:, 1] > self.h).all()):
+            if ok.all() and ((proj[:, 0] < 0).all() or (proj[:, 0] > img.shape[1]).all() or (proj[:, 1] < 0).all()
+                             or (proj[:, 1] > img.shape[0]).all()):
                 continue
             base = np.asarray(boxes[i].color, float)
             fog = 1.0 - math.exp(-dist[i] / look.haze_dist)

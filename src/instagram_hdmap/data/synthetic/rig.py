@@ -51,6 +51,7 @@ class Sensor:
     translation: tuple[float, float, float]  # sensor -> ego
     rotation: tuple[float, float, float, float]  # sensor -> ego, w x y z
     intrinsic: np.ndarray | None  # [3, 3] for cameras
+    size: tuple[int, int] | None = None  # (w, h) of this camera's images; None: the rig's common size
 
     @property
     def rot(self) -> np.ndarray:

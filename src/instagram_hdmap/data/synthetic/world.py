@@ -178,6 +178,7 @@ class _SceneJob:
     seed: int
     size: tuple[int, int]
     root: FsPath
+    fmt: str = "nuscenes"  # nuscenes | av2 (av2_writer.py writes the whole log folder)
 
     def describe(self) -> str:
         return f"synthetic scene {self.name} ({self.split} scene #{self.index}, map {self.location})"
@@ -240,6 +241,15 @@ def _render_scene(job: _SceneJob, net, painter: MapPainter, sensors, on_sample: 
     return _SceneResult(description, logfile, date, timestamps, poses, annotations)
 
 
+def _render_job(job: _SceneJob, net, painter: MapPainter, on_sample: Callable[[], None]):
+    """Renders one scene in the job's on-disk format (the same drive, traffic and map either way)."""
+    if job.fmt == "av2":
+        from .av2_writer import render_log
+
+        return render_log(job, net, painter, on_sample)
+    return _render_scene(job, net, painter, rig(job.size), on_sample)
+
+
 def _record(tables: Tables, job: _SceneJob, result: _SceneResult) -> str:
     """Adds one rendered scene to the tables; returns its log token."""
     rec = tables.begin_scene(job.index, job.name, result.description, job.location, result.logfile, result.date)
@@ -251,7 +261,7 @@ def _record(tables: Tables, job: _SceneJob, result: _SceneResult) -> str:
     return rec.log
 
 
-def _render_serial(jobs: list[_SceneJob], nets: dict, sensors, on_sample) -> dict[int, _SceneResult]:
+def _render_serial(jobs: list[_SceneJob], nets: dict, on_sample) -> dict[int, _SceneResult]:
     """All scenes in this process, one after the other."""
     painters: dict[str, MapPainter] = {}
     results = {}
@@ -260,7 +270,7 @@ def _render_serial(jobs: list[_SceneJob], nets: dict, sensors, on_sample) -> dic
         if job.location not in painters:
             painters[job.location] = MapPainter(net, job.seed)
         try:
-            results[job.index] = _render_scene(job, net, painters[job.location], sensors, on_sample)
+            results[job.index] = _render_job(job, net, painters[job.location], on_sample)
         except Exception as e:  # KeyboardInterrupt passes through untouched
             raise SceneGenerationError(f"{job.describe()} failed: {type(e).__name__}: {e}") from e
     return results
@@ -280,8 +290,8 @@ def _worker_main(tasks, events, cv_threads: int) -> None:
             if job.location not in nets:
                 nets[job.location] = build_network(job.location, job.seed)
                 painters[job.location] = MapPainter(nets[job.location], job.seed)
-            result = _render_scene(job, nets[job.location], painters[job.location], rig(job.size),
-                                   lambda: events.put(("sample", pid, job.index, None)))
+            result = _render_job(job, nets[job.location], painters[job.location],
+                                 lambda: events.put(("sample", pid, job.index, None)))
         except BaseException as e:  # anything, so that the main process never waits for a lost scene
             events.put(("error", pid, job.index, (f"{type(e).__name__}: {e}", traceback.format_exc())))
             return
@@ -381,7 +391,7 @@ def _write(root: FsPath, train_names, val_names, samples_per_scene, seed, size, 
         if workers > 1:
             results = _render_parallel(jobs, workers, lambda: bar.update(1))
         else:
-            results = _render_serial(jobs, nets, sensors, lambda: bar.update(1))
+            results = _render_serial(jobs, nets, lambda: bar.update(1))
     finally:
         bar.close()
     logs_of: dict[str, list[str]] = {loc: [] for loc in LOCATIONS}

@@ -1,0 +1,298 @@
+"""Argoverse 2 *sensor dataset* for HD-map learning, read through the official ``av2`` package (the
+optional extra ``pip install -e ".[av2]"``): the same sample dict as the nuScenes dataset
+(docs/conventions.md; data/base.py), ``data.dataset=av2``.
+
+    data.dataroot/                      an AV2 sensor-dataset root (or a world of `synth --format av2`)
+      train/<log_id>/ val/<log_id>/ test/<log_id>/   logs, as the dataset's tarballs unpack
+
+Samples: every ``data.av2_frame_step``-th lidar sweep of every log of the split folder
+(``data.train_split`` / ``data.val_split`` name the folders), in ``AV2SensorDataLoader`` order (logs
+sorted, sweeps in time). A sample's token is ``"<log_id>/<sweep timestamp_ns>"``. Its pose is the ego
+pose at the sweep (``city_SE3_egovehicle.feather``, ``read_city_SE3_ego``); its cameras are the ring
+cameras of ``data.av2_cameras`` (default all seven; ``V = len(data.av2_cameras)``), each the image the
+av2 synchronisation picks for the sweep (``get_closest_img_fpath``: the nearest within 25 ms), with the
+log's calibration (``PinholeCamera.from_feather``: intrinsics, camera -> ego). As for nuScenes, one ego
+pose serves all cameras (lift-splat-shoot's simplification). AV2's ring_front_center is portrait
+(1550 x 2048) and the others landscape (2048 x 1550): at about AV2's aspect ratio the default crop
+(``data.image_fit=cover``) only cuts the portrait camera's sky; for a wide window such as 128 x 352,
+fit the cameras inside instead (``contain``; configs/av2/).
+
+Map (``AV2LocalMapBuilder``): each log's ``map/log_map_archive_*.json`` through
+``ArgoverseStaticMap.from_json``, turned into the three classes of the field's AV2 setting
+(StreamMapNet's and MapTR v2's extraction), then clipped, ringed and resampled exactly as the nuScenes
+local map (data/local_map.py: the same patch, edge margin and ``sample_dist``):
+
+* **divider**: lane-segment boundaries that are painted, i.e. whose mark type is not ``NONE`` or
+  ``UNKNOWN`` (``LaneSegment.left/right_lane_marking.mark_type``); a boundary shared by two lane
+  segments (each lists it) is kept once (equal points to 1 cm, either direction); a painted boundary
+  lying along the drivable-area edge (more than half its length within ``BOUNDARY_OVERLAP_M``) is left
+  to the boundary class; consecutive pieces are merged end to end (``line_merge``).
+* **ped_crossing**: each crossing's polygon (``PedestrianCrossing.polygon``: its two edges).
+* **boundary**: the edges of the union of the drivable areas (``get_scenario_vector_drivable_areas``),
+  exterior and interior rings.
+
+Bad input (a dataroot without the split folder of logs, a log without a map archive, poses or
+calibration, a missing calibration row or camera image, a camera whose images do not match the
+sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file; with
+``data.on_bad_sample=skip`` the sample is skipped and counted instead (data/base.py).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import shapely
+import torch
+from shapely.geometry import LineString, MultiLineString, Polygon
+
+from ..config import ConfigError, ExperimentConfig, UserError
+from ..geometry import BEVGrid
+from .base import DatasetError, MapDataset
+from .local_map import LocalMapBuilder, MapError, _LocationMap
+from .transforms import ImageAug, load_image, sample_augmentation
+
+AV2_EXTRA = 'pip install -e ".[av2]"'
+BOUNDARY_OVERLAP_M = 0.3  # a painted lane boundary this close to a drivable-area edge is that edge
+DEDUP_DECIMALS = 2  # shared lane boundaries are equal to 1 cm
+CAMERA_WINDOW_MS = 25  # av2's SynchronizationDB: a ring image within half a 20 Hz frame of the sweep
+
+
+def require_av2(what: str) -> None:
+    """Raise a one-line ``UserError`` naming the extra when the ``av2`` package cannot be imported."""
+    try:
+        import av2.map.map_api  # noqa: F401  (pulls pyarrow, pandas: a broken install fails here too)
+    except ImportError as e:
+        raise UserError(f"{what} needs the Argoverse 2 API, the optional extra 'av2': {AV2_EXTRA} "
+                        f"(import failed: {e})") from None
+
+
+# --- map ---------------------------------------------------------------------------------------
+
+
+def _line_key(xy: np.ndarray) -> tuple:
+    """The same key for a polyline and its reverse (points rounded to DEDUP_DECIMALS)."""
+    a = tuple(np.round(xy, DEDUP_DECIMALS).ravel().tolist())
+    b = tuple(np.round(xy[::-1], DEDUP_DECIMALS).ravel().tolist())
+    return min(a, b)
+
+
+def painted_dividers(avm, area_edges) -> list[LineString]:
+    """Painted lane boundaries of an ``ArgoverseStaticMap`` (module docstring), city frame."""
+    from av2.map.lane_segment import LaneMarkType
+
+    unpainted = (LaneMarkType.NONE, LaneMarkType.UNKNOWN)
+    seen: set[tuple] = set()
+    lines = []
+    for ls in avm.get_scenario_lane_segments():
+        for marking in (ls.left_lane_marking, ls.right_lane_marking):
+            xy = np.asarray(marking.polyline, dtype=np.float64)[:, :2]
+            if marking.mark_type in unpainted or len(xy) < 2:
+                continue
+            key = _line_key(xy)
+            if key not in seen:
+                seen.add(key)
+                lines.append(LineString(xy))
+    if lines and not area_edges.is_empty:
+        near_edge = area_edges.buffer(BOUNDARY_OVERLAP_M)
+        lines = [ln for ln in lines if ln.intersection(near_edge).length <= 0.5 * ln.length]
+    if not lines:
+        return []
+    merged = shapely.line_merge(MultiLineString(lines))
+    return [g for g in shapely.get_parts(merged) if g.length > 0]
+
+
+def load_log_map(log_dir: Path) -> _LocationMap:
+    """Read a log's map archive with ``ArgoverseStaticMap`` and index its divider, crossing and
+    drivable-area geometry (city frame) for ``LocalMapBuilder``."""
+    from av2.map.map_api import ArgoverseStaticMap
+
+    map_dir = log_dir / "map"
+    files = sorted(map_dir.glob("log_map_archive_*.json")) if map_dir.is_dir() else []
+    if len(files) != 1:
+        raise MapError(f"log {log_dir.name}: expected one map archive {map_dir}/log_map_archive_*.json, found "
+                       f"{len(files)}; the log folder is incomplete (re-extract it from the AV2 sensor dataset)")
+    try:
+        avm = ArgoverseStaticMap.from_json(files[0])
+    except (KeyError, ValueError, TypeError, AttributeError, OSError, json.JSONDecodeError) as e:
+        raise MapError(f"log {log_dir.name}: cannot read map archive {files[0]}: {type(e).__name__}: {e}") from None
+    areas = [Polygon(np.asarray(da.xyz)[:, :2]) for da in avm.get_scenario_vector_drivable_areas()]
+    areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
+    edges = shapely.union_all(areas).boundary if len(areas) else LineString()
+    peds = [Polygon(np.asarray(pc.polygon)[:, :2]) for pc in avm.get_scenario_ped_crossings()]
+    peds = np.array([p for p in peds if p.is_valid and not p.is_empty], dtype=object)
+    dividers = np.array(painted_dividers(avm, edges), dtype=object)
+    return _LocationMap(dividers, shapely.STRtree(dividers), peds, shapely.STRtree(peds), areas,
+                        shapely.STRtree(areas))
+
+
+class AV2LocalMapBuilder(LocalMapBuilder):
+    """``builder(log_id, x, y, yaw) -> polyline dicts``: data/local_map.py's builder over the log maps
+    of one split folder (the nuScenes "location" is the log)."""
+
+    def location_map(self, location: str) -> _LocationMap:
+        if location not in self._maps:
+            self._maps[location] = load_log_map(self.dataroot / location)
+        return self._maps[location]
+
+
+# --- dataset -----------------------------------------------------------------------------------
+
+
+def _yaw(rotation: np.ndarray) -> float:
+    return math.atan2(rotation[1, 0], rotation[0, 0])
+
+
+class AV2MapDataset(MapDataset):
+    """Samples of one split folder of an AV2 sensor-dataset root (module docstring)."""
+
+    def __init__(self, cfg: ExperimentConfig, split: str, augment: bool | None = None):
+        require_av2("data.dataset=av2")
+        from av2.datasets.sensor.av2_sensor_dataloader import AV2SensorDataLoader
+
+        super().__init__()
+        self.cfg = cfg
+        self.data_cfg = d = cfg.data
+        self.split = split
+        self.grid = BEVGrid.from_config(cfg.grid)
+        self.augment = (d.augment and split == d.train_split) if augment is None else augment
+        self.camera_names = tuple(d.av2_cameras)
+        if len(d.classes) != 3:
+            raise ConfigError(f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, "
+                              f"boundary), got {list(d.classes)}")
+        self.dataroot = Path(d.dataroot)
+        self.split_dir = self.dataroot / split
+        self._check_root()
+        self.loader = AV2SensorDataLoader(data_dir=self.split_dir, labels_dir=self.split_dir)
+        self.samples: list[tuple[str, int]] = []
+        for log in self.loader.get_log_ids():
+            sweeps = self.loader.get_ordered_log_lidar_timestamps(log)
+            if not sweeps:
+                raise DatasetError(f"log {log}: no lidar sweeps in {self.split_dir / log / 'sensors' / 'lidar'} "
+                                   "(AV2 samples are the sweeps); the log folder is incomplete")
+            self.samples += [(log, int(ts)) for ts in sweeps[:: d.av2_frame_step]]
+        self.sample_tokens = [f"{log}/{ts}" for log, ts in self.samples]
+        self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist)
+        self._poses: dict[str, dict] = {}
+        self._cameras: dict[str, dict] = {}
+
+    def _check_root(self) -> None:
+        root, split_dir = self.dataroot, self.split_dir
+        if not root.is_dir():
+            raise DatasetError(f"AV2 dataroot not found: {root} (set data.dataroot)")
+        if not split_dir.is_dir():
+            found = sorted(p.name for p in root.iterdir() if p.is_dir())
+            raise DatasetError(f"{root} is not an AV2 sensor-dataset root: it has no split folder '{split_dir.name}' "
+                               f"of logs (expected {root}/{{train,val,test}}/<log_id>/sensors/...); its folders: "
+                               f"{', '.join(found) or 'none'} (set data.dataroot, data.train_split / data.val_split)")
+        logs = [p for p in split_dir.iterdir() if p.is_dir()]
+        if not logs:
+            raise DatasetError(f"split folder {split_dir} holds no logs (expected {split_dir}/<log_id>/sensors/...)")
+        for log in logs:
+            if not (log / "sensors").is_dir():
+                raise DatasetError(f"{split_dir} is not an AV2 split folder: {log.name} has no sensors/ folder "
+                                   f"(expected {log}/sensors/lidar, sensors/cameras, calibration/, map/)")
+
+    # --- per log, cached ------------------------------------------------------------------------
+    def _log_poses(self, log: str) -> dict:
+        if log not in self._poses:
+            from av2.utils.io import read_city_SE3_ego
+
+            path = self.split_dir / log / "city_SE3_egovehicle.feather"
+            if not path.is_file():
+                raise DatasetError(f"log {log}: ego poses not found: {path}")
+            try:
+                self._poses[log] = read_city_SE3_ego(self.split_dir / log)
+            except (KeyError, ValueError, OSError) as e:
+                raise DatasetError(f"log {log}: cannot read {path}: {type(e).__name__}: {e}") from None
+        return self._poses[log]
+
+    def _log_cameras(self, log: str) -> dict:
+        """Ring camera name -> av2 ``PinholeCamera`` of a log, for the cameras of data.av2_cameras."""
+        if log not in self._cameras:
+            from av2.geometry.camera.pinhole_camera import PinholeCamera
+            from av2.utils.io import read_ego_SE3_sensor, read_feather
+
+            log_dir = self.split_dir / log
+            intr_path = log_dir / "calibration" / "intrinsics.feather"
+            extr_path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
+            for path in (intr_path, extr_path):
+                if not path.is_file():
+                    raise DatasetError(f"log {log}: calibration file not found: {path}")
+            try:
+                intr_names = set(read_feather(intr_path)["sensor_name"])
+                extr_names = set(read_ego_SE3_sensor(log_dir))
+                cams = {}
+                for cam in self.camera_names:
+                    for names, path in ((intr_names, intr_path), (extr_names, extr_path)):
+                        if cam not in names:
+                            raise DatasetError(f"log {log}: {path} has no row for camera {cam}")
+                    cams[cam] = PinholeCamera.from_feather(log_dir, cam)
+            except (KeyError, ValueError, OSError) as e:
+                raise DatasetError(f"log {log}: cannot read its calibration ({intr_path}, {extr_path}): "
+                                   f"{type(e).__name__}: {e}") from None
+            self._cameras[log] = cams
+        return self._cameras[log]
+
+    def _pose(self, index: int):
+        log, ts = self.samples[index]
+        poses = self._log_poses(log)
+        if ts not in poses:
+            raise DatasetError(f"log {log}: {self.split_dir / log / 'city_SE3_egovehicle.feather'} has no ego pose "
+                               f"at lidar sweep {ts} (sensors/lidar/{ts}.feather)")
+        return poses[ts]
+
+    def _image_path(self, log: str, cam: str, ts: int) -> Path:
+        path = self.loader.get_closest_img_fpath(log, cam, ts)
+        if path is None or not path.is_file():
+            folder = self.split_dir / log / "sensors" / "cameras" / cam
+            stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
+            nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
+            detail = (f"the nearest is {folder / f'{nearest}.jpg'}, {abs(nearest - ts) / 1e6:.1f} ms away"
+                      if nearest is not None else "the folder holds no images")
+            raise DatasetError(f"log {log}: no {cam} image within {CAMERA_WINDOW_MS} ms of lidar sweep {ts} "
+                               f"(sensors/lidar/{ts}.feather) in {folder}: {detail}; the log's camera and lidar "
+                               "timestamps do not match")
+        return path
+
+    # --- pieces ---------------------------------------------------------------------------------
+    def gt_polylines(self, index: int) -> list[dict]:
+        """The sample's local map (polyline dicts, metres, ego frame), without loading images."""
+        log, _ = self.samples[index]
+        pose = self._pose(index)
+        x, y = pose.translation[:2]
+        return self.map_builder(log, float(x), float(y), _yaw(pose.rotation))
+
+    def ego_pose(self, index: int) -> torch.Tensor:
+        return torch.tensor(self._pose(index).transform_matrix, dtype=torch.float32)
+
+    def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
+        """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""
+        log, ts = self.samples[index]
+        cams = self._log_cameras(log)
+        return [(self._image_path(log, cam, ts), (cams[cam].width_px, cams[cam].height_px))
+                for cam in self.camera_names]
+
+    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
+        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
+        post_rot [V, 3, 3], post_tran [V, 3] (augmented when ``self.augment``)."""
+        log, _ = self.samples[index]
+        cams = self._log_cameras(log)
+        if self.augment and rng is None:
+            rng = self.augmentation_rng(index)
+        out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans",
+                                                "post_rot", "post_tran")}
+        for cam, (path, size) in zip(self.camera_names, self.camera_files(index)):
+            aug = sample_augmentation(self.data_cfg, rng) if self.augment else ImageAug()
+            image, post_rot, post_tran = load_image(path, size, self.data_cfg.image_size, aug,
+                                                    fit=self.data_cfg.image_fit)
+            pin = cams[cam]
+            out["images"].append(image)
+            out["intrinsics"].append(torch.tensor(pin.intrinsics.K, dtype=torch.float32))
+            out["cam_to_ego_rot"].append(torch.tensor(pin.ego_SE3_cam.rotation, dtype=torch.float32))
+            out["cam_to_ego_trans"].append(torch.tensor(pin.ego_SE3_cam.translation, dtype=torch.float32))
+            out["post_rot"].append(post_rot)
+            out["post_tran"].append(post_tran)
+        return {k: torch.stack(v) for k, v in out.items()}

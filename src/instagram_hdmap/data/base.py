@@ -1,0 +1,109 @@
+"""What every map dataset shares (nuscenes.py, av2.py): the sample dict of docs/conventions.md built
+from the pieces a dataset provides, the augmentation stream, and the bad-sample policy.
+
+A dataset subclasses ``MapDataset`` (calling ``super().__init__()``), sets ``cfg``, ``data_cfg``,
+``split``, ``grid``, ``augment``, ``dataroot``, ``sample_tokens`` (one string per sample) and
+``camera_names`` (V names, in the order of the camera tensors), and implements
+
+* ``gt_polylines(i)``: the sample's local map (polyline dicts, metres, ego frame), without images;
+* ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
+  [V, 3, 3], ``cam_to_ego_trans`` [V, 3], ``post_rot`` [V, 3, 3], ``post_tran`` [V, 3];
+* ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
+* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals).
+
+Bad input raises a ``UserError`` naming the file and sample; with ``data.on_bad_sample=skip`` a bad
+sample is replaced by the next good one (one warning per bad sample, with the running count;
+``num_bad_samples`` holds it) instead.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ..config import UserError
+from ..targets import build_targets
+
+
+class DatasetError(UserError):
+    """The dataroot, version, split or a sample's files cannot be used."""
+
+
+class MapDataset(Dataset):
+    """Samples of one split as dicts (docs/conventions.md, per sample: no batch dimension)."""
+
+    sample_tokens: list[str]
+    camera_names: tuple[str, ...]
+
+    def __init__(self) -> None:
+        self.epoch = 0  # see set_epoch
+        self._bad: set[int] = set()  # indices of the samples found bad (on_bad_sample=skip)
+
+    @property
+    def num_bad_samples(self) -> int:
+        """How many samples were skipped as bad so far (in this process)."""
+        return len(self._bad)
+
+    def __len__(self) -> int:
+        return len(self.sample_tokens)
+
+    def gt_polylines(self, index: int) -> list[dict]:
+        raise NotImplementedError
+
+    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def ego_pose(self, index: int) -> torch.Tensor:
+        raise NotImplementedError
+
+    def camera_files(self, index: int) -> list:
+        raise NotImplementedError
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the augmentation draws of ``epoch`` (the training loop calls it before each epoch)."""
+        self.epoch = epoch
+
+    def augmentation_rng(self, index: int) -> np.random.Generator:
+        """The augmentation stream of sample ``index`` in the current epoch: a function of
+        (``train.seed``, epoch, index) alone, so the same sample is augmented the same way whatever
+        the worker count, the process or the resume point (exact resume with augmentation)."""
+        return np.random.default_rng([self.cfg.train.seed, self.epoch, index])
+
+    def load_sample(self, index: int) -> dict:
+        """The sample dict, raising ``UserError`` (naming the sample token) on bad input."""
+        token = self.sample_tokens[index]
+        try:
+            polylines = self.gt_polylines(index)
+            cams = self.load_cameras(index)
+            ego_pose = self.ego_pose(index)
+        except UserError as e:
+            msg = str(e) if token in str(e) else f"sample {token}: {e}"
+            raise type(e)(msg) from None
+        d = self.data_cfg
+        targets = build_targets(polylines, self.grid, len(d.classes), d.dt_clip)
+        return {
+            **cams,
+            "ego_pose": ego_pose,
+            "sample_token": token,
+            "gt_polylines": polylines,
+            **targets,
+        }
+
+    def __getitem__(self, index: int) -> dict:
+        if self.data_cfg.on_bad_sample == "raise":
+            return self.load_sample(index)
+        n = len(self)
+        for k in range(n):
+            j = (index + k) % n
+            if j in self._bad:
+                continue
+            try:
+                return self.load_sample(j)
+            except UserError as e:
+                self._bad.add(j)
+                warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip, {len(self._bad)} so far): {e}",
+                              stacklevel=2)
+        raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
