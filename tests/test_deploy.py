@@ -170,6 +170,18 @@ def test_inverse_3x3_equals_linalg_inv():
     torch.testing.assert_close(inverse_3x3(K), torch.linalg.inv(K))
 
 
+def test_the_whole_model_is_one_graph_for_torch_compile():
+    """No graph break (dynamo traces the forward, Sinkhorn included, as one static graph): what lets
+    --compile fuse across the model and --cuda-graphs with --compile capture it whole. LSS (the splat);
+    IPM and MLP add grid sampling only, and Table I B0 was checked by hand (one graph, no break)."""
+    cfg = tiny_cfg()
+    model = deploy.inference_copy(random_model(cfg))
+    torch._dynamo.reset()
+    with torch.inference_mode():
+        explained = torch._dynamo.explain(model)(batch_for(cfg, 0))
+    assert (explained.graph_count, explained.graph_break_count) == (1, 0), explained.break_reasons
+
+
 @pytest.mark.slow
 def test_compiled_model_equals_eager_and_benchmark_compile_prints_its_row(capsys):
     cfg = tiny_cfg()

@@ -68,14 +68,18 @@ class DeployError(UserError):
     """A missing optional extra, an unsupported export setting, an ONNX file that does not fit."""
 
 
-def require_onnx():
-    """``(onnx, onnxruntime)``, or a ``DeployError`` naming the extra to install."""
+def require_onnx(export: bool = False):
+    """``(onnx, onnxruntime)`` (and, for ``export``, the exporter's onnxscript), or a ``DeployError``
+    naming the extra to install."""
     try:
         import onnx
         import onnxruntime
+
+        if export:
+            import onnxscript  # noqa: F401  (torch.onnx.export(dynamo=True) imports it)
     except ImportError as e:
-        raise DeployError(f"ONNX export and inference need the optional packages onnx and onnxruntime "
-                          f"({e.name} is not installed): {DEPLOY_EXTRA}") from None
+        raise DeployError(f"ONNX export and inference need the optional packages onnx, onnxruntime and "
+                          f"onnxscript ({e.name} is not installed): {DEPLOY_EXTRA}") from None
     return onnx, onnxruntime
 
 
@@ -175,7 +179,7 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
     Returns ``{"path", "opset", "inputs", "outputs", "config_sha256", "nodes"}`` (shapes as lists).
     Raises ``DeployError`` for an unsupported opset or a missing extra.
     """
-    onnx, _ = require_onnx()
+    onnx, _ = require_onnx(export=True)
     max_opset = onnx.defs.onnx_opset_version()
     if not MIN_OPSET <= opset <= max_opset:
         raise DeployError(f"--opset {opset} is not supported: the export needs opset {MIN_OPSET}..{max_opset} "
@@ -252,7 +256,7 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     from .checkpoint import CheckpointError, load_checkpoint
     from .models import build_model
 
-    require_onnx()
+    require_onnx(export=True)
     state = load_checkpoint(checkpoint)
     saved = state.get("config") if isinstance(state.get("config"), dict) else None
     cfg = export_config(cfg, saved, overrides, checkpoint)
