@@ -7,6 +7,8 @@ vertex slots (positions, mask) exactly equal, and the decoded polylines identica
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import subprocess
 import sys
@@ -183,17 +185,29 @@ def test_the_whole_model_is_one_graph_for_torch_compile():
 
 
 @pytest.mark.slow
-def test_compiled_model_equals_eager_and_benchmark_compile_prints_its_row(capsys):
+def test_compiled_model_equals_eager():
     cfg = tiny_cfg()
     model = random_model(cfg)
-    batch = batch_for(cfg, 0)
-    with torch.no_grad():
-        forward = deploy.fast_forward(model, batch, compile=True)
+    with torch.inference_mode():
+        forward = deploy.fast_forward(model, batch_for(cfg, 0), compile=True)  # compiles (minutes on 2 cores)
         other = batch_for(cfg, 1)
         assert_parity(model(other), forward(other))
+
+
+def test_benchmark_flags_reach_the_fast_forward(monkeypatch, capsys):
+    """``benchmark --compile`` times ``deploy.fast_forward(..., compile=True)`` (the compilation itself is
+    tested above; here a stand-in forward keeps this fast)."""
+    calls = []
+
+    def spy(model, example, *, compile=False, cuda_graphs=False, amp="none"):
+        calls.append((compile, cuda_graphs, amp, tuple(example["images"].shape)))
+        return model
+
+    monkeypatch.setattr(deploy, "fast_forward", spy)
     assert main(["benchmark", str(TINY), *FAST, "data.dataroot=/nonexistent", "--device", "cpu", "--compile",
-                 "--runs", "2", "--warmup", "1"]) == 0
-    assert "torch.compile" in capsys.readouterr().out
+                 "--runs", "1", "--warmup", "0"]) == 0
+    assert calls == [(True, False, "none", (1, 6, 3, 64, 160))]
+    assert "float32, torch.compile" in capsys.readouterr().out
 
 
 # --- ONNX: import hygiene and the missing extra ------------------------------------------------------------
@@ -225,15 +239,30 @@ def ort():
     return pytest.importorskip("onnxruntime", reason="the [deploy] extra (onnxruntime) is not installed")
 
 
+@pytest.fixture(scope="module")
+def tiny_export(ort, tmp_path_factory):
+    """``tiny_export(*overrides) -> (cfg, model, path)``: a random tiny model exported once per module."""
+    cache: dict[tuple, tuple] = {}
+
+    def get(*overrides: str):
+        if overrides not in cache:
+            cfg = tiny_cfg(*overrides)
+            model = random_model(cfg)
+            path = tmp_path_factory.mktemp("tiny_export") / "m.onnx"
+            info = deploy.export_onnx(model, cfg, path)
+            assert info["inputs"]["images"] == [1, 6, 3, 64, 160]
+            assert info["outputs"]["pred_log_assignment"] == [1, 129, 129]
+            cache[overrides] = (cfg, model, path)
+        return cache[overrides]
+
+    return get
+
+
 @pytest.mark.parametrize("overrides", [["model.view_transform.kind=lss"], ["model.view_transform.kind=ipm"],
                                        ["model.view_transform.kind=mlp", "model.gnn.embedding=pe+vd"]])
-def test_onnxruntime_equals_torch_and_decodes_the_same_polylines(ort, tmp_path, overrides):
-    cfg = tiny_cfg(*overrides)
-    model = random_model(cfg)
-    info = deploy.export_onnx(model, cfg, tmp_path / "m.onnx")
-    assert info["inputs"]["images"] == [1, 6, 3, 64, 160]
-    assert info["outputs"]["pred_log_assignment"] == [1, 129, 129]
-    onnx_model = deploy.OnnxModel(tmp_path / "m.onnx", cfg)
+def test_onnxruntime_equals_torch_and_decodes_the_same_polylines(tiny_export, overrides):
+    cfg, model, path = tiny_export(*overrides)
+    onnx_model = deploy.OnnxModel(path, cfg)
     grid = BEVGrid.from_config(cfg.grid)
     decoded = 0
     for seed in (1, 2):  # not the export's example input
@@ -249,12 +278,11 @@ def test_onnxruntime_equals_torch_and_decodes_the_same_polylines(ort, tmp_path, 
     assert decoded > 0  # the comparison is not between two empty maps
 
 
-def test_the_graph_uses_standard_ops_only_with_the_documented_interface(ort, tmp_path):
+def test_the_graph_uses_standard_ops_only_with_the_documented_interface(tiny_export):
     import onnx
 
-    cfg = tiny_cfg()
-    deploy.export_onnx(random_model(cfg), cfg, tmp_path / "m.onnx")
-    proto = onnx.load(str(tmp_path / "m.onnx"))
+    cfg, _, path = tiny_export("model.view_transform.kind=lss")
+    proto = onnx.load(str(path))
     onnx.checker.check_model(proto)
     assert {op.domain for op in proto.opset_import} <= {"", "ai.onnx"}
     assert {node.domain for node in proto.graph.node} <= {"", "ai.onnx"}
@@ -287,10 +315,18 @@ def checkpoint(world, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def exported(ort, world, checkpoint, tmp_path_factory) -> Path:
+def export_run(ort, world, checkpoint, tmp_path_factory) -> tuple[Path, str]:
+    """``export-onnx`` of the checkpoint: (the file, what the command printed)."""
     out = tmp_path_factory.mktemp("onnx") / "model.onnx"
-    assert main(["export-onnx", str(TINY), *world, "--checkpoint", str(checkpoint), "--out", str(out)]) == 0
-    return out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["export-onnx", str(TINY), *world, "--checkpoint", str(checkpoint), "--out", str(out)]) == 0
+    return out, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def exported(export_run) -> Path:
+    return export_run[0]
 
 
 def test_predict_onnx_draws_the_same_pictures_as_predict(world, checkpoint, exported, tmp_path, capsys, monkeypatch):
@@ -337,13 +373,11 @@ def test_predict_onnx_draws_the_same_pictures_as_predict(world, checkpoint, expo
         assert (tmp_path / "onnx" / name).stat().st_size > 1000
 
 
-def test_export_prints_the_interface_and_the_parity_of_its_check(world, checkpoint, tmp_path, capsys):
-    out = tmp_path / "m.onnx"
-    assert main(["export-onnx", str(TINY), *world, "--checkpoint", str(checkpoint), "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
+def test_export_prints_the_interface_and_the_parity_of_its_check(export_run):
+    out, printed = export_run
     assert f"wrote {out}" in printed and "opset 18" in printed
     assert "images [1, 6, 3, 64, 160]" in printed and "pred_log_assignment [1, 129, 129]" in printed
-    assert "onnxruntime check" in printed
+    assert "onnxruntime check on an example input" in printed and "on the graph outputs" in printed
 
 
 def test_bad_exports_are_one_line_errors(ort, world, checkpoint, exported, tmp_path, capsys):
