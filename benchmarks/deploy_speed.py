@@ -65,6 +65,7 @@ def build_paths(path: str, rows: list[str], onnx_dir: Path, threads: int, ort_le
                 deploy.export_onnx(model, cfg, file, source="benchmarks/deploy_speed.py random weights, seed 0")
             paths[row] = deploy.OnnxModel(file, cfg, threads=threads, optimization=ort_level)
         setup[row] = time.perf_counter() - start
+        print(f"  {Path(path).stem}: {row} ready in {setup[row]:.0f} s", flush=True)
         with torch.inference_mode():
             diffs[row] = max_diff(expected, paths[row](batch))
         if row == "onnxruntime" and diffs[row][0] > 1e-2:  # a stale file from other weights: export again
