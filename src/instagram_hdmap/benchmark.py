@@ -123,12 +123,15 @@ def run_benchmark(
     checkpoint: str | Path | None = None,
     overrides: tuple[str, ...] | list[str] = (),
     seed: int = 0,
+    compile: bool = False,
+    cuda_graphs: bool = False,
 ) -> dict:
     """Time the model (and model + post-processing) on batch 1 with six cameras; see the module docstring.
 
     ``device``: "cpu", "cuda" (or "cuda:i"); ``None`` uses ``train.device``. ``runs`` / ``warmup``
     default to 50 / 10 on a GPU and 10 / 2 on the CPU. Returns a dict of settings and per-row
-    statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``).
+    statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``). ``compile`` / ``cuda_graphs``: time
+    ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
     """
     from .engine import autocast_context
     from .models import build_model
@@ -171,7 +174,15 @@ def run_benchmark(
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
 
+    if compile or cuda_graphs:
+        from .deploy import fast_forward
+
+        with torch.inference_mode():  # the mode of the timed calls (compiled code is specialised to it)
+            fast = fast_forward(model, batch, compile=compile, cuda_graphs=cuda_graphs, amp=amp)
+
     def forward() -> dict:
+        if compile or cuda_graphs:
+            return fast(batch)
         with autocast_context(dev, amp):
             return model(batch)
 
@@ -198,7 +209,8 @@ def run_benchmark(
     return {
         "config_name": cfg.name,
         "device": device_name(dev),
-        "dtype": {"none": "float32", "bf16": "bfloat16 autocast", "fp16": "float16 autocast"}[amp],
+        "dtype": {"none": "float32", "bf16": "bfloat16 autocast", "fp16": "float16 autocast"}[amp]
+        + "".join(f", {name}" for name, on in (("torch.compile", compile), ("CUDA graph", cuda_graphs)) if on),
         "threads": torch.get_num_threads(),
         "batch": f"1 x {V} cameras x {h}x{w}",
         "backbone": cfg.model.backbone.name,

@@ -208,7 +208,8 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     from .predict import predict_sample
 
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
-                            split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction)
+                            split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
+                            onnx=args.onnx)
     _print_notes(result["notes"])
     print(f"sample {result['sample_token']} (split '{result['split']}', index {result['index']}): "
           f"{len(result['predictions'])} predicted instances; wrote {', '.join(str(p) for p in result['paths'])}")
@@ -219,8 +220,25 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from .benchmark import format_benchmark, run_benchmark
 
     result = run_benchmark(_load(args), device=args.device, amp=args.amp, runs=args.runs, warmup=args.warmup,
-                           checkpoint=args.checkpoint, overrides=args.overrides)
+                           checkpoint=args.checkpoint, overrides=args.overrides, compile=args.compile,
+                           cuda_graphs=args.cuda_graphs)
     print(format_benchmark(result, args.config))
+    return 0
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from .deploy import export_checkpoint
+
+    info = export_checkpoint(_load(args), args.checkpoint, args.out, overrides=args.overrides, opset=args.opset)
+    print(f"wrote {info['path']}: opset {info['opset']}, {info['nodes']} nodes, static batch 1, config "
+          f"{info['config'].name} (sha256 {info['config_sha256'][:12]})")
+    for kind in ("inputs", "outputs"):
+        print(f"{kind}: " + ", ".join(f"{name} {shape}" for name, shape in info[kind].items()))
+    check = info["check"]
+    graph = (f"{check['graph']:.1e} on the graph outputs" if check["same_vertices"] else
+             "different vertices: top-N cut through equal scores (random weights?), graph outputs not compared")
+    print(f"onnxruntime check on an example input: max |onnxruntime - torch| {check['dense']:.1e} on the dense "
+          f"outputs, {graph}")
     return 0
 
 
@@ -331,6 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
+    p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
     p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser("benchmark", help="inference FPS, batch 1, six cameras, with and without post-processing")
@@ -340,7 +359,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, help="timed runs (default 50 on a GPU, 10 on the CPU)")
     p.add_argument("--warmup", type=int, help="untimed warm-up runs (default 10 on a GPU, 2 on the CPU)")
     p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")
+    p.add_argument("--compile", action="store_true", help="torch.compile the whole model (static shapes) first")
+    p.add_argument("--cuda-graphs", action="store_true", help="capture the forward in a CUDA graph and replay it")
     p.set_defaults(func=_cmd_benchmark)
+
+    p = sub.add_parser("export-onnx", help="export a checkpoint as one static ONNX graph for onnxruntime",
+                       description="Writes the whole model (images + calibration in, the model's output dict out, "
+                       "batch 1, a fixed number of Sinkhorn iterations, standard ops only) to --out, checks it in "
+                       "onnxruntime and prints the interface (docs/deploy.md). Needs the [deploy] extra.")
+    _add_config_args(p)
+    p.add_argument("--checkpoint", required=True, help="model checkpoint; its config must match CONFIG + overrides")
+    p.add_argument("--out", required=True, help="ONNX file to write")
+    p.add_argument("--opset", type=int, default=18, help="ONNX opset (default 18, the lowest the exporter writes)")
+    p.set_defaults(func=_cmd_export_onnx)
 
     p = sub.add_parser("demo", help="the whole pipeline on the synthetic world on a CPU: train, evaluate, draw",
                        description="Generates (once, cached) a synthetic world, trains configs/synthetic/demo.yaml "

@@ -27,6 +27,12 @@ from .config import ConfigError, GridConfig
 ArrayLike = np.ndarray | torch.Tensor
 
 
+def pair_like(like: torch.Tensor, a: float, b: float) -> torch.Tensor:
+    """``[a, b]`` with ``like``'s dtype and device, filled on the device: ``new_tensor`` would copy from
+    host memory, which a CUDA graph cannot capture (``deploy.CUDAGraphRunner``)."""
+    return torch.stack([like.new_full((), a), like.new_full((), b)])
+
+
 @dataclass(frozen=True)
 class BEVGrid:
     xmin: float
@@ -86,7 +92,7 @@ class BEVGrid:
     def _origin_scale(self, like: ArrayLike):
         lo = [self.xmin, self.ymin]
         if isinstance(like, torch.Tensor):
-            return like.new_tensor(lo), self.resolution
+            return pair_like(like, *lo), self.resolution
         return np.asarray(lo, dtype=like.dtype if like.dtype.kind == "f" else np.float64), self.resolution
 
     def m_to_px(self, pts_m: ArrayLike) -> ArrayLike:
@@ -98,8 +104,10 @@ class BEVGrid:
         return (pts_px + 0.5) * res + lo
 
     def px_to_norm(self, pts_px: ArrayLike) -> ArrayLike:
-        size = [self.W, self.H]
-        size = pts_px.new_tensor(size) if isinstance(pts_px, torch.Tensor) else np.asarray(size, dtype=float)
+        if isinstance(pts_px, torch.Tensor):
+            size = pair_like(pts_px, self.W, self.H)
+        else:
+            size = np.array([self.W, self.H], dtype=float)
         return (pts_px + 0.5) / size * 2 - 1
 
     def norm_to_px(self, pts_norm: ArrayLike) -> ArrayLike:

@@ -281,6 +281,7 @@ def predict_sample(
     overrides: Sequence[str] = (),
     gt_as_prediction: bool = False,
     camera_width: int = 480,
+    onnx: str | Path | None = None,
 ) -> dict:
     """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
 
@@ -290,6 +291,9 @@ def predict_sample(
     * ``prediction_intermediate.png``: the paper's Fig. 6 (vertex heatmap, distance transform per
       class, vertices by GNN class, adjacency edges);
     * ``prediction.json``: the sample's predictions in the submission format.
+
+    ``onnx``: an ``export-onnx`` file run by onnxruntime instead of a checkpoint (``deploy.OnnxModel``:
+    its baked config must be ``cfg``'s); its outputs go through the same post-processing and pictures.
 
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
@@ -303,11 +307,16 @@ def predict_sample(
     if gt_as_prediction and checkpoint is not None:
         raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
                            "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
-    if not gt_as_prediction and checkpoint is None:
-        raise PredictError("pass --checkpoint CKPT, or --gt-as-prediction to draw GT-derived predictions")
+    if sum(x is not None for x in (checkpoint, onnx)) + gt_as_prediction != 1:
+        raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
+                           "(GT-derived predictions)")
     notes: list[str] = []
     model = None
     source = "GT-derived predictions (--gt-as-prediction)"  # computed where the dataset puts them
+    if onnx is not None:
+        from .deploy import OnnxModel
+
+        model, source = OnnxModel(onnx, cfg), f"ONNX {onnx} (onnxruntime)"
     if checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides)
         source = f"checkpoint {checkpoint}"
@@ -321,6 +330,8 @@ def predict_sample(
     with torch.no_grad():
         if model is None:
             outputs = gt_outputs(batch, grid, len(classes))
+        elif onnx is not None:
+            outputs = model(batch)
         else:
             outputs = model(move_to(batch, next(model.parameters()).device))
     threshold = cfg.model.gnn.match_threshold

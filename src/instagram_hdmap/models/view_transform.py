@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..geometry import BEVGrid
+from ..geometry import BEVGrid, pair_like
 
 CALIBRATION_KEYS = ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
 _MIN_DEPTH = 1e-3  # metres in front of the camera for a projection to count
@@ -59,6 +59,17 @@ def ego_to_input_pixels(points_m: torch.Tensor, calib: dict[str, torch.Tensor]) 
     return uvd[..., :2], depth
 
 
+def inverse_3x3(m: torch.Tensor) -> torch.Tensor:
+    """Inverse of a batch of 3x3 matrices [..., 3, 3] by the adjugate (cross products of the rows),
+    in plain elementwise ops: it exports to ONNX (which has no matrix inverse), needs no host
+    synchronisation (capturable in a CUDA graph) and is exact to float32 rounding for the
+    well-conditioned calibration matrices used here."""
+    r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
+    c0, c1, c2 = torch.cross(r1, r2, dim=-1), torch.cross(r2, r0, dim=-1), torch.cross(r0, r1, dim=-1)
+    det = (r0 * c0).sum(-1)[..., None, None]
+    return torch.stack([c0, c1, c2], -1) / det  # column j = cross product j
+
+
 def input_pixels_to_ego(uvd: torch.Tensor, calib: dict[str, torch.Tensor]) -> torch.Tensor:
     """Back-project network-input pixels with depths to the ego frame (the LSS frustum geometry).
 
@@ -66,9 +77,9 @@ def input_pixels_to_ego(uvd: torch.Tensor, calib: dict[str, torch.Tensor]) -> to
     """
     with torch.autocast(uvd.device.type, enabled=False):
         uvd = uvd.float() - calib["post_tran"].float()[:, :, None]
-        uvd = torch.einsum("bvij,bvpj->bvpi", torch.linalg.inv(calib["post_rot"].float()), uvd)
+        uvd = torch.einsum("bvij,bvpj->bvpi", inverse_3x3(calib["post_rot"].float()), uvd)
         cam = torch.cat([uvd[..., :2] * uvd[..., 2:], uvd[..., 2:]], -1)
-        combine = calib["cam_to_ego_rot"].float() @ torch.linalg.inv(calib["intrinsics"].float())
+        combine = calib["cam_to_ego_rot"].float() @ inverse_3x3(calib["intrinsics"].float())
         return torch.einsum("bvij,bvpj->bvpi", combine, cam) + calib["cam_to_ego_trans"].float()[:, :, None]
 
 
@@ -76,7 +87,7 @@ def pixel_to_sample_grid(uv_px: torch.Tensor, image_size: tuple[int, int]) -> to
     """Network-input pixels [..., 2] -> ``grid_sample`` coordinates (align_corners=False) of any
     feature map covering the whole input, e.g. the fh x fw features."""
     h, w = image_size
-    return (uv_px + 0.5) / uv_px.new_tensor([w, h]) * 2 - 1
+    return (uv_px + 0.5) / pair_like(uv_px, w, h) * 2 - 1
 
 
 def sum_pool(values: torch.Tensor, cells: torch.Tensor, num_cells: int) -> torch.Tensor:
