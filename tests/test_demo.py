@@ -181,3 +181,18 @@ def test_metrics_name_the_unseen_validation_world_and_the_schedule(demo_run):
     t = metrics["train"]
     # FAST cuts the run at 3 steps: the metrics must say the schedule did not complete
     assert t["final_lr_reached"] is False and 0 < t["progress"] < 1
+
+
+def test_a_killed_generation_leaves_no_lasting_debris(tmp_path, monkeypatch):
+    """kill -9 during generation leaves the temporary folder (never the world's own name); the next
+    run removes it when its process is gone, and keeps one whose process still runs."""
+    cache = tmp_path / "cache"
+    root = cache / demo.world_key(WORLD)
+    dead = cache / f".{root.name}.synth-tmp-999999999"
+    alive = cache / f".{root.name}.synth-tmp-{__import__('os').getpid()}"
+    for d in (dead, alive):
+        (d / "samples").mkdir(parents=True)
+    monkeypatch.setattr(demo, "check_disk", lambda *a: (_ for _ in ()).throw(demo.DemoError("stop here")))
+    with pytest.raises(demo.DemoError, match="stop here"):
+        demo.ensure_world(cache, WORLD, progress=False)
+    assert not dead.exists() and alive.exists() and not root.exists()
