@@ -376,6 +376,31 @@ def test_implicit_sinkhorn_padding_changes_no_real_gradient():
     assert torch.isfinite(g_few).all() and torch.isfinite(b_few)
 
 
+def test_implicit_sinkhorn_backward_survives_underflow_and_non_finite_scores():
+    """A real row whose plan underflows to 0 (iterations far from converged on extreme scores) gave
+    0 / 0 in the backward, and a non-finite sample made MKL's LU return invalid pivots, so lu_solve
+    raised in the middle of training: both now give finite gradients, and the other sample of the
+    batch keeps exactly the gradient it has alone."""
+    gen = torch.Generator().manual_seed(5)
+    B, N = 2, 6
+    scores = torch.randn(B, N, N, generator=gen)
+    scores[0, 1, :] = -3000.0  # its plan underflows: exp(-3000) = 0 in float64
+    mask = torch.ones(B, N, dtype=torch.bool)
+    weights = torch.randn(B, N + 1, N + 1, generator=gen)
+    for poison in (None, float("nan"), float("inf")):
+        s = scores.clone()
+        if poison is not None:
+            s[0, 2, 3] = poison
+        s.requires_grad_()
+        z = log_optimal_transport(s, torch.tensor(-3000.0), mask, iters=0)
+        (torch.where(torch.isfinite(z), z, 0.0) * weights).sum().backward()  # no RuntimeError
+        assert torch.isfinite(s.grad).all()
+        alone = scores[1:].clone().requires_grad_()
+        z1 = log_optimal_transport(alone, torch.tensor(-3000.0), mask[1:], iters=0)
+        (z1 * weights[1:]).sum().backward()
+        torch.testing.assert_close(s.grad[1:], alone.grad)
+
+
 @pytest.mark.parametrize("spread", [1.0, 6.0, 400.0])  # 400: beyond the scaling form's float64 range
 def test_cpu_scaling_sinkhorn_equals_the_log_space_iterations(spread):
     """The CPU's float64 scaling-form iterations give the log-space iterations' potentials (same

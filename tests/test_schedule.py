@@ -28,6 +28,9 @@ def test_step_schedule_equals_torch_steplr_stepped_per_epoch():
         opt.step()
         sched.step()
     assert final_lr_factor(cfg) == pytest.approx(0.01)  # decays at epochs 3 and 6
+    # a milestone at the last epoch never comes, also a rounding error below progress 1 (it did)
+    even = TrainConfig(epochs=50, lr=1.0, lr_step=25, lr_gamma=0.1)
+    assert lr_factor(1.0 - 1e-12, even) == lr_factor(1.0, even) == final_lr_factor(even) == pytest.approx(0.1)
 
 
 def test_cosine_and_warmup_shapes():
@@ -70,10 +73,24 @@ def test_bad_schedule_keys_are_named():
             load_config(None, [bad])
 
 
-def test_tiny_time_budget_still_reaches_the_final_lr(tmp_path):
-    """100 epochs could never run in 2 s: the run takes fewer steps of the whole schedule, and its
-    last steps run at the final (twice decayed) LR."""
-    cfg = _tiny_cfg(tmp_path, "train.epochs=100", "train.lr_step=40", "train.time_budget_min=0.04",
+@pytest.fixture
+def ticking_clock(monkeypatch):
+    """The clock advances 50 ms on every read: time budgets run out after the same number of steps
+    on a quiet machine and on a loaded CI runner (a real clock made these tests depend on the load)."""
+    now = {"t": 1000.0}
+
+    def tick():
+        now["t"] += 0.05
+        return now["t"]
+
+    monkeypatch.setattr("instagram_hdmap.schedule.time.perf_counter", tick)
+    return now
+
+
+def test_tiny_time_budget_still_reaches_the_final_lr(tmp_path, ticking_clock):
+    """200 steps could never run in 6 s of a clock that ticks 50 ms per read: the run takes fewer
+    steps of the whole schedule, and its last steps run at the final (twice decayed) LR."""
+    cfg = _tiny_cfg(tmp_path, "train.epochs=100", "train.lr_step=40", "train.time_budget_min=0.1",
                     "train.deterministic=false")
     summary = train(cfg, loaders=_loaders(cfg), validate=False)
     total = 100 * 2
@@ -93,11 +110,11 @@ def test_a_cut_run_says_its_schedule_is_incomplete(tmp_path):
     assert not summary["schedule_complete"] and summary["lr"] == pytest.approx(cfg.train.lr)
 
 
-def test_resume_continues_the_progress_exactly(tmp_path):
+def test_resume_continues_the_progress_exactly(tmp_path, ticking_clock):
     """A run with a time budget, stopped after 3 steps: the checkpoint holds its elapsed time and
     progress; the resumed run starts from that progress (its first LR is the schedule's LR there),
     adds its own time to the elapsed time, and completes the schedule."""
-    budget = 0.05
+    budget = 0.1  # 6 s of the ticking clock: the first run's 3 steps take a fraction of it
     part = _tiny_cfg(tmp_path, "train.epochs=50", "train.lr_step=25", f"train.time_budget_min={budget}",
                      "train.max_steps=3", "train.deterministic=false")
     train(part, loaders=_loaders(part), validate=False)

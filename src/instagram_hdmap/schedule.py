@@ -47,8 +47,11 @@ def lr_factor(progress: float, cfg: TrainConfig) -> float:
             q = (p - cfg.warmup) / max(1.0 - cfg.warmup, 1e-12)
             base = cfg.min_lr_factor + (1.0 - cfg.min_lr_factor) * 0.5 * (1.0 + math.cos(math.pi * q))
     else:  # step
-        # decays at progress k * lr_step / epochs; the small epsilon keeps an exact milestone decayed
+        # decays at progress k * lr_step / epochs; the small epsilon keeps an exact milestone decayed.
+        # A milestone at or after the last epoch never comes (StepLR would step it after training):
+        # without the cap, a progress a rounding error below 1 took one decay too many
         decays = math.floor(p * cfg.epochs / cfg.lr_step + 1e-9) if cfg.lr_step > 0 else 0
+        decays = min(decays, (cfg.epochs - 1) // cfg.lr_step) if cfg.lr_step > 0 else 0
         base = cfg.lr_gamma ** decays
     if cfg.warmup > 0 and p < cfg.warmup:
         base *= max(p / cfg.warmup, 1e-3)
@@ -57,7 +60,7 @@ def lr_factor(progress: float, cfg: TrainConfig) -> float:
 
 def final_lr_factor(cfg: TrainConfig) -> float:
     """The factor of the schedule's last phase (what a complete run ends with)."""
-    return lr_factor(1.0 - 1e-9, cfg)
+    return lr_factor(1.0, cfg)
 
 
 class ProgressClock:

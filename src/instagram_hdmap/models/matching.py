@@ -206,7 +206,7 @@ class _ImplicitSinkhorn(torch.autograd.Function):
     entries with a padded row or column (meaningless outputs that no loss reads, and whose
     couplings are masked constants), so the Schur complement in b, regularised along the gauge,
     has a unique solution orthogonal to it: S b = g_c - P^T (g_r / r), S = diag c - P^T diag(1/r) P.
-    Solved in float64, size N+1 per sample.
+    Solved in float64 by Cholesky (S is positive semi-definite; + gauge + ridge, definite), size N+1 per sample.
     """
 
     @staticmethod
@@ -223,8 +223,11 @@ class _ImplicitSinkhorn(torch.autograd.Function):
         g = torch.where(pair, grad, torch.zeros_like(grad)).double()
         p = torch.where(pair, (z + norm[:, None, None]).double().exp(), torch.zeros_like(g))  # [B, N+1, N+1]
         fv = valid.double()
-        r = torch.where(valid, p.sum(2), torch.ones_like(fv))  # padded rows: 1 (their a is 0)
-        c = torch.where(valid, p.sum(1), torch.ones_like(fv))
+        # padded rows / columns: 1 (their a, b are 0). A real row whose every entry underflows
+        # (iterations far from converged on extreme scores) has r = 0: clamped, P / r is 0, not 0 / 0
+        tiny = torch.finfo(torch.float64).tiny
+        r = torch.where(valid, p.sum(2).clamp(min=tiny), torch.ones_like(fv))
+        c = torch.where(valid, p.sum(1).clamp(min=tiny), torch.ones_like(fv))
         g_r, g_c = g.sum(2), g.sum(1)
         schur = torch.diag_embed(c) - p.transpose(1, 2) @ (p / r[:, :, None])
         gauge = fv / fv.sum(1, keepdim=True).sqrt()  # unit vector along the gauge direction of b
@@ -233,8 +236,21 @@ class _ImplicitSinkhorn(torch.autograd.Function):
         # (independent blocks, each with its own gauge, along which dL/dC does not change)
         schur = schur + scale * gauge[:, :, None] * gauge[:, None, :] + torch.diag_embed(RIDGE * c)
         rhs = g_c - (p.transpose(1, 2) @ (g_r / r)[:, :, None])[..., 0]
-        b = torch.linalg.solve_ex(schur, rhs[..., None])[0][..., 0]
+        # S + gauge + ridge is symmetric positive definite: Cholesky, not LU. (MKL's batched LU, after
+        # some earlier work in the same process with 2 threads, returned garbage pivots on finite
+        # matrices and lu_solve raised mid-training; its Cholesky gave the per-sample solution.)
+        # A sample whose system is not finite (scores that overflowed upstream) or numerically not
+        # positive definite gets b = 0, and below the direct gradient G where the correction is not finite.
+        eye = torch.eye(schur.shape[-1], dtype=schur.dtype, device=schur.device)
+        ok = torch.isfinite(schur).flatten(1).all(1) & torch.isfinite(rhs).all(1)  # [B]
+        schur = torch.where(ok[:, None, None], schur, eye)
+        chol, info = torch.linalg.cholesky_ex(schur)
+        ok = ok & (info == 0)
+        chol = torch.where(ok[:, None, None], chol, eye)
+        rhs = torch.where(ok[:, None], rhs, torch.zeros_like(rhs))
+        b = torch.cholesky_solve(rhs[..., None], chol)[..., 0]
         b = torch.where(torch.isfinite(b), b, torch.zeros_like(b)) * fv
         a = (g_r - (p @ b[:, :, None])[..., 0]) / r * fv
         dc = g - (a[:, :, None] + b[:, None, :]) * p
+        dc = torch.where(torch.isfinite(dc), dc, g)
         return dc.to(grad.dtype), None, None, None, None
