@@ -14,7 +14,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint
-from instagram_hdmap.config import UserError, load_config
+from instagram_hdmap.config import ConfigError, UserError, load_config
 from instagram_hdmap.data.nuscenes import collate_fn
 from instagram_hdmap.distributed import ResumableSampler
 from instagram_hdmap.geometry import BEVGrid
@@ -223,3 +223,41 @@ def test_augmentation_depends_on_seed_epoch_and_index_only(tiny_world_cfg):
     assert not torch.equal(ds.load_cameras(2)["post_rot"], first)
     ds.set_epoch(1)
     assert not torch.equal(ds.load_cameras(1)["post_rot"], first)
+
+
+def test_cpu_threads_leave_a_core_to_each_data_worker(tmp_path, monkeypatch):
+    """Automatic intra-op threads = usable cores - data workers (>= 1), per local process; an explicit
+    train.cpu_threads wins; OMP_NUM_THREADS set by the user leaves torch's own setting alone."""
+    from instagram_hdmap import train as train_module
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(train_module, "usable_cores", lambda: 8)
+    threads = train_module.cpu_threads
+    assert threads(_tiny_cfg(tmp_path, "data.num_workers=2")) == 6
+    assert threads(_tiny_cfg(tmp_path, "data.num_workers=2"), local_processes=4) == 1  # 8 // 4 - 2 = 0 -> 1
+    assert threads(_tiny_cfg(tmp_path, "data.num_workers=0"), local_processes=2) == 4
+    assert threads(_tiny_cfg(tmp_path, "data.num_workers=12")) == 1
+    assert threads(_tiny_cfg(tmp_path, "train.cpu_threads=3", "data.num_workers=2")) == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "5")
+    assert threads(_tiny_cfg(tmp_path, "data.num_workers=2")) is None
+    assert threads(_tiny_cfg(tmp_path, "train.cpu_threads=3")) == 3
+    with pytest.raises(ConfigError, match="cpu_threads"):
+        _tiny_cfg(tmp_path, "train.cpu_threads=0")
+
+
+def test_training_runs_with_its_threads_and_gives_the_setting_back(tmp_path, monkeypatch):
+    from instagram_hdmap import train as train_module
+
+    seen = []
+    original = train_module.train_one_epoch
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "train_one_epoch", spy)
+    before = torch.get_num_threads()
+    cfg = _tiny_cfg(tmp_path, "train.epochs=1", "train.cpu_threads=1")
+    summary = train(cfg, loaders=_loaders(cfg), validate=False)
+    assert seen == [1] and summary["cpu_threads"] == 1
+    assert torch.get_num_threads() == before

@@ -190,6 +190,10 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between mid-epoch saves of last.pt (0: epoch ends only)
     deterministic: bool = False  # torch.use_deterministic_algorithms (exact resume on CPU)
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    # torch intra-op threads of a CPU training run; null = the cores this process may use minus the
+    # data workers (>= 1), unless OMP_NUM_THREADS is set. Two cores shared by two torch threads and
+    # a data worker ran the demo 12 % slower than one thread (benchmarks/torch_builds.py)
+    cpu_threads: int | None = None
 
 
 @dataclass
@@ -398,6 +402,8 @@ def validate_config(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"config key 'train.time_budget_min' must be > 0 (or null for none), got {t.time_budget_min}")
     if t.max_steps is not None and t.max_steps <= 0:
         raise ConfigError(f"config key 'train.max_steps' must be > 0 (or null), got {t.max_steps}")
+    if t.cpu_threads is not None and t.cpu_threads < 1:
+        raise ConfigError(f"config key 'train.cpu_threads' must be >= 1 (or null: automatic), got {t.cpu_threads}")
     if not 0 <= t.warmup < 1:
         raise ConfigError(f"config key 'train.warmup' must be in [0, 1) (a fraction of training), got {t.warmup}")
     if t.lr_step < 1:

@@ -303,7 +303,8 @@ def _schedule_report(cfg: ExperimentConfig, state: dict, summary: dict) -> dict:
     progress = float(clock.get("progress", 0.0))
     return {"schedule": cfg.train.schedule, "progress": round(progress, 4), "lr": lrs[0], "final_lr": final,
             "final_lr_reached": bool(progress >= 1.0 and math.isclose(lrs[0], final, rel_tol=1e-6)),
-            "time_budget_min": cfg.train.time_budget_min, "epochs": cfg.train.epochs}
+            "time_budget_min": cfg.train.time_budget_min, "epochs": cfg.train.epochs,
+            "cpu_threads": summary.get("cpu_threads"), "data_workers": cfg.data.num_workers}
 
 
 def _strict_json(obj):

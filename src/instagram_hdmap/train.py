@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import random
 from pathlib import Path
 
@@ -116,6 +117,26 @@ def make_evaluator(cfg: ExperimentConfig):
     return Evaluator.from_config(cfg)
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask; all cores where there is none)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
+    """Intra-op threads for a CPU training run (``train.cpu_threads``); None: leave torch's setting
+    (``OMP_NUM_THREADS`` is set and no explicit value is given). Automatic: this process's share of
+    the usable cores minus its data workers, at least 1: on a small machine the data workers' JPEG
+    decoding and torch's spin-waiting OpenMP threads otherwise fight over the same cores."""
+    if cfg.train.cpu_threads is not None:
+        return cfg.train.cpu_threads
+    if os.environ.get("OMP_NUM_THREADS"):
+        return None
+    return max(1, usable_cores() // max(local_processes, 1) - cfg.data.num_workers)
+
+
 def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = False,
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
@@ -214,12 +235,21 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     log = (out_dir / "log.jsonl").open("a") if du.is_main_process() else None
     summary: dict = {}
     stopped = False
+    threads_before = torch.get_num_threads()
+    threads = cpu_threads(cfg, int(os.environ.get("LOCAL_WORLD_SIZE", 1))) if device.type == "cpu" else None
+    if threads is not None:
+        torch.set_num_threads(threads)  # restored when train() returns (the finally below)
     clock.start()
     set_lr(global_step)
+    if device.type == "cpu":
+        du.print_main(f"cpu: {torch.get_num_threads()} torch thread(s), {cfg.data.num_workers} data worker(s), "
+                      f"{usable_cores()} usable core(s)" + (" (train.cpu_threads)" if cfg.train.cpu_threads
+                                                           else " (OMP_NUM_THREADS)" if threads is None else ""))
     du.print_main(f"schedule: {cfg.train.schedule}, {total_steps} steps"
                   + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
                   + f"; progress {clock.last:.3f}, lr {optimizer.param_groups[0]['lr']:.3g}")
     try:
+        summary["cpu_threads"] = torch.get_num_threads() if device.type == "cpu" else None
         finished = should_stop(global_step)
         while not finished:
             sampler.set_epoch(epoch, start=step_in_epoch * train_loader.batch_size)
@@ -233,7 +263,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             )
             global_step, step_in_epoch, stopped = result["global_step"], result["step_in_epoch"], result["stopped"]
             progress.update(epoch=epoch, step=global_step, in_epoch=step_in_epoch)
-            summary = {"epoch": epoch, "step": global_step, "train": result["stats"],
+            summary = {**summary, "epoch": epoch, "step": global_step, "train": result["stats"],
                        "train_seconds": round(result["seconds"], 2), "samples_per_s": round(result["samples_per_s"], 2),
                        **schedule_summary()}
             if stopped:  # part-way through the epoch: resume continues it
@@ -272,6 +302,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             log.close()
         if writer is not None:
             writer.close()
+        torch.set_num_threads(threads_before)
     summary.update(schedule_summary())
     summary["out_dir"] = str(out_dir)
     return summary
