@@ -48,8 +48,7 @@ import shapely
 import torch
 from shapely.geometry import LineString, MultiLineString, Polygon
 
-from ..config import ConfigError, ExperimentConfig, UserError
-from ..geometry import BEVGrid
+from ..config import ExperimentConfig, UserError
 from .base import DatasetError, MapDataset
 from .local_map import LocalMapBuilder, MapError, _LocationMap
 from .transforms import ImageAug, load_image, sample_augmentation
@@ -152,16 +151,9 @@ class AV2MapDataset(MapDataset):
         require_av2("data.dataset=av2")
         from av2.datasets.sensor.av2_sensor_dataloader import AV2SensorDataLoader
 
-        super().__init__()
-        self.cfg = cfg
-        self.data_cfg = d = cfg.data
-        self.split = split
-        self.grid = BEVGrid.from_config(cfg.grid)
-        self.augment = (d.augment and split == d.train_split) if augment is None else augment
+        super().__init__(cfg, split, augment)
+        d = cfg.data
         self.camera_names = tuple(d.av2_cameras)
-        if len(d.classes) != 3:
-            raise ConfigError(f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, "
-                              f"boundary), got {list(d.classes)}")
         self.dataroot = Path(d.dataroot)
         self.split_dir = self.dataroot / split
         self._check_root()

@@ -1,9 +1,9 @@
 """What every map dataset shares (nuscenes.py, av2.py): the sample dict of docs/conventions.md built
 from the pieces a dataset provides, the augmentation stream, and the bad-sample policy.
 
-A dataset subclasses ``MapDataset`` (calling ``super().__init__()``), sets ``cfg``, ``data_cfg``,
-``split``, ``grid``, ``augment``, ``dataroot``, ``sample_tokens`` (one string per sample) and
-``camera_names`` (V names, in the order of the camera tensors), and implements
+A dataset subclasses ``MapDataset`` (calling ``super().__init__(cfg, split, augment)``, which sets
+``cfg``, ``data_cfg``, ``split``, ``grid`` and ``augment``), sets ``dataroot``, ``sample_tokens`` (one
+string per sample) and ``camera_names`` (V names, in the order of the camera tensors), and implements
 
 * ``gt_polylines(i)``: the sample's local map (polyline dicts, metres, ego frame), without images;
 * ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
@@ -24,7 +24,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from ..config import UserError
+from ..config import ConfigError, ExperimentConfig, UserError
+from ..geometry import BEVGrid
 from ..targets import build_targets
 
 
@@ -38,7 +39,15 @@ class MapDataset(Dataset):
     sample_tokens: list[str]
     camera_names: tuple[str, ...]
 
-    def __init__(self) -> None:
+    def __init__(self, cfg: ExperimentConfig, split: str, augment: bool | None = None) -> None:
+        """``augment``: train-time image augmentation; default ``cfg.data.augment and split == train_split``."""
+        d = cfg.data
+        if len(d.classes) != 3:
+            raise ConfigError(f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, "
+                              f"boundary) that the local map produces, got {list(d.classes)}")
+        self.cfg, self.data_cfg, self.split = cfg, d, split
+        self.grid = BEVGrid.from_config(cfg.grid)
+        self.augment = (d.augment and split == d.train_split) if augment is None else augment
         self.epoch = 0  # see set_epoch
         self._bad: set[int] = set()  # indices of the samples found bad (on_bad_sample=skip)
 

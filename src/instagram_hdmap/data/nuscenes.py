@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import ConfigError, ExperimentConfig, UserError
-from ..geometry import BEVGrid
+from ..config import ExperimentConfig, UserError
 from .base import DatasetError, MapDataset
 from .local_map import LocalMapBuilder, MapError
 from .transforms import ImageAug, load_image, sample_augmentation
@@ -143,17 +142,8 @@ class NuScenesMapDataset(MapDataset):
     camera_names = CAMERAS
 
     def __init__(self, cfg: ExperimentConfig, split: str, nusc=None, augment: bool | None = None):
-        super().__init__()
-        self.cfg = cfg
-        self.data_cfg = d = cfg.data
-        self.split = split
-        self.grid = BEVGrid.from_config(cfg.grid)
-        self.augment = (d.augment and split == d.train_split) if augment is None else augment
-        if len(d.classes) != 3:
-            raise ConfigError(
-                f"config key 'data.classes' must name the 3 map classes (divider, ped_crossing, boundary) that "
-                f"the local map produces, got {list(d.classes)}"
-            )
+        super().__init__(cfg, split, augment)
+        d = cfg.data
         self.nusc = nusc if nusc is not None else open_nuscenes(d.dataroot, d.version)
         self.dataroot = Path(self.nusc.dataroot)
         names = set(split_scene_names(self.nusc, d.version, split, d.splits_file))

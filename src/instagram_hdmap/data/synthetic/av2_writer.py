@@ -56,8 +56,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import shutil
 import uuid
 from pathlib import Path as FsPath
 
@@ -79,10 +77,10 @@ from .world import (
     SCENE_SPACING_US,
     _check_counts,
     _check_workers,
-    _prepare_out,
     _render_parallel,
     _render_serial,
     _SceneJob,
+    _write_atomically,
 )
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
@@ -162,17 +160,8 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     size = parse_image_size(image_size)
     _check_counts(scenes_train, scenes_val, samples_per_scene)
     workers = _check_workers(workers)
-    out = FsPath(out)
-    tmp = _prepare_out(out, force)
-    try:
-        manifest = _write(tmp, scenes_train, scenes_val, samples_per_scene, seed, size, progress, workers)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return manifest
+    return _write_atomically(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
+                                                                     seed, size, progress, workers))
 
 
 def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress, workers) -> dict:

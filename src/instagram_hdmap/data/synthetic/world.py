@@ -143,10 +143,16 @@ def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_
     _check_counts(scenes_train, scenes_val, samples_per_scene)
     workers = _check_workers(workers)
     train_names, val_names = scene_names(scenes_train, scenes_val)
-    out = FsPath(out)
+    return _write_atomically(FsPath(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
+                                                                     seed, size, progress, workers))
+
+
+def _write_atomically(out: FsPath, force: bool, write) -> dict:
+    """``write(tmp)`` into a temporary sibling of ``out`` (``_prepare_out``), then rename it to ``out``:
+    a world is whole or absent, never half-written; returns what ``write`` returns (the manifest)."""
     tmp = _prepare_out(out, force)
     try:
-        manifest = _write(tmp, train_names, val_names, samples_per_scene, seed, size, progress, workers)
+        manifest = write(tmp)
         if out.exists():
             shutil.rmtree(out)
         os.replace(tmp, out)
