@@ -33,7 +33,7 @@ from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
-from instagram_hdmap.postprocess import postprocess_batch
+from instagram_hdmap.postprocess import decode_options, postprocess_batch
 from instagram_hdmap.predict import load_model
 
 KEEP = ("gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order",
@@ -111,13 +111,13 @@ def score(head, cfg, data: list[dict]) -> dict:
     head.eval()
     grid = BEVGrid.from_config(cfg.grid)
     criterion = Criterion(cfg.loss, grid)
-    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, cfg.model.gnn.match_threshold)
+    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, **decode_options(cfg.model.gnn, grid))
     evaluator = Evaluator.from_config(cfg)
     for start in range(0, len(data), 8):
         batch = collate(data[start:start + 8])
         outputs = head_outputs(head, batch)
         diag.update(outputs, batch, criterion.assign(outputs, batch))
-        preds = postprocess_batch(outputs, grid, cfg.model.gnn.match_threshold)
+        preds = postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))
         evaluator.update(preds, batch["gt_polylines"], sample_ids=list(range(start, start + len(preds))))
     res = diag.compute()
     m = evaluator.compute()

@@ -29,7 +29,7 @@ from instagram_hdmap.engine import move_to
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
-from instagram_hdmap.postprocess import postprocess_batch
+from instagram_hdmap.postprocess import decode_options, postprocess_batch
 from instagram_hdmap.predict import load_model
 
 
@@ -47,7 +47,7 @@ def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int
     dataset = NuScenesMapDataset(cfg, split or cfg.data.val_split, augment=False)
     n = len(dataset) if limit is None else min(limit, len(dataset))
     loader = DataLoader(torch.utils.data.Subset(dataset, range(n)), batch_size=4, collate_fn=collate_fn)
-    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, cfg.model.gnn.match_threshold)
+    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, **decode_options(cfg.model.gnn, grid))
     evaluator = Evaluator.from_config(cfg)
     seen = 0
     with torch.no_grad():
@@ -55,7 +55,7 @@ def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int
             batch = move_to(batch, torch.device("cpu"))
             outputs = model(batch)
             diag.update(outputs, batch, criterion.assign(outputs, batch))
-            preds = postprocess_batch(outputs, grid, cfg.model.gnn.match_threshold)
+            preds = postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))
             evaluator.update(preds, batch["gt_polylines"], sample_ids=list(range(seen, seen + len(preds))))
             seen += len(preds)
     result = diag.compute()

@@ -164,10 +164,12 @@ def test_a_weak_edge_splits_the_chain_and_isolated_vertices_are_dropped():
     assert sorted(len(d["pts"]) for d in out) == [3, 3]
     # a lower threshold keeps it
     assert len(postprocess_batch(chain_outputs(Q), GRID, match_threshold=0.05)[0]) == 1
-    # weak in one direction only: not mutual -> split as well
+    # weak in one direction only: the mutual rule splits; the greedy one weighs the pair by the geometric
+    # mean of its directions, sqrt(0.05 * 0.5) = 0.158 > 0.1, and keeps it
     Q = P.clone()
     Q[2, 3], Q[2, 6] = 0.05, 0.45
-    assert sorted(len(d["pts"]) for d in postprocess_batch(chain_outputs(Q), GRID)[0]) == [3, 3]
+    assert sorted(len(d["pts"]) for d in postprocess_batch(chain_outputs(Q), GRID, decoder="mutual")[0]) == [3, 3]
+    assert [len(d["pts"]) for d in postprocess_batch(chain_outputs(Q), GRID)[0]] == [6]
     # vertex 5's edge falls below the threshold: it is dropped, the rest stays one polyline
     Q = P.clone()
     for i, j in ((4, 5), (5, 4)):

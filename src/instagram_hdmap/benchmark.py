@@ -135,7 +135,7 @@ def run_benchmark(
     """
     from .engine import autocast_context
     from .models import build_model
-    from .postprocess import postprocess_batch
+    from .postprocess import decode_options, postprocess_batch
     from .train import resolve_device
 
     if device is None:
@@ -168,7 +168,7 @@ def run_benchmark(
     batch = {k: v[None].to(dev) for k, v in rig.items()}
     V = rig["intrinsics"].shape[0]
     batch["images"] = torch.randn(1, V, 3, h, w, generator=gen).to(dev)
-    threshold = cfg.model.gnn.match_threshold
+    decode = decode_options(cfg.model.gnn, grid)
 
     def sync() -> None:
         if dev.type == "cuda":
@@ -187,7 +187,7 @@ def run_benchmark(
             return model(batch)
 
     def forward_post() -> list:
-        return postprocess_batch(forward(), grid, threshold)
+        return postprocess_batch(forward(), grid, **decode)
 
     try:
         with torch.inference_mode():
@@ -195,7 +195,7 @@ def run_benchmark(
             full_times = time_runs(forward_post, runs, warmup, sync)
             outputs = forward()
             num_vertices = int(outputs["pred_vertex_mask"].sum())
-            num_instances = len(postprocess_batch(outputs, grid, threshold)[0])
+            num_instances = len(postprocess_batch(outputs, grid, **decode)[0])
     except RuntimeError as e:
         if amp != "none" and ("autocast" in str(e).lower() or "not implemented" in str(e).lower()):
             raise BenchmarkError(f"--amp {amp} is not supported on {dev.type} by this torch build: "

@@ -141,6 +141,11 @@ class GraphHeadConfig:
     # forward is the same (models/matching.py)
     sinkhorn_grad: Literal["implicit", "unrolled"] = "implicit"
     match_threshold: float = 0.1  # adjacency probability to follow an edge at inference
+    # inference decoder of the adjacency (postprocess.py): "greedy" (strongest pairs first, degree
+    # <= 2) or "mutual" (the official rule: each end ranks the other among its two best)
+    decoder: Literal["greedy", "mutual"] = "greedy"
+    same_class_edges: bool = False  # an edge needs both vertices' argmax class to agree
+    max_edge_m: float | None = None  # greedy decoder: no edge longer than this (metres)
 
 
 @dataclass
@@ -387,6 +392,15 @@ def validate_config(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"config key 'model.gnn.num_vertices' must be > 0, got {cfg.model.gnn.num_vertices}")
     if not 0 <= cfg.model.gnn.layers:
         raise ConfigError(f"config key 'model.gnn.layers' must be >= 0, got {cfg.model.gnn.layers}")
+    gnn = cfg.model.gnn
+    if not 0 < gnn.match_threshold < 1:
+        raise ConfigError(f"config key 'model.gnn.match_threshold' is an adjacency probability: it must be in (0, 1), "
+                          f"got {gnn.match_threshold}")
+    if gnn.max_edge_m is not None and not gnn.max_edge_m > 0:
+        raise ConfigError(f"config key 'model.gnn.max_edge_m' must be > 0 metres (or null: no limit), got {gnn.max_edge_m}")
+    if gnn.max_edge_m is not None and gnn.decoder != "greedy":
+        raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy decoder; set "
+                          "model.gnn.decoder=greedy or max_edge_m=null")
     h, w = cfg.data.image_size
     if h <= 0 or w <= 0:
         raise ConfigError(f"config key 'data.image_size' must be positive, got {(h, w)}")

@@ -32,7 +32,7 @@ import torch
 
 from .assignment import IGNORE_INDEX, UNMATCHED
 from .losses import adjacency_correct
-from .postprocess import trace_instances, vertex_neighbours
+from .postprocess import neighbours, trace_instances
 
 METRICS = ("vertex_recall", "vertex_precision", "dt_error_px", "dt_line_recall", "adjacency_accuracy",
            "edge_recall", "instance_complete", "closed_as_cycle")
@@ -41,10 +41,13 @@ METRICS = ("vertex_recall", "vertex_precision", "dt_error_px", "dt_line_recall",
 class ClassDiagnostics:
     """``update(outputs, batch, assignment)`` per batch, then ``compute() -> {metric: [K floats]}``."""
 
-    def __init__(self, num_classes: int, dt_clip: float, match_threshold: float = 0.1):
+    def __init__(self, num_classes: int, dt_clip: float, match_threshold: float = 0.1, *, decoder: str = "greedy",
+                 same_class_edges: bool = False, max_edge_px: float | None = None):
         self.K = num_classes
         self.dt_clip = dt_clip
         self.match_threshold = match_threshold
+        # the post-processing's neighbour rule (postprocess.decode_options), for edge recall and instances
+        self.decode = {"decoder": decoder, "same_class_edges": same_class_edges, "max_edge_px": max_edge_px}
         self.hits: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
         self.totals: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
 
@@ -84,7 +87,7 @@ class ClassDiagnostics:
         correct = adjacency_correct(outputs["pred_log_assignment"], pred_mask,
                                     assignment["target_next"], assignment["target_prev"])
         self._add("adjacency_accuracy", correct, rep, rep_cls)
-        nbr = vertex_neighbours(outputs["pred_log_assignment"], pred_mask, self.match_threshold)  # [B, N, 2]
+        nbr = neighbours(outputs, self.match_threshold, **self.decode)  # [B, N, 2]
         tnext = assignment["target_next"]
         edge = rep & (tnext >= 0) & (tnext < N) & (tnext != IGNORE_INDEX)
         found = (nbr == tnext.clamp(min=0)[..., None]).any(2)

@@ -261,7 +261,7 @@ def evaluate_oracle(
     """
     from .evaluation import Evaluator
     from .losses import Criterion, adjacency_correct
-    from .postprocess import postprocess_batch
+    from .postprocess import decode_options, postprocess_batch
     from .predict import gt_outputs
 
     grid = BEVGrid.from_config(cfg.grid)
@@ -293,7 +293,7 @@ def evaluate_oracle(
         for k in range(num_classes):  # vertices that represent a GT vertex of class k
             of_class = assignment["pred_is_representative"] & (assignment["target_class"] == k)
             per_class[k] += torch.stack([(correct & of_class).sum(), of_class.sum()]).cpu()
-        preds = postprocess_batch(outputs, grid, cfg.model.gnn.match_threshold)
+        preds = postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))
         evaluator.update(preds, batch["gt_polylines"], sample_ids=batch["index"], tokens=batch["sample_token"])
     metrics = evaluator.compute()
     metrics["diagnostics"] = {k: (v / batches if batches else math.nan) for k, v in sums.items()}

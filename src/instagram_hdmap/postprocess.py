@@ -3,17 +3,30 @@
 Shapes: B batch, N padded predicted vertices, K classes; row / column N of the assignment is the
 dustbin.
 
-1. Neighbours (batched tensor code, ``vertex_neighbours``). The training targets are bidirectional
-   (assignment.py): the row of an interior vertex has two peaks (successor and predecessor, ~1/2
-   each), a polyline end one peak plus the dustbin, an isolated vertex only the dustbin. So, as
-   in the official decoder, vertex i's candidate neighbours are the (up to) two best *real*
-   columns j != i of its row whose probability exceeds ``match_threshold`` (default 0.1 =
-   ``model.gnn.match_threshold``, the official value, strict ``>``). An edge {i, j} is kept only if
-   it is mutual: j is a candidate of i and i a candidate of j. The result is an undirected graph
-   of degree <= 2, i.e. disjoint paths and cycles. Optionally (``same_class_edges``, the official
-   decoder's behaviour) an edge also needs both vertices to have the same argmax class; by default
-   the graph is class-agnostic and the class is decided per instance (below), so one vertex with a
-   flipped class does not split an instance.
+1. Neighbours: an undirected graph of degree <= 2 (disjoint paths and cycles) over the real
+   vertices. The training targets are bidirectional (assignment.py): the row of an interior vertex
+   has two peaks (successor and predecessor, ~1/2 each), a polyline end one peak plus the dustbin,
+   an isolated vertex only the dustbin. Two decoders (``decoder``, config ``model.gnn.decoder``):
+
+   - ``"greedy"`` (default, ``greedy_neighbours``): each pair {i, j} is weighed by the geometric
+     mean of its two directions, ``w_ij = (log P_ij + log P_ji) / 2``; pairs with ``w_ij >
+     log(match_threshold)`` are taken strongest first, each kept unless one of its vertices already
+     has two edges (the greedy maximum-weight 2-matching, a 1/2-approximation). A vertex whose row
+     has three peaks (a duplicate vertex next to the line) keeps its two strongest *available*
+     edges, and a closing edge of a polygon whose ends are both free is taken, where the mutual
+     rule below drops an edge as soon as either end ranks it third. Options: ``same_class_edges``
+     (both vertices must have the same argmax class: a crossing that touches a kerb stays apart
+     from the boundary) and ``max_edge_px`` (no edge longer than that).
+   - ``"mutual"`` (``vertex_neighbours``, the official decoder's rule): vertex i's candidate
+     neighbours are the (up to) two best real columns j != i of its row whose probability exceeds
+     ``match_threshold`` (the official 0.1, strict ``>``); an edge {i, j} is kept only if it is
+     mutual: j is a candidate of i and i a candidate of j. ``same_class_edges`` as above.
+
+   By default the graph is class-agnostic and the class is decided per instance (below), so one
+   vertex with a flipped class does not split an instance. The demo model (a tiny graph head
+   after ~3500 steps) gives true edges probabilities of only ~0.02-0.3 and its crossings touch
+   the kerbs: it decodes with ``greedy``, ``same_class_edges``, ``match_threshold`` 0.01 and
+   ``max_edge_px`` 2.5 m (configs/synthetic/demo.yaml; benchmarks/README.md has the comparison).
 2. Tracing (``trace_instances``): a linear walk over the neighbour pointers, O(N) per sample. Paths
    are walked from their lower-index end; what remains are cycles, walked from their lowest-index
    vertex in the direction of that vertex's first neighbour. Vertices without an edge (below the
@@ -38,6 +51,16 @@ from .geometry import BEVGrid
 
 REQUIRED_OUTPUTS = ("pred_log_assignment", "pred_vertices_px", "pred_vertex_mask", "pred_vertex_scores",
                     "pred_class_log_probs")
+DECODERS = ("greedy", "mutual")
+
+
+def decode_options(gnn_cfg, grid: BEVGrid) -> dict:
+    """The keyword arguments of ``postprocess_batch`` / ``neighbours`` from ``model.gnn`` (config.py):
+    ``postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))``."""
+    max_edge_m = getattr(gnn_cfg, "max_edge_m", None)
+    return {"match_threshold": gnn_cfg.match_threshold, "decoder": getattr(gnn_cfg, "decoder", "greedy"),
+            "same_class_edges": getattr(gnn_cfg, "same_class_edges", False),
+            "max_edge_px": None if max_edge_m is None else max_edge_m / grid.resolution}
 
 
 @torch.no_grad()
@@ -78,6 +101,86 @@ def vertex_neighbours(
     nbr = torch.where(mutual, nbr, torch.full_like(nbr, -1))
     swap = (nbr[..., 0] < 0)[..., None]  # keep a single neighbour in slot 0
     return torch.where(swap, nbr.flip(2), nbr)
+
+
+@torch.no_grad()
+def greedy_neighbours(
+    log_assignment: torch.Tensor,
+    pred_vertex_mask: torch.Tensor,
+    match_threshold: float = 0.1,
+    class_log_probs: torch.Tensor | None = None,
+    same_class_edges: bool = False,
+    vertices_px: torch.Tensor | None = None,
+    max_edge_px: float | None = None,
+) -> torch.Tensor:
+    """Greedy maximum-weight degree-<=2 edges: [B, N+1, N+1] log assignment, [B, N] mask -> [B, N, 2].
+
+    Same output convention as ``vertex_neighbours`` (symmetric, -1 for none, a single neighbour in
+    slot 0). Pair weight ``(log P_ij + log P_ji) / 2``; pairs above ``log(match_threshold)`` are
+    accepted strongest first while both ends have fewer than two edges (ties: row-major pair order).
+    ``same_class_edges`` needs ``class_log_probs`` [B, N, K]; ``max_edge_px`` needs ``vertices_px``
+    [B, N, 2]. The weights are batched tensor code; the acceptance loop runs over the candidate
+    pairs only (those above the threshold), in Python, per sample.
+    """
+    B, N = pred_vertex_mask.shape
+    device = log_assignment.device
+    out = torch.full((B, N, 2), -1, dtype=torch.long)
+    if N < 2:
+        return out.to(device)
+    mask = pred_vertex_mask.bool()
+    scores = log_assignment[:, :N, :N].float()
+    w = 0.5 * (scores + scores.transpose(1, 2))  # [B, N, N], symmetric
+    allowed = mask[:, :, None] & mask[:, None, :]
+    allowed &= torch.ones(N, N, dtype=torch.bool, device=device).triu(1)  # each pair once, no self edge
+    if same_class_edges:
+        if class_log_probs is None:
+            raise ValueError("same_class_edges=True needs class_log_probs")
+        cls = class_log_probs.argmax(2)
+        allowed &= cls[:, :, None] == cls[:, None, :]
+    if max_edge_px is not None:
+        if vertices_px is None:
+            raise ValueError("max_edge_px needs vertices_px")
+        v = vertices_px.float()
+        allowed &= torch.cdist(v, v) <= max_edge_px
+    allowed &= w > math.log(match_threshold)
+    b_idx, i_idx, j_idx = allowed.nonzero(as_tuple=True)
+    vals = w[b_idx, i_idx, j_idx]
+    # strongest first within each sample: sort by weight, then (stably) by sample
+    order = torch.sort(vals, descending=True, stable=True).indices
+    order = order[torch.sort(b_idx[order], stable=True).indices]
+    cand = torch.stack([b_idx[order], i_idx[order], j_idx[order]], 1).cpu().tolist()
+    nbr = out.view(-1).tolist()  # flat [B * N * 2]
+    deg = [0] * (B * N)
+    for b, i, j in cand:
+        u, v = b * N + i, b * N + j
+        if deg[u] < 2 and deg[v] < 2:
+            nbr[2 * u + deg[u]] = j
+            nbr[2 * v + deg[v]] = i
+            deg[u] += 1
+            deg[v] += 1
+    return torch.tensor(nbr, dtype=torch.long).view(B, N, 2).to(device)
+
+
+@torch.no_grad()
+def neighbours(
+    outputs: dict,
+    match_threshold: float = 0.1,
+    *,
+    decoder: str = "greedy",
+    same_class_edges: bool = False,
+    max_edge_px: float | None = None,
+) -> torch.Tensor:
+    """The decoder's neighbour graph [B, N, 2] of model outputs (module docstring, step 1)."""
+    if decoder == "greedy":
+        return greedy_neighbours(outputs["pred_log_assignment"], outputs["pred_vertex_mask"], match_threshold,
+                                 outputs.get("pred_class_log_probs"), same_class_edges,
+                                 outputs.get("pred_vertices_px"), max_edge_px)
+    if decoder == "mutual":
+        if max_edge_px is not None:
+            raise ValueError("max_edge_px is an option of the greedy decoder (model.gnn.decoder=greedy)")
+        return vertex_neighbours(outputs["pred_log_assignment"], outputs["pred_vertex_mask"], match_threshold,
+                                 outputs.get("pred_class_log_probs"), same_class_edges)
+    raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
 
 
 def trace_instances(nbr0: list[int], nbr1: list[int], min_vertices: int = 2) -> list[tuple[list[int], bool]]:
@@ -123,19 +226,21 @@ def postprocess_batch(
     match_threshold: float = 0.1,
     same_class_edges: bool = False,
     min_vertices: int = 2,
+    *,
+    decoder: str = "greedy",
+    max_edge_px: float | None = None,
 ) -> list[list[dict]]:
     """Model outputs (docs/conventions.md keys) -> per sample, a list of polyline dicts in metres.
 
     Uses ``pred_log_assignment`` [B, N+1, N+1], ``pred_vertices_px`` [B, N, 2], ``pred_vertex_mask``
     [B, N], ``pred_vertex_scores`` [B, N], ``pred_class_log_probs`` [B, N, K]. See the module
-    docstring for the rules.
+    docstring for the rules; ``decode_options(cfg.model.gnn, grid)`` gives the config's options.
     """
     missing = [k for k in REQUIRED_OUTPUTS if k not in outputs]
     if missing:
         raise KeyError(f"post-processing needs {missing}, missing from the model output (docs/conventions.md)")
-    mask = outputs["pred_vertex_mask"]
-    nbr = vertex_neighbours(outputs["pred_log_assignment"], mask, match_threshold,
-                            outputs["pred_class_log_probs"], same_class_edges)
+    nbr = neighbours(outputs, match_threshold, decoder=decoder, same_class_edges=same_class_edges,
+                     max_edge_px=max_edge_px)
     # one transfer per tensor for the whole batch
     pts_m = grid.px_to_m(outputs["pred_vertices_px"].detach().float().cpu().numpy().astype(np.float64))  # [B, N, 2]
     class_probs = outputs["pred_class_log_probs"].detach().float().exp().cpu().numpy()  # [B, N, K]

@@ -247,7 +247,7 @@ def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_thre
                     neighbours: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges for the adjacency picture of one sample.
 
-    log_assignment [N+1, N+1], mask [N] bool, neighbours [N, 2] (``postprocess.vertex_neighbours``).
+    log_assignment [N+1, N+1], mask [N] bool, neighbours [N, 2] (``postprocess.neighbours``).
     Returns ``edges`` [E, 2] (indices into the *real* vertices, i < j) of the pairs whose assignment
     probability exceeds ``match_threshold`` in either direction, and ``kept`` [E] bool: the edge is one
     the post-processing follows.
@@ -301,7 +301,7 @@ def predict_sample(
     from .data.nuscenes import collate_fn
     from .engine import move_to
     from .evaluation import write_submission
-    from .postprocess import postprocess_batch, vertex_neighbours
+    from .postprocess import decode_options, neighbours, postprocess_batch
     from .visualize import intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
 
     if gt_as_prediction and checkpoint is not None:
@@ -334,13 +334,14 @@ def predict_sample(
             outputs = model(batch)
         else:
             outputs = model(move_to(batch, next(model.parameters()).device))
-    threshold = cfg.model.gnn.match_threshold
-    preds = postprocess_batch(outputs, grid, threshold)[0]
+    decode = decode_options(cfg.model.gnn, grid)
+    threshold = decode["match_threshold"]
+    preds = postprocess_batch(outputs, grid, **decode)[0]
     gts = sample["gt_polylines"]
 
     mask = outputs["pred_vertex_mask"][0]
-    neighbours = vertex_neighbours(outputs["pred_log_assignment"][:1], outputs["pred_vertex_mask"][:1], threshold)[0]
-    edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, neighbours)
+    nbr = neighbours(outputs, **decode)[0]  # batch of one
+    edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, nbr)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
     out = Path(out)
     figures = {
@@ -392,7 +393,7 @@ def run_evaluation(
     from .data.nuscenes import collate_fn, write_json
     from .engine import evaluate
     from .evaluation import Evaluator, write_submission
-    from .postprocess import postprocess_batch
+    from .postprocess import decode_options, postprocess_batch
 
     device = du.init_distributed(resolve_inference_device(cfg).type)
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
@@ -423,9 +424,9 @@ def run_evaluation(
             evaluator.update([preds[k] for k in keep], [gts[k] for k in keep],
                              sample_ids=[index_of[tokens[k]] for k in keep], tokens=[tokens[k] for k in keep])
 
-    threshold = cfg.model.gnn.match_threshold
+    decode = decode_options(cfg.model.gnn, grid)
     val = evaluate(model, None, tap(loader), device,
-                   postprocess=lambda outputs: postprocess_batch(outputs, grid, threshold),
+                   postprocess=lambda outputs: postprocess_batch(outputs, grid, **decode),
                    amp=amp, on_predictions=score, total=math.ceil(len(sampler) / cfg.eval.batch_size))
     evaluator.gather()
     for part in du.all_gather_object(results)[1:]:
@@ -435,7 +436,8 @@ def run_evaluation(
     samples_per_s = round(val["samples_per_s"] * world, 3)
     metrics["meta"] = {"checkpoint": str(checkpoint), "config_name": cfg.name, "dataroot": cfg.data.dataroot,
                        "version": cfg.data.version, "split": split, "num_samples": len(dataset),
-                       "samples_per_s": samples_per_s, "match_threshold": threshold, "config_notes": notes}
+                       "samples_per_s": samples_per_s, **{k: v for k, v in decode.items() if k != "max_edge_px"},
+                       "max_edge_m": cfg.model.gnn.max_edge_m, "config_notes": notes}
     out = Path(out)
     paths = []
     if du.is_main_process():

@@ -143,7 +143,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
     from .losses import Criterion
     from .models import build_model
-    from .postprocess import postprocess_batch
+    from .postprocess import decode_options, postprocess_batch
 
     device = du.init_distributed(resolve_device(cfg))
     world = du.get_world_size()
@@ -274,7 +274,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             finished = stopped or should_stop(global_step)  # also refreshes the clock saved below
             if validate and val_loader is not None and (finished or epoch % cfg.train.val_every == 0):
                 val = evaluate(net, criterion, val_loader, device,
-                               postprocess=lambda out: postprocess_batch(out, grid, cfg.model.gnn.match_threshold),
+                               postprocess=lambda out: postprocess_batch(out, grid, **decode_options(cfg.model.gnn, grid)),
                                evaluator=make_evaluator(cfg), amp=cfg.train.amp)
                 summary["val"] = val
                 score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
