@@ -94,6 +94,19 @@ def test_cross_field_checks():
         load_config(None, ["grid.xbound=[30,-30]"])
 
 
+@pytest.mark.parametrize("overrides, message", [
+    (["model.gnn.decoder=hungarian"], r"model\.gnn\.decoder.*'greedy', 'mutual'"),
+    (["model.gnn.match_threshold=0"], r"match_threshold.*\(0, 1\)"),
+    (["model.gnn.match_threshold=1.5"], r"match_threshold.*\(0, 1\)"),
+    (["model.gnn.max_edge_m=0"], r"max_edge_m.*> 0"),
+    (["model.gnn.decoder=mutual", "model.gnn.max_edge_m=2.5"], r"max_edge_m.*greedy and classwise decoders"),
+    (["model.gnn.class_min_prob=1"], r"class_min_prob.*\[0, 1\)"),
+])
+def test_decoder_settings_are_checked(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, overrides)
+
+
 def test_override_syntax_error():
     with pytest.raises(ConfigError, match="key.sub=value"):
         parse_overrides(["model.gnn.layers"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -303,3 +304,156 @@ def test_round_trip_through_the_target_builder():
         assert sum(d["closed"] for d in decoded[b]) == sum(d["closed"] for d in expect)
         n_closed += sum(d["closed"] for d in expect)
     assert n_closed > 0  # the case exercises closed shapes
+
+
+# --- the greedy decoder (the default) -----------------------------------------------------------------
+
+
+def square_with_duplicate_probs() -> torch.Tensor:
+    """A square 0-1-2-3 (a crossing) and a duplicate vertex 4 next to vertex 0 that takes some of
+    vertex 0's row: vertex 0 ranks its closing edge to 3 only third."""
+    N = 5
+    P = torch.zeros(N + 1, N + 1)
+    P[0, 1], P[0, 4], P[0, 3] = 0.4, 0.32, 0.28
+    P[1, 0], P[1, 2] = 0.5, 0.5
+    P[2, 1], P[2, 3] = 0.5, 0.5
+    P[3, 2], P[3, 0] = 0.5, 0.5
+    P[4, 0], P[4, N] = 0.2, 0.8
+    P[N] = 1.0 / (N + 1)
+    return P
+
+
+def test_greedy_closes_the_polygon_that_the_mutual_rule_opens():
+    P = square_with_duplicate_probs()
+    pts = torch.tensor([[40.0, 40.0], [40.0, 60.0], [60.0, 60.0], [60.0, 40.0], [41.0, 41.0]])
+    outputs = chain_outputs(P, pts)
+    (poly,) = postprocess_batch(outputs, GRID)[0]
+    # pair weights (geometric means): 1-2 0.5, 2-3 0.5, 0-1 0.447, 3-0 0.374, 0-4 0.253: taken in that
+    # order, 0-4 comes when vertex 0 already has two edges; the duplicate loses, the square closes
+    assert poly["closed"] and len(poly["pts"]) == 5
+    assert as_set([poly]) == {(canonical(GRID.px_to_m(pts[:4].double().numpy())[[0, 1, 2, 3, 0]], True), 0, True)}
+    # the mutual rule: 0's two best columns are 1 and 4 (4's best is 0: mutual), so 0-3 is not mutual
+    # and the square comes out as the open chain 4-0-1-2-3
+    mutual = postprocess_batch(outputs, GRID, decoder="mutual")[0]
+    assert not any(d["closed"] for d in mutual)
+    assert sorted(len(d["pts"]) for d in mutual) == [5]  # 4-0-1-2-3
+
+
+def test_greedy_same_class_and_max_edge_options():
+    P = line_probs(4)
+    pts = torch.tensor([[50.0, 20.0], [50.0, 24.0], [50.0, 28.0], [50.0, 40.0]])  # last gap 12 px
+    outputs = chain_outputs(P, pts)
+    assert [len(d["pts"]) for d in postprocess_batch(outputs, GRID)[0]] == [4]
+    # no edge longer than 8 px: 2-3 goes, vertex 3 is left alone and dropped
+    assert [len(d["pts"]) for d in postprocess_batch(outputs, GRID, max_edge_px=8.0)[0]] == [3]
+    # classes 0, 0, 1, 1: with same_class_edges the chain splits between 1 and 2
+    probs = torch.tensor([[0.8, 0.1, 0.1], [0.7, 0.2, 0.1], [0.2, 0.7, 0.1], [0.1, 0.8, 0.1]])
+    outputs["pred_class_log_probs"] = probs.log()[None]
+    split = postprocess_batch(outputs, GRID, same_class_edges=True)[0]
+    assert sorted((len(d["pts"]), d["label"]) for d in split) == [(2, 0), (2, 1)]
+    with pytest.raises(ValueError, match="greedy and classwise"):
+        postprocess_batch(outputs, GRID, decoder="mutual", max_edge_px=8.0)
+    with pytest.raises(ValueError, match="decoder"):
+        postprocess_batch(outputs, GRID, decoder="hungarian")
+
+
+def test_greedy_neighbours_are_a_greedy_maximal_two_matching_on_random_assignments():
+    """Symmetric, degree <= 2, every kept pair above the threshold, and the greedy certificate: a
+    pair above the threshold that was not kept has an end whose two kept edges both weigh at least
+    as much. Batched equals one sample at a time."""
+    from instagram_hdmap.postprocess import greedy_neighbours
+
+    gen = torch.Generator().manual_seed(7)
+    B, N, thr = 3, 30, 0.03
+    logA = (torch.randn(B, N + 1, N + 1, generator=gen) * 3).log_softmax(-1)
+    mask = torch.rand(B, N, generator=gen) < 0.8
+    nbr = greedy_neighbours(logA, mask, thr)
+    assert (nbr[~mask] == -1).all()
+    assert ((nbr[..., 0] >= 0) | (nbr[..., 1] < 0)).all()
+    w = 0.5 * (logA[:, :N, :N] + logA[:, :N, :N].transpose(1, 2))
+    for b in range(B):
+        kept = {(i, j) for i in range(N) for j in nbr[b, i].tolist() if j >= 0}
+        for i, j in kept:
+            assert (j, i) in kept and i != j and mask[b, i] and mask[b, j]
+            assert w[b, i, j] > math.log(thr)
+        for i in range(N):
+            for j in range(i + 1, N):
+                if (i, j) in kept or not (mask[b, i] and mask[b, j]) or w[b, i, j] <= math.log(thr):
+                    continue
+                full = [v for v in (i, j) if (nbr[b, v] >= 0).all()]
+                assert any(all(w[b, v, u] >= w[b, i, j] for u in nbr[b, v].tolist()) for v in full), (b, i, j)
+        one = greedy_neighbours(logA[b : b + 1], mask[b : b + 1], thr)
+        assert torch.equal(one[0], nbr[b])
+
+
+def test_decode_options_follow_the_config():
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.postprocess import decode_options
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "synthetic" / "demo.yaml")
+    opts = decode_options(cfg.model.gnn, BEVGrid.from_config(cfg.grid))
+    assert opts == {"match_threshold": 0.02, "decoder": "classwise", "class_min_prob": 0.05, "same_class_edges": False,
+                    "max_edge_px": 10.0}
+    paper = load_config(Path(__file__).resolve().parents[1] / "configs" / "paper" / "table1_b0_lss_128x352.yaml")
+    assert decode_options(paper.model.gnn, BEVGrid.from_config(paper.grid)) == {
+        "match_threshold": 0.1, "decoder": "greedy", "class_min_prob": 0.05, "same_class_edges": False,
+        "max_edge_px": None}
+
+
+# --- the classwise decoder ----------------------------------------------------------------------------
+
+
+def crossing_on_a_kerb():
+    """A boundary 0-1-2 along x = 50 px and a crossing triangle 1-3-4 whose corner is the boundary's
+    middle vertex 1 (where a crossing meets the kerb both lines pass through one cell). Vertex 1's
+    row has four peaks; its class is split between ped crossing and boundary."""
+    N = 5
+    P = torch.zeros(N + 1, N + 1)
+    P[0, 1], P[0, N] = 0.5, 0.5
+    P[1, 0], P[1, 2], P[1, 3], P[1, 4] = 0.25, 0.25, 0.25, 0.25
+    P[2, 1], P[2, N] = 0.5, 0.5
+    P[3, 1], P[3, 4] = 0.5, 0.5
+    P[4, 1], P[4, 3] = 0.5, 0.5
+    P[N] = 1.0 / (N + 1)
+    pts = torch.tensor([[50.0, 40.0], [50.0, 44.0], [50.0, 48.0], [54.0, 44.0], [54.0, 47.0]])
+    probs = torch.tensor([[0.02, 0.01, 0.97], [0.02, 0.49, 0.49], [0.02, 0.01, 0.97], [0.02, 0.96, 0.02],
+                          [0.02, 0.96, 0.02]])
+    outputs = chain_outputs(P, pts)
+    outputs["pred_class_log_probs"] = probs.log()[None]
+    return outputs, pts
+
+
+def test_classwise_gives_a_shared_kerb_vertex_to_both_instances():
+    outputs, pts = crossing_on_a_kerb()
+    m = GRID.px_to_m(pts.double().numpy())
+    got = postprocess_batch(outputs, GRID, 0.1, decoder="classwise", class_min_prob=0.05)[0]
+    assert as_set(got) == {(canonical(m[[0, 1, 2]], False), 2, False),
+                           (canonical(m[[1, 3, 4, 1]], True), 1, True)}
+    crossing = next(d for d in got if d["label"] == 1)
+    assert crossing["score"] == pytest.approx((0.49 + 0.96 + 0.96) / 3, rel=1e-5)  # mean p_crossing x score 1
+    # one class-agnostic graph can give vertex 1 two edges only: one of the two shapes breaks
+    agnostic = postprocess_batch(outputs, GRID, 0.1)[0]
+    assert as_set(agnostic) != as_set(got)
+    # a vertex below class_min_prob is left out of that class's graph: at 0.5 the shared vertex is in
+    # neither, the boundary falls apart and the crossing loses its corner
+    strict = postprocess_batch(outputs, GRID, 0.1, decoder="classwise", class_min_prob=0.5)[0]
+    assert as_set(strict) == {(canonical(m[[3, 4]], False), 1, False)}
+
+
+def test_classwise_graphs_are_per_class_and_batched_equals_one_by_one():
+    from instagram_hdmap.postprocess import neighbours
+
+    rng = np.random.default_rng(11)
+    scenes = [random_scene(rng, int(rng.integers(1, 6))) for _ in range(3)]
+    outputs = perfect_outputs(scenes, N=45, seed=2)
+    graphs = neighbours(outputs, 0.1, decoder="classwise", class_min_prob=0.05)
+    assert graphs.shape == (3, K, 45, 2)
+    labels = outputs["pred_class_log_probs"].argmax(2)
+    for k in range(K):  # perfect_outputs' classes are confident: class k's graph holds class-k vertices only
+        used = (graphs[:, k] >= 0).any(2)
+        assert (labels[used] == k).all()
+    for b, scene in enumerate(scenes):
+        assert as_set(postprocess_batch(outputs, GRID, 0.1, decoder="classwise")[b]) == gt_set(scene)
+        one = neighbours({k: v[b : b + 1] for k, v in outputs.items()}, 0.1, decoder="classwise")
+        assert torch.equal(one[0], graphs[b])

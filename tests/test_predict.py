@@ -85,14 +85,20 @@ def _canonical(poly: dict) -> tuple:
     return (int(poly["label"]), bool(poly["closed"]), tuple(pts))
 
 
-def test_gt_outputs_post_process_to_the_gt_graph_and_padding_changes_nothing():
+# (no max_edge_px: the toy crossings' sides are 3 m long, unresampled)
+DECODERS = [{"decoder": "greedy"}, {"decoder": "mutual"},
+            {"decoder": "classwise", "match_threshold": 0.02, "class_min_prob": 0.05}]
+
+
+@pytest.mark.parametrize("decode", DECODERS, ids=[d["decoder"] for d in DECODERS])
+def test_gt_outputs_post_process_to_the_gt_graph_and_padding_changes_nothing(decode):
     cfg = load_config(TINY_YAML)
     grid = BEVGrid.from_config(cfg.grid)
     samples = [_sample(cfg, _toy_polylines(s), f"t{s}") for s in range(3)]
     # batched (padded to the largest M) equals one by one, and equals the GT graph's polylines
-    batched = postprocess_batch(gt_outputs(collate_fn(samples), grid, K), grid)
+    batched = postprocess_batch(gt_outputs(collate_fn(samples), grid, K), grid, **decode)
     for b, s in enumerate(samples):
-        single = postprocess_batch(gt_outputs(collate_fn([s]), grid, K), grid)[0]
+        single = postprocess_batch(gt_outputs(collate_fn([s]), grid, K), grid, **decode)[0]
         expect = graph_to_polylines(grid.px_to_m(s["gt_vertices_px"].double().numpy()), s["gt_vertex_labels"],
                                     s["gt_vertex_next"])
         assert sorted(map(_canonical, batched[b])) == sorted(map(_canonical, single))
@@ -102,6 +108,27 @@ def test_gt_outputs_post_process_to_the_gt_graph_and_padding_changes_nothing():
     out = gt_outputs(collate_fn(samples[:1]), grid, K)
     assert out["pred_heatmap"].shape == (1, grid.H, grid.W)
     assert torch.equal(out["pred_heatmap"][0] > 0.5, _vertex_pixels(samples[0]["gt_vertices_px"], grid))
+
+
+@pytest.mark.parametrize("decode", DECODERS, ids=[d["decoder"] for d in DECODERS])
+def test_diagnostics_of_a_perfect_model_are_all_ones(decode):
+    """ClassDiagnostics on the GT-derived outputs: every vertex found and right, the distance transform
+    exact, every edge decoded, every instance whole and every crossing a closed cycle, per decoder."""
+    from instagram_hdmap.diagnostics import ClassDiagnostics
+    from instagram_hdmap.losses import Criterion
+
+    cfg = load_config(TINY_YAML)
+    grid = BEVGrid.from_config(cfg.grid)
+    batch = collate_fn([_sample(cfg, _toy_polylines(s), f"t{s}") for s in range(4)])
+    outputs = gt_outputs(batch, grid, K)
+    diag = ClassDiagnostics(K, cfg.data.dt_clip, **{"match_threshold": 0.1, **decode})
+    diag.update(outputs, batch, Criterion(cfg.loss, grid).assign(outputs, batch))
+    res = diag.compute()
+    assert res["dt_error_px"] == pytest.approx([0.0] * K, abs=1e-5)
+    for name in ("vertex_recall", "vertex_precision", "dt_line_recall", "adjacency_accuracy", "edge_recall",
+                 "instance_complete"):
+        assert res[name] == pytest.approx([1.0] * K), name
+    assert res["closed_as_cycle"][1] == 1.0 and res["counts"]["closed_as_cycle"][1] == 2  # the two crossings
 
 
 def _vertex_pixels(vertices_px: torch.Tensor, grid: BEVGrid) -> torch.Tensor:

@@ -142,10 +142,13 @@ class GraphHeadConfig:
     sinkhorn_grad: Literal["implicit", "unrolled"] = "implicit"
     match_threshold: float = 0.1  # adjacency probability to follow an edge at inference
     # inference decoder of the adjacency (postprocess.py): "greedy" (strongest pairs first, degree
-    # <= 2) or "mutual" (the official rule: each end ranks the other among its two best)
-    decoder: Literal["greedy", "mutual"] = "greedy"
-    same_class_edges: bool = False  # an edge needs both vertices' argmax class to agree
-    max_edge_m: float | None = None  # greedy decoder: no edge longer than this (metres)
+    # <= 2, one class-agnostic graph), "classwise" (the same per class, over the vertices whose class
+    # probability is >= class_min_prob) or "mutual" (the official rule: each end ranks the other
+    # among its two best)
+    decoder: Literal["classwise", "greedy", "mutual"] = "greedy"
+    class_min_prob: float = 0.05  # classwise: a vertex takes part in class k's graph if p_k >= this
+    same_class_edges: bool = False  # greedy / mutual: an edge needs both vertices' argmax class to agree
+    max_edge_m: float | None = None  # greedy / classwise: no edge longer than this (metres)
 
 
 @dataclass
@@ -397,10 +400,14 @@ def validate_config(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"config key 'model.gnn.match_threshold' is an adjacency probability: it must be in (0, 1), "
                           f"got {gnn.match_threshold}")
     if gnn.max_edge_m is not None and not gnn.max_edge_m > 0:
-        raise ConfigError(f"config key 'model.gnn.max_edge_m' must be > 0 metres (or null: no limit), got {gnn.max_edge_m}")
-    if gnn.max_edge_m is not None and gnn.decoder != "greedy":
-        raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy decoder; set "
-                          "model.gnn.decoder=greedy or max_edge_m=null")
+        raise ConfigError(f"config key 'model.gnn.max_edge_m' must be > 0 metres (or null: no limit), "
+                          f"got {gnn.max_edge_m}")
+    if gnn.max_edge_m is not None and gnn.decoder == "mutual":
+        raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy and classwise decoders; "
+                          "set model.gnn.decoder=greedy (or classwise), or max_edge_m=null")
+    if not 0 <= gnn.class_min_prob < 1:
+        raise ConfigError(f"config key 'model.gnn.class_min_prob' is a class probability: it must be in [0, 1), "
+                          f"got {gnn.class_min_prob}")
     h, w = cfg.data.image_size
     if h <= 0 or w <= 0:
         raise ConfigError(f"config key 'data.image_size' must be positive, got {(h, w)}")

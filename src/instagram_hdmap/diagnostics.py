@@ -42,12 +42,13 @@ class ClassDiagnostics:
     """``update(outputs, batch, assignment)`` per batch, then ``compute() -> {metric: [K floats]}``."""
 
     def __init__(self, num_classes: int, dt_clip: float, match_threshold: float = 0.1, *, decoder: str = "greedy",
-                 same_class_edges: bool = False, max_edge_px: float | None = None):
+                 same_class_edges: bool = False, max_edge_px: float | None = None, class_min_prob: float = 0.05):
         self.K = num_classes
         self.dt_clip = dt_clip
         self.match_threshold = match_threshold
         # the post-processing's neighbour rule (postprocess.decode_options), for edge recall and instances
-        self.decode = {"decoder": decoder, "same_class_edges": same_class_edges, "max_edge_px": max_edge_px}
+        self.decode = {"decoder": decoder, "same_class_edges": same_class_edges, "max_edge_px": max_edge_px,
+                       "class_min_prob": class_min_prob}
         self.hits: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
         self.totals: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
 
@@ -87,26 +88,33 @@ class ClassDiagnostics:
         correct = adjacency_correct(outputs["pred_log_assignment"], pred_mask,
                                     assignment["target_next"], assignment["target_prev"])
         self._add("adjacency_accuracy", correct, rep, rep_cls)
-        nbr = neighbours(outputs, self.match_threshold, **self.decode)  # [B, N, 2]
+        graphs = neighbours(outputs, self.match_threshold, **self.decode)  # [B, G, N, 2]
+        # the graph each vertex's instances come from: the one graph, or (classwise) its GT class's
+        g = rep_cls.clamp(0, graphs.shape[1] - 1) if graphs.shape[1] > 1 else torch.zeros_like(rep_cls)
+        nbr = graphs.gather(1, g[:, None, :, None].expand(B, 1, N, 2)).squeeze(1)  # [B, N, 2]
         tnext = assignment["target_next"]
         edge = rep & (tnext >= 0) & (tnext < N) & (tnext != IGNORE_INDEX)
         found = (nbr == tnext.clamp(min=0)[..., None]).any(2)
         self._add("edge_recall", found, edge, rep_cls)
-        self._instances(nbr, assignment, batch, rep)
+        self._instances(graphs, assignment, batch)
 
-    def _instances(self, nbr: torch.Tensor, assignment: dict, batch: dict, rep: torch.Tensor) -> None:
+    def _instances(self, graphs: torch.Tensor, assignment: dict, batch: dict) -> None:
+        """Whole instances and closed cycles: GT instance of class k against graph k (classwise) or
+        the one class-agnostic graph."""
         gt_to_pred = assignment["gt_to_pred"].cpu().numpy()
         inst = batch["gt_vertex_instance"].cpu().numpy()
         labels = batch["gt_vertex_labels"].cpu().numpy()
         gt_mask = batch["gt_vertex_mask"].cpu().numpy()
         closed_of = [[bool(p.get("closed", False)) for p in polys] for polys in batch["gt_polylines"]]
-        nbr_l = nbr.cpu().tolist()
-        for b in range(len(nbr_l)):
-            comp = {}  # predicted vertex -> (component id, is cycle)
-            traced = trace_instances([r[0] for r in nbr_l[b]], [r[1] for r in nbr_l[b]], 2)
-            for cid, (path, closed) in enumerate(traced):
-                for i in path:
-                    comp[i] = (cid, closed, len(path))
+        graphs_l = graphs.cpu().tolist()
+        for b in range(len(graphs_l)):
+            comps = []  # per graph: predicted vertex -> (component id, is cycle, length)
+            for rows in graphs_l[b]:
+                comp = {}
+                for cid, (path, closed) in enumerate(trace_instances([r[0] for r in rows], [r[1] for r in rows], 2)):
+                    for i in path:
+                        comp[i] = (cid, closed, len(path))
+                comps.append(comp)
             for g_inst in np.unique(inst[b][gt_mask[b]]):
                 sel = gt_mask[b] & (inst[b] == g_inst)
                 preds = gt_to_pred[b][sel]
@@ -114,12 +122,13 @@ class ClassDiagnostics:
                 if len(preds) < 2:
                     continue
                 k = int(labels[b][sel][0])
-                comps = {comp.get(int(i), (None, False, 0)) for i in preds}
-                whole = len(comps) == 1 and next(iter(comps))[0] is not None and next(iter(comps))[2] == len(preds)
+                comp = comps[min(k, len(comps) - 1)]
+                found = {comp.get(int(i), (None, False, 0)) for i in preds}
+                whole = len(found) == 1 and next(iter(found))[0] is not None and next(iter(found))[2] == len(preds)
                 self.hits["instance_complete"][k] += whole
                 self.totals["instance_complete"][k] += 1
                 if closed_of[b][int(g_inst)] and len(preds) >= 3:
-                    self.hits["closed_as_cycle"][k] += whole and next(iter(comps))[1]
+                    self.hits["closed_as_cycle"][k] += whole and next(iter(found))[1]
                     self.totals["closed_as_cycle"][k] += 1
 
     def compute(self) -> dict[str, list[float]]:

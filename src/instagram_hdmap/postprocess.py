@@ -26,11 +26,11 @@ dustbin.
    vertex with a flipped class does not split an instance. The demo model (a tiny graph head
    after ~3500 steps) gives true edges probabilities of only ~0.02-0.3 and its crossings touch
    the kerbs: it decodes with ``greedy``, ``same_class_edges``, ``match_threshold`` 0.01 and
-   ``max_edge_px`` 2.5 m (configs/synthetic/demo.yaml; benchmarks/README.md has the comparison).
+   ``model.gnn.max_edge_m`` 2.5 (configs/synthetic/demo.yaml; benchmarks/README.md, "Decoding").
 2. Tracing (``trace_instances``): a linear walk over the neighbour pointers, O(N) per sample. Paths
    are walked from their lower-index end; what remains are cycles, walked from their lowest-index
-   vertex in the direction of that vertex's first neighbour. Vertices without an edge (below the
-   threshold, dustbin, or not mutual) are dropped; instances need ``min_vertices`` (default 2)
+   vertex in the direction of that vertex's first neighbour. Vertices without an edge (none above
+   the threshold, or none accepted) are dropped; instances need ``min_vertices`` (default 2)
    vertices.
 3. Instances: a path becomes a polyline (``closed=False``), a cycle a closed polygon whose first
    point is repeated at the end (``closed=True``, >= 4 points). Class and confidence:
@@ -51,15 +51,15 @@ from .geometry import BEVGrid
 
 REQUIRED_OUTPUTS = ("pred_log_assignment", "pred_vertices_px", "pred_vertex_mask", "pred_vertex_scores",
                     "pred_class_log_probs")
-DECODERS = ("greedy", "mutual")
+DECODERS = ("classwise", "greedy", "mutual")
 
 
 def decode_options(gnn_cfg, grid: BEVGrid) -> dict:
     """The keyword arguments of ``postprocess_batch`` / ``neighbours`` from ``model.gnn`` (config.py):
     ``postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))``."""
-    max_edge_m = getattr(gnn_cfg, "max_edge_m", None)
-    return {"match_threshold": gnn_cfg.match_threshold, "decoder": getattr(gnn_cfg, "decoder", "greedy"),
-            "same_class_edges": getattr(gnn_cfg, "same_class_edges", False),
+    max_edge_m = gnn_cfg.max_edge_m
+    return {"match_threshold": gnn_cfg.match_threshold, "decoder": gnn_cfg.decoder,
+            "same_class_edges": gnn_cfg.same_class_edges, "class_min_prob": gnn_cfg.class_min_prob,
             "max_edge_px": None if max_edge_m is None else max_edge_m / grid.resolution}
 
 
@@ -161,6 +161,11 @@ def greedy_neighbours(
     return torch.tensor(nbr, dtype=torch.long).view(B, N, 2).to(device)
 
 
+def _repeat_per_class(t: torch.Tensor | None, K: int) -> torch.Tensor | None:
+    """[B, ...] -> [B * K, ...]: each sample's tensor once per class (a view where possible)."""
+    return None if t is None else t[:, None].expand(t.shape[0], K, *t.shape[1:]).reshape(-1, *t.shape[1:])
+
+
 @torch.no_grad()
 def neighbours(
     outputs: dict,
@@ -169,17 +174,32 @@ def neighbours(
     decoder: str = "greedy",
     same_class_edges: bool = False,
     max_edge_px: float | None = None,
+    class_min_prob: float = 0.05,
 ) -> torch.Tensor:
-    """The decoder's neighbour graph [B, N, 2] of model outputs (module docstring, step 1)."""
+    """The decoder's neighbour graphs of model outputs: [B, G, N, 2] (module docstring, step 1).
+
+    G = 1 for the class-agnostic decoders (``greedy``, ``mutual``): one graph whose instances are
+    labelled by a vote; G = K for ``classwise``: graph k holds the class-k instances.
+    """
+    logA, mask = outputs["pred_log_assignment"], outputs["pred_vertex_mask"]
+    class_log_probs, vertices = outputs.get("pred_class_log_probs"), outputs.get("pred_vertices_px")
     if decoder == "greedy":
-        return greedy_neighbours(outputs["pred_log_assignment"], outputs["pred_vertex_mask"], match_threshold,
-                                 outputs.get("pred_class_log_probs"), same_class_edges,
-                                 outputs.get("pred_vertices_px"), max_edge_px)
+        return greedy_neighbours(logA, mask, match_threshold, class_log_probs, same_class_edges, vertices,
+                                 max_edge_px)[:, None]
+    if decoder == "classwise":
+        if class_log_probs is None:
+            raise ValueError("the classwise decoder needs pred_class_log_probs")
+        B, N = mask.shape
+        K = class_log_probs.shape[2]
+        # class k's vertices: those whose class-k probability is at least class_min_prob
+        member = mask.bool()[:, None, :] & (class_log_probs.float().exp().transpose(1, 2) >= class_min_prob)
+        nbr = greedy_neighbours(_repeat_per_class(logA, K), member.reshape(B * K, N), match_threshold, None, False,
+                                _repeat_per_class(vertices, K), max_edge_px)
+        return nbr.view(B, K, N, 2)
     if decoder == "mutual":
         if max_edge_px is not None:
-            raise ValueError("max_edge_px is an option of the greedy decoder (model.gnn.decoder=greedy)")
-        return vertex_neighbours(outputs["pred_log_assignment"], outputs["pred_vertex_mask"], match_threshold,
-                                 outputs.get("pred_class_log_probs"), same_class_edges)
+            raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
+        return vertex_neighbours(logA, mask, match_threshold, class_log_probs, same_class_edges)[:, None]
     raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
 
 
@@ -229,6 +249,7 @@ def postprocess_batch(
     *,
     decoder: str = "greedy",
     max_edge_px: float | None = None,
+    class_min_prob: float = 0.05,
 ) -> list[list[dict]]:
     """Model outputs (docs/conventions.md keys) -> per sample, a list of polyline dicts in metres.
 
@@ -240,7 +261,7 @@ def postprocess_batch(
     if missing:
         raise KeyError(f"post-processing needs {missing}, missing from the model output (docs/conventions.md)")
     nbr = neighbours(outputs, match_threshold, decoder=decoder, same_class_edges=same_class_edges,
-                     max_edge_px=max_edge_px)
+                     max_edge_px=max_edge_px, class_min_prob=class_min_prob)  # [B, G, N, 2]
     # one transfer per tensor for the whole batch
     pts_m = grid.px_to_m(outputs["pred_vertices_px"].detach().float().cpu().numpy().astype(np.float64))  # [B, N, 2]
     class_probs = outputs["pred_class_log_probs"].detach().float().exp().cpu().numpy()  # [B, N, K]
@@ -248,21 +269,22 @@ def postprocess_batch(
     nbr_lists = nbr.cpu().tolist()
 
     results: list[list[dict]] = []
-    for b, rows in enumerate(nbr_lists):
-        instances = trace_instances([r[0] for r in rows], [r[1] for r in rows], min_vertices)
-        if not instances:
-            results.append([])
-            continue
-        order = np.fromiter((i for idx, _ in instances for i in idx), dtype=np.int64)
-        lengths = np.array([len(idx) for idx, _ in instances])
-        starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-        mean_probs = np.add.reduceat(class_probs[b][order], starts, axis=0) / lengths[:, None]  # [I, K]
-        mean_score = np.add.reduceat(vertex_scores[b][order], starts) / lengths  # [I]
-        labels = mean_probs.argmax(1)
-        conf = mean_probs[np.arange(len(labels)), labels] * mean_score
+    for b, graphs in enumerate(nbr_lists):
         sample = []
-        for k, (idx, closed) in enumerate(instances):
-            pts = pts_m[b][idx + [idx[0]] if closed else idx]
-            sample.append({"pts": pts, "label": int(labels[k]), "closed": closed, "score": float(conf[k])})
+        for g, rows in enumerate(graphs):
+            instances = trace_instances([r[0] for r in rows], [r[1] for r in rows], min_vertices)
+            if not instances:
+                continue
+            order = np.fromiter((i for idx, _ in instances for i in idx), dtype=np.int64)
+            lengths = np.array([len(idx) for idx, _ in instances])
+            starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+            mean_probs = np.add.reduceat(class_probs[b][order], starts, axis=0) / lengths[:, None]  # [I, K]
+            mean_score = np.add.reduceat(vertex_scores[b][order], starts) / lengths  # [I]
+            # one class-agnostic graph: the soft vote decides; class graph g: its instances are class g
+            labels = mean_probs.argmax(1) if len(graphs) == 1 else np.full(len(instances), g)
+            conf = mean_probs[np.arange(len(labels)), labels] * mean_score
+            for k, (idx, closed) in enumerate(instances):
+                pts = pts_m[b][idx + [idx[0]] if closed else idx]
+                sample.append({"pts": pts, "label": int(labels[k]), "closed": closed, "score": float(conf[k])})
         results.append(sample)
     return results

@@ -247,7 +247,8 @@ def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_thre
                     neighbours: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges for the adjacency picture of one sample.
 
-    log_assignment [N+1, N+1], mask [N] bool, neighbours [N, 2] (``postprocess.neighbours``).
+    log_assignment [N+1, N+1], mask [N] bool, neighbours [N, W] (``postprocess.neighbours``, its graphs
+    side by side; -1 for none).
     Returns ``edges`` [E, 2] (indices into the *real* vertices, i < j) of the pairs whose assignment
     probability exceeds ``match_threshold`` in either direction, and ``kept`` [E] bool: the edge is one
     the post-processing follows.
@@ -260,10 +261,10 @@ def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_thre
     above = (probs > match_threshold) | (probs > match_threshold).T
     pos = torch.full((mask.shape[0] + 1,), -1, dtype=torch.long, device=device)  # vertex -> real index
     pos[real] = torch.arange(n, device=device)
-    nbr = pos[neighbours[real]]  # [n, 2]; -1 stays -1 (pos[-1] is the unused last slot)
+    nbr = pos[neighbours[real]]  # [n, W]; -1 stays -1 (pos[-1] is the unused last slot)
     followed = torch.zeros(n, n, dtype=torch.bool, device=device)
     ok = nbr >= 0
-    followed[torch.arange(n, device=device)[:, None].expand(n, 2)[ok], nbr[ok]] = True
+    followed[torch.arange(n, device=device)[:, None].expand_as(nbr)[ok], nbr[ok]] = True
     followed = followed | followed.T
     i, j = torch.nonzero((above | followed) & upper, as_tuple=True)
     edges = torch.stack([i, j], 1)
@@ -340,7 +341,8 @@ def predict_sample(
     gts = sample["gt_polylines"]
 
     mask = outputs["pred_vertex_mask"][0]
-    nbr = neighbours(outputs, **decode)[0]  # batch of one
+    graphs = neighbours(outputs, **decode)[0]  # [G, N, 2], batch of one
+    nbr = graphs.permute(1, 0, 2).reshape(graphs.shape[1], -1)  # [N, 2G]: a vertex's neighbours in any graph
     edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, nbr)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
     out = Path(out)

@@ -160,6 +160,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     if cfg.train.deterministic:
         torch.use_deterministic_algorithms(True)
     grid = BEVGrid.from_config(cfg.grid)
+    decode = decode_options(cfg.model.gnn, grid)
 
     if loaders is None:
         loaders = build_loaders(cfg, world, with_val=validate)
@@ -274,7 +275,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             finished = stopped or should_stop(global_step)  # also refreshes the clock saved below
             if validate and val_loader is not None and (finished or epoch % cfg.train.val_every == 0):
                 val = evaluate(net, criterion, val_loader, device,
-                               postprocess=lambda out: postprocess_batch(out, grid, **decode_options(cfg.model.gnn, grid)),
+                               postprocess=lambda out: postprocess_batch(out, grid, **decode),
                                evaluator=make_evaluator(cfg), amp=cfg.train.amp)
                 summary["val"] = val
                 score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
