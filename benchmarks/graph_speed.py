@@ -103,8 +103,12 @@ def main() -> None:
     crit = Criterion(LossConfig(), grid)
     print(f"device {device}, torch threads {torch.get_num_threads()}, N = {args.vertices}, "
           f"median of {args.repeats} (ms per call)")
-    print(f"{'B':>4} | {'assign':>8} | {'criterion fwd':>13} | {'criterion fwd+bwd':>17} | {'postprocess':>11} |"
-          f" {'instances/sample':>16}")
+    decoders = {"mutual": {"decoder": "mutual", "match_threshold": 0.1},
+                "greedy": {"decoder": "greedy", "match_threshold": 0.1},
+                "classwise": {"decoder": "classwise", "match_threshold": 0.02, "class_min_prob": 0.05,
+                              "max_edge_px": 2.5 / grid.resolution}}
+    print(f"{'B':>4} | {'assign':>8} | {'criterion fwd':>13} | {'criterion fwd+bwd':>17} | "
+          + " | ".join(f"{'post ' + name:>14}" for name in decoders) + f" | {'instances/sample (greedy)':>25}")
     for B in args.batch:
         outputs, batch = make_batch(B, args.vertices, grid, device)
 
@@ -116,9 +120,11 @@ def main() -> None:
         t_assign = timed(lambda o=outputs, b=batch: assign_batch(o, b, grid, 1.5), args.repeats, device)
         t_fwd = timed(lambda o=outputs, b=batch: crit(o, b), args.repeats, device)
         t_bwd = timed(fwd_bwd, args.repeats, device)
-        t_post = timed(lambda o=outputs: postprocess_batch(o, grid, 0.1), args.repeats, device)
-        n_inst = sum(len(s) for s in postprocess_batch(outputs, grid, 0.1)) / B
-        print(f"{B:>4} | {t_assign:>8.2f} | {t_fwd:>13.2f} | {t_bwd:>17.2f} | {t_post:>11.2f} | {n_inst:>16.1f}")
+        t_post = [timed(lambda o=outputs, d=d: postprocess_batch(o, grid, **d), args.repeats, device)
+                  for d in decoders.values()]
+        n_inst = sum(len(s) for s in postprocess_batch(outputs, grid, **decoders["greedy"])) / B
+        print(f"{B:>4} | {t_assign:>8.2f} | {t_fwd:>13.2f} | {t_bwd:>17.2f} | "
+              + " | ".join(f"{t:>14.2f}" for t in t_post) + f" | {n_inst:>25.1f}")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,10 @@ them) and the vector-protocol AP.
     python benchmarks/ped_crossing_diagnosis.py --world DATAROOT before=runs/a/run/last.pt after=runs/b/run/last.pt
 
 The config of each checkpoint is the one saved in it; ``--world`` points the data keys at a
-synthetic world (its ``splits.json``, split ``val``).
+synthetic world (its ``splits.json``, split ``val``). ``--decode key=value ...`` changes the
+decoding keys (``model.gnn.decoder``, ``match_threshold``, ``class_min_prob``, ``same_class_edges``,
+``max_edge_m``) of every checkpoint, e.g. to diagnose one checkpoint under two decoders:
+``NAME=CKPT`` twice in two runs, or ``--decode model.gnn.decoder=mutual model.gnn.max_edge_m=null``.
 """
 
 from __future__ import annotations
@@ -34,13 +37,13 @@ from instagram_hdmap.predict import load_model
 
 
 def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int | None = None,
-             split: str | None = None) -> dict:
+             split: str | None = None, decode: list[str] = ()) -> dict:
     from instagram_hdmap.demo import world_overrides
 
     if threads:
         torch.set_num_threads(threads)
     saved = config_from_dict(load_checkpoint(checkpoint)["config"])
-    model, cfg, _ = load_model(checkpoint, saved, [*world_overrides(world), "train.device=cpu"],
+    model, cfg, _ = load_model(checkpoint, saved, [*world_overrides(world), "train.device=cpu", *decode],
                                device=torch.device("cpu"))
     grid = BEVGrid.from_config(cfg.grid)
     criterion = Criterion(cfg.loss, grid)
@@ -74,11 +77,12 @@ def main() -> None:
     ap.add_argument("--split", default=None, help="split of the world (default: the config's val split)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--json", default=None, help="also write the results here")
+    ap.add_argument("--decode", nargs="*", default=[], help="decoding overrides (key=value) for every checkpoint")
     args = ap.parse_args()
     results = {}
     for item in args.checkpoints:
         name, _, path = item.partition("=")
-        results[name] = diagnose(path or name, args.world, args.limit, args.threads, args.split)
+        results[name] = diagnose(path or name, args.world, args.limit, args.threads, args.split, args.decode)
     classes = next(iter(results.values()))["classes"]
     print(format_table(results, classes))
     print()

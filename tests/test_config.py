@@ -101,6 +101,7 @@ def test_cross_field_checks():
     (["model.gnn.max_edge_m=0"], r"max_edge_m.*> 0"),
     (["model.gnn.decoder=mutual", "model.gnn.max_edge_m=2.5"], r"max_edge_m.*greedy and classwise decoders"),
     (["model.gnn.class_min_prob=1"], r"class_min_prob.*\[0, 1\)"),
+    (["model.gnn.min_vertices=1"], r"min_vertices.*>= 2"),
 ])
 def test_decoder_settings_are_checked(overrides, message):
     with pytest.raises(ConfigError, match=message):

@@ -394,11 +394,11 @@ def test_decode_options_follow_the_config():
     cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "synthetic" / "demo.yaml")
     opts = decode_options(cfg.model.gnn, BEVGrid.from_config(cfg.grid))
     assert opts == {"match_threshold": 0.02, "decoder": "classwise", "class_min_prob": 0.05, "same_class_edges": False,
-                    "max_edge_px": 10.0}
+                    "max_edge_px": 10.0, "min_vertices": 4}
     paper = load_config(Path(__file__).resolve().parents[1] / "configs" / "paper" / "table1_b0_lss_128x352.yaml")
     assert decode_options(paper.model.gnn, BEVGrid.from_config(paper.grid)) == {
         "match_threshold": 0.1, "decoder": "greedy", "class_min_prob": 0.05, "same_class_edges": False,
-        "max_edge_px": None}
+        "max_edge_px": None, "min_vertices": 2}
 
 
 # --- the classwise decoder ----------------------------------------------------------------------------

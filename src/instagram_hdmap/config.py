@@ -149,6 +149,7 @@ class GraphHeadConfig:
     class_min_prob: float = 0.05  # classwise: a vertex takes part in class k's graph if p_k >= this
     same_class_edges: bool = False  # greedy / mutual: an edge needs both vertices' argmax class to agree
     max_edge_m: float | None = None  # greedy / classwise: no edge longer than this (metres)
+    min_vertices: int = 2  # a decoded instance needs at least this many vertices
 
 
 @dataclass
@@ -405,6 +406,9 @@ def validate_config(cfg: ExperimentConfig) -> None:
     if gnn.max_edge_m is not None and gnn.decoder == "mutual":
         raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy and classwise decoders; "
                           "set model.gnn.decoder=greedy (or classwise), or max_edge_m=null")
+    if gnn.min_vertices < 2:
+        raise ConfigError(f"config key 'model.gnn.min_vertices' must be >= 2 (an instance is at least one edge), "
+                          f"got {gnn.min_vertices}")
     if not 0 <= gnn.class_min_prob < 1:
         raise ConfigError(f"config key 'model.gnn.class_min_prob' is a class probability: it must be in [0, 1), "
                           f"got {gnn.class_min_prob}")

@@ -42,11 +42,13 @@ class ClassDiagnostics:
     """``update(outputs, batch, assignment)`` per batch, then ``compute() -> {metric: [K floats]}``."""
 
     def __init__(self, num_classes: int, dt_clip: float, match_threshold: float = 0.1, *, decoder: str = "greedy",
-                 same_class_edges: bool = False, max_edge_px: float | None = None, class_min_prob: float = 0.05):
+                 same_class_edges: bool = False, max_edge_px: float | None = None, class_min_prob: float = 0.05,
+                 min_vertices: int = 2):
         self.K = num_classes
         self.dt_clip = dt_clip
         self.match_threshold = match_threshold
         # the post-processing's neighbour rule (postprocess.decode_options), for edge recall and instances
+        # (min_vertices is accepted with the other decode options; instances are judged on the graphs)
         self.decode = {"decoder": decoder, "same_class_edges": same_class_edges, "max_edge_px": max_edge_px,
                        "class_min_prob": class_min_prob}
         self.hits: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))

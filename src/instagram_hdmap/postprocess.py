@@ -60,7 +60,8 @@ def decode_options(gnn_cfg, grid: BEVGrid) -> dict:
     max_edge_m = gnn_cfg.max_edge_m
     return {"match_threshold": gnn_cfg.match_threshold, "decoder": gnn_cfg.decoder,
             "same_class_edges": gnn_cfg.same_class_edges, "class_min_prob": gnn_cfg.class_min_prob,
-            "max_edge_px": None if max_edge_m is None else max_edge_m / grid.resolution}
+            "max_edge_px": None if max_edge_m is None else max_edge_m / grid.resolution,
+            "min_vertices": gnn_cfg.min_vertices}
 
 
 @torch.no_grad()

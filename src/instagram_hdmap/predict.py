@@ -341,7 +341,7 @@ def predict_sample(
     gts = sample["gt_polylines"]
 
     mask = outputs["pred_vertex_mask"][0]
-    graphs = neighbours(outputs, **decode)[0]  # [G, N, 2], batch of one
+    graphs = neighbours(outputs, **{k: v for k, v in decode.items() if k != "min_vertices"})[0]  # [G, N, 2]
     nbr = graphs.permute(1, 0, 2).reshape(graphs.shape[1], -1)  # [N, 2G]: a vertex's neighbours in any graph
     edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, nbr)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
