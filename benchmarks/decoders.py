@@ -30,12 +30,11 @@ from instagram_hdmap.checkpoint import load_checkpoint
 from instagram_hdmap.config import config_from_dict, config_to_dict, deep_update, parse_overrides
 from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
 from instagram_hdmap.demo import world_overrides
+from instagram_hdmap.deploy import DECODE_KEYS
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.postprocess import REQUIRED_OUTPUTS, decode_options, postprocess_batch
 from instagram_hdmap.predict import load_model
-
-DECODE_KEYS = ("model.gnn.decoder", "model.gnn.match_threshold", "model.gnn.same_class_edges", "model.gnn.max_edge_m")
 
 
 def run_outputs(checkpoint: str, world: str) -> tuple[list[tuple[dict, list]], object]:

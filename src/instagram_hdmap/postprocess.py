@@ -17,6 +17,10 @@ dustbin.
      rule below drops an edge as soon as either end ranks it third. Options: ``same_class_edges``
      (both vertices must have the same argmax class: a crossing that touches a kerb stays apart
      from the boundary) and ``max_edge_px`` (no edge longer than that).
+   - ``"classwise"``: the greedy rule once per class k, over the vertices whose class-k probability
+     is at least ``class_min_prob``; graph k's paths and cycles are class-k instances. A vertex not
+     ruled out for two classes can serve both: where a crossing meets a kerb, one BEV cell (one
+     vertex) lies on both lines, and one class-agnostic graph of degree <= 2 cannot give it to both.
    - ``"mutual"`` (``vertex_neighbours``, the official decoder's rule): vertex i's candidate
      neighbours are the (up to) two best real columns j != i of its row whose probability exceeds
      ``match_threshold`` (the official 0.1, strict ``>``); an edge {i, j} is kept only if it is
@@ -25,8 +29,9 @@ dustbin.
    By default the graph is class-agnostic and the class is decided per instance (below), so one
    vertex with a flipped class does not split an instance. The demo model (a tiny graph head
    after ~3500 steps) gives true edges probabilities of only ~0.02-0.3 and its crossings touch
-   the kerbs: it decodes with ``greedy``, ``same_class_edges``, ``match_threshold`` 0.01 and
-   ``model.gnn.max_edge_m`` 2.5 (configs/synthetic/demo.yaml; benchmarks/README.md, "Decoding").
+   the kerbs: it decodes ``classwise`` with ``match_threshold`` 0.02, ``class_min_prob`` 0.05,
+   ``model.gnn.max_edge_m`` 2.5 and ``min_vertices`` 4 (configs/synthetic/demo.yaml;
+   benchmarks/README.md, "Decoding": +0.08 to +0.19 mAP over ``mutual`` on five demo models).
 2. Tracing (``trace_instances``): a linear walk over the neighbour pointers, O(N) per sample. Paths
    are walked from their lower-index end; what remains are cycles, walked from their lowest-index
    vertex in the direction of that vertex's first neighbour. Vertices without an edge (none above
@@ -35,9 +40,10 @@ dustbin.
 3. Instances: a path becomes a polyline (``closed=False``), a cycle a closed polygon whose first
    point is repeated at the end (``closed=True``, >= 4 points). Class and confidence:
    ``label = argmax_k mean_i p_ik`` (mean class probability over the instance's vertices, a soft
-   vote) and ``score = mean_i p_i,label x mean_i s_i`` with ``s_i = pred_vertex_scores`` (vertex
-   heatmap confidence). Points are converted to metres in the ego frame by ``geometry.BEVGrid``.
-   Output per sample: a list of ``{"pts", "label", "closed", "score"}`` (docs/conventions.md).
+   vote; ``classwise``: the class of its graph) and ``score = mean_i p_i,label x mean_i s_i`` with
+   ``s_i = pred_vertex_scores`` (vertex heatmap confidence). Points are converted to metres in the
+   ego frame by ``geometry.BEVGrid``. Output per sample: a list of ``{"pts", "label", "closed",
+   "score"}`` (docs/conventions.md).
 """
 
 from __future__ import annotations
