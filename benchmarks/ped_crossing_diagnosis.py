@@ -50,7 +50,8 @@ def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int
     dataset = NuScenesMapDataset(cfg, split or cfg.data.val_split, augment=False)
     n = len(dataset) if limit is None else min(limit, len(dataset))
     loader = DataLoader(torch.utils.data.Subset(dataset, range(n)), batch_size=4, collate_fn=collate_fn)
-    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, **decode_options(cfg.model.gnn, grid))
+    decode = decode_options(cfg.model.gnn, grid)
+    diag = ClassDiagnostics(len(cfg.data.classes), cfg.data.dt_clip, decode)
     evaluator = Evaluator.from_config(cfg)
     seen = 0
     with torch.no_grad():
@@ -58,7 +59,7 @@ def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int
             batch = move_to(batch, torch.device("cpu"))
             outputs = model(batch)
             diag.update(outputs, batch, criterion.assign(outputs, batch))
-            preds = postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))
+            preds = postprocess_batch(outputs, grid, **decode)
             evaluator.update(preds, batch["gt_polylines"], sample_ids=list(range(seen, seen + len(preds))))
             seen += len(preds)
     result = diag.compute()

@@ -121,7 +121,7 @@ def test_diagnostics_of_a_perfect_model_are_all_ones(decode):
     grid = BEVGrid.from_config(cfg.grid)
     batch = collate_fn([_sample(cfg, _toy_polylines(s), f"t{s}") for s in range(4)])
     outputs = gt_outputs(batch, grid, K)
-    diag = ClassDiagnostics(K, cfg.data.dt_clip, **{"match_threshold": 0.1, **decode})
+    diag = ClassDiagnostics(K, cfg.data.dt_clip, {"match_threshold": 0.1, **decode})
     diag.update(outputs, batch, Criterion(cfg.loss, grid).assign(outputs, batch))
     res = diag.compute()
     assert res["dt_error_px"] == pytest.approx([0.0] * K, abs=1e-5)

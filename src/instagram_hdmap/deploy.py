@@ -46,6 +46,7 @@ from torch import nn
 
 from .config import ExperimentConfig, UserError, config_to_dict
 from .models.view_transform import CALIBRATION_KEYS
+from .postprocess import DECODE_KEYS
 
 EXPORT_FORMAT = 1  # bump when the graph's inputs, outputs or their meaning change
 DEFAULT_OPSET = 18  # the dynamo exporter's own opset; GridSample, ScatterND add, LayerNormalization need >= 17
@@ -55,9 +56,6 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
                 "pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")
 # Config keys that shape the graph (predict.MODEL_KEYS) less those the graph does not read.
 BAKED_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
-# post-processing (postprocess.decode_options), outside the graph
-DECODE_KEYS = ("model.gnn.match_threshold", "model.gnn.decoder", "model.gnn.class_min_prob",
-               "model.gnn.same_class_edges", "model.gnn.max_edge_m", "model.gnn.min_vertices")
 NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.grad_checkpoint")
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"

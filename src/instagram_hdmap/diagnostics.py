@@ -32,7 +32,7 @@ import torch
 
 from .assignment import IGNORE_INDEX, UNMATCHED
 from .losses import adjacency_correct
-from .postprocess import neighbours, trace_instances
+from .postprocess import graph_options, neighbours, trace_instances
 
 METRICS = ("vertex_recall", "vertex_precision", "dt_error_px", "dt_line_recall", "adjacency_accuracy",
            "edge_recall", "instance_complete", "closed_as_cycle")
@@ -41,16 +41,12 @@ METRICS = ("vertex_recall", "vertex_precision", "dt_error_px", "dt_line_recall",
 class ClassDiagnostics:
     """``update(outputs, batch, assignment)`` per batch, then ``compute() -> {metric: [K floats]}``."""
 
-    def __init__(self, num_classes: int, dt_clip: float, match_threshold: float = 0.1, *, decoder: str = "greedy",
-                 same_class_edges: bool = False, max_edge_px: float | None = None, class_min_prob: float = 0.05,
-                 min_vertices: int = 2):
+    def __init__(self, num_classes: int, dt_clip: float, decode: dict | None = None):
         self.K = num_classes
         self.dt_clip = dt_clip
-        self.match_threshold = match_threshold
-        # the post-processing's neighbour rule (postprocess.decode_options), for edge recall and instances
-        # (min_vertices is accepted with the other decode options; instances are judged on the graphs)
-        self.decode = {"decoder": decoder, "same_class_edges": same_class_edges, "max_edge_px": max_edge_px,
-                       "class_min_prob": class_min_prob}
+        # the post-processing's neighbour rule (postprocess.decode_options; default: greedy at 0.1), for edge
+        # recall and instances
+        self.graph = graph_options(decode or {"match_threshold": 0.1})
         self.hits: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
         self.totals: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(num_classes))
 
@@ -90,7 +86,7 @@ class ClassDiagnostics:
         correct = adjacency_correct(outputs["pred_log_assignment"], pred_mask,
                                     assignment["target_next"], assignment["target_prev"])
         self._add("adjacency_accuracy", correct, rep, rep_cls)
-        graphs = neighbours(outputs, self.match_threshold, **self.decode)  # [B, G, N, 2]
+        graphs = neighbours(outputs, **self.graph)  # [B, G, N, 2]
         # the graph each vertex's instances come from: the one graph, or (classwise) its GT class's
         g = rep_cls.clamp(0, graphs.shape[1] - 1) if graphs.shape[1] > 1 else torch.zeros_like(rep_cls)
         nbr = graphs.gather(1, g[:, None, :, None].expand(B, 1, N, 2)).squeeze(1)  # [B, N, 2]

@@ -58,11 +58,15 @@ from .geometry import BEVGrid
 REQUIRED_OUTPUTS = ("pred_log_assignment", "pred_vertices_px", "pred_vertex_mask", "pred_vertex_scores",
                     "pred_class_log_probs")
 DECODERS = ("classwise", "greedy", "mutual")
+# the config keys read here (decode_options), at inference only: an ONNX export leaves them free
+DECODE_KEYS = ("model.gnn.match_threshold", "model.gnn.decoder", "model.gnn.class_min_prob",
+               "model.gnn.same_class_edges", "model.gnn.max_edge_m", "model.gnn.min_vertices")
 
 
 def decode_options(gnn_cfg, grid: BEVGrid) -> dict:
-    """The keyword arguments of ``postprocess_batch`` / ``neighbours`` from ``model.gnn`` (config.py):
-    ``postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))``."""
+    """The keyword arguments of ``postprocess_batch`` from ``model.gnn`` (config.py, ``DECODE_KEYS``):
+    ``postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))``; ``graph_options`` of
+    them for ``neighbours``."""
     max_edge_m = gnn_cfg.max_edge_m
     return {"match_threshold": gnn_cfg.match_threshold, "decoder": gnn_cfg.decoder,
             "same_class_edges": gnn_cfg.same_class_edges, "class_min_prob": gnn_cfg.class_min_prob,
@@ -166,6 +170,11 @@ def greedy_neighbours(
             deg[u] += 1
             deg[v] += 1
     return torch.tensor(nbr, dtype=torch.long).view(B, N, 2).to(device)
+
+
+def graph_options(decode: dict) -> dict:
+    """``decode_options`` less the instance rule (``min_vertices``): the keyword arguments of ``neighbours``."""
+    return {k: v for k, v in decode.items() if k != "min_vertices"}
 
 
 def _repeat_per_class(t: torch.Tensor | None, K: int) -> torch.Tensor | None:

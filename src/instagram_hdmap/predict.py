@@ -302,7 +302,7 @@ def predict_sample(
     from .data.nuscenes import collate_fn
     from .engine import move_to
     from .evaluation import write_submission
-    from .postprocess import decode_options, neighbours, postprocess_batch
+    from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
     from .visualize import intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
 
     if gt_as_prediction and checkpoint is not None:
@@ -341,7 +341,7 @@ def predict_sample(
     gts = sample["gt_polylines"]
 
     mask = outputs["pred_vertex_mask"][0]
-    graphs = neighbours(outputs, **{k: v for k, v in decode.items() if k != "min_vertices"})[0]  # [G, N, 2]
+    graphs = neighbours(outputs, **graph_options(decode))[0]  # [G, N, 2], batch of one
     nbr = graphs.permute(1, 0, 2).reshape(graphs.shape[1], -1)  # [N, 2G]: a vertex's neighbours in any graph
     edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, nbr)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
