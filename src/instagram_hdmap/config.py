@@ -153,11 +153,30 @@ class GraphHeadConfig:
 
 
 @dataclass
+class TemporalConfig:
+    """Streaming temporal fusion (models/temporal.py, docs/temporal.md). ``memory=none`` is the paper's
+    single-frame model, bit for bit; ``bev`` carries the previous frame's BEV features, warped into
+    the current ego frame by the relative pose, and fuses them with the current ones in the BEV encoder."""
+
+    memory: Literal["none", "bev"] = "none"
+    # gated: x + sigmoid(g) * d from a conv of [x, warped memory, validity], d zero-initialised (the
+    # model starts as the single-frame one); gru: StreamMapNet's ConvGRU (gates, LayerNorm)
+    fusion: Literal["gated", "gru"] = "gated"
+    kernel: int = 1  # the fusion convolutions' kernel (1 as StreamMapNet's ConvGRU; 3 sees +-1 cell)
+    # training: each sample's memory is dropped with this probability at each step (the model keeps
+    # working on a scene's first frame, StreamMapNet's random drop)
+    drop_prob: float = 0.1
+    # a jump of the ego position larger than this between consecutive frames resets the memory
+    max_jump_m: float = 10.0
+
+
+@dataclass
 class ModelConfig:
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     view_transform: ViewTransformConfig = field(default_factory=ViewTransformConfig)
     bev_heads: BEVHeadsConfig = field(default_factory=BEVHeadsConfig)
     gnn: GraphHeadConfig = field(default_factory=GraphHeadConfig)
+    temporal: TemporalConfig = field(default_factory=TemporalConfig)
 
 
 @dataclass

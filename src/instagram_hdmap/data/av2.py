@@ -166,6 +166,7 @@ class AV2MapDataset(MapDataset):
                                    "(AV2 samples are the sweeps); the log folder is incomplete")
             self.samples += [(log, int(ts)) for ts in sweeps[:: d.av2_frame_step]]
         self.sample_tokens = [f"{log}/{ts}" for log, ts in self.samples]
+        self.set_scenes([log for log, _ in self.samples], [ts // 1000 for _, ts in self.samples])  # ns -> us
         self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist)
         self._poses: dict[str, dict] = {}
         self._cameras: dict[str, dict] = {}

@@ -3,7 +3,9 @@ from the pieces a dataset provides, the augmentation stream, and the bad-sample 
 
 A dataset subclasses ``MapDataset`` (calling ``super().__init__(cfg, split, augment)``, which sets
 ``cfg``, ``data_cfg``, ``split``, ``grid`` and ``augment``), sets ``dataroot``, ``sample_tokens`` (one
-string per sample) and ``camera_names`` (V names, in the order of the camera tensors), and implements
+string per sample) and ``camera_names`` (V names, in the order of the camera tensors), calls
+``set_scenes(scene names, timestamps)`` (the drive each sample belongs to, its time; a scene's samples
+contiguous and in time order, see ``SceneIndex``), and implements
 
 * ``gt_polylines(i)``: the sample's local map (polyline dicts, metres, ego frame), without images;
 * ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
@@ -33,11 +35,47 @@ class DatasetError(UserError):
     """The dataroot, version, split or a sample's files cannot be used."""
 
 
+class SceneIndex:
+    """Which drive each sample belongs to: ``scene[i]`` (name), ``frame[i]`` (index in its scene, from 0),
+    ``timestamp_us[i]``, and ``runs`` (per scene, in dataset order, its sample indices in time order).
+
+    A scene's samples must be contiguous in the dataset and strictly increasing in time: a
+    ``DatasetError`` names the scene otherwise (frames out of order)."""
+
+    def __init__(self, scenes: list[str], timestamps_us: list[int], where: str = "the dataset"):
+        if len(scenes) != len(timestamps_us):
+            raise ValueError(f"{len(scenes)} scene names for {len(timestamps_us)} timestamps")
+        self.scene, self.timestamp_us = list(scenes), [int(t) for t in timestamps_us]
+        self.frame: list[int] = []
+        self.runs: list[list[int]] = []
+        names: list[str] = []
+        for i, name in enumerate(self.scene):
+            if names and names[-1] == name:
+                if self.timestamp_us[i] <= self.timestamp_us[i - 1]:
+                    raise DatasetError(
+                        f"scene '{name}' of {where}: frame {len(self.runs[-1])} (timestamp {self.timestamp_us[i]} us) "
+                        f"does not come after frame {len(self.runs[-1]) - 1} ({self.timestamp_us[i - 1]} us); "
+                        "a scene's samples must be in time order")
+                self.runs[-1].append(i)
+            else:
+                if name in names:
+                    raise DatasetError(f"scene '{name}' of {where}: its samples are not contiguous (the scene "
+                                       "appears twice in the sample list)")
+                names.append(name)
+                self.runs.append([i])
+            self.frame.append(len(self.runs[-1]) - 1)
+        self.names = names
+
+    def __len__(self) -> int:
+        return len(self.scene)
+
+
 class MapDataset(Dataset):
     """Samples of one split as dicts (docs/conventions.md, per sample: no batch dimension)."""
 
     sample_tokens: list[str]
     camera_names: tuple[str, ...]
+    scenes: SceneIndex
 
     def __init__(self, cfg: ExperimentConfig, split: str, augment: bool | None = None) -> None:
         """``augment``: train-time image augmentation; default ``cfg.data.augment and split == train_split``."""
@@ -50,6 +88,10 @@ class MapDataset(Dataset):
         self.augment = (d.augment and split == d.train_split) if augment is None else augment
         self.epoch = 0  # see set_epoch
         self._bad: set[int] = set()  # indices of the samples found bad (on_bad_sample=skip)
+
+    def set_scenes(self, scenes: list[str], timestamps_us: list[int]) -> None:
+        """The scene name and timestamp (microseconds) of every sample (``SceneIndex``)."""
+        self.scenes = SceneIndex(scenes, timestamps_us, f"split '{self.split}' of {self.dataroot}")
 
     @property
     def num_bad_samples(self) -> int:
@@ -93,10 +135,15 @@ class MapDataset(Dataset):
             raise type(e)(msg) from None
         d = self.data_cfg
         targets = build_targets(polylines, self.grid, len(d.classes), d.dt_clip)
+        frame = self.scenes.frame[index]
         return {
             **cams,
             "ego_pose": ego_pose,
             "sample_token": token,
+            "scene": self.scenes.scene[index],
+            "frame_index": torch.tensor(frame, dtype=torch.long),
+            "scene_start": torch.tensor(frame == 0),
+            "timestamp_us": torch.tensor(self.scenes.timestamp_us[index], dtype=torch.long),
             "gt_polylines": polylines,
             **targets,
         }

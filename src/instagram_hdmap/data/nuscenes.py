@@ -159,6 +159,8 @@ class NuScenesMapDataset(MapDataset):
                 token = self.nusc.get("sample", token)["next"]
         if not self.sample_tokens:
             raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
+        self.set_scenes([self._scene_of[t]["name"] for t in self.sample_tokens],
+                        [self.nusc.get("sample", t)["timestamp"] for t in self.sample_tokens])
         self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist)
         self._map_errors: dict[str, MapError] = {}
         for loc in sorted({self._location(t) for t in self.sample_tokens}):

@@ -26,6 +26,7 @@ from .backbone import FEATURE_DOWNSAMPLE, IMAGE_DIVISOR, EfficientNetBackbone, T
 from .bev_heads import BEVHeads
 from .gnn import EMBEDDINGS, GraphHead
 from .instagram import InstaGraM
+from .temporal import BEVMemoryFusion
 from .view_transform import IPMViewTransform, LSSViewTransform, MLPViewTransform
 
 __all__ = ["InstaGraM", "build_model", "summarize_parameters"]
@@ -81,6 +82,10 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(gh.heads > 0 and gh.dim % gh.heads == 0, "model.gnn.heads",
              f"the dimension D={gh.dim} must be divisible by the number of heads ({gh.heads})")
     _require(gh.sinkhorn_iters >= 0, "model.gnn.sinkhorn_iters", "must be >= 0")
+    tc = m.temporal
+    _require(tc.kernel > 0 and tc.kernel % 2 == 1, "model.temporal.kernel", f"must be odd and > 0, got {tc.kernel}")
+    _require(0 <= tc.drop_prob < 1, "model.temporal.drop_prob", f"a probability in [0, 1), got {tc.drop_prob}")
+    _require(tc.max_jump_m > 0, "model.temporal.max_jump_m", f"must be > 0 metres, got {tc.max_jump_m}")
 
 
 def build_model(cfg: ExperimentConfig) -> InstaGraM:
@@ -126,7 +131,12 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
         gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters, gh.sinkhorn_grad,
         gh.nms_radius,
     )
-    return InstaGraM(backbone, view_transform, bev_heads, graph_head)
+    tc = m.temporal
+    temporal = None
+    if tc.memory == "bev":  # fused after the BEV encoder's first stage, at H/2 x W/2 (models/bev_heads.py)
+        temporal = BEVMemoryFusion(bh.stage_channels[0], grid, (grid.H // 2, grid.W // 2), tc.fusion, tc.kernel,
+                                   tc.drop_prob, tc.max_jump_m)
+    return InstaGraM(backbone, view_transform, bev_heads, graph_head, temporal)
 
 
 def _count(module: nn.Module | None) -> int:
@@ -148,6 +158,8 @@ def summarize_parameters(model: InstaGraM) -> str:
         (f"  gnn ({layers} layers x {per_layer / 1e6:.3f} M)", _count(gh.gnn)),
         ("  class + match heads, dustbin", _count(gh.class_head) + _count(gh.match_head) + gh.bin_score.numel()),
     ]
+    if model.temporal is not None:
+        rows.append((f"temporal ({model.temporal.fusion} BEV memory)", _count(model.temporal)))
     total = _count(model)
     trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
     width = max(len(name) for name, _ in rows) + 2

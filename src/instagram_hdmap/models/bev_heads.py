@@ -21,6 +21,8 @@ distance transform is ever computed at full resolution; parameter count unchange
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -101,11 +103,17 @@ class BEVHeads(nn.Module):
             conv_bn_relu(channels, head_channels), nn.Conv2d(head_channels, num_classes, kernel_size=1)
         )
 
-    def forward(self, bev: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, bev: torch.Tensor, fuse: Callable[[torch.Tensor], torch.Tensor] | None = None
+                ) -> dict[str, torch.Tensor]:
         """bev [B, C_in, H/2, W/2] (or [B, C_in, H, W] with stem_stride 2) ->
         ``bev_features`` [B, 256, H/2, W/2], ``pred_vertex_logits`` [B, S*S+1, Hc, Wc],
-        ``pred_distance`` [B, K, H, W] in [0, dt_clip]."""
+        ``pred_distance`` [B, K, H, W] in [0, dt_clip].
+
+        ``fuse``: applied to the first stage's output [B, stage_channels[0], H/2, W/2] (the temporal
+        memory's fusion, models/temporal.py); the rest of the encoder sees its result."""
         x = first = self.stages[0](self.stem(bev))
+        if fuse is not None:
+            x = first = fuse(first)
         for stage in self.stages[1:]:
             x = stage(x)
         features = self.up(first, x)  # F_bev

@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from .gnn import GraphHead
+from .temporal import BEVMemoryFusion
 from .vertices import vertex_heatmap
 from .view_transform import CALIBRATION_KEYS
 
@@ -13,39 +14,66 @@ INPUT_KEYS = ("images", *CALIBRATION_KEYS)
 
 
 class InstaGraM(nn.Module):
-    """images -> backbone -> view transform -> BEV heads -> graph head.
+    """images -> backbone -> view transform -> BEV heads -> graph head, with an optional temporal
+    memory fused into the BEV encoder (models/temporal.py).
 
     Shapes: B batch, V cameras, h x w network input, S cell size, Hc x Wc cells, H x W BEV grid,
     K classes, N padded vertices.
 
-    forward(batch) with ``images`` [B, V, 3, h, w] and the calibration (``intrinsics``,
+    forward(batch, memory=None) with ``images`` [B, V, 3, h, w] and the calibration (``intrinsics``,
     ``cam_to_ego_rot``, ``cam_to_ego_trans``, ``post_rot``, ``post_tran``) returns
       ``pred_vertex_logits`` [B, S*S+1, Hc, Wc], ``pred_heatmap`` [B, H, W],
       ``pred_distance`` [B, K, H, W], ``pred_vertices_px`` [B, N, 2], ``pred_vertex_mask`` [B, N],
       ``pred_vertex_scores`` [B, N], ``pred_class_log_probs`` [B, N, K],
       ``pred_log_assignment`` [B, N+1, N+1] (float32).
+    A temporal model (``temporal`` is a ``BEVMemoryFusion``) also reads ``ego_pose`` [B, 4, 4] and, where
+    present, ``scene_start`` [B] bool and ``frame_index`` [B] int64, and adds ``memory`` (the dict to
+    pass back with the next frame of the same streams; ``None``: empty) and ``memory_status`` [B] int64
+    (``temporal.STATUS_NAMES``). A single-frame model (``temporal=None``) ignores ``memory``.
     """
 
-    def __init__(self, backbone: nn.Module, view_transform: nn.Module, bev_heads: nn.Module, graph_head: GraphHead):
+    def __init__(self, backbone: nn.Module, view_transform: nn.Module, bev_heads: nn.Module, graph_head: GraphHead,
+                 temporal: BEVMemoryFusion | None = None):
         super().__init__()
         self.backbone = backbone
         self.view_transform = view_transform
         self.bev_heads = bev_heads
         self.graph_head = graph_head
+        self.temporal = temporal
 
-    def forward(self, batch: dict) -> dict[str, torch.Tensor]:
-        missing = [k for k in INPUT_KEYS if k not in batch]
+    @property
+    def is_temporal(self) -> bool:
+        return self.temporal is not None
+
+    def initial_memory(self, batch_size: int, like: torch.Tensor) -> dict[str, torch.Tensor]:
+        """An empty memory of ``batch_size`` streams (a temporal model only), on ``like``'s device."""
+        if self.temporal is None:
+            raise ValueError("a single-frame model (model.temporal.memory=none) has no memory")
+        return self.temporal.initial_memory(batch_size, like)
+
+    def forward(self, batch: dict, memory: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        required = INPUT_KEYS if self.temporal is None else (*INPUT_KEYS, "ego_pose")
+        missing = [k for k in required if k not in batch]
         if missing:
             raise KeyError(f"InstaGraM.forward: the batch lacks {missing} (see docs/conventions.md)")
         images = batch["images"]
         B, V = images.shape[:2]
         features = self.backbone(images.flatten(0, 1)).unflatten(0, (B, V))  # [B, V, C, h/16, w/16]
         bev = self.view_transform(features, {k: batch[k] for k in CALIBRATION_KEYS})
-        heads = self.bev_heads(bev)
+        temporal: dict[str, torch.Tensor] = {}
+        if self.temporal is None:
+            heads = self.bev_heads(bev)
+        else:
+            def fuse(first: torch.Tensor) -> torch.Tensor:
+                fused, temporal["memory"], temporal["memory_status"] = self.temporal(first, batch, memory)
+                return fused
+
+            heads = self.bev_heads(bev, fuse=fuse)
         graph = self.graph_head(heads["pred_vertex_logits"], heads["pred_distance"], heads["bev_features"])
         return {
             "pred_vertex_logits": heads["pred_vertex_logits"],
             "pred_heatmap": vertex_heatmap(heads["pred_vertex_logits"], self.graph_head.grid.cell_size),
             "pred_distance": heads["pred_distance"],
             **graph,
+            **temporal,
         }

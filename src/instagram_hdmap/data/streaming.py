@@ -1,0 +1,123 @@
+"""Drives as data: B parallel streams, each walking whole scenes in order (docs/temporal.md).
+
+    sampler = StreamingBatchSampler(dataset.scenes.runs, streams=4, seed=0, rank=r, world_size=R)
+    loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_fn)
+    sampler.set_epoch(epoch, start=steps_done_in_epoch)
+
+Every step yields one batch per rank of ``streams`` dataset indices: row b of every batch of an epoch
+is the next frame of stream b, so a temporal model's memory row b always belongs to stream b. Scenes
+are dealt to the ``world_size * streams`` streams of all ranks by longest-processing-time list
+scheduling (longest scene first, each to the stream with the fewest frames so far; ties to the lowest
+stream), so every scene is walked whole, in order, by one stream of one rank, once per epoch, and the
+streams end as evenly as whole scenes allow. ``shuffle=True`` permutes, from (seed, epoch), the
+scenes of equal length before dealing and the order in which each stream walks its scenes: the
+number of steps is the same in every epoch. All ranks compute the same schedule from (seed, epoch)
+alone: no communication.
+
+The epoch lasts as many steps as the longest stream. A shorter stream is then padded, as
+``DistributedSampler`` pads its index list, so that every rank steps in lockstep with full batches:
+it walks the epoch's scenes again from the first (each from its frame 0, a scene start), cut where
+the epoch ends. ``schedule()`` tells which entries are padding; evaluation scores a sample once.
+
+StreamMapNet's training sampler (``InfiniteGroupEachSampleInBatchSampler``) also gives each batch row
+its own sequence; it has no epochs (an infinite stream of shuffled sub-sequences), where this one
+keeps the project's epochs and exact resume (``set_epoch(epoch, start)`` skips the steps done).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+import torch
+from torch.utils.data import Sampler
+
+
+def deal_scenes(lengths: Sequence[int], order: Sequence[int], streams: int) -> list[list[int]]:
+    """List scheduling: scene ``order[k]`` (with ``lengths[order[k]]`` frames), in turn, to the stream with
+    the fewest frames so far (ties: the lowest stream). Returns the scenes of each of ``streams`` streams."""
+    totals = [0] * streams
+    dealt: list[list[int]] = [[] for _ in range(streams)]
+    for scene in order:
+        s = min(range(streams), key=lambda i: (totals[i], i))
+        dealt[s].append(scene)
+        totals[s] += lengths[scene]
+    return dealt
+
+
+class StreamingBatchSampler(Sampler[list[int]]):
+    """Batches of ``streams`` indices per rank, row b walking stream b's scenes frame by frame (module doc).
+
+    ``runs``: per scene, its dataset indices in time order (``MapDataset.scenes.runs``).
+    """
+
+    def __init__(self, runs: Sequence[Sequence[int]], streams: int, *, shuffle: bool = True, seed: int = 0,
+                 rank: int = 0, world_size: int = 1):
+        if streams < 1:
+            raise ValueError(f"streams must be >= 1, got {streams}")
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} is not in [0, {world_size})")
+        if not runs or any(len(r) == 0 for r in runs):
+            raise ValueError("every scene needs at least one sample")
+        self.runs = [list(r) for r in runs]
+        self.streams, self.shuffle, self.seed = streams, shuffle, seed
+        self.rank, self.world_size = rank, world_size
+        self.epoch = 0
+        self.start = 0  # steps of this epoch to skip (the trainer sets it on resume)
+
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        self.epoch, self.start = epoch, start
+
+    def _generator(self) -> torch.Generator:
+        return torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+
+    def deal(self) -> list[list[int]]:
+        """The scenes of each stream of every rank this epoch, in walking order (stream ``r * streams + b``
+        is row b of rank r)."""
+        lengths = [len(r) for r in self.runs]
+        g = self._generator() if self.shuffle else None
+        order = torch.randperm(len(self.runs), generator=g).tolist() if g is not None else list(range(len(self.runs)))
+        order.sort(key=lambda s: -lengths[s])  # stable: equal lengths keep the shuffled order
+        dealt = deal_scenes(lengths, order, self.world_size * self.streams)
+        if g is not None:
+            dealt = [[scenes[i] for i in torch.randperm(len(scenes), generator=g).tolist()] for scenes in dealt]
+        return dealt
+
+    def schedule(self) -> list[list[tuple[int, int, bool]]]:
+        """Every stream of every rank (stream ``r * streams + b`` is row b of rank r) for this epoch:
+        a list of ``(scene, frame in scene, padding)`` per step, all of the same length (``steps``)."""
+        dealt = self.deal()
+        order = [s for scenes in dealt for s in scenes]
+        lengths = [len(r) for r in self.runs]
+        steps = self.steps
+        out = []
+        for scenes in dealt:
+            walk = [(s, f, False) for s in scenes for f in range(lengths[s])]
+            k = 0
+            while len(walk) < steps:  # padding: the epoch's scenes again, from the first
+                s = order[k % len(order)]
+                walk += [(s, f, True) for f in range(lengths[s])][: steps - len(walk)]
+                k += 1
+            out.append(walk)
+        return out
+
+    def _rank_batches(self) -> list[list[int]]:
+        mine = self.schedule()[self.rank * self.streams:(self.rank + 1) * self.streams]
+        return [[self.runs[s][f] for s, f, _ in step] for step in zip(*mine)]
+
+    @property
+    def steps(self) -> int:
+        """Batches in one epoch: the same on every rank and in every epoch."""
+        lengths = sorted((len(r) for r in self.runs), reverse=True)
+        dealt = deal_scenes(lengths, range(len(lengths)), self.world_size * self.streams)
+        return max(sum(lengths[s] for s in scenes) for scenes in dealt)
+
+    @property
+    def num_samples(self) -> int:
+        """Samples this rank loads in one epoch, padding included (``steps * streams``)."""
+        return self.steps * self.streams
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return iter(self._rank_batches()[self.start:])
+
+    def __len__(self) -> int:
+        return self.steps - self.start

@@ -1,0 +1,227 @@
+"""Streaming temporal fusion: the previous frame's BEV features, warped into the current ego frame by
+the relative ego pose, fused with the current BEV features (docs/temporal.md).
+
+Shapes: B batch, C channels, h x w a BEV feature map covering the whole grid extent (any resolution;
+in the model the half-resolution grid of F_bev's first stage, H/2 x W/2).
+
+The memory (``InstaGraM.forward(batch, memory)`` in and ``outputs["memory"]`` out) is a dict of
+tensors, ``MEMORY_KEYS``:
+
+* ``bev`` [B, C, h, w]: the fused BEV features of the previous frame (detached: no gradient crosses
+  a step, as StreamMapNet);
+* ``ego_pose`` [B, 4, 4]: that frame's ego -> global pose;
+* ``valid`` [B] bool: the row holds a frame (False: empty memory, ``initial_memory``);
+* ``frame_index`` [B] int64: that frame's index in its scene.
+
+Which samples fuse (``memory_status``, one code per sample, ``STATUS_NAMES``): a sample fuses its
+memory (``FUSED``) unless the memory row is empty or the batch flags a scene start (``NO_MEMORY``),
+the ego moved more than ``max_jump_m`` since the memory's frame (``POSE_JUMP``), the frame does not
+follow the memory's frame (``frame_index`` not one more: ``MISSING_FRAME``), or, in training, the
+memory was dropped at random (``DROPPED``). A sample that does not fuse uses its own features only
+(the fusion still runs, with an all-invalid history, so every parameter always gets a gradient) and
+starts a new memory. A frame index at or below the memory's one, without a scene start, is frames out
+of order: ``FrameOrderError`` naming the scene (eager mode; an exported graph cannot raise).
+
+The warp (StreamMapNet's ``update_bev_feature``, here batched): every current BEV cell centre
+(x, y, 0) in metres is mapped into the previous ego frame by ``prev_pose^-1 @ cur_pose`` and the
+memory is sampled there bilinearly (``grid_sample``, ``align_corners=False``, geometry.py's
+normalised convention); cells whose centre falls outside the previous grid have no history and are
+masked (``valid`` channel 0).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..config import UserError
+from ..geometry import BEVGrid
+
+MEMORY_KEYS = ("bev", "ego_pose", "valid", "frame_index")
+FUSED, NO_MEMORY, POSE_JUMP, MISSING_FRAME, DROPPED = 0, 1, 2, 3, 4
+STATUS_NAMES = ("fused", "no_memory", "pose_jump", "missing_frame", "dropped")
+
+
+class FrameOrderError(UserError):
+    """Frames of one scene given out of order to a temporal model."""
+
+
+# --- geometry (plain functions) ---------------------------------------------------------------------
+
+
+def rigid_inverse(pose: torch.Tensor) -> torch.Tensor:
+    """[..., 4, 4] rigid transforms -> their inverses (R^T, -R^T t), in plain ops (ONNX has no inverse)."""
+    rot_t = pose[..., :3, :3].transpose(-1, -2)
+    trans = -(rot_t @ pose[..., :3, 3:4])
+    bottom = pose[..., 3:4, :]
+    return torch.cat([torch.cat([rot_t, trans], -1), bottom], -2)
+
+
+def relative_pose(prev_pose: torch.Tensor, cur_pose: torch.Tensor) -> torch.Tensor:
+    """[B, 4, 4] ego -> global poses of two frames -> [B, 4, 4] current ego frame -> previous ego frame."""
+    return rigid_inverse(prev_pose.float()) @ cur_pose.float()
+
+
+def bev_plane_m(grid: BEVGrid, h: int, w: int, like: torch.Tensor) -> torch.Tensor:
+    """[h * w, 4] homogeneous metre coordinates (x, y, 0, 1) of the cell centres of an h x w map over
+    the grid's extent, row-major (rows along y, columns along x)."""
+    x = grid.xmin + (torch.arange(w, device=like.device, dtype=torch.float32) + 0.5) * ((grid.xmax - grid.xmin) / w)
+    y = grid.ymin + (torch.arange(h, device=like.device, dtype=torch.float32) + 0.5) * ((grid.ymax - grid.ymin) / h)
+    yy, xx = torch.meshgrid(y, x, indexing="ij")
+    zeros = torch.zeros_like(xx)
+    return torch.stack([xx, yy, zeros, zeros + 1], -1).reshape(h * w, 4)
+
+
+def warp_grid(plane: torch.Tensor, cur_to_prev: torch.Tensor, grid: BEVGrid, h: int, w: int
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sampling positions of the current cells in the previous map.
+
+    plane [h*w, 4] (``bev_plane_m``), cur_to_prev [B, 4, 4] -> (``norm`` [B, h, w, 2] in grid_sample's
+    (x, y) order, ``inside`` [B, 1, h, w] bool: the position lies within the previous grid)."""
+    prev = torch.einsum("bij,pj->bpi", cur_to_prev.float(), plane)  # [B, h*w, 4]
+    gx = (prev[..., 0] - grid.xmin) * (2.0 / (grid.xmax - grid.xmin)) - 1.0
+    gy = (prev[..., 1] - grid.ymin) * (2.0 / (grid.ymax - grid.ymin)) - 1.0
+    norm = torch.stack([gx, gy], -1).reshape(-1, h, w, 2)
+    inside = (gx > -1) & (gx < 1) & (gy > -1) & (gy < 1)
+    return norm, inside.reshape(-1, 1, h, w)
+
+
+def warp_bev(features: torch.Tensor, cur_to_prev: torch.Tensor, grid: BEVGrid,
+             plane: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """A BEV map of the previous frame seen from the current one.
+
+    features [B, C, h, w] over the grid's extent in the previous ego frame, cur_to_prev [B, 4, 4]
+    (``relative_pose``) -> (warped [B, C, h, w] in the current ego frame, ``inside`` [B, 1, h, w] bool:
+    cells the previous map covered; elsewhere the warped values are the border's and meaningless)."""
+    h, w = features.shape[-2:]
+    if plane is None:
+        plane = bev_plane_m(grid, h, w, features)
+    norm, inside = warp_grid(plane, cur_to_prev, grid, h, w)
+    warped = F.grid_sample(features, norm.to(features.dtype), mode="bilinear", padding_mode="border",
+                           align_corners=False)
+    return warped, inside
+
+
+# --- which samples fuse --------------------------------------------------------------------------
+
+
+def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: float,
+                  drop: torch.Tensor | None = None) -> torch.Tensor:
+    """[B] int64 status codes (module docstring) of a batch against its memory. ``drop`` [B] bool:
+    memories dropped on purpose (training). Raises ``FrameOrderError`` (eager only) for frames out of
+    order inside a scene."""
+    valid = memory["valid"].bool()
+    B = valid.shape[0]
+    start = batch.get("scene_start")
+    start = valid.new_zeros(B) if start is None else start.bool().reshape(B)
+    rel = batch["ego_pose"][:, :2, 3].float() - memory["ego_pose"][:, :2, 3].float()
+    jump = (rel * rel).sum(-1) > max_jump_m * max_jump_m
+    frame = batch.get("frame_index")
+    if frame is not None:
+        gap = frame.reshape(B).long() - memory["frame_index"].long()
+        missing = gap != 1
+        _check_order(batch, valid & ~start & (gap <= 0), frame, memory["frame_index"])
+    else:
+        missing = valid.new_zeros(B)
+    status = torch.full_like(memory["frame_index"].long(), FUSED)
+    status = torch.where(missing, torch.full_like(status, MISSING_FRAME), status)
+    status = torch.where(jump, torch.full_like(status, POSE_JUMP), status)
+    if drop is not None:
+        status = torch.where(drop, torch.full_like(status, DROPPED), status)
+    return torch.where(~valid | start, torch.full_like(status, NO_MEMORY), status)
+
+
+def _check_order(batch: dict, backwards: torch.Tensor, frame: torch.Tensor, previous: torch.Tensor) -> None:
+    if torch.compiler.is_compiling() or torch.jit.is_tracing() or not bool(backwards.any()):
+        return
+    b = int(backwards.nonzero()[0, 0])
+    scenes = batch.get("scene")
+    scene = f"scene '{scenes[b]}'" if isinstance(scenes, (list, tuple)) else f"the scene of batch row {b}"
+    raise FrameOrderError(
+        f"{scene}: frame {int(frame.reshape(-1)[b])} follows frame {int(previous[b])} in the stream; a temporal "
+        "model needs each scene's frames in order (flag a new pass over a scene with scene_start, or reset the memory)")
+
+
+# --- the fusion module -----------------------------------------------------------------------------
+
+
+class BEVMemoryFusion(nn.Module):
+    """Current BEV features + warped memory -> fused features, the new memory and the status.
+
+    ``fusion="gated"``: ``[g, d] = conv([x, m * warped, m])``, ``fused = x + sigmoid(g) * d`` with the last
+    convolution zero-initialised, so an untrained fusion is the identity (the single-frame model).
+    ``fusion="gru"``: StreamMapNet's ConvGRU (``necks/gru.py``): ``z, r = sigmoid(conv([h, x, m]))``,
+    ``q = conv([r * h, x])``, ``fused = LayerNorm((1 - z) h + z q)`` over channels, with the history
+    ``h = m * warped + (1 - m) * x`` (a cell without history starts from its current features).
+    """
+
+    def __init__(self, channels: int, grid: BEVGrid, size: tuple[int, int], fusion: str = "gated",
+                 kernel: int = 1, drop_prob: float = 0.0, max_jump_m: float = 10.0):
+        super().__init__()
+        self.channels, self.grid, self.size = channels, grid, tuple(size)
+        self.fusion, self.drop_prob, self.max_jump_m = fusion, drop_prob, max_jump_m
+        pad = kernel // 2
+        c = channels
+        if fusion == "gated":
+            self.mix = nn.Sequential(nn.Conv2d(2 * c + 1, c, kernel, padding=pad), nn.ReLU(inplace=True))
+            self.out = nn.Conv2d(c, 2 * c, 1)
+            nn.init.zeros_(self.out.weight)
+            nn.init.zeros_(self.out.bias)
+        else:
+            self.gates = nn.Conv2d(2 * c + 1, 2 * c, kernel, padding=pad)
+            self.candidate = nn.Conv2d(2 * c, c, kernel, padding=pad)
+            self.norm = nn.LayerNorm(c)
+        h, w = self.size
+        self.register_buffer("plane", bev_plane_m(grid, h, w, torch.zeros(())), persistent=False)
+
+    def initial_memory(self, batch_size: int, like: torch.Tensor) -> dict[str, torch.Tensor]:
+        """An empty memory of ``batch_size`` rows (``valid`` all False) on ``like``'s device."""
+        h, w = self.size
+        return {
+            "bev": like.new_zeros(batch_size, self.channels, h, w, dtype=torch.float32),
+            "ego_pose": torch.eye(4, device=like.device).expand(batch_size, 4, 4).contiguous(),
+            "valid": torch.zeros(batch_size, dtype=torch.bool, device=like.device),
+            "frame_index": torch.zeros(batch_size, dtype=torch.long, device=like.device),
+        }
+
+    def forward(self, x: torch.Tensor, batch: dict, memory: dict[str, torch.Tensor] | None
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
+        """x [B, C, h, w] -> (fused [B, C, h, w], new memory, status [B] int64)."""
+        B = x.shape[0]
+        if memory is None:
+            memory = self.initial_memory(B, x)
+        missing = [k for k in MEMORY_KEYS if k not in memory]
+        if missing:
+            raise KeyError(f"the memory lacks {missing}: pass back outputs['memory'] of the previous frame")
+        if memory["bev"].shape[0] != B:
+            raise ValueError(f"the memory holds {memory['bev'].shape[0]} rows for a batch of {B}: one memory row "
+                             "per stream, in the same order every step")
+        drop = None
+        if self.training and self.drop_prob > 0:
+            drop = torch.rand(B, device=x.device) < self.drop_prob
+        status = memory_status(batch, memory, self.max_jump_m, drop)
+        use = status == FUSED  # [B]
+        cur_to_prev = relative_pose(memory["ego_pose"], batch["ego_pose"])
+        warped, inside = warp_bev(memory["bev"].to(x.dtype), cur_to_prev, self.grid, self.plane)
+        m = (inside & use[:, None, None, None]).to(x.dtype)  # [B, 1, h, w] cells with history
+        fused = self._fuse(x, warped * m, m)
+        frame = batch.get("frame_index")
+        frame = memory["frame_index"] + 1 if frame is None else frame.reshape(B).long()
+        new_memory = {
+            "bev": fused.detach().float(),
+            "ego_pose": batch["ego_pose"].detach().float(),
+            "valid": torch.ones_like(memory["valid"]),
+            "frame_index": frame.detach(),
+        }
+        return fused, new_memory, status
+
+    def _fuse(self, x: torch.Tensor, history: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        if self.fusion == "gated":
+            gate_logits, delta = self.out(self.mix(torch.cat([x, history, m], 1))).chunk(2, 1)
+            return x + torch.sigmoid(gate_logits) * delta
+        h = history + (1 - m) * x
+        z, r = torch.sigmoid(self.gates(torch.cat([h, x, m], 1))).chunk(2, 1)
+        q = self.candidate(torch.cat([r * h, x], 1))
+        out = (1 - z) * h + z * q
+        return self.norm(out.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
