@@ -36,7 +36,7 @@ from instagram_hdmap.data.local_map import MapError  # noqa: E402
 from instagram_hdmap.data.synthetic.av2_writer import CAMERA_DELAY_NS, generate_av2_world, log_id  # noqa: E402
 from instagram_hdmap.data.synthetic.roads import build_network  # noqa: E402
 from instagram_hdmap.data.transforms import image_to_ground, project_to_image  # noqa: E402
-from test_dataset import SAMPLE_KEYS  # noqa: E402
+from test_dataset import SAMPLE_KEYS, check_scenes  # noqa: E402
 from test_dataset import test_collate_equals_one_by_one as check_collate  # noqa: E402
 from test_dataset import test_gt_inside_patch_and_targets_consistent as check_gt_and_targets  # noqa: E402
 from test_dataset import test_round_trip_on_world_gt as check_round_trip  # noqa: E402
@@ -169,6 +169,13 @@ def test_gt_targets_pass_the_nuscenes_invariants(av2_world):
     check_gt_and_targets(train)
     check_round_trip(train)
     check_collate(train)
+
+
+def test_logs_are_scenes(av2_world, av2_train):
+    split = av2_world / "train"
+    check_scenes(av2_train, AV2SensorDataLoader(split, split).get_log_ids())  # a log is a scene
+    ts = [int(t.split("/")[1]) // 1000 for t in av2_train.sample_tokens]
+    assert av2_train.scenes.timestamp_us == ts
 
 
 def test_frame_step_subsamples_the_sweeps(av2_world):

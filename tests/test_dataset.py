@@ -272,7 +272,26 @@ SAMPLE_KEYS = {
     "images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran", "ego_pose",
     "sample_token", "gt_polylines", "gt_vertex_cells", "gt_distance", "gt_vertices_px", "gt_vertex_mask",
     "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order", "gt_vertex_next", "gt_vertex_prev",
+    "scene", "frame_index", "scene_start", "timestamp_us",
 }
+
+
+def check_scenes(dataset, scene_names: list[str]) -> None:
+    """The dataset's drives: each scene's samples contiguous, in time order, frames counted from 0, and
+    the sample dict's scene keys (a temporal model's stream; docs/conventions.md)."""
+    idx = dataset.scenes
+    assert idx.names == scene_names
+    assert [i for run in idx.runs for i in run] == list(range(len(dataset)))
+    for run in idx.runs:
+        assert [idx.frame[i] for i in run] == list(range(len(run)))
+        assert all(idx.timestamp_us[a] < idx.timestamp_us[b] for a, b in zip(run, run[1:]))
+        assert len({idx.scene[i] for i in run}) == 1
+    for i in (idx.runs[-1][0], idx.runs[-1][-1]):
+        s = dataset[i]
+        assert s["scene"] == idx.scene[i] and int(s["frame_index"]) == idx.frame[i]
+        assert bool(s["scene_start"]) == (idx.frame[i] == 0) and int(s["timestamp_us"]) == idx.timestamp_us[i]
+        assert s["frame_index"].dtype == torch.int64 and s["scene_start"].dtype == torch.bool
+        torch.testing.assert_close(s["ego_pose"], dataset.ego_pose(i))
 
 
 @pytest.fixture(scope="module")
@@ -307,6 +326,17 @@ def test_sample_keys_shapes_dtypes(train_set, tiny_world_cfg):
     eye = torch.eye(3).expand(V, 3, 3)
     assert torch.allclose(s["cam_to_ego_rot"] @ s["cam_to_ego_rot"].transpose(1, 2), eye, atol=1e-5)
     assert torch.allclose(s["ego_pose"][3], torch.tensor([0.0, 0, 0, 1]))
+
+
+def test_scenes_frames_and_poses(train_set, tiny_world):
+    import json
+
+    splits = json.loads((tiny_world / "splits.json").read_text())
+    check_scenes(train_set, splits["train"])
+    # consecutive frames of a drive: the ego moves forward a few metres
+    run = train_set.scenes.runs[0]
+    step = torch.linalg.inv(train_set.ego_pose(run[0])) @ train_set.ego_pose(run[1])
+    assert 0.5 < float(step[0, 3]) < 10 and abs(float(step[1, 3])) < 1.0
 
 
 def test_gt_inside_patch_and_targets_consistent(train_set):
