@@ -320,3 +320,73 @@ def test_streaming_sampler_resume_and_eval_order():
     walk = [i for batch in ordered for i in batch]  # one stream: every scene whole, in order, no padding
     assert sorted(walk) == list(range(sum(LENGTHS))) and ordered.steps == sum(LENGTHS)
     assert all(walk[walk.index(run[0]):walk.index(run[0]) + len(run)] == run for run in runs)
+
+
+# --- occluders in the synthetic world ---------------------------------------------------------------------
+
+
+def _files(root) -> dict:
+    import hashlib
+
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_occluders_add_vehicles_and_change_nothing_else(tmp_path, monkeypatch):
+    import json
+
+    from instagram_hdmap.config import UserError
+    from instagram_hdmap.data.synthetic import generate_world, world
+
+    args = {"scenes_train": 1, "scenes_val": 1, "samples_per_scene": 2, "seed": 0, "image_size": "160x90",
+            "progress": False}
+    dense = generate_world(out=tmp_path / "dense", occluders=1.0, **args)
+
+    def never(*a, **k):
+        raise AssertionError("density 0 draws no occluder")
+
+    monkeypatch.setattr(world, "place_occluders", never)
+    plain = generate_world(out=tmp_path / "plain", **args)  # the default: density 0
+    assert "occluders" not in plain and dense["occluders"] == 1.0  # the manifest of a plain world is unchanged
+    a, b = _files(tmp_path / "plain"), _files(tmp_path / "dense")
+    assert a.keys() == b.keys()
+    tables = "v1.0-trainval/"
+    differ = {f for f in a if a[f] != b[f]}
+    # the same maps, drives, rig, samples and lidar; the vehicles (annotations, the scene's description
+    # counts them) and the camera images differ
+    assert differ - {f for f in a if f.startswith("samples/")} == {
+        "world.json", f"{tables}instance.json", f"{tables}sample_annotation.json", f"{tables}scene.json"}
+    assert any(f.startswith("samples/CAM_") for f in differ)  # the occluders are in the images
+
+    def annotations(root):
+        return [(r["instance_token"], r["translation"]) for r in
+                json.loads((root / tables / "sample_annotation.json").read_text())]
+
+    plain_ann, dense_ann = annotations(tmp_path / "plain"), annotations(tmp_path / "dense")
+    assert len(dense_ann) > len(plain_ann) and set(map(str, plain_ann)) <= set(map(str, dense_ann))
+    with pytest.raises(UserError, match="--occluders 1.5"):
+        generate_world(out=tmp_path / "bad", occluders=1.5, **args)
+
+
+def test_occluders_park_along_kerbs_and_drive_ahead():
+    from instagram_hdmap.data.synthetic.roads import LOCATIONS, build_network
+    from instagram_hdmap.data.synthetic.traffic import place_occluders, place_vehicles, plan_drive
+
+    net = build_network(LOCATIONS[0], 0)
+    counts = []
+    for density in (0.0, 0.3, 1.0):
+        rng = np.random.default_rng([0, 1000])
+        drive = plan_drive(net, 6, rng)
+        others = place_vehicles(net, drive, rng)
+        occ = place_occluders(net, drive, np.random.default_rng([0, 2000]), density, others)
+        counts.append(len(occ))
+        if density == 1.0:
+            ahead = [v for v in occ if not v.parked]
+            assert len(ahead) == 1 and ahead[0].category in ("vehicle.truck", "vehicle.bus.rigid")
+            ego = drive.poses()
+            for k, t in enumerate(0.5 * np.arange(6)):  # stays 8-15 m ahead, in the ego's lane
+                gap = np.linalg.norm(ahead[0].state(t)[0][:2] - ego[k, :2]) - ahead[0].size[1] / 2
+                assert 7.5 < gap < 15.5
+            parked = [v for v in occ if v.parked]
+            assert parked and all(v.path is not None and abs(v.lateral) > 0 for v in parked)
+    assert counts[0] == 0 and counts[0] < counts[1] < counts[2]

@@ -42,6 +42,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         image_size=args.image_size or ("2048x1550" if args.format == "av2" else "1600x900"),
         force=args.force,
         workers=args.workers,
+        occluders=args.occluders,
     )
     layout = "the AV2 sensor layout" if args.format == "av2" else f"version {manifest['version']}"
     print(f"wrote {manifest['scenes_train']} train + {manifest['scenes_val']} val scenes, "
@@ -270,6 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-size", help="camera image WIDTHxHEIGHT (default 1600x900; av2: 2048x1550, the "
                    "landscape ring cameras, ring_front_center is HEIGHTxWIDTH)")
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    p.add_argument("--occluders", type=float, default=0.0,
+                   help="density in [0, 1] of parked vehicles along kerbs and trucks ahead in the ego's lane "
+                        "(a world where a temporal model's memory matters; default 0: none)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes rendering scenes in parallel (0: one per CPU core); same output for any value")
     p.set_defaults(func=_cmd_synth)

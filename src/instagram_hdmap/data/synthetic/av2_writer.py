@@ -76,11 +76,13 @@ from .world import (
     MANIFEST,
     SCENE_SPACING_US,
     _check_counts,
+    _check_occluders,
     _check_workers,
     _render_parallel,
     _render_serial,
     _SceneJob,
     _write_atomically,
+    scene_occluders,
 )
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
@@ -150,23 +152,27 @@ def city_map_name(location: str) -> str:
 
 
 def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_scene: int = 10, seed: int = 0,
-                       image_size="2048x1550", force: bool = False, progress: bool = True, workers: int = 1) -> dict:
+                       image_size="2048x1550", force: bool = False, progress: bool = True, workers: int = 1,
+                       occluders: float = 0.0) -> dict:
     """Write the synthetic world to ``out`` in the AV2 sensor layout (module docstring); returns the
     manifest. ``image_size``: 'WxH' (or (w, h)) of the landscape ring cameras. Deterministic whatever
-    ``workers`` is; a script calling it with workers > 1 must do so under ``if __name__ == "__main__":``."""
+    ``workers`` is; a script calling it with workers > 1 must do so under ``if __name__ == "__main__":``.
+    ``occluders``: as ``generate_world``'s (the same vehicles in the same scenes)."""
     from ..av2 import require_av2
 
     require_av2("instagram-hdmap synth --format av2")
     size = parse_image_size(image_size)
     _check_counts(scenes_train, scenes_val, samples_per_scene)
     workers = _check_workers(workers)
+    occluders = _check_occluders(occluders)
     return _write_atomically(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
-                                                                     seed, size, progress, workers))
+                                                                     seed, size, progress, workers, occluders))
 
 
-def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress, workers) -> dict:
+def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress, workers, occluders=0.0) -> dict:
     splits = ["train"] * scenes_train + ["val"] * scenes_val
-    jobs = [_SceneJob(i, log_id(seed, i), split, LOCATIONS[i % len(LOCATIONS)], samples, seed, size, root, fmt="av2")
+    jobs = [_SceneJob(i, log_id(seed, i), split, LOCATIONS[i % len(LOCATIONS)], samples, seed, size, root, fmt="av2",
+                      occluders=occluders)
             for i, split in enumerate(splits)]
     for split in set(splits):
         (root / split).mkdir()
@@ -188,6 +194,8 @@ def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress
         "cities": {job.name: results[job.index]["city"] for job in jobs},
         "maps": {job.name: job.location for job in jobs},
     }
+    if occluders > 0:  # absent at 0, as in world.py
+        manifest["occluders"] = occluders
     (root / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest
 
@@ -221,6 +229,7 @@ def render_log(job: _SceneJob, net: RoadNetwork, painter: MapPainter, on_sample)
     rng = np.random.default_rng([job.seed, 1000 + job.index])
     drive = plan_drive(net, job.samples, rng)
     vehicles = place_vehicles(net, drive, rng)
+    vehicles += scene_occluders(job, net, drive, vehicles)
     look = scene_look(rng, AV2_RING_CAMERAS)
     sensors = av2_rig(job.size)
     renderer = SceneRenderer(painter, look, sensors, (max(job.size), max(job.size)), rng)

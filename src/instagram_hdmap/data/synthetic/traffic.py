@@ -3,7 +3,9 @@
 The ego follows lane centre lines and lane connectors at a constant speed, through junctions
 (straight on or turning). Other vehicles are parked at the kerb, queue at a stop line or drive
 along lanes the ego does not use, so they never collide with it; they are the scene's
-annotations (sample_annotation) and occlude the road in the camera images.
+annotations (sample_annotation) and occlude the road in the camera images. ``place_occluders`` adds,
+at a chosen density, rows of parked vehicles along kerbs and a truck ahead in the ego's lane: a world
+where a map model's memory matters (``synth --occluders``).
 """
 
 from __future__ import annotations
@@ -150,8 +152,65 @@ def place_vehicles(net: RoadNetwork, drive: EgoDrive, rng: np.random.Generator) 
     return out
 
 
-def _vehicle(rng: np.random.Generator) -> Vehicle:
-    probs = np.array([p for _, p, _ in VEHICLE_TYPES])
+def place_occluders(net: RoadNetwork, drive: EgoDrive, rng: np.random.Generator, density: float,
+                    others: list[Vehicle] = ()) -> list[Vehicle]:
+    """Vehicles that hide the map from the ego, ``density`` in [0, 1] (0: none, and no draw at all):
+
+    * **parked rows along kerbs**: each kerb lane near the drive that neither the ego nor a moving vehicle
+      of ``others`` uses gets, with probability ``density``, a row of parked cars, vans and trucks at its
+      kerb, from end to end, gaps of 0.8 m to ``0.8 + 8 (1 - density)`` m, around the standing vehicles
+      of ``others`` there;
+    * **a truck ahead in the lane**: with probability ``density``, a truck or bus drives the ego's route
+      8-15 m ahead of it at its speed (it hides the road ahead at every frame).
+
+    The caller draws from a generator of its own (world.py: seeded by ``(seed, 2000 + scene)``), so the
+    scene's other draws, and a world at density 0, do not change."""
+    if density <= 0:
+        return []
+    ego_xy = drive.poses()[:, :2]
+    moving = {id(v.path) for v in others if v.speed > 0}
+    standing: dict[int, list[tuple[float, float]]] = {}
+    for v in others:
+        if v.speed == 0:
+            standing.setdefault(id(v.path), []).append((v.s0 - v.size[1] / 2 - 1.0, v.s0 + v.size[1] / 2 + 1.0))
+    out: list[Vehicle] = []
+    for lane in net.lanes:
+        if lane.index in drive.lanes or lane.kerb_rank != 0 or id(lane.path) in moving:
+            continue
+        pts = lane.path.pose_at(np.arange(0.0, lane.path.length, 5.0))[:, :2]
+        if np.min(np.linalg.norm(pts[:, None] - ego_xy[None], axis=-1)) > ANNOTATION_RANGE_M:
+            continue
+        if rng.random() >= density:
+            continue
+        busy = standing.get(id(lane.path), [])
+        s = float(rng.uniform(0.5, 3.0))
+        while True:
+            v = _vehicle(rng, weights=(0.6, 0.3, 0.1))
+            if s + v.size[1] > lane.path.length - 0.5:
+                break
+            clash = [hi for lo, hi in busy if lo < s + v.size[1] and s < hi]
+            if clash:
+                s = max(clash)
+                continue
+            s += v.size[1] / 2
+            kerb = lane.width / 2 - v.size[0] / 2 - 0.2
+            v.path, v.s0, v.s_max, v.parked = lane.path, s, s, True
+            v.lateral = -kerb if net.drive_right else kerb
+            out.append(v)
+            s += v.size[1] / 2 + float(rng.uniform(0.8, 0.8 + 8.0 * (1.0 - density)))
+    if rng.random() < density:
+        v = _vehicle(rng, weights=(0.0, 0.7, 0.3))
+        gap = float(rng.uniform(8.0, 15.0))
+        v.path, v.speed = drive.route, drive.speed
+        v.s0 = float(drive.s[0]) + gap + v.size[1] / 2
+        v.s_max = drive.route.length - v.size[1] / 2
+        out.append(v)
+    return out
+
+
+def _vehicle(rng: np.random.Generator, weights: tuple[float, ...] | None = None) -> Vehicle:
+    """A random vehicle of VEHICLE_TYPES (``weights``: other odds of its three types than theirs)."""
+    probs = np.array(weights if weights is not None else [p for _, p, _ in VEHICLE_TYPES])
     cat, _, ranges = VEHICLE_TYPES[int(rng.choice(len(VEHICLE_TYPES), p=probs / probs.sum()))]
     size = tuple(float(rng.uniform(lo, hi)) for lo, hi in ranges)
     color = PAINT[int(rng.integers(len(PAINT)))]

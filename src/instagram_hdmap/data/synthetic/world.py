@@ -54,7 +54,7 @@ from .render import MapPainter, SceneRenderer, scene_look
 from .rig import CAMERAS, LIDAR, parse_image_size, rig
 from .roads import LOCATIONS, build_network, map_token
 from .tables import Tables, sample_filename
-from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
+from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_occluders, place_vehicles, plan_drive
 
 VERSION = "v1.0-trainval"
 MANIFEST = "world.json"
@@ -96,6 +96,13 @@ def available_cpus() -> int:
     return os.cpu_count() or 1
 
 
+def _check_occluders(occluders) -> float:
+    if isinstance(occluders, bool) or not isinstance(occluders, numbers.Real) or not 0 <= occluders <= 1:
+        raise UserError(f"--occluders {occluders}: expected a density in [0, 1] (0: today's traffic only, 1: a "
+                        "parked row along every free kerb near the drive and a truck ahead in every scene)")
+    return float(occluders)
+
+
 def _check_workers(workers) -> int:
     """--workers as a process count: 0 means one per available CPU core."""
     if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 0:
@@ -131,20 +138,24 @@ def _prepare_out(out: FsPath, force: bool) -> FsPath:
 
 
 def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_scene: int = 10, seed: int = 0,
-                   image_size="1600x900", force: bool = False, progress: bool = True, workers: int = 1) -> dict:
+                   image_size="1600x900", force: bool = False, progress: bool = True, workers: int = 1,
+                   occluders: float = 0.0) -> dict:
     """Write a synthetic nuScenes world to `out` (see the module doc). `image_size` is 'WxH' or
     (w, h). `workers`: processes rendering scenes in parallel (1: all in this process, 0: one per
-    CPU core; never more than there are scenes). Deterministic: the same arguments give
-    byte-identical files whatever `workers` is. Returns the manifest.
+    CPU core; never more than there are scenes). `occluders`: density in [0, 1] of parked rows along
+    kerbs and trucks ahead in the ego's lane (``traffic.place_occluders``; 0: the same bytes as a
+    world without the option). Deterministic: the same arguments give byte-identical files whatever
+    `workers` is. Returns the manifest.
 
     With workers > 1 the worker processes are spawned, so they import the caller's main module:
     a script must call this under ``if __name__ == "__main__":``."""
     size = parse_image_size(image_size)
     _check_counts(scenes_train, scenes_val, samples_per_scene)
     workers = _check_workers(workers)
+    occluders = _check_occluders(occluders)
     train_names, val_names = scene_names(scenes_train, scenes_val)
     return _write_atomically(FsPath(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
-                                                                     seed, size, progress, workers))
+                                                                     seed, size, progress, workers, occluders))
 
 
 def _write_atomically(out: FsPath, force: bool, write) -> dict:
@@ -185,6 +196,7 @@ class _SceneJob:
     size: tuple[int, int]
     root: FsPath
     fmt: str = "nuscenes"  # nuscenes | av2 (av2_writer.py writes the whole log folder)
+    occluders: float = 0.0  # density of traffic.place_occluders
 
     def describe(self) -> str:
         return f"synthetic scene {self.name} ({self.split} scene #{self.index}, map {self.location})"
@@ -219,6 +231,7 @@ def _render_scene(job: _SceneJob, net, painter: MapPainter, sensors, on_sample: 
     rng = np.random.default_rng([job.seed, 1000 + job.index])
     drive = plan_drive(net, job.samples, rng)
     vehicles = place_vehicles(net, drive, rng)
+    vehicles += scene_occluders(job, net, drive, vehicles)
     look = scene_look(rng)
     renderer = SceneRenderer(painter, look, sensors, job.size, rng)
     t0 = BASE_TIMESTAMP_US + job.index * SCENE_SPACING_US
@@ -245,6 +258,13 @@ def _render_scene(job: _SceneJob, net, painter: MapPainter, sensors, on_sample: 
         annotations.append(anns)
         on_sample()
     return _SceneResult(description, logfile, date, timestamps, poses, annotations)
+
+
+def scene_occluders(job: _SceneJob, net, drive, vehicles: list) -> list:
+    """The occluders of one scene, from a generator of their own (the scene's stream is untouched)."""
+    if job.occluders <= 0:
+        return []
+    return place_occluders(net, drive, np.random.default_rng([job.seed, 2000 + job.index]), job.occluders, vehicles)
 
 
 def _render_job(job: _SceneJob, net, painter: MapPainter, on_sample: Callable[[], None]):
@@ -375,7 +395,8 @@ def _check_workers_alive(procs, running: dict[int, int], by_index: dict[int, _Sc
         raise SceneGenerationError(f"worker processes exited without rendering scenes {missing}")
 
 
-def _write(root: FsPath, train_names, val_names, samples_per_scene, seed, size, progress, workers: int) -> dict:
+def _write(root: FsPath, train_names, val_names, samples_per_scene, seed, size, progress, workers: int,
+           occluders: float = 0.0) -> dict:
     sensors = rig(size)
     tables = Tables(seed, sensors)
     nets = {}
@@ -389,7 +410,8 @@ def _write(root: FsPath, train_names, val_names, samples_per_scene, seed, size, 
         (root / "samples" / ch).mkdir(parents=True, exist_ok=True)
 
     scenes = [(name, "train") for name in train_names] + [(name, "val") for name in val_names]
-    jobs = [_SceneJob(index, name, split, LOCATIONS[index % len(LOCATIONS)], samples_per_scene, seed, size, root)
+    jobs = [_SceneJob(index, name, split, LOCATIONS[index % len(LOCATIONS)], samples_per_scene, seed, size, root,
+                      occluders=occluders)
             for index, (name, split) in enumerate(scenes)]
     workers = min(workers, len(jobs))
     bar = tqdm(total=len(scenes) * samples_per_scene, desc="synth", unit="sample", disable=not progress)
@@ -416,6 +438,8 @@ def _write(root: FsPath, train_names, val_names, samples_per_scene, seed, size, 
         "samples_per_scene": samples_per_scene, "samples": len(scenes) * samples_per_scene,
         "maps": list(LOCATIONS), "splits": splits,
     }
+    if occluders > 0:  # absent at 0: such a world is byte-identical to one written before the option
+        manifest["occluders"] = occluders
     (root / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest
 
