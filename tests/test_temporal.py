@@ -390,3 +390,36 @@ def test_occluders_park_along_kerbs_and_drive_ahead():
             parked = [v for v in occ if v.parked]
             assert parked and all(v.path is not None and abs(v.lateral) > 0 for v in parked)
     assert counts[0] == 0 and counts[0] < counts[1] < counts[2]
+
+
+# --- the flicker rate -----------------------------------------------------------------------------------
+
+
+def test_flicker_rate(tiny_world_cfg):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.evaluation.consistency import FlickerMeter
+
+    ds = build_dataset(tiny_world_cfg, "train")
+    grid = BEVGrid.from_config(tiny_world_cfg.grid)
+    gts = [ds.gt_polylines(i) for i in range(len(ds))]
+    poses = torch.stack([ds.ego_pose(i) for i in range(len(ds))])
+    scenes, frames = ds.scenes.scene, torch.tensor(ds.scenes.frame)
+
+    def run(preds, order=None):
+        meter = FlickerMeter(grid, classes=tiny_world_cfg.data.classes)
+        for i in order if order is not None else range(len(ds)):
+            meter.update([preds[i]], [gts[i]], [scenes[i]], frames[i:i + 1], poses[i:i + 1])
+        return meter.compute()
+
+    perfect = run([[dict(g, score=1.0) for g in gt] for gt in gts])
+    assert sum(perfect["pairs"].values()) > 10 and perfect["frame_pairs"] == 4  # 2 scenes x (3 - 1)
+    assert perfect["flicker_mean"] == 0.0
+    blinking = [[dict(g, score=1.0) for g in gt] if f % 2 == 0 else [] for gt, f in zip(gts, ds.scenes.frame)]
+    assert run(blinking)["flicker_mean"] == 1.0  # every element seen twice changes status
+    # a shift beyond the 1 m threshold in odd frames flickers as much; the order of the samples does not matter
+    shifted = [[dict(g, pts=g["pts"] + [0.0, 3.0 * (f % 2)], score=1.0) for g in gt]
+               for gt, f in zip(gts, ds.scenes.frame)]
+    res = run(shifted)
+    assert res["flicker_mean"] > 0.5 and run(shifted, order=list(range(len(ds)))[::-1]) == res
+    nothing = run([[] for _ in gts])
+    assert nothing["flicker_mean"] == 0.0 and nothing["pairs"] == perfect["pairs"]

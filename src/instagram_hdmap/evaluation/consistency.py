@@ -1,0 +1,169 @@
+"""Temporal consistency of a map model's output over drives: the **flicker rate** (docs/temporal.md).
+
+    meter = FlickerMeter(grid)
+    meter.update(preds, gts, scenes=batch["scene"], frames=batch["frame_index"], poses=batch["ego_pose"])
+    meter.gather()                   # under torchrun
+    meter.compute()  # {"flicker": {class: rate}, "flicker_mean", "pairs": {class: n}, "flips", ...}
+
+Definition. In each frame, a GT instance is *detected* when a prediction of its class matches it: the
+predictions, by descending score, each take the free GT of their class at the smallest Chamfer distance
+``D`` (the vector protocol's symmetric mean nearest distance, both polylines resampled to
+``detect_points`` = 100 points) if ``D <= threshold_m`` (1.0 m, the vector protocol's middle threshold;
+predictions below ``score_threshold`` do not count). A GT instance is *seen in two consecutive frames*
+(frames t and t + 1 of one scene) when the GT of frame t + 1 has at least ``min_shared_points`` of its
+points inside frame t's grid (moved there by the two ego poses) and those points lie within
+``link_m`` (mean distance) of one GT instance of the same class of frame t; that instance is the same
+map element (GT instances carry no identity across frames; the link is geometric). The **flicker
+rate** of a class is the share of such pairs (instance in t, instance in t + 1) whose detected /
+missed status differs; ``flicker_mean`` is the mean over the classes that have pairs. 0 = a model
+whose output never changes its mind about an element it keeps seeing; it is 0 for a perfect model
+and for one that detects nothing, so read it next to the AP.
+
+Order-free: every sample's detection status, GT (resampled to ``num_points`` = 20 points) and pose are kept, grouped by
+scene and sorted by frame at ``compute``; samples may arrive in any order, from any process.
+(MapTracker's consistency-aware mAP needs predicted instance IDs carried across frames; not built.)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from ..geometry import BEVGrid
+from .chamfer import chamfer_pairs
+from .vector_ap import resample_polylines
+
+
+def detected_gt(preds: Sequence[dict], gts: Sequence[dict], threshold_m: float, num_points: int = 100,
+                score_threshold: float = 0.0) -> np.ndarray:
+    """[G] bool: GT instance g matched by a prediction (module docstring: greedy by score, same class,
+    Chamfer D <= ``threshold_m`` with both polylines resampled to ``num_points`` points)."""
+    detected = np.zeros(len(gts), dtype=bool)
+    preds = [p for p in preds if p.get("score", 1.0) >= score_threshold and len(p["pts"]) >= 2]
+    if not preds or not gts:
+        return detected
+    pi, gi = np.nonzero(np.array([p["label"] for p in preds])[:, None] == np.array([g["label"] for g in gts])[None])
+    if not len(pi):
+        return detected
+    a = resample_polylines([np.asarray(p["pts"], np.float64) for p in preds], num_points)  # [P, n, 2]
+    b = resample_polylines([np.asarray(g["pts"], np.float64) for g in gts], num_points)  # [G, n, 2]
+    d_ab, d_ba, _ = chamfer_pairs(a[pi], b[gi])
+    chamfer = np.full((len(preds), len(gts)), np.inf)
+    chamfer[pi, gi] = (d_ab + d_ba) / 2
+    for i in np.argsort([-p.get("score", 1.0) for p in preds], kind="stable"):
+        d = np.where(detected, np.inf, chamfer[i])
+        j = int(d.argmin())
+        if d[j] <= threshold_m:
+            detected[j] = True
+    return detected
+
+
+def _point_to_polyline(q: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """[Q, 2] points, [n, 2] polyline -> [Q] distance of each point to the polyline."""
+    a, b = line[:-1], line[1:]
+    d = b - a
+    t = np.clip(((q[:, None] - a[None]) * d[None]).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(q[:, None] - (a[None] + t[..., None] * d[None]), axis=-1).min(1)
+
+
+class FlickerMeter:
+    """Accumulates per-sample detection status and computes the flicker rate (module docstring)."""
+
+    def __init__(self, grid: BEVGrid, num_classes: int = 3, classes: Sequence[str] | None = None,
+                 threshold_m: float = 1.0, score_threshold: float = 0.0, link_m: float = 0.5,
+                 min_shared_points: int = 2, num_points: int = 20, detect_points: int = 100):
+        self.grid, self.num_classes = grid, num_classes
+        self.classes = tuple(classes) if classes is not None else tuple(str(k) for k in range(num_classes))
+        self.threshold_m, self.score_threshold = threshold_m, score_threshold
+        self.link_m, self.min_shared_points, self.num_points = link_m, min_shared_points, num_points
+        self.detect_points = detect_points
+        self.reset()
+
+    def reset(self) -> None:
+        self.records: dict[tuple[str, int], dict] = {}
+
+    def update(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], scenes: Sequence[str],
+               frames, poses) -> None:
+        """B samples: polylines (metres, ego frame), their scene names, frame indices [B] and ego poses
+        [B, 4, 4] (tensors or arrays). A sample seen twice (streaming padding) counts once."""
+        frames = frames.tolist() if hasattr(frames, "tolist") else list(frames)
+        poses = poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
+        for b, (p, g) in enumerate(zip(preds, gts)):
+            key = (str(scenes[b]), int(frames[b]))
+            if key in self.records:
+                continue
+            g = [x for x in g if len(x["pts"]) >= 2]
+            self.records[key] = {
+                "detected": detected_gt(p, g, self.threshold_m, self.detect_points, self.score_threshold),
+                "labels": np.array([x["label"] for x in g], dtype=np.int64),
+                "pts": resample_polylines([np.asarray(x["pts"], np.float64) for x in g], self.num_points),
+                "pose": np.asarray(poses[b], dtype=np.float64),
+            }
+
+    def state_dict(self) -> dict:
+        return {"records": dict(self.records)}
+
+    def merge(self, state: dict) -> None:
+        for key, rec in state["records"].items():
+            self.records.setdefault(key, rec)
+
+    def gather(self) -> None:
+        """Under torch.distributed: every rank ends with all records (a no-op otherwise)."""
+        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+            return
+        states: list[dict | None] = [None] * torch.distributed.get_world_size()
+        torch.distributed.all_gather_object(states, self.state_dict())
+        self.reset()
+        for state in states:
+            self.merge(state)
+
+    def _links(self, prev: dict, cur: dict) -> list[tuple[int, int]]:
+        """(instance of frame t, instance of frame t + 1) pairs that are one map element."""
+        if not len(prev["labels"]) or not len(cur["labels"]):
+            return []
+        cur_to_prev = np.linalg.inv(prev["pose"]) @ cur["pose"]
+        out = []
+        for j in range(len(cur["labels"])):
+            pts = cur["pts"][j] @ cur_to_prev[:2, :2].T + cur_to_prev[:2, 3]  # frame t+1 -> frame t (ground)
+            shared = pts[self.grid.inside_m(pts)]
+            if len(shared) < self.min_shared_points:
+                continue
+            best, best_i = math.inf, -1
+            for i in np.flatnonzero(prev["labels"] == cur["labels"][j]):
+                d = float(_point_to_polyline(shared, prev["pts"][i]).mean())
+                if d < best:
+                    best, best_i = d, int(i)
+            if best <= self.link_m:
+                out.append((best_i, j))
+        return out
+
+    def compute(self) -> dict:
+        """``flicker`` (class -> rate, NaN without pairs), ``flicker_mean``, ``pairs`` and ``flips`` per
+        class, ``frame_pairs`` (consecutive frames compared), and the definition's parameters."""
+        pairs = np.zeros(self.num_classes, dtype=np.int64)
+        flips = np.zeros(self.num_classes, dtype=np.int64)
+        frame_pairs = 0
+        for (scene, frame), cur in sorted(self.records.items()):
+            prev = self.records.get((scene, frame - 1))
+            if prev is None:
+                continue
+            frame_pairs += 1
+            for i, j in self._links(prev, cur):
+                k = int(cur["labels"][j])
+                pairs[k] += 1
+                flips[k] += int(prev["detected"][i] != cur["detected"][j])
+        rate = [float(f / n) if n else math.nan for f, n in zip(flips, pairs)]
+        seen = [r for r in rate if not math.isnan(r)]
+        return {
+            "flicker": dict(zip(self.classes, rate)),
+            "flicker_mean": float(np.mean(seen)) if seen else math.nan,
+            "pairs": dict(zip(self.classes, pairs.tolist())),
+            "flips": dict(zip(self.classes, flips.tolist())),
+            "frame_pairs": frame_pairs,
+            "samples": len(self.records),
+            "definition": {"threshold_m": self.threshold_m, "score_threshold": self.score_threshold,
+                           "link_m": self.link_m, "min_shared_points": self.min_shared_points},
+        }
