@@ -314,7 +314,7 @@ def test_streaming_sampler_resume_and_eval_order():
     sampler = StreamingBatchSampler(runs, streams=3, seed=1)
     sampler.set_epoch(4)
     full = list(sampler)
-    sampler.set_epoch(4, start=5)
+    sampler.set_epoch(4, start=5 * 3)  # samples, whole batches of 3 streams
     assert list(sampler) == full[5:] and len(sampler) == len(full) - 5
     ordered = StreamingBatchSampler(runs, streams=1, shuffle=False)
     walk = [i for batch in ordered for i in batch]  # one stream: every scene whole, in order, no padding
@@ -423,3 +423,42 @@ def test_flicker_rate(tiny_world_cfg):
     assert res["flicker_mean"] > 0.5 and run(shifted, order=list(range(len(ds)))[::-1]) == res
     nothing = run([[] for _ in gts])
     assert nothing["flicker_mean"] == 0.0 and nothing["pairs"] == perfect["pairs"]
+
+
+# --- training and evaluation on drives ---------------------------------------------------------------------
+
+
+def _drive_cfg(tiny_world, out, *extra):
+    return load_config(None, [*TINY, f"train.out_dir={out}", f"data.dataroot={tiny_world}",
+                              f"data.splits_file={tiny_world / 'splits.json'}", "data.version=v1.0-trainval",
+                              "model.temporal.memory=bev", "train.batch_size=2", "train.log_every=1",
+                              "train.checkpoint_every=0", "data.num_workers=0", "train.deterministic=true",
+                              "train.epochs=2", *extra])
+
+
+def test_streaming_training_resumes_exactly_with_its_memory(tiny_world, tmp_path):
+    # 2 train scenes x 3 frames, 2 streams: 3 steps per epoch; the interrupted run stops after step 2
+    # (mid-scene: the memory of both streams is in last.pt) and resumes
+    from instagram_hdmap.checkpoint import load_checkpoint
+    from instagram_hdmap.train import build_loaders, train
+
+    def run(where, *extra, resume=None):
+        cfg = _drive_cfg(tiny_world, where, *extra)
+        return train(cfg, loaders=build_loaders(cfg, 1, with_val=False), validate=False, resume=resume)
+
+    run(tmp_path / "a")
+    run(tmp_path / "b", "train.max_steps=2")
+    state = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert (state["epoch"], state["step"], state["step_in_epoch"]) == (0, 2, 2)
+    assert state["memory"] is not None and bool(state["memory"][0]["valid"].all())
+    assert state["memory"][0]["frame_index"].tolist() == [1, 1]  # each stream is in frame 1 of its scene
+    forgetful = tmp_path / "c"
+    forgetful.mkdir()
+    torch.save({**state, "memory": None}, forgetful / "last.pt")
+    run(tmp_path / "b", resume=str(tmp_path / "b" / "last.pt"))
+    run(tmp_path / "c", resume=str(forgetful / "last.pt"))
+    a, b, c = (load_checkpoint(tmp_path / x / "last.pt")["model"] for x in "abc")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
+    # without its memory the resumed run is another run: the memory is what made it exact
+    assert max(float((a[k].float() - c[k].float()).abs().max()) for k in a) > 1e-5

@@ -233,6 +233,11 @@ class EvalConfig:
     # InstaGraM paper's numbers carry), "descending" fixes it
     rank_by: Literal["ascending", "descending"] = "ascending"
     fix_instance_ids: bool = False  # raster only: int32 ids, each instance keeps its own confidence
+    # temporal consistency next to the AP (evaluation/consistency.py, docs/temporal.md): the flicker
+    # rate, per class the share of GT elements seen in two consecutive frames whose detected / missed
+    # status (a prediction within flicker_threshold_m, Chamfer) flips
+    flicker: bool = True
+    flicker_threshold_m: float = 1.0
 
 
 @dataclass

@@ -30,6 +30,23 @@ class StepInfo:
     step: int  # global optimisation step, after this step
     step_in_epoch: int  # batches of this epoch consumed, after this step
     losses: dict[str, float]
+    memory: dict | None = None  # a temporal model's memory after this step (saved for exact resume)
+
+
+def is_temporal(model: torch.nn.Module) -> bool:
+    """A temporal model (models/temporal.py), DDP-wrapped or not: it streams its memory from batch to batch."""
+    return bool(getattr(getattr(model, "module", model), "is_temporal", False))
+
+
+def memory_counts(outputs: dict) -> dict[str, float]:
+    """A temporal model's per-batch ``memory_status`` as counts ``memory_<status>`` (empty otherwise)."""
+    from .models.temporal import STATUS_NAMES
+
+    status = outputs.get("memory_status")
+    if status is None:
+        return {}
+    counts = torch.bincount(status.detach().flatten().cpu(), minlength=len(STATUS_NAMES))
+    return {f"memory_{name}": float(c) for name, c in zip(STATUS_NAMES, counts.tolist())}
 
 
 def autocast_context(device: torch.device, amp: str):
@@ -56,6 +73,16 @@ def _scalars(d: dict) -> dict[str, float]:
     return out
 
 
+def scored_tokens(loader) -> set[str] | None:
+    """The sample tokens a streaming loader's rank owns (``StreamingBatchSampler.owned``), None for
+    another loader (every sample it yields is scored)."""
+    sampler = getattr(loader, "batch_sampler", None)
+    if not hasattr(sampler, "owned"):
+        return None
+    tokens = loader.dataset.sample_tokens
+    return {tokens[i] for i in sampler.owned()}
+
+
 def train_one_epoch(
     model: torch.nn.Module,
     criterion: Callable[[dict, dict], dict],
@@ -76,15 +103,21 @@ def train_one_epoch(
     on_step: Callable[[StepInfo], None] | None = None,
     before_step: Callable[[int], None] | None = None,
     total: int | None = None,
+    memory: dict | None = None,
 ) -> dict:
     """One pass over ``loader`` (which already starts at ``step_in_epoch`` on resume).
 
     ``before_step(global_step)`` runs before each step with the number of steps done so far (the
     LR schedule sets the learning rate there). Returns ``{"stats": mean of each logged scalar,
-    "global_step", "step_in_epoch", "stopped"}``;
+    "global_step", "step_in_epoch", "stopped", "memory"}``;
     ``stopped`` is True when ``should_stop(global_step)`` ended the epoch early.
+
+    A temporal model (``is_temporal``) gets each batch with the memory its previous batch returned
+    (the loader's rows are streams, data/streaming.py; the memory is detached, so no gradient crosses
+    a step), starting from ``memory`` (None: empty; a resumed run passes the saved one).
     """
     model.train()
+    streaming = is_temporal(model)
     sums: dict[str, float] = defaultdict(float)
     count, n_samples, t_epoch = 0, 0, time.perf_counter()
     stopped = False
@@ -96,7 +129,9 @@ def train_one_epoch(
         if before_step is not None:
             before_step(global_step)
         with autocast_context(device, amp):
-            outputs = model(batch)
+            outputs = model(batch, memory=memory) if streaming else model(batch)
+        if streaming:
+            memory = outputs["memory"]
         losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters
         loss = losses["loss_total"]
         global_step += 1
@@ -110,6 +145,7 @@ def train_one_epoch(
                 )
             du.print_main(f"warning: skipping step {global_step} with non-finite loss ({terms})")
             optimizer.zero_grad(set_to_none=True)
+            memory = None  # a memory of non-finite features would poison the next steps
             continue
 
         optimizer.zero_grad(set_to_none=True)
@@ -127,6 +163,7 @@ def train_one_epoch(
 
         values = _scalars(losses)
         values["grad_norm"] = float(grad_norm)
+        values.update(memory_counts(outputs))
         if "pred_vertex_mask" in outputs:
             values["num_vertices"] = float(outputs["pred_vertex_mask"].sum(1).float().mean())
         for k, v in values.items():
@@ -149,7 +186,7 @@ def train_one_epoch(
                 writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
                 writer.add_scalar("train/samples_per_s", throughput, global_step)
         if on_step is not None:
-            on_step(StepInfo(epoch, global_step, step_in_epoch, values))
+            on_step(StepInfo(epoch, global_step, step_in_epoch, values, memory))
         if should_stop is not None and should_stop(global_step):
             stopped = True
             break
@@ -158,7 +195,7 @@ def train_one_epoch(
                            device if device.type == "cuda" else None)
     seconds = time.perf_counter() - t_epoch
     return {"stats": stats, "global_step": global_step, "step_in_epoch": step_in_epoch, "stopped": stopped,
-            "seconds": seconds, "samples_per_s": n_samples / max(seconds, 1e-9)}
+            "seconds": seconds, "samples_per_s": n_samples / max(seconds, 1e-9), "memory": memory}
 
 
 @torch.no_grad()
@@ -173,15 +210,25 @@ def evaluate(
     amp: str = "none",
     on_predictions: Callable[[list[str], list[list[dict]]], None] | None = None,
     total: int | None = None,
+    flicker=None,
 ) -> dict:
     """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
 
     ``postprocess(outputs) -> per-sample polyline dicts`` (metres, ego frame);
     ``evaluator.update(predictions, ground_truths, tokens=...)``; ``evaluator.gather()`` then ``compute()``.
     ``on_predictions(tokens, predictions)`` receives every batch's predictions (e.g. to write JSON).
+
+    A temporal model (``is_temporal``) walks the loader's streams with its memory (the loader must
+    yield streams: data/streaming.py); ``result["memory"]`` counts the samples per memory status
+    (fused, no_memory, pose_jump, missing_frame). A streaming loader's padding is not scored: only the
+    samples its batch sampler ``owned()``, once each. ``flicker``: a ``FlickerMeter`` updated with every
+    batch's predictions (needs ``postprocess``); ``result["consistency"]`` is its ``compute()``.
     """
     model.eval()
+    streaming, memory = is_temporal(model), None
+    owned = scored_tokens(loader)
     sums: dict[str, float] = defaultdict(float)
+    status_counts: dict[str, float] = defaultdict(float)
     count = 0
     t0 = time.perf_counter()
     n_samples = 0
@@ -189,7 +236,11 @@ def evaluate(
                       leave=False):
         batch = move_to(batch, device)
         with autocast_context(device, amp):
-            outputs = model(batch)
+            outputs = model(batch, memory=memory) if streaming else model(batch)
+        if streaming:
+            memory = outputs["memory"]
+            for k, v in memory_counts(outputs).items():
+                status_counts[k] += v
         if criterion is not None:
             for k, v in _scalars(criterion(outputs, batch)).items():
                 sums[k] += v
@@ -197,12 +248,27 @@ def evaluate(
         n_samples += batch["images"].shape[0]
         if postprocess is not None:
             preds = postprocess(outputs)
+            tokens, keep = batch["sample_token"], list(range(len(preds)))
+            if owned is not None:  # streaming padding: score each owned sample once
+                keep = [b for b, t in enumerate(tokens) if t in owned]
+                owned.difference_update(tokens[b] for b in keep)
+            preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
+                                                                                       for b in keep]
             if evaluator is not None:
-                evaluator.update(preds, batch["gt_polylines"], tokens=batch["sample_token"])
+                evaluator.update(preds, gts, tokens=tokens)
             if on_predictions is not None:
-                on_predictions(batch["sample_token"], preds)
+                on_predictions(tokens, preds)
+            if flicker is not None:
+                flicker.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
+                               batch["ego_pose"][keep])
     result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                                        device if device.type == "cuda" else None)}
+    if streaming:
+        result["memory"] = {k: int(round(v * du.get_world_size())) for k, v in du.reduce_dict(  # sums over ranks
+            dict(status_counts), device if device.type == "cuda" else None).items()}
+    if flicker is not None:
+        flicker.gather()
+        result["consistency"] = flicker.compute()
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
     if evaluator is not None:
         evaluator.gather()

@@ -9,6 +9,14 @@ rounding (oneDNN's convolutions may round a last bit differently in a new proces
 augmentation and data workers too, since each sample's augmentation is drawn from
 (train.seed, epoch, index) alone
 (``NuScenesMapDataset.augmentation_rng``).
+
+A temporal model (``model.temporal.memory=bev``) trains on drives: its batch rows are streams walking
+whole scenes in order (``data.streaming.StreamingBatchSampler``) and each step gets the memory the
+previous one returned, detached. The memory is part of the checkpoint: a run stopped part-way through
+an epoch saves every rank's memory of its streams with ``last.pt`` and the resumed run continues the
+streams with it, so exact resume holds for temporal models too. Only Ctrl-C under torchrun saves no
+memory (gathering it is a collective the ranks may not all reach): those streams then resume without
+history, as at a scene start (``memory_status`` no_memory), until their next scene.
 """
 
 from __future__ import annotations
@@ -87,34 +95,90 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
 
 
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
+    """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
+    reads drives: each rank's batch rows are streams walking whole scenes in order
+    (``data.streaming.StreamingBatchSampler``, ``train.batch_size / world`` streams per rank; the
+    validation loader ``eval.batch_size`` streams in dataset order)."""
     from .data import build_dataset
     from .data.nuscenes import collate_fn
+    from .data.streaming import StreamingBatchSampler
 
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
-    sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
-    train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, collate_fn=collate_fn,
-                              num_workers=cfg.data.num_workers, worker_init_fn=_worker_init,
-                              drop_last=False, persistent_workers=False,
-                              # its own generator: making an iterator must not draw from the global
-                              # torch RNG, whose state the checkpoint restores for exact resume
-                              generator=torch.Generator().manual_seed(cfg.train.seed))
+    streaming = cfg.model.temporal.memory != "none"
+    common = {"collate_fn": collate_fn, "num_workers": cfg.data.num_workers, "worker_init_fn": _worker_init,
+              "persistent_workers": False,
+              # its own generator: making an iterator must not draw from the global torch RNG, whose
+              # state the checkpoint restores for exact resume
+              "generator": torch.Generator().manual_seed(cfg.train.seed)}
+    if streaming:
+        sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
+                                        rank=du.get_rank(), world_size=world_size)
+        train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
+    else:
+        sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
+        train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, drop_last=False, **common)
     val_loader = None
     if with_val:
         val_set = build_dataset(cfg, cfg.data.val_split, augment=False, like=train_set)
-        val_sampler = ResumableSampler(len(val_set), shuffle=False)
-        val_loader = DataLoader(val_set, batch_size=cfg.eval.batch_size, sampler=val_sampler,
-                                collate_fn=collate_fn, num_workers=cfg.data.num_workers)
+        if streaming:
+            val_sampler = StreamingBatchSampler(val_set.scenes.runs, cfg.eval.batch_size, shuffle=False,
+                                                rank=du.get_rank(), world_size=world_size)
+            val_loader = DataLoader(val_set, batch_sampler=val_sampler, collate_fn=collate_fn,
+                                    num_workers=cfg.data.num_workers)
+        else:
+            val_sampler = ResumableSampler(len(val_set), shuffle=False)
+            val_loader = DataLoader(val_set, batch_size=cfg.eval.batch_size, sampler=val_sampler,
+                                    collate_fn=collate_fn, num_workers=cfg.data.num_workers)
     return train_loader, sampler, val_loader
 
 
+def loader_batch_size(loader: DataLoader) -> int:
+    """Samples per batch of this rank (a streaming loader's batch sampler holds it)."""
+    return loader.batch_size or loader.batch_sampler.batch_size
+
+
+def memory_to(memory: dict | None, device: torch.device | str) -> dict | None:
+    return None if memory is None else {k: v.to(device) for k, v in memory.items()}
+
+
 ResumableSampler = du.ResumableSampler
+
+
+def memory_state(memory: dict | None, gather: bool = True) -> list | None:
+    """A temporal model's memory for a checkpoint: one CPU dict per rank (rank order), or None. Under
+    torchrun ``gather`` collects every rank's (a collective); without it only a single process's is kept."""
+    mine = None if memory is None else {k: v.detach().cpu() for k, v in memory.items()}
+    if du.get_world_size() == 1:
+        return None if mine is None else [mine]
+    if not gather:
+        return None
+    states = du.all_gather_object(mine)
+    return None if any(m is None for m in states) else states
+
+
+def resumed_memory(saved: list | None, world: int, device: torch.device) -> dict | None:
+    """This rank's memory from a checkpoint's ``memory`` (None where the checkpoint holds none for it:
+    its streams then start without history, as at a scene start)."""
+    if not saved or len(saved) != world:
+        return None
+    return memory_to(saved[du.get_rank()], device)
 
 
 def make_evaluator(cfg: ExperimentConfig):
     from .evaluation import Evaluator
 
     return Evaluator.from_config(cfg)
+
+
+def make_flicker_meter(cfg: ExperimentConfig):
+    """The flicker-rate meter of ``eval.flicker`` (evaluation/consistency.py), or None when it is off."""
+    if not cfg.eval.flicker:
+        return None
+    from .evaluation.consistency import FlickerMeter
+
+    return FlickerMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
+                        threshold_m=cfg.eval.flicker_threshold_m)
 
 
 def usable_cores() -> int:
@@ -169,12 +233,14 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     model = build_model(cfg).to(device)
     criterion = Criterion(cfg.loss, grid)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
-    steps_per_epoch = math.ceil(sampler.num_samples / train_loader.batch_size)
+    batch_size = loader_batch_size(train_loader)
+    steps_per_epoch = math.ceil(sampler.num_samples / batch_size)
     total_steps = cfg.train.epochs * steps_per_epoch  # the schedule's length; max_steps only cuts it
     clock = ProgressClock(cfg.train, total_steps)
     scaler = torch.amp.GradScaler(device.type) if cfg.train.amp == "fp16" else None
 
     epoch, global_step, step_in_epoch, best = 0, 0, 0, {"score": -math.inf}
+    memory = None  # a temporal model's memory of this rank's streams, where a resumed epoch continues
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -183,6 +249,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             scaler.load_state_dict(state["scaler"])
         epoch, global_step, step_in_epoch = state["epoch"], state["step"], state["step_in_epoch"]
         best = state.get("best", best)
+        memory = resumed_memory(state.get("memory"), world, device)
         set_rng_state(state["rng"])
         du.print_main(f"resumed from {resume}: epoch {epoch}, step {global_step} ({step_in_epoch} into the epoch)")
 
@@ -198,13 +265,17 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
 
         writer = SummaryWriter(str(out_dir / "tb"))
 
-    def checkpoint(path: Path, ep: int, step: int, in_epoch: int, metrics: dict | None = None) -> None:
+    def checkpoint(path: Path, ep: int, step: int, in_epoch: int, metrics: dict | None = None,
+                   memory: dict | None = None, gather: bool = True) -> None:
+        # every rank's memory (its streams), so that a resumed epoch continues them; ``gather`` is a
+        # collective: False where the ranks may not all be here (Ctrl-C)
+        memories = memory_state(memory, gather) if in_epoch else None
         if du.is_main_process():
             save_checkpoint({
                 "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "clock": clock.state_dict(), "scaler": scaler.state_dict() if scaler else None,
                 "epoch": ep, "step": step, "step_in_epoch": in_epoch, "rng": rng_state(),
-                "config": config_to_dict(cfg), "metrics": metrics or {}, "best": best,
+                "config": config_to_dict(cfg), "metrics": metrics or {}, "best": best, "memory": memories,
             }, path)
 
     sync = device if world > 1 and cfg.train.time_budget_min is not None else None
@@ -228,10 +299,10 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
                 "elapsed_s": round(clock.elapsed(), 1)}
 
     def on_step(info) -> None:
-        progress.update(epoch=info.epoch, step=info.step, in_epoch=info.step_in_epoch)
+        progress.update(epoch=info.epoch, step=info.step, in_epoch=info.step_in_epoch, memory=info.memory)
         every = cfg.train.checkpoint_every
         if every and info.step % every == 0:
-            checkpoint(out_dir / "last.pt", info.epoch, info.step, info.step_in_epoch)
+            checkpoint(out_dir / "last.pt", info.epoch, info.step, info.step_in_epoch, memory=info.memory)
 
     log = (out_dir / "log.jsonl").open("a") if du.is_main_process() else None
     summary: dict = {}
@@ -253,7 +324,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
         summary["cpu_threads"] = torch.get_num_threads() if device.type == "cpu" else None
         finished = should_stop(global_step)
         while not finished:
-            sampler.set_epoch(epoch, start=step_in_epoch * train_loader.batch_size)
+            sampler.set_epoch(epoch, start=step_in_epoch * batch_size)
             if hasattr(train_loader.dataset, "set_epoch"):
                 train_loader.dataset.set_epoch(epoch)  # augmentation draws follow (seed, epoch, index)
             result = train_one_epoch(
@@ -261,14 +332,16 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
                 step_in_epoch=step_in_epoch, amp=cfg.train.amp, scaler=scaler, grad_clip=cfg.train.grad_clip,
                 on_nonfinite=cfg.train.on_nonfinite, log_every=cfg.train.log_every, writer=writer,
                 should_stop=should_stop, on_step=on_step, before_step=set_lr, total=steps_per_epoch,
+                memory=memory if step_in_epoch else None,
             )
             global_step, step_in_epoch, stopped = result["global_step"], result["step_in_epoch"], result["stopped"]
+            memory = result["memory"]
             progress.update(epoch=epoch, step=global_step, in_epoch=step_in_epoch)
             summary = {**summary, "epoch": epoch, "step": global_step, "train": result["stats"],
                        "train_seconds": round(result["seconds"], 2), "samples_per_s": round(result["samples_per_s"], 2),
                        **schedule_summary()}
             if stopped:  # part-way through the epoch: resume continues it
-                checkpoint(out_dir / "last.pt", epoch, global_step, step_in_epoch)
+                checkpoint(out_dir / "last.pt", epoch, global_step, step_in_epoch, memory=memory)
             else:
                 epoch, step_in_epoch = epoch + 1, 0
                 progress.update(epoch=epoch, in_epoch=0)
@@ -276,7 +349,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             if validate and val_loader is not None and (finished or epoch % cfg.train.val_every == 0):
                 val = evaluate(net, criterion, val_loader, device,
                                postprocess=lambda out: postprocess_batch(out, grid, **decode),
-                               evaluator=make_evaluator(cfg), amp=cfg.train.amp)
+                               evaluator=make_evaluator(cfg), amp=cfg.train.amp, flicker=make_flicker_meter(cfg))
                 summary["val"] = val
                 score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
                 if writer is not None:
@@ -284,6 +357,8 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
                         writer.add_scalar(f"val/{k}", v, global_step)
                     if "metrics" in val:
                         writer.add_scalar("val/mAP", val["metrics"]["mAP"], global_step)
+                    if "consistency" in val:
+                        writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], global_step)
                 if not math.isnan(score) and score > best["score"]:
                     best = {"score": score, "epoch": epoch, "step": global_step}
                     checkpoint(out_dir / "best.pt", epoch, global_step, step_in_epoch, val.get("metrics"))
@@ -295,7 +370,8 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
                 log.flush()
     except KeyboardInterrupt:
         # The weights are those after the last completed step, which ``progress`` names.
-        checkpoint(out_dir / "last.pt", progress["epoch"], progress["step"], progress["in_epoch"])
+        checkpoint(out_dir / "last.pt", progress["epoch"], progress["step"], progress["in_epoch"],
+                   memory=progress.get("memory"), gather=False)
         du.print_main(f"interrupted: saved {out_dir / 'last.pt'} (resume with --resume {out_dir / 'last.pt'})")
         raise
     finally:

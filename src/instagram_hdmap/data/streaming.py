@@ -2,7 +2,7 @@
 
     sampler = StreamingBatchSampler(dataset.scenes.runs, streams=4, seed=0, rank=r, world_size=R)
     loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_fn)
-    sampler.set_epoch(epoch, start=steps_done_in_epoch)
+    sampler.set_epoch(epoch, start=steps_done_in_epoch * streams)
 
 Every step yields one batch per rank of ``streams`` dataset indices: row b of every batch of an epoch
 is the next frame of stream b, so a temporal model's memory row b always belongs to stream b. Scenes
@@ -17,7 +17,8 @@ alone: no communication.
 The epoch lasts as many steps as the longest stream. A shorter stream is then padded, as
 ``DistributedSampler`` pads its index list, so that every rank steps in lockstep with full batches:
 it walks the epoch's scenes again from the first (each from its frame 0, a scene start), cut where
-the epoch ends. ``schedule()`` tells which entries are padding; evaluation scores a sample once.
+the epoch ends. ``schedule()`` tells which entries are padding; evaluation scores only the samples a
+rank ``owned()`` (walks for real), so every sample once over all ranks.
 
 StreamMapNet's training sampler (``InfiniteGroupEachSampleInBatchSampler``) also gives each batch row
 its own sequence; it has no epochs (an infinite stream of shuffled sub-sequences), where this one
@@ -64,8 +65,17 @@ class StreamingBatchSampler(Sampler[list[int]]):
         self.epoch = 0
         self.start = 0  # steps of this epoch to skip (the trainer sets it on resume)
 
+    @property
+    def batch_size(self) -> int:
+        """Samples per batch of this rank: the streams."""
+        return self.streams
+
     def set_epoch(self, epoch: int, start: int = 0) -> None:
-        self.epoch, self.start = epoch, start
+        """Select ``epoch``'s schedule and skip its first ``start`` samples of this rank (whole batches:
+        ``start`` is a multiple of ``streams``, as ``distributed.ResumableSampler.set_epoch``'s)."""
+        if start % self.streams:
+            raise ValueError(f"start={start} is not a whole number of batches of {self.streams}")
+        self.epoch, self.start = epoch, start // self.streams
 
     def _generator(self) -> torch.Generator:
         return torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
@@ -99,6 +109,12 @@ class StreamingBatchSampler(Sampler[list[int]]):
                 k += 1
             out.append(walk)
         return out
+
+    def owned(self) -> set[int]:
+        """The dataset indices this rank walks for real (not as padding) this epoch: every sample is owned
+        by exactly one rank, which scores it in a streaming evaluation."""
+        mine = self.schedule()[self.rank * self.streams:(self.rank + 1) * self.streams]
+        return {self.runs[s][f] for walk in mine for s, f, pad in walk if not pad}
 
     def _rank_batches(self) -> list[list[int]]:
         mine = self.schedule()[self.rank * self.streams:(self.rank + 1) * self.streams]
