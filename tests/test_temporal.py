@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from instagram_hdmap.config import load_config
+from instagram_hdmap.data.nuscenes import collate_fn
 from instagram_hdmap.data.streaming import StreamingBatchSampler, deal_scenes
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model
@@ -462,3 +463,47 @@ def test_streaming_training_resumes_exactly_with_its_memory(tiny_world, tmp_path
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
     # without its memory the resumed run is another run: the memory is what made it exact
     assert max(float((a[k].float() - c[k].float()).abs().max()) for k in a) > 1e-5
+
+
+def test_streaming_evaluation_without_memory_is_the_frame_by_frame_ap(tiny_world, tmp_path):
+    # the same weights evaluated (a) frame by frame as a single-frame model and (b) streamed as a temporal
+    # model whose fusion is still the identity (zero-initialised gate): exactly the same AP and flicker,
+    # although (b) walks 2 streams over 1 val scene (one stream is padding) and carries its memory
+    from instagram_hdmap.checkpoint import save_checkpoint
+    from instagram_hdmap.config import config_to_dict
+    from instagram_hdmap.predict import run_evaluation
+
+    cfg_t = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",
+                       "model.gnn.match_threshold=0.01")
+    cfg_s = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",
+                       "model.gnn.match_threshold=0.01", "model.temporal.memory=none")
+    torch.manual_seed(3)
+    temporal = build_model(cfg_t)
+    weights = {k: v for k, v in temporal.state_dict().items() if not k.startswith("temporal.")}
+    save_checkpoint({"model": temporal.state_dict(), "config": config_to_dict(cfg_t)}, tmp_path / "t.pt")
+    save_checkpoint({"model": weights, "config": config_to_dict(cfg_s)}, tmp_path / "s.pt")
+    streamed = run_evaluation(cfg_t, tmp_path / "t.pt", out=tmp_path / "et")["metrics"]
+    frames = run_evaluation(cfg_s, tmp_path / "s.pt", out=tmp_path / "es")["metrics"]
+    assert streamed["memory"] == {"memory_fused": 2, "memory_no_memory": 1, "memory_pose_jump": 0,
+                                  "memory_missing_frame": 0, "memory_dropped": 0}
+    assert sum(streamed["num_pred"].values()) > 0
+    for key in ("AP", "mAP", "num_gt", "num_pred", "consistency"):
+        assert streamed[key] == frames[key], key
+    assert streamed["counters"]["samples"] == 3
+    # predict walks the sample's scene from its first frame: the streamed predictions of the last frame
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.evaluation.io import read_submission
+    from instagram_hdmap.predict import stream_to_sample
+
+    model = build_model(cfg_t).eval()
+    model.load_state_dict(temporal.state_dict())
+    model.temporal.out.weight.data.normal_(0, 0.1)  # a fusion that is not the identity: memory matters
+    val = build_dataset(cfg_t, "val")
+    last = val.scenes.runs[0][-1]
+    with torch.no_grad():
+        streamed_last = stream_to_sample(model, val, last)
+        alone = model(collate_fn([val.load_sample(last)]))
+    assert streamed_last["memory_status"].tolist() == [FUSED] and alone["memory_status"].tolist() == [NO_MEMORY]
+    assert not torch.equal(streamed_last["pred_vertex_logits"], alone["pred_vertex_logits"])
+    token = val.sample_tokens[last]
+    assert token in read_submission(tmp_path / "et" / "submission.json", "pred").samples

@@ -211,6 +211,7 @@ def evaluate(
     on_predictions: Callable[[list[str], list[list[dict]]], None] | None = None,
     total: int | None = None,
     flicker=None,
+    scored: set[str] | None = None,
 ) -> dict:
     """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
 
@@ -221,12 +222,13 @@ def evaluate(
     A temporal model (``is_temporal``) walks the loader's streams with its memory (the loader must
     yield streams: data/streaming.py); ``result["memory"]`` counts the samples per memory status
     (fused, no_memory, pose_jump, missing_frame). A streaming loader's padding is not scored: only the
-    samples its batch sampler ``owned()``, once each. ``flicker``: a ``FlickerMeter`` updated with every
-    batch's predictions (needs ``postprocess``); ``result["consistency"]`` is its ``compute()``.
+    samples its batch sampler ``owned()`` (or the tokens in ``scored``), once each. ``flicker``: a
+    ``FlickerMeter`` updated with every batch's predictions (needs ``postprocess``);
+    ``result["consistency"]`` is its ``compute()``.
     """
     model.eval()
     streaming, memory = is_temporal(model), None
-    owned = scored_tokens(loader)
+    owned = set(scored) if scored is not None else scored_tokens(loader)
     sums: dict[str, float] = defaultdict(float)
     status_counts: dict[str, float] = defaultdict(float)
     count = 0
@@ -237,9 +239,16 @@ def evaluate(
         batch = move_to(batch, device)
         with autocast_context(device, amp):
             outputs = model(batch, memory=memory) if streaming else model(batch)
+        tokens, keep = batch["sample_token"], list(range(len(batch["sample_token"])))
+        if owned is not None:  # streaming padding: score each owned sample once (even twice in a batch)
+            keep = []
+            for b, t in enumerate(tokens):
+                if t in owned:
+                    keep.append(b)
+                    owned.discard(t)
         if streaming:
             memory = outputs["memory"]
-            for k, v in memory_counts(outputs).items():
+            for k, v in memory_counts({"memory_status": outputs["memory_status"][keep]}).items():
                 status_counts[k] += v
         if criterion is not None:
             for k, v in _scalars(criterion(outputs, batch)).items():
@@ -248,10 +257,6 @@ def evaluate(
         n_samples += batch["images"].shape[0]
         if postprocess is not None:
             preds = postprocess(outputs)
-            tokens, keep = batch["sample_token"], list(range(len(preds)))
-            if owned is not None:  # streaming padding: score each owned sample once
-                keep = [b for b, t in enumerate(tokens) if t in owned]
-                owned.difference_update(tokens[b] for b in keep)
             preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
                                                                                        for b in keep]
             if evaluator is not None:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -333,6 +332,8 @@ def predict_sample(
             outputs = gt_outputs(batch, grid, len(classes))
         elif onnx is not None:
             outputs = model(batch)
+        elif getattr(model, "is_temporal", False):
+            outputs = stream_to_sample(model, dataset, i)
         else:
             outputs = model(move_to(batch, next(model.parameters()).device))
     decode = decode_options(cfg.model.gnn, grid)
@@ -364,6 +365,22 @@ def predict_sample(
             "paths": paths, "notes": notes}
 
 
+@torch.no_grad()
+def stream_to_sample(model: torch.nn.Module, dataset, index: int) -> dict:
+    """A temporal model's outputs for sample ``index``: its scene walked in order from the first frame,
+    the memory carried frame to frame (the outputs a streaming evaluation gives that sample)."""
+    from .data.nuscenes import collate_fn
+    from .engine import move_to
+
+    device = next(model.parameters()).device
+    run = dataset.scenes.runs[dataset.scenes.names.index(dataset.scenes.scene[index])]
+    memory = None
+    for j in run[: run.index(index) + 1]:
+        outputs = model(move_to(collate_fn([dataset.load_sample(j)]), device), memory=memory)
+        memory = outputs["memory"]
+    return outputs
+
+
 # --- a split: evaluate ---------------------------------------------------------------------------------
 
 
@@ -387,15 +404,23 @@ def run_evaluation(
     not scored twice (a sample is scored by the rank ``index % world_size``, once), the evaluator
     states are gathered and rank 0 writes the files. Samples are scored with their dataset index as
     ``sample_ids``, so the result does not depend on the batch size or the number of processes.
+
+    A temporal model walks the split's scenes in order, ``eval.batch_size`` streams (per rank; each
+    rank owns whole scenes, data/streaming.py) with its memory; each sample is scored once, by the rank
+    that owns it. ``metrics["consistency"]`` holds the flicker rate (``eval.flicker``,
+    evaluation/consistency.py) and, for a temporal model, ``metrics["memory"]`` the samples per memory
+    status (fused, no memory, pose jump, missing frame).
     """
     from torch.utils.data import DataLoader
 
     from . import distributed as du
     from .data import build_dataset
     from .data.nuscenes import collate_fn, write_json
+    from .data.streaming import StreamingBatchSampler
     from .engine import evaluate
     from .evaluation import Evaluator, write_submission
     from .postprocess import decode_options, postprocess_batch
+    from .train import make_flicker_meter
 
     device = du.init_distributed(resolve_inference_device(cfg).type)
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
@@ -405,11 +430,19 @@ def run_evaluation(
     split = cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     index_of = {t: i for i, t in enumerate(dataset.sample_tokens)}
-    sampler = du.ResumableSampler(len(dataset), shuffle=False)
-    loader = DataLoader(dataset, batch_size=cfg.eval.batch_size, sampler=sampler, collate_fn=collate_fn,
-                        num_workers=cfg.data.num_workers)
-    evaluator = Evaluator.from_config(cfg)
     rank, world = du.get_rank(), du.get_world_size()
+    owned = None  # streaming: the samples this rank scores
+    if getattr(model, "is_temporal", False):
+        sampler = StreamingBatchSampler(dataset.scenes.runs, cfg.eval.batch_size, shuffle=False, rank=rank,
+                                        world_size=world)
+        loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_fn, num_workers=cfg.data.num_workers)
+        owned = sampler.owned()
+    else:
+        sampler = du.ResumableSampler(len(dataset), shuffle=False)
+        loader = DataLoader(dataset, batch_size=cfg.eval.batch_size, sampler=sampler, collate_fn=collate_fn,
+                            num_workers=cfg.data.num_workers)
+    evaluator = Evaluator.from_config(cfg)
+    flicker = make_flicker_meter(cfg)
     results: dict[str, list[dict]] = {}
     pending_gt: dict[str, list[dict]] = {}
 
@@ -419,22 +452,39 @@ def run_evaluation(
             yield batch
 
     def score(tokens: list[str], preds: list[list[dict]]) -> None:
-        gts = [pending_gt.pop(t) for t in tokens]
-        keep = [k for k, t in enumerate(tokens) if index_of[t] % world == rank and t not in results]
-        results.update((tokens[k], preds[k]) for k in keep)
+        gts = [pending_gt.get(t) for t in tokens]
+        for t in tokens:
+            pending_gt.pop(t, None)
+        mine = (lambda i: i % world == rank) if owned is None else owned.__contains__
+        keep = []
+        for k, t in enumerate(tokens):  # streaming padding may repeat a sample, even within a batch
+            if mine(index_of[t]) and t not in results:
+                keep.append(k)
+                results[t] = preds[k]
         if keep:
-            evaluator.update([preds[k] for k in keep], [gts[k] for k in keep],
-                             sample_ids=[index_of[tokens[k]] for k in keep], tokens=[tokens[k] for k in keep])
+            ids = [index_of[tokens[k]] for k in keep]
+            evaluator.update([preds[k] for k in keep], [gts[k] for k in keep], sample_ids=ids,
+                             tokens=[tokens[k] for k in keep])
+            if flicker is not None:
+                flicker.update([preds[k] for k in keep], [gts[k] for k in keep], [dataset.scenes.scene[i] for i in ids],
+                               [dataset.scenes.frame[i] for i in ids], torch.stack([dataset.ego_pose(i) for i in ids]))
 
     decode = decode_options(cfg.model.gnn, grid)
     val = evaluate(model, None, tap(loader), device,
                    postprocess=lambda outputs: postprocess_batch(outputs, grid, **decode),
-                   amp=amp, on_predictions=score, total=math.ceil(len(sampler) / cfg.eval.batch_size))
+                   amp=amp, on_predictions=score, total=len(loader),
+                   scored=None if owned is None else {dataset.sample_tokens[i] for i in owned})
     evaluator.gather()
+    if flicker is not None:
+        flicker.gather()
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
     metrics = evaluator.compute()
+    if flicker is not None:
+        metrics["consistency"] = flicker.compute()
+    if "memory" in val:
+        metrics["memory"] = val["memory"]
     samples_per_s = round(val["samples_per_s"] * world, 3)
     metrics["meta"] = {"checkpoint": str(checkpoint), "config_name": cfg.name, "dataroot": cfg.data.dataroot,
                        "version": cfg.data.version, "split": split, "num_samples": len(dataset),
