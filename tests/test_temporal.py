@@ -507,3 +507,58 @@ def test_streaming_evaluation_without_memory_is_the_frame_by_frame_ap(tiny_world
     assert not torch.equal(streamed_last["pred_vertex_logits"], alone["pred_vertex_logits"])
     token = val.sample_tokens[last]
     assert token in read_submission(tmp_path / "et" / "submission.json", "pred").samples
+
+
+# --- ONNX ---------------------------------------------------------------------------------------------------
+
+
+def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
+    pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
+    import onnx
+
+    from instagram_hdmap import deploy
+    from instagram_hdmap.postprocess import postprocess_batch
+
+    # the tiny model with every cell a vertex slot (N = 128: top-N never cuts through equal scores)
+    cfg = load_config("configs/synthetic/tiny.yaml", ["model.gnn.sinkhorn_iters=5", "model.gnn.num_vertices=128",
+                                                      "model.temporal.memory=bev", "model.temporal.kernel=3"])
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    with torch.no_grad():
+        model.graph_head.match_head.weight.mul_(10)
+        model.temporal.out.weight.normal_(0, 0.2)  # a fusion that is not the identity
+    path = tmp_path / "t.onnx"
+    info = deploy.export_onnx(model, cfg, path)
+    proto = onnx.load(str(path))
+    assert [i.name for i in proto.graph.input] == list(deploy.input_names(True))
+    assert [o.name for o in proto.graph.output] == list(deploy.output_names(True))
+    assert info["inputs"]["memory_bev"] == [1, 16, 16, 32] == info["outputs"]["next_memory_bev"]
+    onnx_model = deploy.OnnxModel(path, cfg)
+    assert onnx_model.is_temporal
+    grid = BEVGrid.from_config(cfg.grid)
+    memory_torch = memory_onnx = None
+    statuses = []
+    for k in range(3):  # a drive: 1.5 m per frame, turning
+        batch = deploy.example_inputs(cfg, seed=10 + k)
+        batch.update(ego_pose=pose(1.5 * k, 0.1 * k * k, 0.05 * k)[None], frame_index=torch.tensor([k]),
+                     scene_start=torch.tensor([k == 0]))
+        with torch.no_grad():
+            expected = model(batch, memory=memory_torch)
+        got = onnx_model(batch, memory=memory_onnx)
+        statuses.append((expected["memory_status"].item(), got["memory_status"].item()))
+        e, g = deploy.align_vertex_slots(expected), deploy.align_vertex_slots(got)
+        for name in deploy.OUTPUT_NAMES:
+            if name in ("pred_vertex_mask", "pred_vertices_px"):
+                assert torch.equal(g[name], e[name]), (k, name)
+            else:
+                torch.testing.assert_close(g[name], e[name], atol=1e-4, rtol=1e-5, msg=f"frame {k} {name}")
+        for key in ("bev", "ego_pose"):
+            torch.testing.assert_close(got["memory"][key], expected["memory"][key], atol=1e-5, rtol=1e-5)
+        for key in ("valid", "frame_index"):
+            assert torch.equal(got["memory"][key], expected["memory"][key])
+        threshold = 0.5 * float(e["pred_log_assignment"][0, :-1, :-1].exp().max(1).values.median())
+        assert postprocess_batch(e, grid, threshold)[0] and all(
+            p["label"] == q["label"] and np.allclose(p["pts"], q["pts"], atol=1e-4)
+            for p, q in zip(postprocess_batch(g, grid, threshold)[0], postprocess_batch(e, grid, threshold)[0]))
+        memory_torch, memory_onnx = expected["memory"], got["memory"]
+    assert statuses == [(NO_MEMORY, NO_MEMORY), (FUSED, FUSED), (FUSED, FUSED)]

@@ -45,6 +45,7 @@ import torch
 from torch import nn
 
 from .config import ExperimentConfig, UserError, config_to_dict
+from .models.temporal import MEMORY_KEYS
 from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS
 
@@ -54,9 +55,14 @@ MIN_OPSET = 18
 INPUT_NAMES = ("images", *CALIBRATION_KEYS)
 OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_vertices_px", "pred_vertex_mask",
                 "pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")
+# A temporal model's graph (docs/temporal.md) also takes the frame's pose and place in its scene and the
+# memory (models/temporal.MEMORY_KEYS as memory_<key>), and returns the status and the new memory.
+TEMPORAL_INPUTS = ("ego_pose", "scene_start", "frame_index")
+MEMORY_NAMES = tuple(f"memory_{k}" for k in MEMORY_KEYS)  # inputs
+NEXT_MEMORY_NAMES = tuple(f"next_memory_{k}" for k in MEMORY_KEYS)  # outputs (ONNX names are unique)
 # Config keys that shape the graph (predict.MODEL_KEYS) less those the graph does not read.
 BAKED_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
-NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.grad_checkpoint")
+NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.grad_checkpoint", "model.temporal.drop_prob")
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
 META_CONFIG_SHA = "instagram_hdmap.config_sha256"
@@ -97,17 +103,53 @@ def inference_copy(model: nn.Module) -> nn.Module:
     return model
 
 
+def input_names(temporal: bool) -> tuple[str, ...]:
+    """The graph's inputs: ``INPUT_NAMES``, and for a temporal model ``TEMPORAL_INPUTS`` + ``MEMORY_NAMES``."""
+    return (*INPUT_NAMES, *TEMPORAL_INPUTS, *MEMORY_NAMES) if temporal else INPUT_NAMES
+
+
+def output_names(temporal: bool) -> tuple[str, ...]:
+    """The graph's outputs: ``OUTPUT_NAMES``, and for a temporal model ``memory_status`` + ``NEXT_MEMORY_NAMES``."""
+    return (*OUTPUT_NAMES, "memory_status", *NEXT_MEMORY_NAMES) if temporal else OUTPUT_NAMES
+
+
+def is_temporal(model: nn.Module) -> bool:
+    return bool(getattr(model, "is_temporal", False))
+
+
 class TensorInterface(nn.Module):
-    """``InstaGraM`` with positional tensors in (``INPUT_NAMES``) and a tuple out (``OUTPUT_NAMES``),
-    the form exporters and graph capture take."""
+    """``InstaGraM`` with positional tensors in (``input_names``) and a tuple out (``output_names``),
+    the form exporters and graph capture take. A temporal model's memory goes in and comes out as
+    plain tensors (``memory_bev``, ``memory_ego_pose``, ``memory_valid``, ``memory_frame_index`` in;
+    ``next_memory_*`` out)."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
         self.model = model
+        self.temporal = is_temporal(model)
 
     def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        outputs = self.model(dict(zip(INPUT_NAMES, inputs)))
-        return tuple(outputs[k] for k in OUTPUT_NAMES)
+        named = dict(zip(input_names(self.temporal), inputs))
+        if not self.temporal:
+            outputs = self.model(named)
+            return tuple(outputs[k] for k in OUTPUT_NAMES)
+        memory = {k: named.pop(f"memory_{k}") for k in MEMORY_KEYS}
+        outputs = self.model(named, memory=memory)
+        outputs.update({f"next_memory_{k}": v for k, v in outputs.pop("memory").items()})
+        return tuple(outputs[k] for k in output_names(True))
+
+
+def example_memory_inputs(model: nn.Module, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A temporal model's extra inputs for a batch of one: the next frame (``frame_index`` 1, no scene
+    start, the pose of ``batch`` or the identity) of a valid memory at frame 0, 1 m behind."""
+    pose = batch.get("ego_pose", torch.eye(4)[None])
+    memory = model.initial_memory(1, batch["images"])
+    back = torch.eye(4)
+    back[0, 3] = -1.0
+    memory.update(valid=torch.ones(1, dtype=torch.bool), ego_pose=(pose[0] @ back)[None].contiguous(),
+                  bev=torch.randn(memory["bev"].shape, generator=torch.Generator().manual_seed(1)))
+    return {"ego_pose": pose, "scene_start": torch.zeros(1, dtype=torch.bool),
+            "frame_index": torch.ones(1, dtype=torch.long), **{f"memory_{k}": v for k, v in memory.items()}}
 
 
 def example_inputs(cfg: ExperimentConfig, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -139,7 +181,9 @@ def _under(key: str, prefixes: Sequence[str]) -> bool:
 def baked_config(cfg: ExperimentConfig) -> dict:
     """The flat ``{dotted key: value}`` of the config keys the exported graph bakes in (JSON types)."""
     flat = _flat(json.loads(json.dumps(config_to_dict(cfg))))
-    return {k: v for k, v in sorted(flat.items()) if _under(k, BAKED_KEYS) and not _under(k, NOT_BAKED)}
+    skip = NOT_BAKED if cfg.model.temporal.memory != "none" else (*NOT_BAKED, "model.temporal")
+    # a single-frame graph bakes no model.temporal key: its exports from before the key existed still fit
+    return {k: v for k, v in sorted(flat.items()) if _under(k, BAKED_KEYS) and not _under(k, skip)}
 
 
 def config_sha256(baked: dict) -> str:
@@ -203,15 +247,21 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
                           f"(GridSample, ScatterND add and LayerNormalization; the dynamo exporter starts at "
                           f"{MIN_OPSET}; the installed onnx {onnx.__version__} knows up to {max_opset})")
     interface = TensorInterface(inference_copy(model).cpu()).eval()
+    temporal = interface.temporal
     batch = example_inputs(cfg)
-    args = tuple(batch[k] for k in INPUT_NAMES)
+    if temporal:
+        batch.update(example_memory_inputs(interface.model, batch))
+    names_in, names_out = input_names(temporal), output_names(temporal)
+    args = tuple(batch[k] for k in names_in)
     with torch.no_grad():
         expected = interface(*args)
-        program = torch.onnx.export(interface, args, input_names=list(INPUT_NAMES), output_names=list(OUTPUT_NAMES),
+        program = torch.onnx.export(interface, args, input_names=list(names_in), output_names=list(names_out),
                                     opset_version=opset, dynamo=True, optimize=optimize, verbose=False)
     proto = program.model_proto
-    shapes = {"inputs": {k: list(a.shape) for k, a in zip(INPUT_NAMES, args)},
-              "outputs": {k: list(t.shape) for k, t in zip(OUTPUT_NAMES, expected)}}
+    shapes = {"inputs": {k: list(a.shape) for k, a in zip(names_in, args)},
+              "outputs": {k: list(t.shape) for k, t in zip(names_out, expected)}}
+    if temporal:
+        shapes["temporal"] = True
     baked = baked_config(cfg)
     sha = config_sha256(baked)
     from . import __version__
@@ -287,9 +337,15 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     info = export_onnx(model, cfg, out, opset=opset, source=str(checkpoint))
     if verify:
         batch = example_inputs(cfg)
+        reference = inference_copy(model)
+        memory = None
+        if is_temporal(model):
+            extra = example_memory_inputs(reference, batch)
+            memory = {k: extra.pop(f"memory_{k}") for k in MEMORY_KEYS}
+            batch.update(extra)
         with torch.no_grad():
-            expected = inference_copy(model)(batch)
-        info["check"] = compare_outputs(expected, OnnxModel(out, cfg)(batch))
+            expected = reference(batch, memory=memory) if memory is not None else reference(batch)
+        info["check"] = compare_outputs(expected, OnnxModel(out, cfg)(batch, memory=memory))
     info["config"] = cfg
     return info
 
@@ -339,6 +395,9 @@ def check_export(path: str | Path, cfg: ExperimentConfig) -> dict:
 class OnnxModel:
     """An exported ONNX file run by onnxruntime on the CPU: ``model(batch) -> outputs`` as torch tensors
     with the keys and shapes of ``InstaGraM.forward`` (batch 1), so the post-processing is unchanged.
+    The export of a temporal model (``temporal``) is called as the model is: ``model(batch, memory)``,
+    ``memory`` the previous call's ``outputs["memory"]`` (None: empty), the batch with ``ego_pose``
+    (``scene_start`` and ``frame_index`` default to a continuing stream's: False, memory's + 1).
 
     ``threads``: onnxruntime's intra-op threads (default: ``torch.get_num_threads()``);
     ``optimization``: its graph optimisation level ("all", "extended", "basic", "disabled").
@@ -360,19 +419,41 @@ class OnnxModel:
         options.log_severity_level = 3  # errors only
         self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
         self.input_shapes = self.meta["shapes"]["inputs"]
+        self.temporal = bool(self.meta["shapes"].get("temporal", False))
 
-    def __call__(self, batch: dict) -> dict[str, torch.Tensor]:
+    @property
+    def is_temporal(self) -> bool:
+        return self.temporal
+
+    def initial_memory(self) -> dict[str, torch.Tensor]:
+        """An empty memory (``valid`` False) of the file's shapes."""
+        shape = self.input_shapes
+        return {"bev": torch.zeros(shape["memory_bev"]), "ego_pose": torch.eye(4).expand(1, 4, 4).contiguous(),
+                "valid": torch.zeros(1, dtype=torch.bool), "frame_index": torch.zeros(1, dtype=torch.long)}
+
+    def __call__(self, batch: dict, memory: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        names = input_names(self.temporal)
+        given = dict(batch)
+        if self.temporal:
+            memory = self.initial_memory() if memory is None else memory
+            given.update({f"memory_{k}": v for k, v in memory.items()})
+            given.setdefault("scene_start", torch.zeros(1, dtype=torch.bool))
+            given.setdefault("frame_index", memory["frame_index"] + 1)
         feed = {}
-        for name in INPUT_NAMES:
-            if name not in batch:
-                raise DeployError(f"{self.path}: the batch lacks '{name}' (inputs: {', '.join(INPUT_NAMES)})")
-            tensor = batch[name]
+        for name in names:
+            if name not in given:
+                raise DeployError(f"{self.path}: the batch lacks '{name}' (inputs: {', '.join(names)})")
+            tensor = given[name]
             if list(tensor.shape) != self.input_shapes[name]:
                 raise DeployError(f"{self.path} takes {name} of shape {self.input_shapes[name]} (static, batch 1); "
                                   f"the batch has {list(tensor.shape)}")
-            feed[name] = tensor.detach().to("cpu", torch.float32).contiguous().numpy()
-        results = self.session.run(list(OUTPUT_NAMES), feed)
-        return {name: torch.from_numpy(value) for name, value in zip(OUTPUT_NAMES, results)}
+            tensor = tensor.detach().cpu()
+            feed[name] = (tensor.float() if tensor.is_floating_point() else tensor).contiguous().numpy()
+        outs = output_names(self.temporal)
+        results = dict(zip(outs, (torch.from_numpy(v) for v in self.session.run(list(outs), feed))))
+        if self.temporal:
+            results["memory"] = {k: results.pop(f"next_memory_{k}") for k in MEMORY_KEYS}
+        return results
 
 
 # --- fast torch paths: torch.compile and CUDA graphs -------------------------------------------------------

@@ -20,7 +20,8 @@ follow the memory's frame (``frame_index`` not one more: ``MISSING_FRAME``), or,
 memory was dropped at random (``DROPPED``). A sample that does not fuse uses its own features only
 (the fusion still runs, with an all-invalid history, so every parameter always gets a gradient) and
 starts a new memory. A frame index at or below the memory's one, without a scene start, is frames out
-of order: ``FrameOrderError`` naming the scene (eager mode; an exported graph cannot raise).
+of order: ``FrameOrderError`` naming the scene (eager mode; an exported graph or a captured CUDA graph
+cannot raise, nor wait for the host to look).
 
 The warp (StreamMapNet's ``update_bev_feature``, here batched): every current BEV cell centre
 (x, y, 0) in metres is mapped into the previous ego frame by ``prev_pose^-1 @ cur_pose`` and the
@@ -133,7 +134,8 @@ def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: floa
 
 
 def _check_order(batch: dict, backwards: torch.Tensor, frame: torch.Tensor, previous: torch.Tensor) -> None:
-    if torch.compiler.is_compiling() or torch.jit.is_tracing() or not bool(backwards.any()):
+    capturing = backwards.is_cuda and torch.cuda.is_current_stream_capturing()
+    if torch.compiler.is_compiling() or torch.jit.is_tracing() or capturing or not bool(backwards.any()):
         return
     b = int(backwards.nonzero()[0, 0])
     scenes = batch.get("scene")

@@ -1,0 +1,115 @@
+"""Does the memory help? The single-frame demo model against the temporal one (docs/temporal.md), on a
+synthetic world with occluders, the same budget for both, several seeds, unseen-road validation.
+
+    python benchmarks/temporal.py --minutes 15 --seeds 0 1 --occluders 0.7 --out runs/temporal_bench
+
+For every seed, each config (``configs/synthetic/demo.yaml``, single frame; ``configs/temporal/synthetic.yaml``,
+BEV memory) trains on the training world (``demo.WORLD`` with ``--occluders``) for ``--minutes`` of wall
+time (``train.time_budget_min``: the schedule completes within it, demo.py's rule) or, with ``--steps N``,
+for N steps of the same schedule (a fair comparison on a loaded machine, where wall time depends on the
+neighbours); then it is evaluated on the validation world (``demo.VAL_WORLD`` with ``--occluders``: a world
+of another seed, road networks never seen in training), vector protocol, with the flicker rate
+(evaluation/consistency.py). Printed: one row per run, the mean per config, and the temporal / single
+ratios of mAP and flicker. ``OUT/results.json`` holds everything; a finished run is reused (delete its
+folder to redo it).
+
+Worlds are cached (``--cache``, as the demo's). Run one config at a time on a quiet machine with
+``OMP_NUM_THREADS`` unset; ``--threads`` sets torch's threads explicitly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = {"single": REPO / "configs" / "synthetic" / "demo.yaml",
+           "temporal": REPO / "configs" / "temporal" / "synthetic.yaml"}
+
+
+def run_one(name: str, seed: int, args, roots) -> dict:
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.predict import run_evaluation
+    from instagram_hdmap.train import train
+
+    train_root, val_root = roots
+    out = Path(args.out) / f"{name}_seed{seed}"
+    done = out / "result.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
+        f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
+        f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
+    common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
+              *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override]
+    cfg = load_config(CONFIGS[name], [*world_overrides(train_root), *common])
+    t0 = time.perf_counter()
+    summary = train(cfg, force=True, validate=False)
+    train_s = time.perf_counter() - t0
+    val_cfg = load_config(CONFIGS[name], [*world_overrides(val_root), *common])
+    metrics = run_evaluation(val_cfg, out / "run" / "last.pt", "vector", out / "eval")["metrics"]
+    result = {"config": name, "seed": seed, "steps": summary.get("step"), "train_s": round(train_s, 1),
+              "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
+              "flicker": metrics["consistency"]["flicker"], "flicker_mean": metrics["consistency"]["flicker_mean"],
+              "pairs": metrics["consistency"]["pairs"], "memory": metrics.get("memory")}
+    done.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def table(results: list[dict]) -> str:
+    classes = list(results[0]["AP_class"])
+    head = f"{'run':<18}{'steps':>7}" + "".join(f"{c[:10]:>11}" for c in classes) + f"{'mAP':>8}{'flicker':>9}"
+    lines = [head, "-" * len(head)]
+    for r in results:
+        lines.append(f"{r['config'] + ' s' + str(r['seed']):<18}{r['steps']:>7}"
+                     + "".join(f"{r['AP_class'][c]:>11.3f}" for c in classes)
+                     + f"{r['mAP']:>8.3f}{r['flicker_mean']:>9.3f}")
+    lines.append("-" * len(head))
+    mean = {}
+    for name in ("single", "temporal"):
+        rs = [r for r in results if r["config"] == name]
+        if not rs:
+            continue
+        mean[name] = {"mAP": sum(r["mAP"] for r in rs) / len(rs),
+                      "flicker": sum(r["flicker_mean"] for r in rs) / len(rs),
+                      "AP_class": {c: sum(r["AP_class"][c] for r in rs) / len(rs) for c in classes}}
+        lines.append(f"{name + ' mean':<18}{'':>7}" + "".join(f"{mean[name]['AP_class'][c]:>11.3f}" for c in classes)
+                     + f"{mean[name]['mAP']:>8.3f}{mean[name]['flicker']:>9.3f}")
+    if len(mean) == 2:
+        s, t = mean["single"], mean["temporal"]
+        lines.append(f"temporal - single: mAP {t['mAP'] - s['mAP']:+.3f} (x{t['mAP'] / max(s['mAP'], 1e-9):.2f}); "
+                     f"flicker x{t['flicker'] / max(s['flicker'], 1e-9):.2f} (target: mAP +0.05, flicker x0.5)")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    from instagram_hdmap.demo import VAL_WORLD, WORLD, default_cache_dir, ensure_world
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default="runs/temporal_bench")
+    p.add_argument("--minutes", type=float, default=15.0, help="training wall budget per run")
+    p.add_argument("--steps", type=int, help="instead of --minutes: the same number of steps for every run")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    p.add_argument("--occluders", type=float, default=0.7, help="occluder density of both worlds")
+    p.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    p.add_argument("--cache", help="world cache (default: the demo's)")
+    p.add_argument("--threads", type=int, help="torch threads (train.cpu_threads)")
+    p.add_argument("--workers", type=int, default=1, help="world generation processes")
+    p.add_argument("override", nargs="*", help="config overrides for both models (key=value)")
+    args = p.parse_args()
+    cache = Path(args.cache) if args.cache else default_cache_dir()
+    train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
+    val_root, _ = ensure_world(cache, {**VAL_WORLD, "occluders": args.occluders}, workers=args.workers)
+    results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs]
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    (Path(args.out) / "results.json").write_text(json.dumps({"args": vars(args), "runs": results}, indent=1))
+    print(f"worlds: {train_root} (train), {val_root} (validation, unseen roads), occluders {args.occluders}")
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()
