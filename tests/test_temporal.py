@@ -562,3 +562,34 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
             for p, q in zip(postprocess_batch(g, grid, threshold)[0], postprocess_batch(e, grid, threshold)[0]))
         memory_torch, memory_onnx = expected["memory"], got["memory"]
     assert statuses == [(NO_MEMORY, NO_MEMORY), (FUSED, FUSED), (FUSED, FUSED)]
+
+
+# --- bad input ------------------------------------------------------------------------------------------------
+
+
+def test_scene_index_refuses_frames_out_of_order_and_split_scenes():
+    from instagram_hdmap.data.base import DatasetError, SceneIndex
+
+    idx = SceneIndex(["a", "a", "b", "c", "c", "c"], [1, 2, 1, 5, 6, 9])
+    assert idx.runs == [[0, 1], [2], [3, 4, 5]] and idx.frame == [0, 1, 0, 0, 1, 2]  # "b": a one-frame scene
+    with pytest.raises(DatasetError, match="scene 'a'.*frame 2.*does not come after frame 1"):
+        SceneIndex(["a", "a", "a"], [1, 3, 2])
+    with pytest.raises(DatasetError, match="scene 'a'.*not contiguous"):
+        SceneIndex(["a", "b", "a"], [1, 2, 3])
+
+
+def test_evaluation_counts_pose_jumps_and_missing_frames():
+    from instagram_hdmap.engine import evaluate
+
+    cfg = load_config(None, [*TINY, "model.temporal.memory=bev"])
+    model = build_model(cfg)
+    frames = []
+    for k, (x, frame) in enumerate([(0.0, 0), (2.0, 1), (14.0, 2), (16.0, 4), (18.0, 5)]):
+        b = random_batch(cfg, B=1, seed=k)
+        b.update(ego_pose=pose(x, 0.0, 0.0)[None], frame_index=torch.tensor([frame]),
+                 scene_start=torch.tensor([frame == 0]))
+        frames.append(b)
+    result = evaluate(model, None, frames, torch.device("cpu"))
+    # frame 2 jumped 12 m (> 10 m): reset and counted; frame 4 follows frame 2: a missing frame
+    assert result["memory"] == {"memory_fused": 2, "memory_no_memory": 1, "memory_pose_jump": 1,
+                                "memory_missing_frame": 1, "memory_dropped": 0}

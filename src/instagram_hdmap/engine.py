@@ -239,7 +239,7 @@ def evaluate(
         batch = move_to(batch, device)
         with autocast_context(device, amp):
             outputs = model(batch, memory=memory) if streaming else model(batch)
-        tokens, keep = batch["sample_token"], list(range(len(batch["sample_token"])))
+        tokens, keep = batch.get("sample_token"), list(range(batch["images"].shape[0]))
         if owned is not None:  # streaming padding: score each owned sample once (even twice in a batch)
             keep = []
             for b, t in enumerate(tokens):

@@ -1,0 +1,98 @@
+"""What the BEV memory costs: the fusion's share of the forward pass (batch 1, CPU by default).
+
+    python benchmarks/temporal_speed.py                                   # Table I B0 LSS, nuScenes rig
+    python benchmarks/temporal_speed.py --config configs/temporal/av2_b0_lss_256x352.yaml --runs 30
+
+Times, interleaved run by run so that a machine's load shifts all of them alike, under ``torch.no_grad``:
+the single-frame model (``model.temporal.memory=none``), the same model with the memory
+(``configs/temporal/nuscenes_b0_lss_128x352.yaml``, a valid memory of the previous frame 1.5 m behind,
+so the warp and the fusion run on real history), and the fusion module alone on the first-stage features
+(``BEVMemoryFusion``: the warp, the gates, the new memory). Prints the medians (p10-p90) and the two
+shares: (temporal - single) / single and fusion alone / single (issue 19's budget: <= 10 %).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.deploy import example_inputs
+    from instagram_hdmap.models import build_model
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", default=str(REPO / "configs" / "temporal" / "nuscenes_b0_lss_128x352.yaml"))
+    p.add_argument("--runs", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
+    p.add_argument("override", nargs="*", help="config overrides (key=value)")
+    args = p.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    cfg = load_config(args.config, ["model.backbone.grad_checkpoint=false", *args.override])
+    if cfg.model.temporal.memory == "none":
+        raise SystemExit(f"{args.config}: model.temporal.memory is none; give a temporal config")
+    single_cfg = load_config(args.config, ["model.backbone.grad_checkpoint=false", *args.override,
+                                           "model.temporal.memory=none"])
+    torch.manual_seed(0)
+    temporal = build_model(cfg).to(device).eval()
+    single = build_model(single_cfg).to(device).eval()
+    single.load_state_dict({k: v for k, v in temporal.state_dict().items() if not k.startswith("temporal.")})
+    batch = {k: v.to(device) for k, v in example_inputs(cfg).items()}
+    batch.update(ego_pose=torch.eye(4, device=device)[None], frame_index=torch.ones(1, dtype=torch.long, device=device),
+                 scene_start=torch.zeros(1, dtype=torch.bool, device=device))
+    memory = temporal.initial_memory(1, batch["images"])
+    memory["valid"][:] = True
+    memory["ego_pose"][0, 0, 3] = -1.5
+    memory["bev"].normal_()
+    first = torch.randn(1, temporal.temporal.channels, *temporal.temporal.size, device=device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def run(fn):
+        def go():
+            fn()
+            sync()
+        return go
+
+    jobs = {"single-frame model": run(lambda: single(batch)),
+            "temporal model": run(lambda: temporal(batch, memory=memory)),
+            "fusion alone": run(lambda: temporal.temporal(first, batch, memory))}
+    times: dict[str, list[float]] = {k: [] for k in jobs}
+    with torch.no_grad():
+        assert temporal(batch, memory=memory)["memory_status"].item() == 0  # the memory is fused
+        for _ in range(args.warmup):
+            for fn in jobs.values():
+                fn()
+        for _ in range(args.runs):
+            for name, fn in jobs.items():
+                times[name].append(timed(fn))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    print(f"{cfg.name}: batch 1, {device}, {torch.get_num_threads()} thread(s), {args.runs} interleaved runs; "
+          f"fusion on {temporal.temporal.channels} x {temporal.temporal.size[0]} x {temporal.temporal.size[1]} "
+          f"({cfg.model.temporal.fusion}, kernel {cfg.model.temporal.kernel})")
+    for name, v in times.items():
+        q = statistics.quantiles(v, n=10)
+        print(f"  {name:<20}{1000 * med[name]:9.2f} ms  (p10 {1000 * q[0]:.2f}, p90 {1000 * q[-1]:.2f})")
+    base = med["single-frame model"]
+    print(f"  temporal - single: {100 * (med['temporal model'] - base) / base:+.1f} % of the single-frame forward")
+    print(f"  fusion alone:      {100 * med['fusion alone'] / base:.1f} % of the single-frame forward (budget 10 %)")
+
+
+if __name__ == "__main__":
+    main()
