@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from . import distributed as du
 from .config import UserError
+from .models.temporal import STATUS_NAMES
 
 
 class NonFiniteLossError(UserError):
@@ -40,8 +41,6 @@ def is_temporal(model: torch.nn.Module) -> bool:
 
 def memory_counts(outputs: dict) -> dict[str, float]:
     """A temporal model's per-batch ``memory_status`` as counts ``memory_<status>`` (empty otherwise)."""
-    from .models.temporal import STATUS_NAMES
-
     status = outputs.get("memory_status")
     if status is None:
         return {}
