@@ -424,6 +424,9 @@ def test_flicker_rate(tiny_world_cfg):
     assert res["flicker_mean"] > 0.5 and run(shifted, order=list(range(len(ds)))[::-1]) == res
     nothing = run([[] for _ in gts])
     assert nothing["flicker_mean"] == 0.0 and nothing["pairs"] == perfect["pairs"]
+    # among the pairs detected at least once: a model that detects nothing has none (NaN), not 0
+    assert math.isnan(nothing["flicker_detected_mean"]) and run(blinking)["flicker_detected_mean"] == 1.0
+    assert perfect["flicker_detected_mean"] == 0.0 and perfect["pairs_detected"] == perfect["pairs"]
 
 
 # --- training and evaluation on drives ---------------------------------------------------------------------

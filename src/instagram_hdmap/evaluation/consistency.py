@@ -17,7 +17,10 @@ map element (GT instances carry no identity across frames; the link is geometric
 rate** of a class is the share of such pairs (instance in t, instance in t + 1) whose detected /
 missed status differs; ``flicker_mean`` is the mean over the classes that have pairs. 0 = a model
 whose output never changes its mind about an element it keeps seeing; it is 0 for a perfect model
-and for one that detects nothing, so read it next to the AP.
+and for one that detects nothing, so read it next to the AP, or read ``flicker_detected``: the same
+share among the pairs detected in at least one of the two frames (NaN for a class never detected;
+``flicker_detected_mean`` over the classes that have such pairs), which a model cannot lower by
+detecting less.
 
 Order-free: every sample's detection status, GT (resampled to ``num_points`` = 20 points) and pose are kept, grouped by
 scene and sorted by frame at ``compute``; samples may arrive in any order, from any process.
@@ -141,10 +144,12 @@ class FlickerMeter:
         return out
 
     def compute(self) -> dict:
-        """``flicker`` (class -> rate, NaN without pairs), ``flicker_mean``, ``pairs`` and ``flips`` per
-        class, ``frame_pairs`` (consecutive frames compared), and the definition's parameters."""
+        """``flicker`` (class -> rate, NaN without pairs), ``flicker_mean``, ``flicker_detected``,
+        ``flicker_detected_mean``, ``pairs``, ``pairs_detected`` and ``flips`` per class, ``frame_pairs``
+        (consecutive frames compared), and the definition's parameters."""
         pairs = np.zeros(self.num_classes, dtype=np.int64)
         flips = np.zeros(self.num_classes, dtype=np.int64)
+        seen = np.zeros(self.num_classes, dtype=np.int64)  # pairs detected in at least one frame
         frame_pairs = 0
         for (scene, frame), cur in sorted(self.records.items()):
             prev = self.records.get((scene, frame - 1))
@@ -155,12 +160,21 @@ class FlickerMeter:
                 k = int(cur["labels"][j])
                 pairs[k] += 1
                 flips[k] += int(prev["detected"][i] != cur["detected"][j])
+                seen[k] += int(prev["detected"][i] or cur["detected"][j])
         rate = [float(f / n) if n else math.nan for f, n in zip(flips, pairs)]
-        seen = [r for r in rate if not math.isnan(r)]
+        rate_seen = [float(f / n) if n else math.nan for f, n in zip(flips, seen)]
+
+        def mean(values: list[float]) -> float:
+            values = [v for v in values if not math.isnan(v)]
+            return float(np.mean(values)) if values else math.nan
+
         return {
             "flicker": dict(zip(self.classes, rate)),
-            "flicker_mean": float(np.mean(seen)) if seen else math.nan,
+            "flicker_mean": mean(rate),
+            "flicker_detected": dict(zip(self.classes, rate_seen)),
+            "flicker_detected_mean": mean(rate_seen),
             "pairs": dict(zip(self.classes, pairs.tolist())),
+            "pairs_detected": dict(zip(self.classes, seen.tolist())),
             "flips": dict(zip(self.classes, flips.tolist())),
             "frame_pairs": frame_pairs,
             "samples": len(self.records),
