@@ -104,7 +104,8 @@ def main() -> None:
     p.add_argument("--cache", help="world cache (default: the demo's)")
     p.add_argument("--threads", type=int, help="torch threads (train.cpu_threads)")
     p.add_argument("--workers", type=int, default=1, help="world generation processes")
-    p.add_argument("override", nargs="*", help="config overrides for both models (key=value)")
+    p.add_argument("--set", dest="override", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="config overrides for both models")
     args = p.parse_args()
     cache = Path(args.cache) if args.cache else default_cache_dir()
     train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
