@@ -26,7 +26,8 @@ from tqdm import tqdm
 
 from instagram_hdmap.checkpoint import load_checkpoint
 from instagram_hdmap.config import config_from_dict, config_to_dict, deep_update, parse_overrides
-from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+from instagram_hdmap.data.base import collate_fn
+from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.demo import world_overrides
 from instagram_hdmap.diagnostics import ClassDiagnostics, format_table
 from instagram_hdmap.evaluation import Evaluator

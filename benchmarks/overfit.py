@@ -73,7 +73,8 @@ def world_overrides(dataroot: str | Path) -> list[str]:
 
 def overfit_batch(cfg: ExperimentConfig, num_samples: int) -> dict:
     """The first ``num_samples`` samples of ``cfg.data.train_split``, unaugmented, collated into one batch."""
-    from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+    from instagram_hdmap.data.base import collate_fn
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 
     dataset = NuScenesMapDataset(cfg, cfg.data.train_split, augment=False)
     if len(dataset) < num_samples:

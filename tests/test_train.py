@@ -15,7 +15,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint
 from instagram_hdmap.config import ConfigError, UserError, load_config
-from instagram_hdmap.data.nuscenes import collate_fn
+from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.distributed import ResumableSampler
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.targets import build_targets

@@ -74,7 +74,8 @@ def _load_data_cfg(args: argparse.Namespace):
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
     from .data import build_dataset
-    from .data.nuscenes import gt_submission, write_json
+    from .data.base import gt_submission
+    from .files import write_json
 
     cfg = _load_data_cfg(args)
     dataset = build_dataset(cfg, args.split, augment=False)

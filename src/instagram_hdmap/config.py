@@ -23,6 +23,8 @@ from typing import Any, Literal, Union
 
 import yaml
 
+from .files import write_text
+
 
 class UserError(Exception):
     """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line
@@ -476,11 +478,7 @@ def config_from_dict(data: dict) -> ExperimentConfig:
 
 def save_config(cfg: ExperimentConfig, path: str | Path) -> None:
     """Write the fully resolved config as YAML (atomically)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    tmp.replace(path)
+    write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False), path)
 
 
 def diff_configs(a: ExperimentConfig, b: ExperimentConfig) -> list[str]:

@@ -199,7 +199,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     """Generate or reuse the worlds (default ``WORLD`` for training, ``VAL_WORLD`` for validation),
     train (resuming ``OUT/run/last.pt``) within the budget, evaluate, draw. Returns the metrics
     dict also written to ``OUT/metrics.json``."""
-    from .data.nuscenes import write_json
+    from .files import write_json
     from .predict import predict_sample, run_evaluation
     from .train import train
 

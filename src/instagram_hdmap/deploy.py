@@ -37,7 +37,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -45,6 +44,8 @@ import torch
 from torch import nn
 
 from .config import ExperimentConfig, UserError, config_to_dict
+from .data.rig import nuscenes_like_rig
+from .files import atomic_path
 from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS
 
@@ -111,9 +112,7 @@ class TensorInterface(nn.Module):
 
 
 def example_inputs(cfg: ExperimentConfig, seed: int = 0) -> dict[str, torch.Tensor]:
-    """A batch of one: random images and the nuScenes-like rig of ``benchmark.nuscenes_like_rig``."""
-    from .benchmark import nuscenes_like_rig
-
+    """A batch of one: random images and the nuScenes-like rig of ``data.rig.nuscenes_like_rig``."""
     rig = nuscenes_like_rig(tuple(cfg.data.image_size))
     h, w = cfg.data.image_size
     gen = torch.Generator().manual_seed(seed)
@@ -225,14 +224,8 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
         proto.metadata_props.add(key=key, value=value)
     proto.producer_name, proto.doc_string = "instagram-hdmap export-onnx", f"InstaGraM {cfg.name}; docs/deploy.md"
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    try:
+    with atomic_path(out) as tmp:
         onnx.save(proto, str(tmp))
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return {"path": out, "opset": opset, "config_sha256": sha, "nodes": len(proto.graph.node), **shapes}
 
 

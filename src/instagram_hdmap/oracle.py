@@ -103,7 +103,7 @@ def load_targets(cfg: ExperimentConfig, split: str, nusc=None, limit: int | None
 def collate_targets(samples: Sequence[dict], device: torch.device | str = "cpu") -> dict:
     """``data.nuscenes.collate_fn`` over ``load_targets`` samples, tensors moved to ``device``;
     ``index`` becomes a list of dataset indices."""
-    from .data.nuscenes import collate_fn
+    from .data.base import collate_fn
     from .engine import move_to
 
     return move_to(collate_fn(list(samples)), torch.device(device))

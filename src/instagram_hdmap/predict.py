@@ -299,7 +299,7 @@ def predict_sample(
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
     from .data import build_dataset
-    from .data.nuscenes import collate_fn
+    from .data.base import collate_fn
     from .engine import move_to
     from .evaluation import write_submission
     from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
@@ -392,9 +392,10 @@ def run_evaluation(
 
     from . import distributed as du
     from .data import build_dataset
-    from .data.nuscenes import collate_fn, write_json
+    from .data.base import collate_fn
     from .engine import evaluate
     from .evaluation import Evaluator, write_submission
+    from .files import write_json
     from .postprocess import decode_options, postprocess_batch
 
     device = du.init_distributed(resolve_inference_device(cfg).type)

@@ -88,7 +88,7 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
 
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
     from .data import build_dataset
-    from .data.nuscenes import collate_fn
+    from .data.base import collate_fn
 
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
