@@ -33,8 +33,8 @@ from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.demo import world_overrides
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import load_model
 from instagram_hdmap.postprocess import DECODE_KEYS, REQUIRED_OUTPUTS, decode_options, postprocess_batch
-from instagram_hdmap.predict import load_model
 
 
 def run_outputs(checkpoint: str, world: str) -> tuple[list[tuple[dict, list]], object]:

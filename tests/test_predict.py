@@ -17,8 +17,9 @@ from instagram_hdmap.cli import main
 from instagram_hdmap.config import config_to_dict, load_config
 from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import gt_outputs, inference_config
 from instagram_hdmap.postprocess import postprocess_batch
-from instagram_hdmap.predict import adjacency_edges, gt_outputs, inference_config
+from instagram_hdmap.predict import adjacency_edges
 from instagram_hdmap.targets import build_targets, graph_to_polylines
 
 TINY_YAML = Path(__file__).resolve().parents[1] / "configs" / "synthetic" / "tiny.yaml"
@@ -331,7 +332,7 @@ def test_benchmark_device_errors(capsys):
 
 
 def test_a_corrupt_checkpoint_is_a_checkpoint_error(tmp_path):
-    from instagram_hdmap.predict import load_model
+    from instagram_hdmap.inference import load_model
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")

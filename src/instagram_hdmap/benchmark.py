@@ -27,8 +27,15 @@ import numpy as np
 import torch
 
 from .config import ExperimentConfig, UserError
+from .data import build_dataset
 from .data.rig import nuscenes_like_rig
+from .deploy import fast_forward
+from .distributed import resolve_device
+from .engine import autocast_context
 from .geometry import BEVGrid
+from .inference import load_model
+from .models import build_model
+from .postprocess import decode_options, postprocess_batch
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
 DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
@@ -41,8 +48,6 @@ class BenchmarkError(UserError):
 def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
     """The calibration [V, ...] to benchmark with and where it came from."""
     if Path(cfg.data.dataroot).is_dir():
-        from .data import build_dataset
-
         try:
             dataset = build_dataset(cfg, cfg.data.val_split, augment=False)
             cams = dataset.load_cameras(0)
@@ -109,13 +114,8 @@ def run_benchmark(
     statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``). ``compile`` / ``cuda_graphs``: time
     ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
     """
-    from .engine import autocast_context
-    from .models import build_model
-    from .postprocess import decode_options, postprocess_batch
-    from .train import resolve_device
-
     if device is None:
-        device = resolve_device(cfg)
+        device = str(resolve_device(cfg.train.device))
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise BenchmarkError("--device cuda but no CUDA device is available; use --device cpu")
@@ -130,8 +130,6 @@ def run_benchmark(
 
     notes: list[str] = []
     if checkpoint is not None:
-        from .predict import load_model
-
         model, cfg, notes = load_model(checkpoint, cfg, overrides, device=dev)
     else:
         with torch.random.fork_rng(devices=[]):  # reproducible random weights, global RNG untouched
@@ -151,8 +149,6 @@ def run_benchmark(
             torch.cuda.synchronize(dev)
 
     if compile or cuda_graphs:
-        from .deploy import fast_forward
-
         with torch.inference_mode():  # the mode of the timed calls (compiled code is specialised to it)
             fast = fast_forward(model, batch, compile=compile, cuda_graphs=cuda_graphs, amp=amp)
 

@@ -481,6 +481,37 @@ def save_config(cfg: ExperimentConfig, path: str | Path) -> None:
     write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False), path)
 
 
+# --- dotted keys ("model.gnn.layers") of nested config dicts -----------------------------------------
+
+
+def flatten(nested: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"model": {"gnn": {"layers": 7}}}`` -> ``{"model.gnn.layers": 7}`` (leaves in order)."""
+    out: dict[str, Any] = {}
+    for k, v in nested.items():
+        out.update(flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def get_key(nested: dict, dotted: str) -> Any:
+    """The value at ``dotted`` (``"model.gnn.layers"``) of a nested dict."""
+    for part in dotted.split("."):
+        nested = nested[part]
+    return nested
+
+
+def set_key(nested: dict, dotted: str, value: Any) -> None:
+    """Set the value at ``dotted`` of a nested dict (its parents must exist)."""
+    *parents, last = dotted.split(".")
+    for part in parents:
+        nested = nested[part]
+    nested[last] = value
+
+
+def is_under(key: str, prefixes) -> bool:
+    """``key`` is one of ``prefixes`` or lies below one: ``is_under("model.gnn.layers", ["model"])``."""
+    return any(key == p or key.startswith(p + ".") for p in prefixes)
+
+
 def diff_configs(a: ExperimentConfig, b: ExperimentConfig) -> list[str]:
     """Dotted keys whose values differ between two configs."""
     out: list[str] = []

@@ -25,13 +25,21 @@ from torch.utils.data import DataLoader
 
 from . import distributed as du
 from .checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .config import ExperimentConfig, UserError, config_from_dict, config_to_dict, diff_configs, save_config
+from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, get_key, is_under, save_config
+from .data import build_dataset
+from .data.base import collate_fn
 from .engine import evaluate, train_one_epoch
+from .evaluation import Evaluator
 from .geometry import BEVGrid
+from .inference import MODEL_KEYS, saved_config
+from .losses import Criterion
+from .models import build_model
+from .postprocess import decode_options, postprocess_batch
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
-# Config sections that must match for a checkpoint to be resumed (training knobs may change).
-_RESUME_MUST_MATCH = ("grid", "model", "loss", "data.image_size", "data.classes", "data.sample_dist")
+# Config keys that must match for a checkpoint to be resumed: those that define the model and those
+# that define its training targets (training knobs may change).
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist")
 
 
 def seed_everything(seed: int) -> None:
@@ -48,14 +56,6 @@ def _worker_init(worker_id: int) -> None:
     random.seed(seed)
 
 
-def resolve_device(cfg: ExperimentConfig) -> str:
-    if cfg.train.device == "cuda" and not torch.cuda.is_available():
-        raise UserError("train.device=cuda but no CUDA device is available; use train.device=cpu")
-    if cfg.train.device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return cfg.train.device
-
-
 def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
     """Refuse to write into a folder that already holds a run unless resuming or forced."""
     if not du.is_main_process():
@@ -69,27 +69,15 @@ def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
 
 
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
-    try:
-        old = config_from_dict(ckpt_cfg)
-    except UserError as e:
-        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {e}") from None
-    differ = [k for k in diff_configs(old, cfg) if k.startswith(_RESUME_MUST_MATCH)]
+    old = saved_config(ckpt_cfg, f"checkpoint {path}")
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, RESUME_KEYS)]
     if differ:
         old_d, new_d = config_to_dict(old), config_to_dict(cfg)
-
-        def get(d, key):
-            for p in key.split("."):
-                d = d[p]
-            return d
-
-        lines = "; ".join(f"{k}: checkpoint {get(old_d, k)!r} vs now {get(new_d, k)!r}" for k in differ)
+        lines = "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
 
 
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
-    from .data import build_dataset
-    from .data.base import collate_fn
-
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
@@ -112,8 +100,6 @@ ResumableSampler = du.ResumableSampler
 
 
 def make_evaluator(cfg: ExperimentConfig):
-    from .evaluation import Evaluator
-
     return Evaluator.from_config(cfg)
 
 
@@ -141,11 +127,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
     (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
-    from .losses import Criterion
-    from .models import build_model
-    from .postprocess import decode_options, postprocess_batch
-
-    device = du.init_distributed(resolve_device(cfg))
+    device = du.init_distributed(du.resolve_device(cfg.train.device).type)
     world = du.get_world_size()
     out_dir = Path(cfg.train.out_dir)
     prepare_out_dir(out_dir, resume is not None, force)
