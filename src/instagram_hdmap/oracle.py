@@ -42,7 +42,16 @@ import torch
 from tqdm import tqdm
 
 from .config import ConfigError, ExperimentConfig
+from .data.base import collate_fn
+from .data.nuscenes import NuScenesMapDataset, open_nuscenes
+from .engine import move_to
+from .evaluation import Evaluator
 from .geometry import BEVGrid
+from .inference import gt_outputs
+from .losses import Criterion, adjacency_correct
+from .models import build_model
+from .postprocess import decode_options, postprocess_batch
+from .targets import build_targets
 
 # diagnostics of losses.Criterion averaged over the evaluated batches
 DIAGNOSTICS = ("loss_adjacency", "loss_class", "adjacency_accuracy", "adjacency_accuracy_all", "class_accuracy")
@@ -82,9 +91,6 @@ def load_targets(cfg: ExperimentConfig, split: str, nusc=None, limit: int | None
     ``mirror``: also the three mirror images of each map (``MIRRORS``, a 4x larger training set;
     the association task is symmetric), each built into its own targets; needs a centred grid.
     """
-    from .data.nuscenes import NuScenesMapDataset
-    from .targets import build_targets
-
     grid, d = BEVGrid.from_config(cfg.grid), cfg.data
     if mirror:
         check_mirror_grid(grid)
@@ -103,9 +109,6 @@ def load_targets(cfg: ExperimentConfig, split: str, nusc=None, limit: int | None
 def collate_targets(samples: Sequence[dict], device: torch.device | str = "cpu") -> dict:
     """``data.nuscenes.collate_fn`` over ``load_targets`` samples, tensors moved to ``device``;
     ``index`` becomes a list of dataset indices."""
-    from .data.base import collate_fn
-    from .engine import move_to
-
     return move_to(collate_fn(list(samples)), torch.device(device))
 
 
@@ -119,8 +122,6 @@ def oracle_vertices(batch: dict, graph_head) -> tuple[dict[str, torch.Tensor], d
     [B, n]), cut from N to n = the batch's largest real count (at least 1); ``gt`` =
     ``predict.gt_outputs(batch)`` (its ``pred_vertex_logits`` and ``pred_distance`` are the inputs).
     """
-    from .predict import gt_outputs
-
     gt = gt_outputs(batch, graph_head.grid, batch["gt_distance"].shape[1])
     vertices = graph_head.extract(gt["pred_vertex_logits"])
     n = max(1, int(vertices["mask"].sum(1).max()))
@@ -185,8 +186,6 @@ def train_oracle(
     Returns ``{"steps", "seconds", "history": [{"step", "seconds", "lr", "loss_adjacency", "loss_class",
     "adjacency_accuracy", "class_accuracy"}, ...]}`` (one entry every ``log_every`` steps and at the end).
     """
-    from .losses import Criterion
-
     check_oracle_config(cfg)
     if schedule not in ("constant", "cosine"):
         raise ConfigError(f"schedule must be 'constant' or 'cosine', got {schedule!r}")
@@ -259,11 +258,6 @@ def evaluate_oracle(
     are exactly the GT successor and predecessor) and ``vertices_class`` (their number).
     One wrong row in a polyline of P vertices breaks it, so the instance AP needs these close to 1.
     """
-    from .evaluation import Evaluator
-    from .losses import Criterion, adjacency_correct
-    from .postprocess import decode_options, postprocess_batch
-    from .predict import gt_outputs
-
     grid = BEVGrid.from_config(cfg.grid)
     if graph_head is not None:
         check_oracle_config(cfg)
@@ -325,9 +319,6 @@ def run_oracle(
     Returns ``{"oracle": metrics, "upper_bound": metrics, "train": train_oracle's dict,
     "num_train": samples (mirror images included), "num_val", "seconds": {"targets", "train", "eval"}}``.
     """
-    from .data.nuscenes import open_nuscenes
-    from .models import build_model
-
     check_oracle_config(cfg)
     t0 = time.perf_counter()
     nusc = open_nuscenes(cfg.data.dataroot, cfg.data.version)
