@@ -46,7 +46,7 @@ from pathlib import Path
 import torch
 
 from instagram_hdmap.config import ExperimentConfig, UserError, load_config
-from instagram_hdmap.engine import move_to, train_one_epoch
+from instagram_hdmap.engine import EpochHooks, Position, StepSettings, move_to, train_one_epoch
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
@@ -138,9 +138,9 @@ def run_overfit(
         # one "epoch" of `steps` identical batches: train_one_epoch is the step of `instagram-hdmap train`;
         # its progress bar (stderr) would interleave with the table
         with contextlib.redirect_stderr(io.StringIO()):
-            train_one_epoch(model, criterion, [batch] * steps, optimizer, dev, epoch=0, amp="none",
-                            grad_clip=cfg.train.grad_clip, on_nonfinite="stop", log_every=steps + 1,
-                            on_step=on_step, total=steps)
+            train_one_epoch(model, criterion, [batch] * steps, optimizer, dev, Position(0), total=steps,
+                            settings=StepSettings(grad_clip=cfg.train.grad_clip, log_every=steps + 1),
+                            hooks=EpochHooks(on_step=on_step))
         seconds = time.perf_counter() - t0
 
         model.eval()

@@ -63,7 +63,7 @@ from instagram_hdmap.config import ExperimentConfig, load_config
 from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.data.local_map import resample_line
 from instagram_hdmap.data.rig import nuscenes_like_rig
-from instagram_hdmap.engine import move_to, train_one_epoch
+from instagram_hdmap.engine import EpochHooks, Position, StepSettings, move_to, train_one_epoch
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
@@ -212,9 +212,9 @@ def measure_training(cfg: ExperimentConfig, batch_size: int, *, steps: int, warm
     sync()
     start, cpu_start = time.perf_counter(), time.process_time()
     with contextlib.redirect_stderr(io.StringIO()):  # the engine's progress bar
-        train_one_epoch(model, criterion, [batch] * total, optimizer, dev, epoch=0, amp=amp, scaler=scaler,
-                        grad_clip=cfg.train.grad_clip, on_nonfinite="stop", log_every=total + 1, on_step=on_step,
-                        total=total)
+        train_one_epoch(model, criterion, [batch] * total, optimizer, dev, Position(0), scaler=scaler, total=total,
+                        settings=StepSettings(amp=amp, grad_clip=cfg.train.grad_clip, log_every=total + 1),
+                        hooks=EpochHooks(on_step=on_step))
     times = np.diff([start, *stamps])[warmup:]
     cpu_times = np.diff([cpu_start, *cpu_stamps])[warmup:]
     median = float(np.median(times))

@@ -119,7 +119,7 @@ def _ddp_worker(rank: int, world: int, port: int, out: str, cfg_dir: str) -> Non
                       LOCAL_RANK=str(rank))
     torch.set_num_threads(1)
     from instagram_hdmap import distributed as du
-    from instagram_hdmap.engine import train_one_epoch
+    from instagram_hdmap.engine import EpochHooks, Position, train_one_epoch
     from instagram_hdmap.losses import Criterion
     from instagram_hdmap.models import build_model
 
@@ -139,7 +139,8 @@ def _ddp_worker(rank: int, world: int, port: int, out: str, cfg_dir: str) -> Non
         gathered = du.all_gather_object(flat)
         checks.append(all(torch.equal(gathered[0], g) for g in gathered))
 
-    train_one_epoch(net, Criterion(cfg.loss, BEVGrid.from_config(cfg.grid)), loader, opt, device, 0, on_step=on_step)
+    train_one_epoch(net, Criterion(cfg.loss, BEVGrid.from_config(cfg.grid)), loader, opt, device, Position(0),
+                    hooks=EpochHooks(on_step=on_step))
     if rank == 0:
         torch.save({"checks": checks, "samples": len(sampler)}, out)
     du.cleanup()

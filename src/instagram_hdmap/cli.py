@@ -19,7 +19,7 @@ from .data.synthetic.av2_writer import generate_av2_world
 from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
-from .evaluation import EvaluationInputError, Evaluator, SubmissionError, format_table, read_submission
+from .evaluation import evaluate_files, format_table
 from .files import write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
@@ -122,53 +122,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_json(args: argparse.Namespace) -> int:
-    import json
-
-    from tqdm import tqdm
-
-    gt = read_submission(args.gt, "gt")
-    pred = read_submission(args.pred, "pred")
-    if not gt.samples:
-        raise SubmissionError(f"{args.gt}: the GT file holds no samples")
-    extra = [t for t in pred.samples if t not in gt.samples]
-    if extra and not args.ignore_extra_predictions:
-        raise SubmissionError(
-            f"{args.pred}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {args.gt} "
-            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
-        )
-    missing = sum(t not in pred.samples for t in gt.samples)
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
     grid.check()
-    ev = Evaluator(args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
-                   fix_instance_ids=args.fix_instance_ids, device=args.device)
-    tokens = list(gt.samples)  # the GT file's order is the pooling order
-    chunk = 64
-    try:
-        for s in tqdm(range(0, len(tokens), chunk), desc=f"evaluate-json ({args.protocol})", unit="chunk",
-                      disable=not sys.stderr.isatty()):
-            part = tokens[s : s + chunk]
-            ev.update([pred.samples.get(t, []) for t in part], [gt.samples[t] for t in part],
-                      sample_ids=range(s, s + len(part)), tokens=part)
-    except EvaluationInputError as e:
-        raise SubmissionError(f"evaluating {args.pred} against {args.gt}: {e}") from None
-    metrics = ev.compute()
-    notes = [*gt.notes, *pred.notes]
-    if missing:
-        notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {args.pred}: scored as samples "
-                     "without predictions")
-    if extra:
-        notes.append(f"{len(extra)} sample tokens only in {args.pred} were ignored (--ignore-extra-predictions)")
-    metrics["notes"] = notes + metrics["notes"]
-    metrics["inputs"] = {"pred": str(args.pred), "gt": str(args.gt)}
+    metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
+                             fix_instance_ids=args.fix_instance_ids, device=args.device,
+                             ignore_extra_predictions=args.ignore_extra_predictions, progress=sys.stderr.isatty())
     print(format_table(metrics))
-    for note in metrics["notes"]:
-        print(f"note: {note}")
+    _print_notes(metrics["notes"])
     if args.out:
-
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(metrics, indent=2))  # NaN is written as NaN (Python's json reads it)
-        print(f"wrote {out}")
+        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as NaN (Python's json reads it)
     return 0
 
 

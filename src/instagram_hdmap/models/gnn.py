@@ -88,6 +88,7 @@ class GraphHead(nn.Module):
 
     def __init__(
         self,
+        *,
         grid: BEVGrid,
         num_classes: int,
         dt_clip: float,
