@@ -173,3 +173,33 @@ def test_readme_map_names_every_module_and_only_those():
 def test_the_lowest_floor_imports_nothing_above_itself(module):
     floors = floors_from_readme()
     assert all(floor_of(t, floors) == 0 for t in GRAPH[f"{NAME}.{module}"])
+
+
+# --- the paper's equation numbers ------------------------------------------------------------------------
+
+
+def test_equation_numbers_follow_the_paper():
+    """The equation numbers quoted in the code are the paper's: equations are numbered in the order of
+    their ``\\label{eq:...}`` in the .tex (every equation of the paper has one)."""
+    tex = ROOT.parent / "shared" / "paper" / "instagram_paper.tex"
+    if not tex.is_file():
+        pytest.skip(f"the paper is not at {tex}")
+    labels = re.findall(r"\\begin\{equation\}\s*\\label\{eq:([\w]+)\}", tex.read_text())
+    number = {name: i + 1 for i, name in enumerate(labels)}
+    assert number["embedding"] == 1 and len(number) == len(labels)
+    expected = {
+        "losses.py": [("loss_vertex", "cnn_loss"), ("loss_distance", "cnn_loss"), ("loss_adjacency", "adj_loss"),
+                      ("loss_class", "gnn_loss"), ("sum of the weighted terms", "loss")],
+        "assignment.py": [("Matching", "gt_pair")],
+        "models/gnn.py": [("vertex embeddings", "embedding"), ("attentional GNN", "gnn"),
+                          ("class and matching heads", "MLP"), ("scores", "score")],
+    }
+    wrong = []
+    for file, pairs in expected.items():
+        text = (PACKAGE / file).read_text()
+        for phrase, label in pairs:
+            m = re.search(re.escape(phrase) + r"[^\n]*?Eq\. (\d+)", text)
+            assert m, f"{file}: no equation number after '{phrase}'"
+            if int(m.group(1)) != number[label]:
+                wrong.append(f"{file}: '{phrase}' quotes Eq. {m.group(1)}, the paper's is Eq. {number[label]}")
+    assert wrong == []

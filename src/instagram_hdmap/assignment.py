@@ -6,7 +6,7 @@ vertices or instances); the criterion (losses.py) only compares its outputs with
 Shapes: B batch, N padded predicted vertices, M padded GT vertices, K classes. Column / row ``N``
 of the assignment is the dustbin ("no neighbour").
 
-Matching (paper Eq. 5)
+Matching (paper Eq. 6)
     Each real predicted vertex ``i`` is matched to its nearest real GT vertex ``sigma(i)`` if the
     distance is strictly below ``D0`` (``loss.match_dist``, metres; converted to BEV pixels with the
     grid resolution). Otherwise ``sigma(i) = UNMATCHED``. Ties go to the lowest GT index.
@@ -126,7 +126,7 @@ def assign(
     pred_mask = pred_vertex_mask.bool()
     gt_mask = gt_vertex_mask.bool()
 
-    # --- Eq. 5: nearest real GT vertex within D0 ----------------------------------------------
+    # --- Eq. 6: nearest real GT vertex within D0 ----------------------------------------------
     if M > 0:
         dist_px = torch.cdist(pred_vertices_px.float(), gt_vertices_px.float(),
                               compute_mode="donot_use_mm_for_euclid_dist")  # [B, N, M], exact

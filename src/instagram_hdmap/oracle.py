@@ -12,7 +12,7 @@ its targets or the decoding are wrong, whatever the image side does.
 
 Inputs the graph head sees, per batch (``oracle_vertices``):
 
-* vertices: ``predict.gt_outputs`` turns ``gt_vertex_cells`` into (log) one-hot vertex logits and
+* vertices: ``inference.gt_outputs`` turns ``gt_vertex_cells`` into (log) one-hot vertex logits and
   ``GraphHead.extract`` reads them exactly as it reads the vertex head's logits (top-N cells above
   ``conf_threshold``, sorted by score, padded, mask), so count, order and padding are the model's;
 * distance: ``gt_distance``; BEV features: none (the ``pe+vd`` embedding cannot run here).
@@ -27,7 +27,7 @@ terms, with the configured weights, as inside the full model.
 
 Evaluation post-processes with ``postprocess.postprocess_batch`` (``model.gnn.match_threshold``) and
 scores against the split's GT polylines with ``evaluation.Evaluator.from_config``. ``graph_head=None``
-evaluates ``predict.gt_outputs`` instead: the GT vertex graph decoded as is, the ceiling any graph
+evaluates ``inference.gt_outputs`` instead: the GT vertex graph decoded as is, the ceiling any graph
 head can reach with these targets (below 1 where one-vertex-per-cell subsampling changes a shape).
 """
 
@@ -107,7 +107,7 @@ def load_targets(cfg: ExperimentConfig, split: str, nusc=None, limit: int | None
 
 
 def collate_targets(samples: Sequence[dict], device: torch.device | str = "cpu") -> dict:
-    """``data.nuscenes.collate_fn`` over ``load_targets`` samples, tensors moved to ``device``;
+    """``data.base.collate_fn`` over ``load_targets`` samples, tensors moved to ``device``;
     ``index`` becomes a list of dataset indices."""
     return move_to(collate_fn(list(samples)), torch.device(device))
 
@@ -120,7 +120,7 @@ def oracle_vertices(batch: dict, graph_head) -> tuple[dict[str, torch.Tensor], d
     vertex graph [B, M]). Returns ``(vertices, gt)``: ``vertices`` = ``GraphHead.extract`` of the GT
     one-hot vertex logits (``vertices_px`` [B, n, 2], ``scores`` [B, n], ``mask`` [B, n], ``cells``
     [B, n]), cut from N to n = the batch's largest real count (at least 1); ``gt`` =
-    ``predict.gt_outputs(batch)`` (its ``pred_vertex_logits`` and ``pred_distance`` are the inputs).
+    ``inference.gt_outputs(batch)`` (its ``pred_vertex_logits`` and ``pred_distance`` are the inputs).
     """
     gt = gt_outputs(batch, graph_head.grid, batch["gt_distance"].shape[1])
     vertices = graph_head.extract(gt["pred_vertex_logits"])
@@ -251,7 +251,7 @@ def evaluate_oracle(
     """Vector- (or ``eval.protocol``-) protocol metrics of the oracle on ``samples``.
 
     ``graph_head``: the trained head (``oracle_forward``), or None for the GT vertex graph decoded as
-    is (``predict.gt_outputs``, the upper bound). Returns the ``Evaluator.compute()`` dict plus
+    is (``inference.gt_outputs``, the upper bound). Returns the ``Evaluator.compute()`` dict plus
     ``diagnostics``: the criterion's adjacency / class terms and accuracies (``DIAGNOSTICS``),
     averaged over batches, and per class, over all vertices that represent a GT vertex of that
     class: ``adjacency_accuracy_class`` (the criterion's per-vertex rule: the row's two best columns
