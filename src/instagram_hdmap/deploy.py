@@ -56,7 +56,7 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
                 "pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")
 # Config keys that shape the graph (predict.MODEL_KEYS) less those the graph does not read.
 BAKED_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
-NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.grad_checkpoint")
+NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.from_scratch", "model.backbone.grad_checkpoint")
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
 META_CONFIG_SHA = "instagram_hdmap.config_sha256"

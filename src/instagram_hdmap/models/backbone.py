@@ -177,7 +177,7 @@ def download_imagenet(name: str) -> dict:
     once, read from the cache afterwards, also offline). Raises what the download raises."""
     from efficientnet_pytorch.utils import url_map
 
-    return torch.hub.load_state_dict_from_url(url_map[name], map_location="cpu", progress=False)
+    return torch.hub.load_state_dict_from_url(url_map[name], progress=False)  # host tensors, as released
 
 
 def load_pretrained_backbone(backbone: EfficientNetBackbone, weights: str, download=None) -> None:
