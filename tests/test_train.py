@@ -314,3 +314,21 @@ def test_random_efficientnet_weights_warn_loudly_unless_deliberate(tmp_path, cap
     assert "RANDOM" not in capsys.readouterr().out and "warnings" not in summary
     stem = _weights(tmp_path / "imagenet" / "run" / "last.pt")["backbone.trunk._conv_stem.weight"]
     torch.testing.assert_close(stem, reference["_conv_stem.weight"], rtol=0, atol=1e-6)
+
+
+def test_the_cli_stops_a_paper_config_offline_in_one_line_before_loading_data(tmp_path, capsys, monkeypatch):
+    """instagram-hdmap train configs/paper/... without internet: exit 2 and one line on how to give the
+    weights as a file, before the (long) dataset setup (the dataroot here does not even exist)."""
+    from instagram_hdmap.cli import main
+    from instagram_hdmap.models import backbone as backbone_module
+
+    def offline(name):
+        raise OSError("[Errno -3] Temporary failure in name resolution")
+
+    monkeypatch.setattr(backbone_module, "download_imagenet", offline)
+    config = os.path.join(os.path.dirname(__file__), "..", "configs", "paper", "table1_b0_lss_128x352.yaml")
+    code = main(["train", config, f"data.dataroot={tmp_path / 'absent'}", f"train.out_dir={tmp_path / 'run'}",
+                 "train.device=cpu"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "model.backbone.weights=/path/to/efficientnet-b0.pth" in err and "absent" not in err

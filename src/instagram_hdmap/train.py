@@ -162,6 +162,10 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     grid = BEVGrid.from_config(cfg.grid)
     decode = decode_options(cfg.model.gnn, grid)
 
+    if state is None and cfg.model.backbone.name != "tiny" and cfg.model.backbone.weights == "imagenet":
+        from .models.backbone import imagenet_state
+
+        imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
     if loaders is None:
         loaders = build_loaders(cfg, world, with_val=validate)
     train_loader, sampler, val_loader = loaders

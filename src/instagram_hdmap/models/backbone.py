@@ -180,27 +180,33 @@ def download_imagenet(name: str) -> dict:
     return torch.hub.load_state_dict_from_url(url_map[name], progress=False)  # host tensors, as released
 
 
-def load_pretrained_backbone(backbone: EfficientNetBackbone, weights: str, download=None) -> None:
-    """Give ``backbone`` the ImageNet weights of ``model.backbone.weights``: ``"imagenet"`` (through
-    ``download(name) -> state dict``, ``download_imagenet`` by default) or a local file. A failed
-    download is one ``UserError`` saying how to give the file instead."""
-    if weights != "imagenet":
-        backbone.load_imagenet_weights(weights)
-        return
+def imagenet_state(name: str, download=None) -> dict:
+    """The ImageNet state dict of EfficientNet ``name`` through ``download(name)`` (``download_imagenet``
+    by default: once over the network, then from torch's hub cache). A failed download is one
+    ``UserError`` saying how to give the file instead."""
     try:
-        state = (download or download_imagenet)(backbone.name)
+        return (download or download_imagenet)(name)
     except Exception as e:  # no network, a proxy, a full disk: the user gives the file instead
         from efficientnet_pytorch.utils import url_map
 
         reason = " ".join(str(e).split()) or type(e).__name__
         raise UserError(
-            f"model.backbone.weights=imagenet: cannot download the ImageNet weights of {backbone.name} ({reason}). "
-            f"Where there is internet, fetch {url_map[backbone.name]} (or run python -c \"import torch; "
+            f"model.backbone.weights=imagenet: cannot download the ImageNet weights of {name} ({reason}). "
+            f"Where there is internet, fetch {url_map[name]} (or run python -c \"import torch; "
             f"from efficientnet_pytorch import EfficientNet; torch.save(EfficientNet.from_pretrained("
-            f"'{backbone.name}').state_dict(), '{backbone.name}.pth')\"), copy the file here and pass "
-            f"model.backbone.weights=/path/to/{backbone.name}.pth, or put it in torch's hub cache as "
-            f"{Path(torch.hub.get_dir()) / 'checkpoints' / url_map[backbone.name].rsplit('/', 1)[-1]}"
+            f"'{name}').state_dict(), '{name}.pth')\"), copy the file here and pass "
+            f"model.backbone.weights=/path/to/{name}.pth, or put it in torch's hub cache as "
+            f"{Path(torch.hub.get_dir()) / 'checkpoints' / url_map[name].rsplit('/', 1)[-1]}"
         ) from None
+
+
+def load_pretrained_backbone(backbone: EfficientNetBackbone, weights: str, download=None) -> None:
+    """Give ``backbone`` the ImageNet weights of ``model.backbone.weights``: ``"imagenet"``
+    (``imagenet_state``) or a local file."""
+    if weights != "imagenet":
+        backbone.load_imagenet_weights(weights)
+        return
+    state = imagenet_state(backbone.name, download)
     backbone.load_imagenet_state(state, f"the downloaded ImageNet weights of {backbone.name}")
 
 
