@@ -206,3 +206,18 @@ def test_also_protocols_are_checked():
     for bad in ("[vector]", "[raster,raster]", "[lidar]"):
         with pytest.raises(ConfigError, match="eval.also_protocols"):
             load_config(None, [f"eval.also_protocols={bad}"])
+
+
+def test_no_shipped_config_trains_an_efficientnet_from_random_weights_by_accident():
+    """Paper and AV2 configs ask for ImageNet weights, the CPU demo / tiny configs use the tiny backbone,
+    configs/synthetic/full.yaml trains from scratch on purpose: none warns. A paper config with its
+    weights removed does."""
+    from instagram_hdmap.models import random_init_warning
+
+    for f in sorted((REPO / "configs").rglob("*.yaml")):
+        cfg = load_config(f)
+        assert random_init_warning(cfg) is None, f
+        assert (cfg.model.backbone.weights == "imagenet") != (cfg.model.backbone.name == "tiny"
+                                                             or cfg.model.backbone.from_scratch), f
+    warning = random_init_warning(load_config(PAPER[0], ["model.backbone.weights=null"]))
+    assert "RANDOM" in warning and "model.backbone.from_scratch=true" in warning
