@@ -65,6 +65,7 @@ from .inference import (
     config_sha256,
     inference_config,
     load_weights,
+    output_names,
     require_onnx,
     saved_config,
 )
@@ -105,7 +106,7 @@ class TensorInterface(nn.Module):
 
     def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         outputs = self.model(dict(zip(INPUT_NAMES, inputs)))
-        return tuple(outputs[k] for k in OUTPUT_NAMES)
+        return tuple(outputs[k] for k in OUTPUT_NAMES if k in outputs)
 
 
 def example_inputs(cfg: ExperimentConfig, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -147,7 +148,8 @@ def compare_outputs(expected: dict[str, torch.Tensor], got: dict[str, torch.Tens
 
     same = torch.equal(e["pred_vertex_mask"], g["pred_vertex_mask"]) and torch.equal(
         e["pred_vertices_px"], g["pred_vertices_px"])
-    return {"dense": worst(("pred_vertex_logits", "pred_heatmap", "pred_distance")), "same_vertices": same,
+    dense = tuple(k for k in ("pred_vertex_logits", "pred_heatmap", "pred_distance") if k in e)
+    return {"dense": worst(dense), "same_vertices": same,
             "graph": worst(("pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")) if same else None}
 
 
@@ -172,11 +174,12 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
     args = tuple(batch[k] for k in INPUT_NAMES)
     with torch.no_grad():
         expected = interface(*args)
-        program = torch.onnx.export(interface, args, input_names=list(INPUT_NAMES), output_names=list(OUTPUT_NAMES),
-                                    opset_version=opset, dynamo=True, optimize=optimize, verbose=False)
+        program = torch.onnx.export(interface, args, input_names=list(INPUT_NAMES),
+                                    output_names=list(output_names(cfg)), opset_version=opset, dynamo=True,
+                                    optimize=optimize, verbose=False)
     proto = program.model_proto
     shapes = {"inputs": {k: list(a.shape) for k, a in zip(INPUT_NAMES, args)},
-              "outputs": {k: list(t.shape) for k, t in zip(OUTPUT_NAMES, expected)}}
+              "outputs": {k: list(t.shape) for k, t in zip(output_names(cfg), expected)}}
     baked = baked_config(cfg)
     sha = config_sha256(baked)
     meta = {META_FORMAT: str(EXPORT_FORMAT), META_CONFIG: json.dumps(baked), META_CONFIG_SHA: sha,

@@ -54,7 +54,7 @@ from .postprocess import DECODE_KEYS
 # Config keys that define a model: its weights and how its outputs are read.
 MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
 # Of those, the keys an exported graph does not read (post-processing, training-only settings).
-NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.grad_checkpoint")
+NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.from_scratch", "model.backbone.grad_checkpoint")
 
 # The exported graph's interface (docs/deploy.md), in argument order.
 INPUT_NAMES = ("images", *CALIBRATION_KEYS)
@@ -67,6 +67,12 @@ META_CONFIG_SHA = "instagram_hdmap.config_sha256"
 META_SHAPES = "instagram_hdmap.shapes"
 META_SOURCE = "instagram_hdmap.source"
 DEPLOY_EXTRA = 'pip install -e ".[deploy]"'
+
+
+def output_names(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """``OUTPUT_NAMES`` of a model built from ``cfg``: without ``pred_distance`` when it has no distance
+    head (``model.bev_heads.distance_head=false``)."""
+    return tuple(k for k in OUTPUT_NAMES if k != "pred_distance" or cfg.model.bev_heads.distance_head)
 
 
 class DeployError(UserError):
@@ -288,6 +294,7 @@ class OnnxModel:
         options.log_severity_level = 3  # errors only
         self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
         self.input_shapes = self.meta["shapes"]["inputs"]
+        self.output_names = output_names(cfg)
 
     def __call__(self, batch: dict) -> dict[str, torch.Tensor]:
         feed = {}
@@ -299,5 +306,5 @@ class OnnxModel:
                 raise DeployError(f"{self.path} takes {name} of shape {self.input_shapes[name]} (static, batch 1); "
                                   f"the batch has {list(tensor.shape)}")
             feed[name] = tensor.detach().to("cpu", torch.float32).contiguous().numpy()
-        results = self.session.run(list(OUTPUT_NAMES), feed)
-        return {name: torch.from_numpy(value) for name, value in zip(OUTPUT_NAMES, results)}
+        results = self.session.run(list(self.output_names), feed)
+        return {name: torch.from_numpy(value) for name, value in zip(self.output_names, results)}

@@ -34,7 +34,8 @@ from .evaluation import Evaluator
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, saved_config
 from .losses import Criterion
-from .models import build_model
+from .models import build_model, random_init_warning
+from .models.backbone import imagenet_state
 from .postprocess import decode_options, postprocess_batch
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
@@ -141,14 +142,19 @@ class TrainingRun:
     or ``train.max_steps`` is done; Ctrl-C saves ``last.pt`` first), ``final_summary``.
     """
 
-    def __init__(self, cfg: ExperimentConfig, device: torch.device, out_dir: Path, loaders, validate: bool):
+    def __init__(self, cfg: ExperimentConfig, device: torch.device, out_dir: Path, loaders, validate: bool,
+                 fresh: bool = True):
         self.cfg, self.device, self.out_dir, self.validating = cfg, device, out_dir, validate
         self.world = du.get_world_size()
         self.grid = BEVGrid.from_config(cfg.grid)
         self.decode = decode_options(cfg.model.gnn, self.grid)
         self.train_loader, self.sampler, self.val_loader = loaders
-        self.model = build_model(cfg).to(device)
-        self.criterion = Criterion(cfg.loss, self.grid)
+        # ImageNet weights on a fresh start only (a resumed run has its own)
+        self.model = build_model(cfg, pretrained=fresh).to(device)
+        self.random_init = random_init_warning(cfg) if fresh else None
+        if self.random_init:
+            du.print_main(self.random_init)
+        self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.train.lr,
                                           weight_decay=cfg.train.weight_decay)
         self.steps_per_epoch = math.ceil(self.sampler.num_samples / self.train_loader.batch_size)
@@ -175,9 +181,11 @@ class TrainingRun:
         seed_everything(cfg.train.seed + du.get_rank())
         if cfg.train.deterministic:
             torch.use_deterministic_algorithms(True)
+        if state is None and cfg.model.backbone.name != "tiny" and cfg.model.backbone.weights == "imagenet":
+            imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
         if loaders is None:
             loaders = build_loaders(cfg, du.get_world_size(), with_val=validate)
-        run = cls(cfg, device, out_dir, loaders, validate)
+        run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None)
         if state is not None:
             run.restore(state)
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
@@ -241,6 +249,9 @@ class TrainingRun:
         du.print_main(f"schedule: {cfg.train.schedule}, {self.total_steps} steps"
                       + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
                       + f"; progress {clock.last:.3f}, lr {self.optimizer.param_groups[0]['lr']:.3g}")
+        if self.random_init:  # again where the log ends up being read
+            du.print_main(self.random_init)
+            self.summary["warnings"] = [self.random_init]
         self.summary["cpu_threads"] = torch.get_num_threads() if self.device.type == "cpu" else None
 
     # --- the schedule -------------------------------------------------------------------------------
