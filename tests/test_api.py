@@ -274,12 +274,19 @@ def test_predict_images_on_a_rig_file_equals_predict(checkpoint, sample, predict
     for name in ("prediction_bev.png", "prediction_cameras.png", "prediction_intermediate.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert f"{len(predicted)} map elements" in printed.getvalue()
-    # the same with quaternions, and with the images given to the API as paths
-    rig_q = _write_rig(sample, tmp_path / "rig_q.json", lambda r: [c.update(
-        quaternion=sample["calibrated"][n]["rotation"]) or c.pop("rotation") for n, c in r["cameras"].items()])
+    # the same with quaternions and the cameras in another order (the images in the rig file's order)
+
+    def quaternions_reversed(rig):
+        for name, cam in rig["cameras"].items():
+            cam["quaternion"] = sample["calibrated"][name]["rotation"]
+            del cam["rotation"]
+        rig["cameras"] = dict(reversed(list(rig["cameras"].items())))
+
+    rig_q = _write_rig(sample, tmp_path / "rig_q.json", quaternions_reversed)
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["predict-images", "--checkpoint", str(checkpoint), "--rig", str(rig_q), "--out",
-                     str(tmp_path / "q"), "--name", sample["token"], *[str(sample["files"][c]) for c in CAMERAS]]) == 0
+                     str(tmp_path / "q"), "--name", sample["token"],
+                     *[str(sample["files"][c]) for c in reversed(CAMERAS)]]) == 0
     assert json.loads((tmp_path / "q" / "prediction.json").read_text())["results"][sample["token"]] == predicted
 
 

@@ -294,7 +294,8 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     outputs = mapper.forward(batch)
     (elements,) = mapper.decode(outputs)
     preds = [e.as_polyline() for e in elements]
-    display = display_images([(Path(p), c.image_size) for p, c in zip(frame.images.values(), rig)], camera_width)
+    size = {c.name: c.image_size for c in rig}
+    display = display_images([(Path(frame.images[c]), size[c]) for c in mapper.cameras], camera_width)  # model order
     figures = prediction_figures(outputs, preds, None, display,
                                  {k: batch[k][0] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")},
                                  mapper.config, f"{name} - {mapper.source}", mapper.cameras)
