@@ -337,7 +337,7 @@ def test_occluders_add_vehicles_and_change_nothing_else(tmp_path, monkeypatch):
     import json
 
     from instagram_hdmap.config import UserError
-    from instagram_hdmap.data.synthetic import generate_world, world
+    from instagram_hdmap.data.synthetic import generate_world, jobs
 
     args = {"scenes_train": 1, "scenes_val": 1, "samples_per_scene": 2, "seed": 0, "image_size": "160x90",
             "progress": False}
@@ -346,7 +346,7 @@ def test_occluders_add_vehicles_and_change_nothing_else(tmp_path, monkeypatch):
     def never(*a, **k):
         raise AssertionError("density 0 draws no occluder")
 
-    monkeypatch.setattr(world, "place_occluders", never)
+    monkeypatch.setattr(jobs, "place_occluders", never)
     plain = generate_world(out=tmp_path / "plain", **args)  # the default: density 0
     assert "occluders" not in plain and dense["occluders"] == 1.0  # the manifest of a plain world is unchanged
     a, b = _files(tmp_path / "plain"), _files(tmp_path / "dense")

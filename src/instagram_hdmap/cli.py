@@ -1,6 +1,6 @@
 """``instagram-hdmap``: one subcommand per job, each a thin wrapper over the library.
 
-Each ``_cmd_*`` function imports what it needs lazily so that ``instagram-hdmap --help`` is fast.
+Each ``_cmd_*`` function turns the parsed arguments into one library call and prints its result.
 User errors (``config.UserError``) print one line and exit with code 2.
 """
 
@@ -10,7 +10,22 @@ import argparse
 import sys
 from pathlib import Path
 
-from .config import UserError
+from .benchmark import format_benchmark, run_benchmark
+from .config import UserError, load_config, parse_overrides
+from .data import build_dataset
+from .data.base import gt_submission
+from .data.synthetic import generate_world
+from .data.synthetic.av2_writer import generate_av2_world
+from .data.synthetic.preview import write_preview
+from .demo import run_demo
+from .deploy import export_checkpoint
+from .evaluation import evaluate_files, format_table
+from .files import write_json
+from .geometry import BEVGrid
+from .models import build_model, summarize_parameters
+from .predict import predict_images, predict_sample, predict_video, run_evaluation
+from .train import train
+from .visualize import write_sample_pngs
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -19,8 +34,6 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 
 def _load(args: argparse.Namespace):
-    from .config import load_config
-
     return load_config(args.config, args.overrides)
 
 
@@ -28,11 +41,7 @@ def _load(args: argparse.Namespace):
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    if args.format == "av2":
-        from .data.synthetic.av2_writer import generate_av2_world as generate
-    else:
-        from .data.synthetic import generate_world as generate
-
+    generate = generate_av2_world if args.format == "av2" else generate_world
     manifest = generate(
         out=args.out,
         scenes_train=args.scenes_train,
@@ -51,8 +60,6 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_synth_preview(args: argparse.Namespace) -> int:
-    from .data.synthetic.preview import write_preview
-
     write_preview(args.dataroot, args.out, index=args.index)
     print(f"wrote {args.out}")
     return 0
@@ -67,16 +74,11 @@ def _load_data_cfg(args: argparse.Namespace):
     extra = [f"data.dataroot={args.dataroot}"] if args.dataroot else []
     extra += [f"data.version={args.version}"] if args.version else []
     if extra:
-        from .config import load_config
-
         cfg = load_config(args.config, [*args.overrides, *extra])
     return cfg
 
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
-    from .data import build_dataset
-    from .data.nuscenes import gt_submission, write_json
-
     cfg = _load_data_cfg(args)
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
@@ -87,9 +89,6 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
 
 
 def _cmd_show_gt(args: argparse.Namespace) -> int:
-    from .data import build_dataset
-    from .visualize import write_sample_pngs
-
     cfg = _load_data_cfg(args)
     dataset = build_dataset(cfg, args.split, augment=args.augment)
     if not -len(dataset) <= args.index < len(dataset):
@@ -105,8 +104,6 @@ def _cmd_show_gt(args: argparse.Namespace) -> int:
 
 
 def _cmd_model_summary(args: argparse.Namespace) -> int:
-    from .models import build_model, summarize_parameters
-
     cfg = _load(args)
     print(summarize_parameters(build_model(cfg)))
     return 0
@@ -116,8 +113,6 @@ def _cmd_model_summary(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .train import train
-
     cfg = _load(args)
     summary = train(cfg, resume=args.resume, force=args.force)
     print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
@@ -128,56 +123,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_json(args: argparse.Namespace) -> int:
-    import json
-
-    from tqdm import tqdm
-
-    from .evaluation import EvaluationInputError, Evaluator, SubmissionError, format_table, read_submission
-    from .geometry import BEVGrid
-
-    gt = read_submission(args.gt, "gt")
-    pred = read_submission(args.pred, "pred")
-    if not gt.samples:
-        raise SubmissionError(f"{args.gt}: the GT file holds no samples")
-    extra = [t for t in pred.samples if t not in gt.samples]
-    if extra and not args.ignore_extra_predictions:
-        raise SubmissionError(
-            f"{args.pred}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {args.gt} "
-            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
-        )
-    missing = sum(t not in pred.samples for t in gt.samples)
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
     grid.check()
-    ev = Evaluator(args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
-                   fix_instance_ids=args.fix_instance_ids, device=args.device)
-    tokens = list(gt.samples)  # the GT file's order is the pooling order
-    chunk = 64
-    try:
-        for s in tqdm(range(0, len(tokens), chunk), desc=f"evaluate-json ({args.protocol})", unit="chunk",
-                      disable=not sys.stderr.isatty()):
-            part = tokens[s : s + chunk]
-            ev.update([pred.samples.get(t, []) for t in part], [gt.samples[t] for t in part],
-                      sample_ids=range(s, s + len(part)), tokens=part)
-    except EvaluationInputError as e:
-        raise SubmissionError(f"evaluating {args.pred} against {args.gt}: {e}") from None
-    metrics = ev.compute()
-    notes = [*gt.notes, *pred.notes]
-    if missing:
-        notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {args.pred}: scored as samples "
-                     "without predictions")
-    if extra:
-        notes.append(f"{len(extra)} sample tokens only in {args.pred} were ignored (--ignore-extra-predictions)")
-    metrics["notes"] = notes + metrics["notes"]
-    metrics["inputs"] = {"pred": str(args.pred), "gt": str(args.gt)}
+    metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
+                             fix_instance_ids=args.fix_instance_ids, device=args.device,
+                             ignore_extra_predictions=args.ignore_extra_predictions, progress=sys.stderr.isatty())
     print(format_table(metrics))
-    for note in metrics["notes"]:
-        print(f"note: {note}")
+    _print_notes(metrics["notes"])
     if args.out:
-
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(metrics, indent=2))  # NaN is written as NaN (Python's json reads it)
-        print(f"wrote {out}")
+        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as NaN (Python's json reads it)
     return 0
 
 
@@ -190,9 +144,6 @@ def _print_notes(notes: list[str]) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import format_table
-    from .predict import run_evaluation
-
     result = run_evaluation(_load(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
     if not result["paths"]:  # not rank 0 under torchrun
         return 0
@@ -206,8 +157,19 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_predict(args: argparse.Namespace) -> int:
-    from .predict import predict_sample
-
+    if args.scene is not None:
+        if args.video is None:
+            raise UserError("--scene renders a whole scene as a video: add --video OUT.mp4 (or use --index / --token "
+                            "for one sample's pictures)")
+        result = predict_video(_load(args), args.video, args.scene, checkpoint=args.checkpoint, onnx=args.onnx,
+                               gt_as_prediction=args.gt_as_prediction, split=args.split, overrides=args.overrides,
+                               fps=args.fps, progress=sys.stderr.isatty())
+        _print_notes(result["notes"])
+        print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames; "
+              f"wrote {result['video']}")
+        return 0
+    if args.video is not None or args.out is None:
+        raise UserError("--video needs --scene NAME; one sample's pictures need --out DIR")
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
                             split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
                             onnx=args.onnx)
@@ -217,9 +179,27 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_benchmark(args: argparse.Namespace) -> int:
-    from .benchmark import format_benchmark, run_benchmark
+def _decode_options(items: list[str]) -> dict:
+    """``--decode name=value`` -> {name: value} (values read as YAML, as config overrides are)."""
+    options = {}
+    for item in items:
+        if "=" not in item:
+            raise UserError(f"--decode {item}: expected NAME=VALUE, e.g. match_threshold=0.05")
+        name, _, value = item.partition("=")
+        options[name.strip()] = parse_overrides([f"value={value}"])["value"]
+    return options
 
+
+def _cmd_predict_images(args: argparse.Namespace) -> int:
+    result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
+                            config=args.config, decode=_decode_options(args.decode), device=args.device,
+                            name=args.name)
+    print(f"{result['name']} ({result['source']}): {len(result['elements'])} map elements; wrote "
+          f"{', '.join(str(p) for p in result['paths'])}")
+    return 0
+
+
+def _cmd_benchmark(args: argparse.Namespace) -> int:
     result = run_benchmark(_load(args), device=args.device, amp=args.amp, runs=args.runs, warmup=args.warmup,
                            checkpoint=args.checkpoint, overrides=args.overrides, compile=args.compile,
                            cuda_graphs=args.cuda_graphs)
@@ -228,8 +208,6 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
-    from .deploy import export_checkpoint
-
     info = export_checkpoint(_load(args), args.checkpoint, args.out, overrides=args.overrides, opset=args.opset)
     print(f"wrote {info['path']}: opset {info['opset']}, {info['nodes']} nodes, static batch 1, config "
           f"{info['config'].name} (sha256 {info['config_sha256'][:12]})")
@@ -244,8 +222,6 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
-
     try:
         run_demo(args.out, minutes=args.minutes, cache_dir=args.cache, config=args.config,
                  overrides=args.overrides, workers=args.workers, raster=not args.no_raster)
@@ -349,12 +325,32 @@ def build_parser() -> argparse.ArgumentParser:
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--index", type=int, help="sample index in the split (negative counts from the end)")
     which.add_argument("--token", help="nuScenes sample token")
+    which.add_argument("--scene", help="a whole scene (nuScenes scene name, AV2 log id) as a video: with --video")
     p.add_argument("--split", help="split to take the sample from (default: data.val_split)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", help="output folder (one sample's pictures)")
+    p.add_argument("--video", help="MP4 file: with --scene, one frame per sample (BEV prediction and GT, cameras)")
+    p.add_argument("--fps", type=float, default=2.0, help="video frames per second (default 2: nuScenes' key frames)")
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
     p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("predict-images", help="map elements from your own cameras: a rig file and one image per camera",
+                       description="Runs a checkpoint (or an export-onnx file) on one frame of your own cameras, "
+                       "described by a rig file (README, 'Your own cameras': camera names, intrinsics, camera-to-ego "
+                       "rotation and translation, image size), and writes OUT/prediction.json (HDMapNet format) and "
+                       "predict's pictures.")
+    p.add_argument("images", nargs="+", help="one image file per camera of the rig file, in its order")
+    p.add_argument("--rig", required=True, help="rig file (JSON)")
+    p.add_argument("--checkpoint", help="model checkpoint (its saved config describes the model)")
+    p.add_argument("--onnx", help="an export-onnx file instead of a checkpoint ([deploy] extra)")
+    p.add_argument("--config", help="with --onnx: the config it was exported from (default: the one stamped in it)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--name", default="frame", help="the frame's name in prediction.json (default: frame)")
+    p.add_argument("--device", help="cpu, cuda or cuda:i (default: CUDA when available)")
+    p.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
+                   help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
+    p.set_defaults(func=_cmd_predict_images)
 
     p = sub.add_parser("benchmark", help="inference FPS, batch 1, six cameras, with and without post-processing")
     _add_config_args(p)

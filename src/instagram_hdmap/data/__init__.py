@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+from .av2 import AV2MapDataset
+from .nuscenes import NuScenesMapDataset
+from .rig import CAMERAS
+
 
 def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     """The dataset of ``cfg.data.dataset`` for ``split``. ``like``: a dataset of the same config whose
     loaded tables may be shared (nuScenes: its ``NuScenes``)."""
     if cfg.data.dataset == "av2":
-        from .av2 import AV2MapDataset
-
         return AV2MapDataset(cfg, split, augment=augment)
-    from .nuscenes import NuScenesMapDataset
-
     return NuScenesMapDataset(cfg, split, nusc=getattr(like, "nusc", None), augment=augment)
+
+
+def rig_cameras(cfg) -> tuple[str, ...]:
+    """The camera names of ``cfg.data.dataset``'s samples, in the order of their camera tensors (the
+    order a model trained on them expects): nuScenes' six, or ``data.av2_cameras``."""
+    return tuple(cfg.data.av2_cameras) if cfg.data.dataset == "av2" else CAMERAS

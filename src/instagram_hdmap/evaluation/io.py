@@ -37,6 +37,7 @@ from typing import Literal
 import numpy as np
 
 from ..config import UserError
+from ..files import write_json
 
 
 class SubmissionError(UserError, ValueError):
@@ -166,13 +167,12 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
     return out
 
 
+def submission(samples: Mapping[str, list[dict]], meta: dict | None = None) -> dict:
+    """Polyline dicts per token -> the submission document ``{"meta", "results": {token: vectors}}``."""
+    return {"meta": {"vector": True, **(meta or {})},
+            "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
+
+
 def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: dict | None = None) -> None:
     """Write polyline dicts per token in the submission format (``results`` as a dict)."""
-    data = {"meta": {"vector": True, **(meta or {})},
-            "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(data, f)
-    tmp.replace(path)
+    write_json(submission(samples, meta), path)

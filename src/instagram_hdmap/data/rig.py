@@ -1,0 +1,244 @@
+"""Camera rigs: the nuScenes camera names in the model's order, the sensor rig of a real nuScenes
+log (n015, Singapore; the v1.0-mini calibrated_sensor records), and that rig as the calibration
+tensors of a batch.
+
+    CAMERAS                                   # the order of a nuScenes sample's camera tensors
+    sensors = rig((800, 450))                 # Sensor per channel, intrinsics scaled to 800 x 450 images
+    calib = nuscenes_like_rig((128, 352))     # intrinsics, cam_to_ego_rot / trans, post_rot / post_tran [V, ...]
+
+Six cameras (1600 x 900) and LIDAR_TOP: sensor -> ego translation (m), rotation (w, x, y, z) and
+camera intrinsics, exactly as published. Intrinsics are scaled when images of another size are
+rendered. The ego frame: x forward, y left, z up, origin at the rear axle on the ground.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from pyquaternion import Quaternion
+
+from ..config import UserError
+from .transforms import image_affine
+
+NUSCENES_IMAGE_SIZE = (1600, 900)  # (width, height)
+# The order of the camera tensors of a nuScenes sample (data/nuscenes.py): the front row left to
+# right, then the back row left to right, as the pictures draw them. A trained model depends on it
+# (the MLP view transform has one layer per camera).
+CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
+LIDAR = "LIDAR_TOP"
+
+# channel: (translation, rotation wxyz, (fx, cx, cy)) -- fx == fy on every nuScenes camera. In the
+# order of the log's calibrated_sensor records, which ``rig`` keeps: the synthetic world draws its
+# per-camera randomness in this order.
+_RIG = {
+    "CAM_FRONT": ((1.70079118954, 0.0159456324149, 1.51095763913),
+                  (0.4998015430569128, -0.5030316162024876, 0.4997798114386805, -0.49737083824542755),
+                  (1266.417203046554, 816.2670197447984, 491.50706579294757)),
+    "CAM_FRONT_RIGHT": ((1.5508477543, -0.493404796419, 1.49574800619),
+                        (0.2060347966337182, -0.2026940577919598, 0.6824507824531167, -0.6713610884174485),
+                        (1260.8474446004698, 807.968244525554, 495.3344268742088)),
+    "CAM_FRONT_LEFT": ((1.52387798135, 0.494631336551, 1.50932822144),
+                       (0.6757265034669446, -0.6736266522251881, 0.21214015046209478, -0.21122827103904068),
+                       (1272.5979470598488, 826.6154927353808, 479.75165386361925)),
+    "CAM_BACK": ((0.0283260309358, 0.00345136761476, 1.57910346144),
+                 (0.5037872666382278, -0.49740249788611096, -0.4941850223835201, 0.5045496097725578),
+                 (809.2209905677063, 829.2196003259838, 481.77842384512485)),
+    "CAM_BACK_LEFT": ((1.03569100218, 0.484795032713, 1.59097014818),
+                      (0.6924185592174665, -0.7031619420114925, -0.11648342771943819, 0.11203317912370753),
+                      (1256.7414812095406, 792.1125740759628, 492.7757465151356)),
+    "CAM_BACK_RIGHT": ((1.0148780988, -0.480568219723, 1.56239545128),
+                       (0.12280980120078765, -0.132400842670559, -0.7004305821388234, 0.690496031265798),
+                       (1259.5137405846733, 807.2529053838625, 501.19579884916527)),
+}
+_LIDAR_TOP = ((0.943713, 0.0, 1.84023),
+              (0.7077955119163518, -0.006492242056004365, 0.010646214713995808, -0.7063073142877817))
+
+
+@dataclass(frozen=True)
+class Sensor:
+    channel: str
+    modality: str  # camera | lidar
+    translation: tuple[float, float, float]  # sensor -> ego
+    rotation: tuple[float, float, float, float]  # sensor -> ego, w x y z
+    intrinsic: np.ndarray | None  # [3, 3] for cameras
+    size: tuple[int, int] | None = None  # (w, h) of this camera's images; None: the rig's common size
+
+    @property
+    def rot(self) -> np.ndarray:
+        """[3, 3] sensor -> ego rotation matrix."""
+        return Quaternion(self.rotation).rotation_matrix
+
+    @property
+    def trans(self) -> np.ndarray:
+        return np.array(self.translation)
+
+
+def parse_image_size(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
+    """'1600x900' (or (1600, 900)) -> (width, height); raises UserError naming the problem."""
+    if isinstance(text, (tuple, list)):
+        if len(text) != 2:
+            raise UserError(f"--image-size {text!r}: expected WIDTHxHEIGHT, e.g. 1600x900")
+        w, h = (int(v) for v in text)
+    else:
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
+        if m is None:
+            raise UserError(f"--image-size {text!r}: expected WIDTHxHEIGHT in pixels, e.g. 1600x900")
+        w, h = int(m.group(1)), int(m.group(2))
+    if not (32 <= w <= 8192 and 32 <= h <= 8192):
+        raise UserError(f"--image-size {w}x{h}: width and height must be between 32 and 8192 pixels")
+    return w, h
+
+
+def rig(image_size: tuple[int, int] = NUSCENES_IMAGE_SIZE) -> dict[str, Sensor]:
+    """The six cameras (intrinsics scaled to `image_size` = (w, h)) and LIDAR_TOP, by channel, in the
+    order of the calibration records."""
+    sx = image_size[0] / NUSCENES_IMAGE_SIZE[0]
+    sy = image_size[1] / NUSCENES_IMAGE_SIZE[1]
+    out = {}
+    for ch, (t, q, (f, cx, cy)) in _RIG.items():
+        k = np.array([[f * sx, 0.0, cx * sx], [0.0, f * sy, cy * sy], [0.0, 0.0, 1.0]])
+        out[ch] = Sensor(ch, "camera", t, q, k)
+    out[LIDAR] = Sensor(LIDAR, "lidar", *_LIDAR_TOP, None)
+    return out
+
+
+def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
+    """Calibration of one sample [V = 6, ...] in ``CAMERAS`` order: the published calibration of the
+    real nuScenes log (``rig``: 1600 x 900 images) and the ``post_rot`` / ``post_tran`` of the dataset's
+    resize-and-crop to ``image_size`` (h, w) (``data.transforms.image_affine``)."""
+    sensors = rig(NUSCENES_IMAGE_SIZE)
+    A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
+    post_rot = torch.eye(3)
+    post_rot[:2, :2] = A[:2, :2]
+    post_tran = torch.zeros(3)
+    post_tran[:2] = A[:2, 2]
+    V = len(CAMERAS)
+    return {
+        "intrinsics": torch.stack([torch.from_numpy(sensors[c].intrinsic).float() for c in CAMERAS]),
+        "cam_to_ego_rot": torch.stack([torch.from_numpy(sensors[c].rot).float() for c in CAMERAS]),
+        "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
+        "post_rot": post_rot.expand(V, 3, 3).clone(),
+        "post_tran": post_tran.expand(V, 3).clone(),
+    }
+
+
+# --- a user's rig: calibration checks and the rig file -----------------------------------------------------
+
+
+class RigError(UserError):
+    """A camera calibration, a rig file or the images given with it that cannot be used; the message
+    names the camera and the field."""
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """One camera of a rig: ``intrinsics`` [3, 3] (in the pixels of its images), the camera -> ego
+    ``rotation`` [3, 3] and ``translation`` [3] (metres; the ego frame: x forward, y left, z up), and
+    the (width, height) of its images where known."""
+
+    name: str
+    intrinsics: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    image_size: tuple[int, int] | None = None
+
+
+def _matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RigError(f"{what} must be a {'x'.join(map(str, shape))} array of numbers, got {value!r}") from None
+    if m.shape != shape:
+        got = "x".join(map(str, m.shape)) or "a single number"
+        raise RigError(f"{what} must be {'x'.join(map(str, shape))}, got {got}")
+    if not np.isfinite(m).all():
+        raise RigError(f"{what} holds a value that is not a finite number")
+    return m
+
+
+def check_calibration(name: str, intrinsics, rotation, translation, source: str = "") -> CameraCalibration:
+    """The calibration of camera ``name`` as float64 arrays, or a ``RigError`` naming ``source`` (a rig
+    file, say), the camera and the field: intrinsics not 3x3 or with a focal length <= 0, a rotation
+    that is not orthonormal with determinant +1, a translation that is not 3 numbers."""
+    where = f"{source}: camera {name}" if source else f"camera {name}"
+    K = _matrix(intrinsics, (3, 3), f"{where}: 'intrinsics'")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise RigError(f"{where}: 'intrinsics' has a focal length <= 0 (fx = {K[0, 0]:g}, fy = {K[1, 1]:g}); "
+                       "give [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
+    R = _matrix(rotation, (3, 3), f"{where}: 'rotation'")
+    off, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
+    if off > 1e-2 or det < 0:  # 1e-2: a matrix written with 3 decimals passes
+        raise RigError(f"{where}: 'rotation' is not a rotation matrix (|R R^T - I| = {off:.3g}, det {det:.3g}); give "
+                       "the camera -> ego rotation (its columns: the camera's x right, y down, z forward in the ego "
+                       "frame)")
+    t = _matrix(translation, (3,), f"{where}: 'translation'")
+    return CameraCalibration(name, K, R, t)
+
+
+def _image_size(value, what: str) -> tuple[int, int]:
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+        raise RigError(f"{what} must be [width, height] in pixels (positive whole numbers), got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+def read_rig_file(path) -> list[CameraCalibration]:
+    """The cameras of a rig file (README, "Your own cameras"), in its order:
+
+        {"image_size": [W, H],                       # every camera's, unless a camera gives its own
+         "cameras": {"CAM_FRONT": {"intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+                                   "rotation": [[...], [...], [...]],   # camera -> ego, 3x3
+                                   "translation": [x, y, z],            # metres, ego frame
+                                   "image_size": [W, H]},               # optional
+                     ...}}
+
+    ``rotation`` may instead be ``"quaternion": [w, x, y, z]`` (nuScenes' convention). Errors are one
+    ``RigError`` line naming the file, the camera and the field."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as e:
+        raise RigError(f"rig file {path} cannot be read ({e.strerror or e})") from None
+    except json.JSONDecodeError as e:
+        raise RigError(f"rig file {path} is not valid JSON ({e})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("cameras"), dict) or not data["cameras"]:
+        raise RigError(f"rig file {path}: expected an object with a non-empty 'cameras' object "
+                       '{"CAMERA_NAME": {"intrinsics", "rotation", "translation"}, ...}')
+    unknown = sorted(set(data) - {"image_size", "cameras"})
+    if unknown:
+        raise RigError(f"rig file {path}: unknown field(s) {', '.join(unknown)}; a rig file has 'image_size' and "
+                       "'cameras'")
+    default = _image_size(data["image_size"], f"rig file {path}: 'image_size'") if "image_size" in data else None
+    cameras = []
+    for name, cam in data["cameras"].items():
+        where = f"rig file {path}: camera {name}"
+        if not isinstance(cam, dict):
+            raise RigError(f"{where}: expected an object with 'intrinsics', 'rotation' and 'translation'")
+        fields = {"intrinsics", "rotation", "quaternion", "translation", "image_size"}
+        if set(cam) - fields:
+            raise RigError(f"{where}: unknown field(s) {', '.join(sorted(set(cam) - fields))}; a camera has "
+                           "'intrinsics', 'rotation' (or 'quaternion'), 'translation' and optionally 'image_size'")
+        missing = [f"'{k}'" for k in ("intrinsics", "translation") if k not in cam]
+        missing += [] if {"rotation", "quaternion"} & set(cam) else ["'rotation' (or 'quaternion')"]
+        if missing:
+            raise RigError(f"{where}: {' and '.join(missing)} missing")
+        if "rotation" in cam and "quaternion" in cam:
+            raise RigError(f"{where}: give 'rotation' or 'quaternion', not both")
+        rotation = cam.get("rotation")
+        if "quaternion" in cam:
+            q = _matrix(cam["quaternion"], (4,), f"{where}: 'quaternion'")
+            if abs(np.linalg.norm(q) - 1) > 1e-2:
+                raise RigError(f"{where}: 'quaternion' is not a unit quaternion [w, x, y, z] (norm "
+                               f"{np.linalg.norm(q):.4g})")
+            rotation = Quaternion(q / np.linalg.norm(q)).rotation_matrix
+        calib = check_calibration(name, cam["intrinsics"], rotation, cam["translation"], f"rig file {path}")
+        size = _image_size(cam["image_size"], f"{where}: 'image_size'") if "image_size" in cam else default
+        if size is None:
+            raise RigError(f"{where}: no 'image_size' (give [width, height] for the rig or for this camera)")
+        cameras.append(CameraCalibration(name, calib.intrinsics, calib.rotation, calib.translation, size))
+    return cameras

@@ -1,0 +1,719 @@
+"""A trained model for inference: the config keys that define a model, loading a checkpoint or an
+ONNX export, and a perfect model's outputs built from the GT.
+
+    model, cfg, notes = load_model("runs/x/best.pt", load_config("configs/synthetic/tiny.yaml"))
+    onnx_model = OnnxModel("model.onnx", cfg)      # the same output dict, from onnxruntime
+    outputs = gt_outputs(batch, grid, num_classes)  # what a perfect model would output
+
+``MODEL_KEYS`` is the one list of the config keys that define a model: its weights and how its
+outputs are read (the grid, the model, the image size, the classes, the distance-transform clip).
+``predict``/``evaluate`` take them from the config saved in the checkpoint (``inference_config``),
+``export-onnx`` bakes them into the graph (``baked_config``, less the decoding keys the graph does not
+read) and ``train --resume`` refuses a checkpoint that differs on them (train.py, with the keys that
+define the training targets).
+
+The ONNX side (``OnnxModel``, ``check_export``): an ``export-onnx`` file (deploy.py writes it; the
+interface is ``INPUT_NAMES`` -> ``OUTPUT_NAMES``, docs/deploy.md) run by onnxruntime on the CPU, after
+its metadata has been checked against the config. ``onnx`` / ``onnxruntime`` are the optional extra
+``[deploy]``: ``require_onnx`` imports them where they are needed, nowhere else.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image as PILImage
+
+from .assignment import assign, target_log_assignment
+from .checkpoint import CheckpointError, load_checkpoint
+from .config import (
+    ExperimentConfig,
+    UserError,
+    config_from_dict,
+    config_to_dict,
+    deep_update,
+    diff_configs,
+    flatten,
+    get_key,
+    is_under,
+    load_config,
+    parse_overrides,
+    set_key,
+)
+from .data import rig_cameras
+from .data.rig import RigError, check_calibration
+from .data.transforms import ImageError, load_image, prepare_image
+from .distributed import resolve_device
+from .engine import move_to
+from .evaluation.io import polylines_to_vectors, submission
+from .geometry import BEVGrid
+from .models import build_model
+from .models.temporal import MEMORY_KEYS, STATUS_NAMES
+from .models.vertices import vertex_heatmap
+from .models.view_transform import CALIBRATION_KEYS
+from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
+
+# Config keys that define a model: its weights and how its outputs are read.
+MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
+# The decoding options of Mapper.from_checkpoint(path, **decode_overrides): model.gnn.<name>.
+DECODE_OPTIONS = tuple(key.rsplit(".", 1)[1] for key in DECODE_KEYS)
+# Of those, the keys an exported graph does not read (post-processing, training-only settings).
+NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.from_scratch", "model.backbone.grad_checkpoint",
+             "model.temporal.drop_prob")
+
+# The exported graph's interface (docs/deploy.md), in argument order.
+INPUT_NAMES = ("images", *CALIBRATION_KEYS)
+OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_vertices_px", "pred_vertex_mask",
+                "pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")
+# A temporal model's graph (docs/temporal.md) also takes the frame's pose and place in its scene and the
+# memory (models/temporal.MEMORY_KEYS as memory_<key>), and returns the status and the new memory
+# (next_memory_<key>: ONNX value names are unique).
+TEMPORAL_INPUTS = ("ego_pose", "scene_start", "frame_index")
+MEMORY_NAMES = tuple(f"memory_{k}" for k in MEMORY_KEYS)
+NEXT_MEMORY_NAMES = tuple(f"next_memory_{k}" for k in MEMORY_KEYS)
+EXPORT_FORMAT = 1  # bump when the graph's inputs, outputs or their meaning change
+META_FORMAT = "instagram_hdmap.export_format"
+META_CONFIG = "instagram_hdmap.config"
+META_CONFIG_SHA = "instagram_hdmap.config_sha256"
+META_SHAPES = "instagram_hdmap.shapes"
+META_SOURCE = "instagram_hdmap.source"
+META_INFERENCE = "instagram_hdmap.inference"  # what the graph does not bake in: the rig, the image fit, decoding
+DEPLOY_EXTRA = 'pip install -e ".[deploy]"'
+
+
+def is_temporal_config(cfg: ExperimentConfig) -> bool:
+    return cfg.model.temporal.memory != "none"
+
+
+def input_names(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """The exported graph's inputs: ``INPUT_NAMES``, and for a temporal model ``TEMPORAL_INPUTS`` and
+    ``MEMORY_NAMES``."""
+    return (*INPUT_NAMES, *TEMPORAL_INPUTS, *MEMORY_NAMES) if is_temporal_config(cfg) else INPUT_NAMES
+
+
+def output_names(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """``OUTPUT_NAMES`` of a model built from ``cfg``: without ``pred_distance`` when it has no distance
+    head (``model.bev_heads.distance_head=false``); a temporal model's add ``memory_status`` and
+    ``NEXT_MEMORY_NAMES``."""
+    names = tuple(k for k in OUTPUT_NAMES if k != "pred_distance" or cfg.model.bev_heads.distance_head)
+    return (*names, "memory_status", *NEXT_MEMORY_NAMES) if is_temporal_config(cfg) else names
+
+
+class DeployError(UserError):
+    """A missing optional extra, an unsupported export setting, an ONNX file that does not fit."""
+
+
+# --- a checkpoint ------------------------------------------------------------------------------------
+
+
+def inference_config(
+    cfg: ExperimentConfig, saved: dict, overrides: Sequence[str] = (), source: str = "the checkpoint"
+) -> tuple[ExperimentConfig, list[str]]:
+    """The config to run a checkpoint with: ``cfg`` (CONFIG file + overrides) with the ``MODEL_KEYS``
+    of the checkpoint's ``saved`` config, then the command-line ``overrides`` again (they win).
+
+    Returns the config and human-readable notes on where the CONFIG file was overruled.
+    """
+    trained = saved_config(saved, source)
+    explicit = parse_overrides(list(overrides))
+    explicit_keys = list(flatten(explicit))
+    merged, trained_d = config_to_dict(cfg), config_to_dict(trained)
+    for key in MODEL_KEYS:
+        set_key(merged, key, copy.deepcopy(get_key(trained_d, key)))
+    deep_update(merged, explicit)
+    out = config_from_dict(merged)
+    notes = []
+    ignored = [k for k in diff_configs(cfg, trained)
+               if is_under(k, MODEL_KEYS) and not is_under(k, explicit_keys)]
+    if ignored:
+        cfg_d = config_to_dict(cfg)
+        notes.append("the CONFIG file's model settings differ from those the checkpoint was trained with; using "
+                     "the checkpoint's: " + ", ".join(f"{k}={get_key(trained_d, k)!r} (CONFIG: {get_key(cfg_d, k)!r})"
+                                                       for k in ignored))
+    changed = [k for k in diff_configs(trained, out) if is_under(k, MODEL_KEYS)]
+    if changed:
+        out_d = config_to_dict(out)
+        notes.append("overriding the checkpoint's " + ", ".join(
+            f"{k}={get_key(trained_d, k)!r} with {get_key(out_d, k)!r}" for k in changed))
+    return out, notes
+
+
+def saved_config(saved: dict, source: str = "the checkpoint") -> ExperimentConfig:
+    """The config saved in a checkpoint, or a ``CheckpointError`` naming ``source``."""
+    try:
+        return config_from_dict(saved)
+    except UserError as e:
+        raise CheckpointError(f"{source} holds a config this version cannot read: {e}") from None
+
+
+def weight_differences(expected: Mapping[str, torch.Tensor], got: Mapping[str, torch.Tensor], shown: int = 3
+                       ) -> list[str]:
+    """Where two state dicts differ: keys only one has, and keys of another shape (``shown`` of each)."""
+    def some(keys: list[str]) -> str:
+        return ", ".join(keys[:shown]) + (f" and {len(keys) - shown} more" if len(keys) > shown else "")
+
+    missing = [k for k in expected if k not in got]
+    unexpected = [k for k in got if k not in expected]
+    shapes = [f"{k} {list(got[k].shape)} (model {list(expected[k].shape)})" for k in expected
+              if k in got and hasattr(got[k], "shape") and got[k].shape != expected[k].shape]
+    return ([f"missing {some(missing)}"] if missing else []) + ([f"not in the model: {some(unexpected)}"]
+                                                                  if unexpected else []) + (
+        [f"other shapes: {some(shapes)}"] if shapes else [])
+
+
+def load_weights(model: torch.nn.Module, state: dict, checkpoint: str | Path) -> torch.nn.Module:
+    """``model`` with the checkpoint's weights, or a one-line ``CheckpointError`` naming the keys that
+    differ: they do not fit the model built from the config (another architecture, an override of a
+    layer size)."""
+    differ = weight_differences(model.state_dict(), state["model"])
+    try:
+        if differ:
+            raise RuntimeError
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        reason = "; ".join(differ) or " ".join(str(e).split())[:300]
+        raise CheckpointError(
+            f"the weights in {checkpoint} do not fit the model built from its config and the overrides ({reason}); "
+            f"use the config the checkpoint was trained with, and drop overrides that change layer sizes"
+        ) from None
+    return model
+
+
+def load_model(
+    checkpoint: str | Path, cfg: ExperimentConfig, overrides: Sequence[str] = (), device: torch.device | None = None
+) -> tuple[torch.nn.Module, ExperimentConfig, list[str]]:
+    """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode.
+
+    Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
+    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit.
+    """
+    state = load_checkpoint(checkpoint)
+    notes: list[str] = []
+    if isinstance(state.get("config"), dict):
+        cfg, notes = inference_config(cfg, state["config"], overrides, f"checkpoint {checkpoint}")
+    else:
+        notes.append(f"checkpoint {checkpoint} holds no config; building the model from the CONFIG file")
+    model = load_weights(build_model(cfg), state, checkpoint)
+    device = device if device is not None else resolve_device(cfg.train.device)
+    return model.eval().to(device), cfg, notes
+
+
+# --- predictions from the GT ---------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def gt_outputs(batch: dict, grid: BEVGrid, num_classes: int, floor: float = 1e-6) -> dict[str, torch.Tensor]:
+    """The outputs (docs/conventions.md keys) of a perfect model for the batch's GT targets.
+
+    Vertices = the GT graph vertices (M of them, so N = M), scores 1, class = the GT class, log
+    assignment = ``target_log_assignment`` of the assignment targets (each vertex matched to itself),
+    vertex logits = the log of the one-hot ``gt_vertex_cells``, distance = ``gt_distance``.
+    ``floor`` keeps every log finite. Post-processing these gives back the GT graph's polylines, so
+    the pictures and the evaluation path can be checked without a trained model.
+    """
+    S = grid.cell_size
+    verts = batch["gt_vertices_px"].float()  # [B, M, 2]
+    mask = batch["gt_vertex_mask"].bool()  # [B, M]
+    # a vertex's nearest GT vertex is itself (distance 0); distinct vertices are >= 1 px apart
+    asg = assign(verts, mask, verts, mask, batch["gt_vertex_labels"], batch["gt_vertex_next"],
+                 batch["gt_vertex_prev"], grid, match_dist_m=0.5 * grid.resolution)
+    cells = F.one_hot(batch["gt_vertex_cells"].long(), S * S + 1).permute(0, 3, 1, 2).float()  # [B, S*S+1, Hc, Wc]
+    vertex_logits = (cells * (1 - floor) + floor / (S * S + 1)).log()
+    labels = F.one_hot(batch["gt_vertex_labels"].long().clamp(min=0), num_classes).float()  # [B, M, K]
+    return {
+        "pred_vertex_logits": vertex_logits,
+        "pred_heatmap": vertex_heatmap(vertex_logits, S),
+        "pred_distance": batch["gt_distance"].float(),
+        "pred_vertices_px": verts,
+        "pred_vertex_mask": mask,
+        "pred_vertex_scores": mask.float(),
+        "pred_class_log_probs": (labels * (1 - floor) + floor / num_classes).log(),
+        "pred_log_assignment": target_log_assignment(asg["target_next"], asg["target_prev"]),
+    }
+
+
+# --- an ONNX export -------------------------------------------------------------------------------------
+
+
+def require_onnx(export: bool = False):
+    """``(onnx, onnxruntime)`` (and, for ``export``, the exporter's onnxscript), or a ``DeployError``
+    naming the extra to install."""
+    try:
+        import onnx
+        import onnxruntime
+
+        if export:
+            import onnxscript  # noqa: F401  (torch.onnx.export(dynamo=True) imports it)
+    except ImportError as e:
+        raise DeployError(f"ONNX export and inference need the optional packages onnx, onnxruntime and "
+                          f"onnxscript ({e.name} is not installed): {DEPLOY_EXTRA}") from None
+    return onnx, onnxruntime
+
+
+def baked_config(cfg: ExperimentConfig) -> dict:
+    """The flat ``{dotted key: value}`` of the config keys the exported graph bakes in (JSON types)."""
+    flat = flatten(json.loads(json.dumps(config_to_dict(cfg))))
+    # a single-frame graph bakes no model.temporal key: its exports from before the key existed still fit
+    skip = NOT_BAKED if is_temporal_config(cfg) else (*NOT_BAKED, "model.temporal")
+    return {k: v for k, v in sorted(flat.items()) if is_under(k, MODEL_KEYS) and not is_under(k, skip)}
+
+
+def config_sha256(baked: dict) -> str:
+    return hashlib.sha256(json.dumps(baked, sort_keys=True).encode()).hexdigest()
+
+
+def config_differences(expected: dict, actual: dict) -> list[str]:
+    """``key=value (other: value)`` for every baked key whose values differ."""
+    keys = sorted(set(expected) | set(actual))
+    return [f"{k}={actual.get(k, '<absent>')!r} (CONFIG: {expected.get(k, '<absent>')!r})"
+            for k in keys if expected.get(k, "<absent>") != actual.get(k, "<absent>")]
+
+
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The ``metadata_props`` of an ONNX file (without loading its weights)."""
+    onnx, _ = require_onnx()
+    path = Path(path)
+    if not path.is_file():
+        raise DeployError(f"ONNX file not found: {path}")
+    try:
+        proto = onnx.load(str(path), load_external_data=False)
+    except Exception as e:  # any unreadable file is a user error
+        raise DeployError(f"{path} is not a readable ONNX file ({type(e).__name__}: {str(e)[:200]})") from None
+    return {p.key: p.value for p in proto.metadata_props}
+
+
+def read_export(path: str | Path) -> dict:
+    """The metadata of an export of this format: ``{"config": baked config, "shapes", "source"}``;
+    otherwise a one-line ``DeployError``: not ours, an older (or newer) export format, a damaged file."""
+    meta = read_metadata(path)
+    redo = "export it again with: instagram-hdmap export-onnx CONFIG --checkpoint CKPT --out FILE"
+    if META_FORMAT not in meta:
+        raise DeployError(f"{path} was not written by instagram-hdmap export-onnx (no {META_FORMAT} in its "
+                          f"metadata); {redo}")
+    if meta[META_FORMAT] != str(EXPORT_FORMAT):
+        raise DeployError(f"{path} is an export of format {meta[META_FORMAT]}; this version reads format "
+                          f"{EXPORT_FORMAT} only: {redo}")
+    try:
+        stored = json.loads(meta[META_CONFIG])
+        shapes = json.loads(meta[META_SHAPES])
+    except (KeyError, json.JSONDecodeError) as e:
+        raise DeployError(f"{path}: damaged export metadata ({e}); {redo}") from None
+    if config_sha256(stored) != meta.get(META_CONFIG_SHA):
+        raise DeployError(f"{path}: the stored config does not match its SHA-256 (a damaged or edited file); {redo}")
+    return {"config": stored, "shapes": shapes, "source": json.loads(meta.get(META_SOURCE, "{}")),
+            "inference": json.loads(meta.get(META_INFERENCE, "{}"))}
+
+
+def inference_metadata(cfg: ExperimentConfig) -> dict:
+    """What an export records beside its baked config so that ``Mapper.from_onnx`` can run it without
+    the training config: the camera rig, the image fit and the decoding (defaults, overridable)."""
+    d = cfg.data
+    return {"dataset": d.dataset, "av2_cameras": list(d.av2_cameras), "image_fit": d.image_fit,
+            "decoding": {name: getattr(cfg.model.gnn, name) for name in DECODE_OPTIONS}}
+
+
+def exported_config(meta: dict) -> ExperimentConfig:
+    """The config of an export (``read_export``'s metadata): its baked keys and its inference metadata
+    (an export written before the latter existed: the defaults, nuScenes cameras)."""
+    merged = config_to_dict(ExperimentConfig())
+    for key, value in meta["config"].items():
+        set_key(merged, key, value)
+    extra = meta.get("inference", {})
+    for key in ("dataset", "av2_cameras", "image_fit"):
+        if key in extra:
+            merged["data"][key] = extra[key]
+    merged["model"]["gnn"].update(extra.get("decoding", {}))
+    return config_from_dict(merged)
+
+
+def check_export(path: str | Path, cfg: ExperimentConfig) -> dict:
+    """The metadata of ``path`` (``read_export``) if its baked config is ``cfg``'s; otherwise a one-line
+    ``DeployError`` naming the keys that differ."""
+    meta = read_export(path)
+    differ = config_differences(baked_config(cfg), meta["config"])
+    if differ:
+        more = f" and {len(differ) - 4} more" if len(differ) > 4 else ""
+        raise DeployError(f"{path} was exported from another config: {', '.join(differ[:4])}{more}; pass the "
+                          f"config it was exported with, or export the checkpoint again with: instagram-hdmap "
+                          f"export-onnx CONFIG --checkpoint CKPT --out FILE")
+    return meta
+
+
+class OnnxModel:
+    """An exported ONNX file run by onnxruntime on the CPU: ``model(batch) -> outputs`` as torch tensors
+    with the keys and shapes of ``InstaGraM.forward`` (batch 1), so the post-processing is unchanged.
+
+    The export of a temporal model is called as the model is: ``model(batch, memory)``, ``memory`` the
+    previous call's ``outputs["memory"]`` (None: empty), the batch with ``ego_pose`` (``scene_start``
+    and ``frame_index`` default to a continuing stream's: False, the memory's + 1).
+
+    ``threads``: onnxruntime's intra-op threads (default: ``torch.get_num_threads()``);
+    ``optimization``: its graph optimisation level ("all", "extended", "basic", "disabled").
+    """
+
+    def __init__(self, path: str | Path, cfg: ExperimentConfig, *, threads: int | None = None,
+                 optimization: str = "all", providers: Sequence[str] = ("CPUExecutionProvider",)):
+        _, ort = require_onnx()
+        self.path = Path(path)
+        self.meta = check_export(self.path, cfg)
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads or torch.get_num_threads()
+        options.inter_op_num_threads = 1
+        levels = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+                  "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+                  "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+                  "disabled": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
+        options.graph_optimization_level = levels[optimization]
+        options.log_severity_level = 3  # errors only
+        self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
+        self.input_shapes = self.meta["shapes"]["inputs"]
+        self.input_names, self.output_names = input_names(cfg), output_names(cfg)
+        self.is_temporal = is_temporal_config(cfg)
+
+    def initial_memory(self) -> dict[str, torch.Tensor]:
+        """An empty memory (``valid`` False) of the file's shapes (a temporal export)."""
+        return {"bev": torch.zeros(self.input_shapes["memory_bev"]), "ego_pose": torch.eye(4)[None],
+                "valid": torch.zeros(1, dtype=torch.bool), "frame_index": torch.zeros(1, dtype=torch.long)}
+
+    def __call__(self, batch: dict, memory: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        given = dict(batch)
+        if self.is_temporal:
+            memory = self.initial_memory() if memory is None else memory
+            given.update({f"memory_{k}": v for k, v in memory.items()})
+            given.setdefault("scene_start", torch.zeros(1, dtype=torch.bool))
+            given.setdefault("frame_index", memory["frame_index"] + 1)
+        feed = {}
+        for name in self.input_names:
+            if name not in given:
+                raise DeployError(f"{self.path}: the batch lacks '{name}' (inputs: {', '.join(self.input_names)})")
+            tensor = given[name]
+            if list(tensor.shape) != self.input_shapes[name]:
+                raise DeployError(f"{self.path} takes {name} of shape {self.input_shapes[name]} (static, batch 1); "
+                                  f"the batch has {list(tensor.shape)}")
+            tensor = tensor.detach().cpu()  # floats as float32; the bool and int64 inputs as they are
+            feed[name] = (tensor.float() if tensor.is_floating_point() else tensor).contiguous().numpy()
+        results = dict(zip(self.output_names, (torch.from_numpy(v) for v in self.session.run(
+            list(self.output_names), feed))))
+        if self.is_temporal:
+            results["memory"] = {k: results.pop(f"next_memory_{k}") for k in MEMORY_KEYS}
+        return results
+
+
+@torch.no_grad()
+def run_model(model, batch: dict, memory: dict | None = None) -> dict[str, torch.Tensor]:
+    """The outputs of ``model`` (an ``InstaGraM`` in eval mode, or an ``OnnxModel``) for ``batch``, moved
+    to the model's device. ``memory``: what a temporal model returned as ``out["memory"]`` for the
+    previous frame of the scene (None at a scene's start, and always for a single-frame model, which
+    returns none; ``batch["scene_start"]`` marks the start)."""
+    if isinstance(model, OnnxModel):
+        return model(batch, memory) if model.is_temporal else model(batch)
+    batch = move_to(batch, next(model.parameters()).device)
+    return model(batch) if memory is None else model(batch, memory=memory)
+
+
+# --- the public Python API ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MapElement:
+    """One map element: its class name, ``points`` [P, 2] in metres in the ego frame (x forward, y
+    left; a closed polygon repeats its first point at the end), ``closed``, a ``score`` in [0, 1] and
+    ``class_index`` (its index in the model's classes: the HDMapNet ``type``)."""
+
+    label: str
+    points: np.ndarray
+    closed: bool
+    score: float
+    class_index: int
+
+    def as_polyline(self) -> dict:
+        """The polyline dict of docs/conventions.md (``pts``, ``label``, ``closed``, ``score``)."""
+        return {"pts": self.points, "label": self.class_index, "closed": self.closed, "score": self.score}
+
+    def to_hdmapnet(self) -> dict:
+        """This element as an HDMapNet submission vector (``pts``, ``pts_num``, ``type``, ``confidence_level``)."""
+        return polylines_to_vectors([self.as_polyline()])[0]
+
+    def __repr__(self) -> str:
+        shape = "closed" if self.closed else "open"
+        return f"MapElement({self.label}, {len(self.points)} points, {shape}, score {self.score:.2f})"
+
+
+def to_hdmapnet(elements: Mapping[str, Sequence[MapElement]], meta: dict | None = None) -> dict:
+    """``{frame name: elements}`` -> the HDMapNet submission JSON document (``{"meta", "results"}``,
+    evaluation/io.py), what ``predict`` writes and ``evaluate-json`` reads."""
+    return submission({name: [e.as_polyline() for e in els] for name, els in elements.items()}, meta)
+
+
+@dataclass
+class Frame:
+    """One moment of a camera rig, camera by camera: either mappings by camera name or sequences in
+    the order of ``Mapper.cameras``.
+
+    ``images``: RGB ``numpy`` arrays [H, W, 3] (uint8, or float on 0..1), PIL images, tensors [3, H, W]
+    (uint8, or float on 0..1), or image file paths, of any size; ``intrinsics``: [3, 3] in the pixels
+    of that image; ``cam_to_ego``: [4, 4] (or [3, 4]) camera -> ego transform (rotation | translation in
+    metres; the ego frame: x forward, y left, z up, origin on the ground); ``ego_pose``: [4, 4] ego ->
+    world (any fixed world frame, metres) at this frame, which a temporal model's ``MapStream`` needs to
+    move its memory with the ego (a single frame needs none)."""
+
+    images: Mapping | Sequence
+    intrinsics: Mapping | Sequence
+    cam_to_ego: Mapping | Sequence
+    ego_pose: np.ndarray | torch.Tensor | None = None
+
+
+def _by_camera(values, field: str, cameras: tuple[str, ...]) -> list:
+    """A frame's field as a list in ``cameras`` order; a ``RigError`` naming missing and extra cameras."""
+    if isinstance(values, Mapping):
+        missing = [c for c in cameras if c not in values]
+        extra = [str(c) for c in values if c not in cameras]
+        if missing or extra:
+            parts = ([f"missing {', '.join(missing)}"] if missing else []) + (
+                [f"not in the checkpoint's rig: {', '.join(extra)}"] if extra else [])
+            raise RigError(f"the frame's {field} do not match the checkpoint's cameras ({', '.join(cameras)}): "
+                           + "; ".join(parts))
+        return [values[c] for c in cameras]
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+        raise RigError(f"the frame's {field} must be a mapping camera name -> value or a sequence of one per camera "
+                       f"({', '.join(cameras)}), got {type(values).__name__}")
+    if len(values) != len(cameras):
+        raise RigError(f"the frame holds {len(values)} {field} for the checkpoint's {len(cameras)} cameras "
+                       f"({', '.join(cameras)}): give one per camera, in that order, or a mapping by name")
+    return list(values)
+
+
+def _rgb_array(image, camera: str) -> np.ndarray:
+    """An in-memory image as RGB [H, W, 3] uint8 (or float32 on 0..255)."""
+    if hasattr(image, "convert") and hasattr(image, "size"):  # a PIL image
+        return np.asarray(image.convert("RGB"))
+    if isinstance(image, torch.Tensor):
+        if image.ndim != 3 or image.shape[0] != 3:
+            raise RigError(f"camera {camera}: an image tensor must be [3, H, W] (RGB), got {list(image.shape)}")
+        image = image.detach().cpu().permute(1, 2, 0).numpy()
+    if not isinstance(image, np.ndarray):
+        raise RigError(f"camera {camera}: an image must be a numpy array, a PIL image, a tensor or a file path, got "
+                       f"{type(image).__name__}")
+    if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 1:
+        raise RigError(f"camera {camera}: an image array must be RGB [H, W, 3], got shape {list(image.shape)}")
+    if image.dtype == np.uint8:
+        return image
+    if not np.issubdtype(image.dtype, np.floating):
+        raise RigError(f"camera {camera}: image values must be uint8 (0..255) or floats (0..1), got {image.dtype}")
+    return image.astype(np.float32) * 255
+
+
+def _ego_pose(pose) -> torch.Tensor:
+    """A frame's ego pose as a [4, 4] float32 tensor (the identity when it has none)."""
+    if pose is None:
+        return torch.eye(4)
+    T = torch.as_tensor(np.asarray(pose, dtype=np.float64)).float()
+    if T.shape not in ((4, 4), (3, 4)) or not bool(torch.isfinite(T).all()):
+        raise RigError(f"the frame's ego_pose must be a finite 4x4 (or 3x4) ego -> world transform, got shape "
+                       f"{list(T.shape)}")
+    return torch.cat([T[:3], torch.tensor([[0.0, 0.0, 0.0, 1.0]])]) if T.shape == (3, 4) else T
+
+
+def image_size_of(path: str | Path, camera: str) -> tuple[int, int]:
+    """(width, height) of an image file from its header; a ``RigError`` naming the camera and the file
+    when it is not a readable image."""
+    try:
+        with PILImage.open(path) as im:
+            return im.size
+    except (OSError, ValueError) as e:
+        raise RigError(f"camera {camera}: image {path} cannot be read as an image ({type(e).__name__}: "
+                       f"{str(e)[:120]})") from None
+
+
+def with_decoding(cfg: ExperimentConfig, options: Mapping, overrides: Sequence[str] = ()) -> ExperimentConfig:
+    """``cfg`` with dotted ``overrides`` (``"model.gnn.num_vertices=600"``) and the decoding ``options``
+    (``match_threshold=0.2``: ``model.gnn.<name>``, ``DECODE_OPTIONS``) applied and checked."""
+    unknown = sorted(set(options) - set(DECODE_OPTIONS))
+    if unknown:
+        raise UserError(f"unknown decoding option(s) {', '.join(unknown)}; the decoding options are "
+                        f"{', '.join(DECODE_OPTIONS)} (config model.gnn.*)")
+    merged = config_to_dict(cfg)
+    deep_update(merged, parse_overrides(list(overrides)))
+    merged["model"]["gnn"].update(options)
+    return config_from_dict(merged)
+
+
+class Mapper:
+    """A trained model on your cameras: frames in, ``MapElement`` lists out.
+
+        mapper = Mapper.from_checkpoint("runs/demo/run/last.pt")
+        elements = mapper(images=images, intrinsics=intrinsics, cam_to_ego=cam_to_ego)   # one frame
+        per_frame = mapper([frame_a, frame_b])                                           # a list of Frames
+
+    Each camera's image is resized and cropped as the checkpoint's config says (``data.image_size``,
+    ``data.image_fit``; data/transforms.py), with the matching ``post_rot``/``post_tran``. The cameras
+    are those of the checkpoint's rig (``cameras``; names and order), each with its own intrinsics and
+    pose. ``stream()`` runs a sequence of frames through a model that carries a memory from one frame
+    to the next (a temporal model); a single-frame model runs frame by frame.
+
+    ``from_onnx`` wraps an ``export-onnx`` file (onnxruntime, CPU, batch 1) behind the same calls.
+    """
+
+    def __init__(self, model, config: ExperimentConfig, *, device: torch.device | None = None, source: str = "",
+                 notes: Sequence[str] = (), batch_size: int = 4):
+        self.model, self.config, self.source, self.notes = model, config, source, list(notes)
+        self.device = device if device is not None else torch.device("cpu")
+        self.grid = BEVGrid.from_config(config.grid)
+        self.cameras = rig_cameras(config)
+        self.classes = tuple(config.data.classes)
+        self.decode_options = decode_options(config.model.gnn, self.grid)
+        self.batch_size = 1 if isinstance(model, OnnxModel) else batch_size
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
+                        overrides: Sequence[str] = (), **decode_overrides) -> Mapper:
+        """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu",
+        "cuda", a ``torch.device`` or None (CUDA when available). ``decode_overrides``: decoding
+        options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
+        (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
+        architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
+        state = load_checkpoint(path)
+        if not isinstance(state.get("config"), dict):
+            raise CheckpointError(f"checkpoint {path} holds no config, so its model cannot be built; use a "
+                                  "checkpoint written by instagram-hdmap train")
+        cfg = with_decoding(saved_config(state["config"], f"checkpoint {path}"), decode_overrides, overrides)
+        dev = resolve_device(device, key="device")
+        model = load_weights(build_model(cfg), state, path).eval().to(dev)
+        return cls(model, cfg, device=dev, source=f"checkpoint {path}")
+
+    @classmethod
+    def from_onnx(cls, path: str | Path, config: ExperimentConfig | str | Path | None = None, *,
+                  overrides: Sequence[str] = (), **decode_overrides) -> Mapper:
+        """An ``export-onnx`` file run by onnxruntime. ``config`` (an ``ExperimentConfig`` or a YAML
+        file; default: the config the export stamped in its metadata) and ``overrides`` must agree with
+        the graph's baked config (a ``DeployError`` names the keys that differ)."""
+        meta = read_export(path)
+        if config is None:
+            cfg = exported_config(meta)
+        else:
+            cfg = config if isinstance(config, ExperimentConfig) else load_config(config)
+        cfg = with_decoding(cfg, decode_overrides, overrides)
+        return cls(OnnxModel(path, cfg), cfg, source=f"ONNX {path} (onnxruntime)")
+
+    # --- frames -> batch -> outputs -> elements -------------------------------------------------------
+
+    def __call__(self, frames: Frame | Sequence[Frame] | None = None, /, **fields):
+        """``mapper(frame)`` or ``mapper(images=..., intrinsics=..., cam_to_ego=...)``: the frame's
+        elements; ``mapper([frame, ...])``: a list of them per frame."""
+        single = frames is None or isinstance(frames, Frame)
+        if frames is None:
+            frames = self._frame(fields)
+        elif fields:
+            raise TypeError("pass a Frame (or a list of them) or the fields images=, intrinsics=, cam_to_ego=, "
+                            "not both")
+        frames = [frames] if single else list(frames)
+        results: list[list[MapElement]] = []
+        for start in range(0, len(frames), self.batch_size):
+            results += self.decode(self.forward(self.batch(frames[start:start + self.batch_size])))
+        return results[0] if single else results
+
+    def stream(self) -> MapStream:
+        """A ``MapStream`` over a sequence of frames (``step(frame)``, ``reset()`` at a new scene)."""
+        return MapStream(self)
+
+    @staticmethod
+    def _frame(fields: dict) -> Frame:
+        try:
+            return Frame(**fields)
+        except TypeError:
+            raise TypeError(f"a frame has the fields images, intrinsics and cam_to_ego; got {sorted(fields)}") from None
+
+    def batch(self, frames: Sequence[Frame]) -> dict[str, torch.Tensor]:
+        """The model's input batch (docs/conventions.md keys, CPU) of ``frames``: each image resized and
+        cropped as the checkpoint's config says, with its calibration (checked: ``RigError``)."""
+        d = self.config.data
+        keys = ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
+        out: dict[str, list] = {k: [] for k in keys}
+        for frame in frames:
+            if not isinstance(frame, Frame):
+                raise TypeError(f"expected Frame objects, got {type(frame).__name__}")
+            images = _by_camera(frame.images, "images", self.cameras)
+            Ks = _by_camera(frame.intrinsics, "intrinsics", self.cameras)
+            poses = _by_camera(frame.cam_to_ego, "cam_to_ego poses", self.cameras)
+            per: dict[str, list] = {k: [] for k in keys}
+            for name, image, K, T in zip(self.cameras, images, Ks, poses):
+                T = np.asarray(T, dtype=np.float64)
+                if T.shape not in ((4, 4), (3, 4)):
+                    raise RigError(f"camera {name}: 'cam_to_ego' must be a 4x4 (or 3x4) transform, got shape "
+                                   f"{list(T.shape)}")
+                calib = check_calibration(name, K, T[:3, :3], T[:3, 3])
+                if isinstance(image, (str, Path)):
+                    try:
+                        pixels, post_rot, post_tran = load_image(image, image_size_of(image, name), d.image_size,
+                                                                 fit=d.image_fit)
+                    except ImageError as e:
+                        raise RigError(f"camera {name}: {e}") from None
+                else:
+                    pixels, post_rot, post_tran = prepare_image(_rgb_array(image, name), d.image_size,
+                                                                fit=d.image_fit)
+                for key, value in zip(keys, (pixels, calib.intrinsics, calib.rotation, calib.translation, post_rot,
+                                             post_tran)):
+                    per[key].append(torch.as_tensor(value).float())
+            for key in keys:
+                out[key].append(torch.stack(per[key]))
+        batch = {k: torch.stack(v) for k, v in out.items()}
+        batch["ego_pose"] = torch.stack([_ego_pose(frame.ego_pose) for frame in frames])
+        return batch
+
+    def forward(self, batch: dict, memory: dict | None = None) -> dict[str, torch.Tensor]:
+        """The model's outputs for ``batch`` (``run_model``)."""
+        return run_model(self.model, batch, memory)
+
+    def decode(self, outputs: dict[str, torch.Tensor]) -> list[list[MapElement]]:
+        """Model outputs -> each sample's elements (postprocess.py, with the checkpoint's decoding)."""
+        return [[MapElement(self.classes[p["label"]], p["pts"], p["closed"], p["score"], p["label"]) for p in sample]
+                for sample in postprocess_batch(outputs, self.grid, **self.decode_options)]
+
+    def __repr__(self) -> str:
+        return (f"Mapper({self.source or type(self.model).__name__}; cameras {', '.join(self.cameras)}; images "
+                f"{self.config.data.image_size[0]}x{self.config.data.image_size[1]} ({self.config.data.image_fit}); "
+                f"classes {', '.join(self.classes)}; decoder {self.config.model.gnn.decoder})")
+
+
+class MapStream:
+    """Frames of one drive, in order: ``step(frame)`` returns the frame's elements and keeps the model's
+    ``out["memory"]`` for the next step (a temporal model's previous BEV features, ego pose and
+    validity, moved into each new frame by the frames' ``ego_pose``; a single-frame model has none and
+    runs frame by frame); ``reset()`` starts a new scene (the next batch carries ``scene_start`` = True
+    and no memory). ``status``: the last step's memory status (``models.temporal.STATUS_NAMES``: fused,
+    no_memory, pose_jump: the ego moved more than ``model.temporal.max_jump_m`` since the previous
+    frame, so the memory was reset), and ``counts`` of them since the stream began."""
+
+    def __init__(self, mapper: Mapper):
+        self.mapper = mapper
+        self.counts: dict[str, int] = {}
+        self.reset()
+
+    def reset(self) -> None:
+        self.memory: dict | None = None
+        self.frame_index = 0
+        self.status: str | None = None
+
+    def step(self, frame: Frame | None = None, /, **fields) -> list[MapElement]:
+        frame = frame if frame is not None else Mapper._frame(fields)
+        temporal = bool(getattr(self.mapper.model, "is_temporal", False))
+        if temporal and frame.ego_pose is None:
+            raise RigError("a temporal model moves its memory with the ego: give every frame of a stream its "
+                           "ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
+        batch = self.mapper.batch([frame])
+        batch["scene_start"] = torch.tensor([self.frame_index == 0])
+        batch["frame_index"] = torch.tensor([self.frame_index])
+        outputs = self.mapper.forward(batch, self.memory)
+        self.memory, self.frame_index = outputs.get("memory"), self.frame_index + 1
+        if "memory_status" in outputs:
+            self.status = STATUS_NAMES[int(outputs["memory_status"][0])]
+            self.counts[self.status] = self.counts.get(self.status, 0) + 1
+        return self.mapper.decode(outputs)[0]
