@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from instagram_hdmap.config import load_config
-from instagram_hdmap.data.nuscenes import collate_fn
+from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.data.streaming import StreamingBatchSampler, deal_scenes
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model
@@ -496,7 +496,8 @@ def test_streaming_evaluation_without_memory_is_the_frame_by_frame_ap(tiny_world
     # predict walks the sample's scene from its first frame: the streamed predictions of the last frame
     from instagram_hdmap.data import build_dataset
     from instagram_hdmap.evaluation.io import read_submission
-    from instagram_hdmap.predict import stream_to_sample
+    from instagram_hdmap.inference import run_model
+    from instagram_hdmap.predict import scene_memory
 
     model = build_model(cfg_t).eval()
     model.load_state_dict(temporal.state_dict())
@@ -504,8 +505,9 @@ def test_streaming_evaluation_without_memory_is_the_frame_by_frame_ap(tiny_world
     val = build_dataset(cfg_t, "val")
     last = val.scenes.runs[0][-1]
     with torch.no_grad():
-        streamed_last = stream_to_sample(model, val, last)
-        alone = model(collate_fn([val.load_sample(last)]))
+        batch = collate_fn([val.load_sample(last)])
+        streamed_last = run_model(model, batch, scene_memory(model, val, last))
+        alone = model(batch)
     assert streamed_last["memory_status"].tolist() == [FUSED] and alone["memory_status"].tolist() == [NO_MEMORY]
     assert not torch.equal(streamed_last["pred_vertex_logits"], alone["pred_vertex_logits"])
     token = val.sample_tokens[last]
@@ -520,6 +522,7 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
     import onnx
 
     from instagram_hdmap import deploy
+    from instagram_hdmap.inference import OUTPUT_NAMES, OnnxModel, input_names, output_names
     from instagram_hdmap.postprocess import postprocess_batch
 
     # the tiny model with every cell a vertex slot (N = 128: top-N never cuts through equal scores)
@@ -533,10 +536,11 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
     path = tmp_path / "t.onnx"
     info = deploy.export_onnx(model, cfg, path)
     proto = onnx.load(str(path))
-    assert [i.name for i in proto.graph.input] == list(deploy.input_names(True))
-    assert [o.name for o in proto.graph.output] == list(deploy.output_names(True))
+    assert [i.name for i in proto.graph.input] == list(input_names(cfg))
+    assert [o.name for o in proto.graph.output] == list(output_names(cfg))
+    assert input_names(cfg)[-4:] == ("memory_bev", "memory_ego_pose", "memory_valid", "memory_frame_index")
     assert info["inputs"]["memory_bev"] == [1, 16, 16, 32] == info["outputs"]["next_memory_bev"]
-    onnx_model = deploy.OnnxModel(path, cfg)
+    onnx_model = OnnxModel(path, cfg)
     assert onnx_model.is_temporal
     grid = BEVGrid.from_config(cfg.grid)
     memory_torch = memory_onnx = None
@@ -550,7 +554,7 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
         got = onnx_model(batch, memory=memory_onnx)
         statuses.append((expected["memory_status"].item(), got["memory_status"].item()))
         e, g = deploy.align_vertex_slots(expected), deploy.align_vertex_slots(got)
-        for name in deploy.OUTPUT_NAMES:
+        for name in OUTPUT_NAMES:
             if name in ("pred_vertex_mask", "pred_vertices_px"):
                 assert torch.equal(g[name], e[name]), (k, name)
             else:
@@ -596,3 +600,67 @@ def test_evaluation_counts_pose_jumps_and_missing_frames():
     # frame 2 jumped 12 m (> 10 m): reset and counted; frame 4 follows frame 2: a missing frame
     assert result["memory"] == {"memory_fused": 2, "memory_no_memory": 1, "memory_pose_jump": 1,
                                 "memory_missing_frame": 1, "memory_dropped": 0}
+
+
+# --- the public API's stream ----------------------------------------------------------------------------------
+
+
+def test_map_stream_carries_a_temporal_models_memory():
+    from instagram_hdmap.data.rig import RigError, nuscenes_like_rig
+    from instagram_hdmap.inference import Frame, Mapper, run_model
+
+    cfg = load_config("configs/synthetic/tiny.yaml", ["model.temporal.memory=bev"])
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    with torch.no_grad():
+        model.temporal.out.weight.normal_(0, 0.2)  # a fusion that is not the identity
+    mapper = Mapper(model, cfg, source="tiny temporal")
+    rig = nuscenes_like_rig(tuple(cfg.data.image_size))
+    h, w = cfg.data.image_size
+    rng = np.random.default_rng(0)
+    cam_to_ego = [np.block([[r.numpy(), t.numpy()[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+                  for r, t in zip(rig["cam_to_ego_rot"], rig["cam_to_ego_trans"])]
+
+    def frame(x: float) -> Frame:
+        images = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for _ in mapper.cameras]
+        return Frame(images, list(rig["intrinsics"].numpy()), cam_to_ego, ego_pose=pose(x, 0.0, 0.0).numpy())
+
+    frames = [frame(x) for x in (0.0, 1.5, 3.0, 30.0)]  # the last one jumps 27 m
+    stream = mapper.stream()
+    elements, statuses = [], []
+    for f in frames:
+        elements.append(stream.step(f))
+        statuses.append(stream.status)
+    assert statuses == ["no_memory", "fused", "fused", "pose_jump"]
+    assert stream.counts == {"no_memory": 1, "fused": 2, "pose_jump": 1}
+    # the stream's outputs are the model's, frame after frame with its memory
+    memory = None
+    for k, f in enumerate(frames[:3]):
+        batch = mapper.batch([f])
+        batch.update(scene_start=torch.tensor([k == 0]), frame_index=torch.tensor([k]))
+        out = run_model(model, batch, memory)
+        memory = out["memory"]
+    assert [e.label for e in elements[2]] == [e.label for e in mapper.decode(out)[0]]
+    stream.reset()
+    stream.step(frames[2])
+    assert stream.status == "no_memory"
+    with pytest.raises(RigError, match="ego_pose"):
+        stream.step(Frame(frames[0].images, frames[0].intrinsics, frames[0].cam_to_ego))
+
+
+def test_streams_in_pieces_flag_each_piece_start(tiny_world_cfg):
+    from instagram_hdmap.data import build_dataset
+
+    runs = _SceneDataset(LENGTHS).scenes.runs
+    sampler = StreamingBatchSampler(runs, streams=3, seed=2, piece_frames=2)
+    steps = list(sampler)
+    assert all(isinstance(i, tuple) for batch in steps for i in batch)
+    for row in range(3):  # each row: pieces of <= 2 consecutive frames of one scene, a start on each first
+        stream = [batch[row] for batch in steps]
+        for (a, _), (b, b_start) in zip(stream, stream[1:]):
+            assert b_start or (b == a + 1 and any(a in r and b in r for r in runs))
+    assert sampler.owned() == set(range(sum(LENGTHS)))
+    assert len(sampler.runs) == sum((n + 1) // 2 for n in LENGTHS)
+    ds = build_dataset(tiny_world_cfg, "train")
+    i = ds.scenes.runs[0][1]  # frame 1 of a scene: no scene start, unless it starts a piece
+    assert not bool(ds[i]["scene_start"]) and bool(ds[(i, True)]["scene_start"])

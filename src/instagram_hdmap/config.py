@@ -255,6 +255,10 @@ class TrainConfig:
     # data workers (>= 1), unless OMP_NUM_THREADS is set. Two cores shared by two torch threads and
     # a data worker ran the demo 12 % slower than one thread (benchmarks/torch_builds.py)
     cpu_threads: int | None = None
+    # temporal models (model.temporal): training streams walk scenes in pieces of at most this many
+    # frames, each piece a new start of the memory (0: whole scenes). Shorter pieces make consecutive
+    # batches less alike (data/streaming.py; StreamMapNet's seq_split_num)
+    stream_frames: int = 0
 
 
 @dataclass
@@ -486,6 +490,8 @@ def validate_config(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"config key 'train.time_budget_min' must be > 0 (or null for none), got {t.time_budget_min}")
     if t.max_steps is not None and t.max_steps <= 0:
         raise ConfigError(f"config key 'train.max_steps' must be > 0 (or null), got {t.max_steps}")
+    if t.stream_frames < 0:
+        raise ConfigError(f"config key 'train.stream_frames' must be >= 0 (0: whole scenes), got {t.stream_frames}")
     if t.cpu_threads is not None and t.cpu_threads < 1:
         raise ConfigError(f"config key 'train.cpu_threads' must be >= 1 (or null: automatic), got {t.cpu_threads}")
     if not 0 <= t.warmup < 1:

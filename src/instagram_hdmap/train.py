@@ -92,8 +92,8 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
     """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
     reads drives: each rank's batch rows are streams walking whole scenes in order
-    (``data.streaming.StreamingBatchSampler``, ``train.batch_size / world`` streams per rank; the
-    validation loader ``eval.batch_size`` streams in dataset order)."""
+    (``data.streaming.StreamingBatchSampler``, ``train.batch_size / world`` streams per rank, in pieces
+    of ``train.stream_frames``; the validation loader ``eval.batch_size`` streams of whole scenes)."""
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     streaming = cfg.model.temporal.memory != "none"
@@ -104,7 +104,8 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
               "generator": torch.Generator().manual_seed(cfg.train.seed)}
     if streaming:
         sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
-                                        rank=du.get_rank(), world_size=world_size)
+                                        rank=du.get_rank(), world_size=world_size,
+                                        piece_frames=cfg.train.stream_frames)
         train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
     else:
         sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)

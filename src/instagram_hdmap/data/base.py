@@ -176,7 +176,14 @@ class MapDataset(Dataset):
             **targets,
         }
 
-    def __getitem__(self, index: int) -> dict:
+    def __getitem__(self, index: int | tuple[int, bool]) -> dict:
+        """Sample ``index``; ``(index, start)`` (a streaming sampler's pieces, data/streaming.py): the sample
+        with ``scene_start`` = ``start``."""
+        if isinstance(index, tuple):
+            index, start = index
+            sample = self[index]
+            sample["scene_start"] = torch.tensor(bool(start))
+            return sample
         if self.data_cfg.on_bad_sample == "raise":
             return self.load_sample(index)
         n = len(self)

@@ -20,6 +20,12 @@ it walks the epoch's scenes again from the first (each from its frame 0, a scene
 the epoch ends. ``schedule()`` tells which entries are padding; evaluation scores only the samples a
 rank ``owned()`` (walks for real), so every sample once over all ranks.
 
+``piece_frames`` = K > 0 walks each scene in pieces of K frames (the last one shorter) instead of
+whole: the pieces are dealt as scenes are, and the sampler yields ``(index, start)`` pairs, ``start``
+True on a piece's first frame, which ``MapDataset`` turns into the sample's ``scene_start`` (the
+memory resets there). Training streams then change scenes every K frames, so that consecutive batches
+are less alike (StreamMapNet splits its training sequences likewise, ``seq_split_num``).
+
 StreamMapNet's training sampler (``InfiniteGroupEachSampleInBatchSampler``) also gives each batch row
 its own sequence; it has no epochs (an infinite stream of shuffled sub-sequences), where this one
 keeps the project's epochs and exact resume (``set_epoch(epoch, start)`` skips the steps done).
@@ -48,18 +54,23 @@ def deal_scenes(lengths: Sequence[int], order: Sequence[int], streams: int) -> l
 class StreamingBatchSampler(Sampler[list[int]]):
     """Batches of ``streams`` indices per rank, row b walking stream b's scenes frame by frame (module doc).
 
-    ``runs``: per scene, its dataset indices in time order (``MapDataset.scenes.runs``).
+    ``runs``: per scene, its dataset indices in time order (``MapDataset.scenes.runs``); ``piece_frames``:
+    walk them in pieces of this many frames (0: whole), yielding ``(index, start)`` pairs.
     """
 
     def __init__(self, runs: Sequence[Sequence[int]], streams: int, *, shuffle: bool = True, seed: int = 0,
-                 rank: int = 0, world_size: int = 1):
+                 rank: int = 0, world_size: int = 1, piece_frames: int = 0):
         if streams < 1:
             raise ValueError(f"streams must be >= 1, got {streams}")
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} is not in [0, {world_size})")
         if not runs or any(len(r) == 0 for r in runs):
             raise ValueError("every scene needs at least one sample")
-        self.runs = [list(r) for r in runs]
+        if piece_frames < 0:
+            raise ValueError(f"piece_frames must be >= 0, got {piece_frames}")
+        self.pieces = piece_frames > 0
+        self.runs = [list(r[k:k + piece_frames]) for r in runs for k in range(0, len(r), piece_frames)] \
+            if self.pieces else [list(r) for r in runs]
         self.streams, self.shuffle, self.seed = streams, shuffle, seed
         self.rank, self.world_size = rank, world_size
         self.epoch = 0
@@ -116,8 +127,10 @@ class StreamingBatchSampler(Sampler[list[int]]):
         mine = self.schedule()[self.rank * self.streams:(self.rank + 1) * self.streams]
         return {self.runs[s][f] for walk in mine for s, f, pad in walk if not pad}
 
-    def _rank_batches(self) -> list[list[int]]:
+    def _rank_batches(self) -> list[list]:
         mine = self.schedule()[self.rank * self.streams:(self.rank + 1) * self.streams]
+        if self.pieces:
+            return [[(self.runs[s][f], f == 0) for s, f, _ in step] for step in zip(*mine)]
         return [[self.runs[s][f] for s, f, _ in step] for step in zip(*mine)]
 
     @property
