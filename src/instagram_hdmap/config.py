@@ -259,6 +259,10 @@ class TrainConfig:
     # frames, each piece a new start of the memory (0: whole scenes). Shorter pieces make consecutive
     # batches less alike (data/streaming.py; StreamMapNet's seq_split_num)
     stream_frames: int = 0
+    # temporal models: the first epochs on shuffled single frames (the memory always empty) before the
+    # streams, as a fraction of train.epochs (StreamMapNet trains 1/6 of its epochs so); consecutive
+    # frames in a batch stream are alike, which slows the early learning of the single-frame parts
+    stream_warmup: float = 0.0
 
 
 @dataclass
@@ -490,6 +494,9 @@ def validate_config(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"config key 'train.time_budget_min' must be > 0 (or null for none), got {t.time_budget_min}")
     if t.max_steps is not None and t.max_steps <= 0:
         raise ConfigError(f"config key 'train.max_steps' must be > 0 (or null), got {t.max_steps}")
+    if not 0 <= t.stream_warmup < 1:
+        raise ConfigError(f"config key 'train.stream_warmup' is a fraction of train.epochs in [0, 1), got "
+                          f"{t.stream_warmup}")
     if t.stream_frames < 0:
         raise ConfigError(f"config key 'train.stream_frames' must be >= 0 (0: whole scenes), got {t.stream_frames}")
     if t.cpu_threads is not None and t.cpu_threads < 1:

@@ -93,7 +93,8 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
     reads drives: each rank's batch rows are streams walking whole scenes in order
     (``data.streaming.StreamingBatchSampler``, ``train.batch_size / world`` streams per rank, in pieces
-    of ``train.stream_frames``; the validation loader ``eval.batch_size`` streams of whole scenes)."""
+    of ``train.stream_frames``, after ``train.stream_warmup`` of the epochs on shuffled single frames;
+    the validation loader ``eval.batch_size`` streams of whole scenes)."""
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     streaming = cfg.model.temporal.memory != "none"
@@ -105,7 +106,8 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     if streaming:
         sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
                                         rank=du.get_rank(), world_size=world_size,
-                                        piece_frames=cfg.train.stream_frames)
+                                        piece_frames=cfg.train.stream_frames,
+                                        single_epochs=round(cfg.train.stream_warmup * cfg.train.epochs))
         train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
     else:
         sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)

@@ -11,8 +11,8 @@ scheduling (longest scene first, each to the stream with the fewest frames so fa
 stream), so every scene is walked whole, in order, by one stream of one rank, once per epoch, and the
 streams end as evenly as whole scenes allow. ``shuffle=True`` permutes, from (seed, epoch), the
 scenes of equal length before dealing and the order in which each stream walks its scenes: the
-number of steps is the same in every epoch. All ranks compute the same schedule from (seed, epoch)
-alone: no communication.
+number of steps is the same in every epoch (of the same pieces, below). All ranks compute the same
+schedule from (seed, epoch) alone: no communication.
 
 The epoch lasts as many steps as the longest stream. A shorter stream is then padded, as
 ``DistributedSampler`` pads its index list, so that every rank steps in lockstep with full batches:
@@ -55,26 +55,39 @@ class StreamingBatchSampler(Sampler[list[int]]):
     """Batches of ``streams`` indices per rank, row b walking stream b's scenes frame by frame (module doc).
 
     ``runs``: per scene, its dataset indices in time order (``MapDataset.scenes.runs``); ``piece_frames``:
-    walk them in pieces of this many frames (0: whole), yielding ``(index, start)`` pairs.
+    walk them in pieces of this many frames (0: whole), yielding ``(index, start)`` pairs;
+    ``single_epochs``: the first epochs in pieces of one frame (every sample a start: shuffled single
+    frames, StreamMapNet's single-frame epochs before its sequences).
     """
 
     def __init__(self, runs: Sequence[Sequence[int]], streams: int, *, shuffle: bool = True, seed: int = 0,
-                 rank: int = 0, world_size: int = 1, piece_frames: int = 0):
+                 rank: int = 0, world_size: int = 1, piece_frames: int = 0, single_epochs: int = 0):
         if streams < 1:
             raise ValueError(f"streams must be >= 1, got {streams}")
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} is not in [0, {world_size})")
         if not runs or any(len(r) == 0 for r in runs):
             raise ValueError("every scene needs at least one sample")
-        if piece_frames < 0:
-            raise ValueError(f"piece_frames must be >= 0, got {piece_frames}")
-        self.pieces = piece_frames > 0
-        self.runs = [list(r[k:k + piece_frames]) for r in runs for k in range(0, len(r), piece_frames)] \
-            if self.pieces else [list(r) for r in runs]
+        if piece_frames < 0 or single_epochs < 0:
+            raise ValueError(f"piece_frames ({piece_frames}) and single_epochs ({single_epochs}) must be >= 0")
+        self.scene_runs = [list(r) for r in runs]
+        self.piece_frames, self.single_epochs = piece_frames, single_epochs
+        self.pieces = piece_frames > 0 or single_epochs > 0  # yields (index, start) pairs
+        self._pieces_of: tuple[int, list[list[int]]] = (0, [])  # (piece frames, pieces) last cut
         self.streams, self.shuffle, self.seed = streams, shuffle, seed
         self.rank, self.world_size = rank, world_size
         self.epoch = 0
         self.start = 0  # steps of this epoch to skip (the trainer sets it on resume)
+
+    @property
+    def runs(self) -> list[list[int]]:
+        """What the streams walk this epoch: the scenes, or their pieces."""
+        k = 1 if self.epoch < self.single_epochs else self.piece_frames
+        if k <= 0:
+            return self.scene_runs
+        if self._pieces_of[0] != k:
+            self._pieces_of = (k, [r[i:i + k] for r in self.scene_runs for i in range(0, len(r), k)])
+        return self._pieces_of[1]
 
     @property
     def batch_size(self) -> int:
@@ -135,7 +148,7 @@ class StreamingBatchSampler(Sampler[list[int]]):
 
     @property
     def steps(self) -> int:
-        """Batches in one epoch: the same on every rank and in every epoch."""
+        """Batches in this epoch: the same on every rank, and in every epoch of the same pieces."""
         lengths = sorted((len(r) for r in self.runs), reverse=True)
         dealt = deal_scenes(lengths, range(len(lengths)), self.world_size * self.streams)
         return max(sum(lengths[s] for s in scenes) for scenes in dealt)
