@@ -664,3 +664,18 @@ def test_streams_in_pieces_flag_each_piece_start(tiny_world_cfg):
     ds = build_dataset(tiny_world_cfg, "train")
     i = ds.scenes.runs[0][1]  # frame 1 of a scene: no scene start, unless it starts a piece
     assert not bool(ds[i]["scene_start"]) and bool(ds[(i, True)]["scene_start"])
+
+
+def test_single_frame_epochs_before_the_streams():
+    runs = _SceneDataset(LENGTHS).scenes.runs
+    sampler = StreamingBatchSampler(runs, streams=3, seed=5, piece_frames=3, single_epochs=2)
+    for epoch in range(3):
+        sampler.set_epoch(epoch)
+        items = [i for batch in sampler for i in batch]
+        assert sampler.owned() == set(range(sum(LENGTHS)))
+        starts = [start for _, start in items]
+        assert all(starts) == (epoch < 2)  # shuffled single frames: every sample a start
+    sampler.set_epoch(0)
+    again = list(sampler)
+    sampler.set_epoch(0, start=3 * 4)
+    assert list(sampler) == again[4:]  # exact resume inside a single-frame epoch
