@@ -53,6 +53,7 @@ def example_batch(image_size: tuple[int, int], device: torch.device, num_cameras
         "cam_to_ego_trans": torch.stack(trans)[None],
         "post_rot": torch.diag(torch.tensor([scale, scale, 1.0])).expand(1, num_cameras, 3, 3),
         "post_tran": torch.tensor([0.0, h - 900 * scale, 0]).expand(1, num_cameras, 3),
+        "ground_height": torch.zeros(1),
     }
     return {k: v.to(device) for k, v in batch.items()}
 

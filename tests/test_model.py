@@ -52,6 +52,7 @@ def rig(batch_size: int, image_size: tuple[int, int], yaws_deg=(55, 0, -55, 110,
         "cam_to_ego_trans": torch.stack(trans).expand(batch_size, V, 3),
         "post_rot": torch.diag(torch.tensor([s, s, 1.0])).expand(batch_size, V, 3, 3),
         "post_tran": torch.tensor([0.0, h - 900 * s, 0]).expand(batch_size, V, 3),
+        "ground_height": torch.zeros(batch_size),
     }
 
 

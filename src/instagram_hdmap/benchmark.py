@@ -41,7 +41,7 @@ def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
     """Calibration of one sample [V = 6, ...] in the dataset's camera order: the published
     calibration of a real nuScenes log (``data.synthetic.rig``: 1600 x 900 images) and the
     ``post_rot`` / ``post_tran`` of the dataset's resize-and-crop to ``image_size`` (h, w)
-    (``data.transforms.image_affine``)."""
+    (``data.transforms.image_affine``), and nuScenes' ``ground_height`` 0 (a 0-d tensor)."""
     from .data.nuscenes import CAMERAS
     from .data.synthetic.rig import NUSCENES_IMAGE_SIZE, rig
     from .data.transforms import image_affine
@@ -59,6 +59,7 @@ def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
         "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
         "post_rot": post_rot.expand(V, 3, 3).clone(),
         "post_tran": post_tran.expand(V, 3).clone(),
+        "ground_height": torch.tensor(0.0),
     }
 
 
@@ -74,6 +75,7 @@ def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
             rig = nuscenes_like_rig(cfg.data.image_size)
             return rig, f"nuScenes-like rig built in code (the dataset at {cfg.data.dataroot} failed: {e})"
         cams.pop("images")
+        cams["ground_height"] = torch.tensor(dataset.ground_height(0), dtype=torch.float32)
         return cams, f"rig of sample {dataset.sample_tokens[0]} ({cfg.data.dataroot}, split {dataset.split})"
     return nuscenes_like_rig(cfg.data.image_size), "nuScenes-like rig built in code (no data.dataroot)"
 

@@ -73,6 +73,11 @@ class DataConfig:
     av2_cameras: tuple[str, ...] = AV2_RING_CAMERAS  # av2: the ring cameras fed to the model, in this order
     av2_frame_step: int = 5  # av2: one lidar sweep in N is a sample (AV2's sweeps come at 10 Hz)
     sample_dist: float = 1.5  # metres between resampled map vertices
+    # ped-crossing ground truth (data/local_map.py, docs/conventions.md): "edges", each crossing's two
+    # longest edges as open polylines (HDMapNet's and the official InstaGraM code's, the paper's);
+    # "union", the rings (exterior and interior) of the crossings' union (MapTR); "each", each
+    # crossing's own ring (StreamMapNet, the field's AV2 setting)
+    ped_crossing: Literal["edges", "union", "each"] = "edges"
     classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
     dt_clip: float = 10.0  # distance transform clipped to [0, dt_clip] BEV pixels
     augment: bool = False  # train-time image augmentation (scale, crop, rotate)
@@ -110,7 +115,9 @@ class ViewTransformConfig:
     # resolution and the BEV encoder's stem convolution strides by 2 (the official layout, slower).
     bev_downsample: int = 2
     zbound: tuple[float, float] = (-10.0, 10.0)  # LSS vertical extent of the voxel pillar
-    ipm_height: float = 0.0  # IPM ground-plane height in the ego frame (m)
+    # IPM / MLP ground plane: z = the sample's ground height (batch key ground_height: nuScenes 0,
+    # AV2 the road below the rear axle, ~-0.35 m) + this offset (m)
+    ipm_height: float = 0.0
     mlp_bev_downsample: int = 5  # HDMapNet MLP: per-camera BEV of (H/5) x (W/5)
     num_cameras: int = 6  # MLP only: one fully connected view transform per camera
 

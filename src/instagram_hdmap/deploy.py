@@ -11,7 +11,9 @@ Hc x Wc = H/S x W/S, K classes, N vertex slots.
 
 The exported graph (``INPUT_NAMES`` -> ``OUTPUT_NAMES``, every shape static, float32 but the bool mask):
   inputs  ``images`` [1, V, 3, h, w] (normalised), ``intrinsics`` [1, V, 3, 3], ``cam_to_ego_rot``
-          [1, V, 3, 3], ``cam_to_ego_trans`` [1, V, 3], ``post_rot`` [1, V, 3, 3], ``post_tran`` [1, V, 3]
+          [1, V, 3, 3], ``cam_to_ego_trans`` [1, V, 3], ``post_rot`` [1, V, 3, 3], ``post_tran`` [1, V, 3],
+          ``ground_height`` [1] (the IPM / MLP ground plane; a graph whose view transform does not read it,
+          LSS, still takes it, so that every export has the same inputs)
   outputs the model's output dict (docs/conventions.md) in this order: ``pred_vertex_logits``
           [1, S*S+1, Hc, Wc], ``pred_heatmap`` [1, H, W], ``pred_distance`` [1, K, H, W],
           ``pred_vertices_px`` [1, N, 2], ``pred_vertex_mask`` [1, N] bool, ``pred_vertex_scores`` [1, N],
@@ -48,7 +50,7 @@ from .config import ExperimentConfig, UserError, config_to_dict
 from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS
 
-EXPORT_FORMAT = 1  # bump when the graph's inputs, outputs or their meaning change
+EXPORT_FORMAT = 2  # bump when the graph's inputs, outputs or their meaning change (2: ground_height)
 DEFAULT_OPSET = 18  # the dynamo exporter's own opset; GridSample, ScatterND add, LayerNormalization need >= 17
 MIN_OPSET = 18
 INPUT_NAMES = ("images", *CALIBRATION_KEYS)

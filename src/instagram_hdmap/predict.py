@@ -288,7 +288,8 @@ def predict_sample(
 
     * ``prediction_bev.png``: predicted polylines next to the GT (x forward up, y left, metres);
     * ``prediction_cameras.png``: the six original camera images with the predictions (and, dashed,
-      the GT) projected from the ground plane z = 0 of the ego frame;
+      the GT) projected from the sample's ground plane (``ground_height``: z = 0 of the ego frame on
+      nuScenes, the road below AV2's rear axle);
     * ``prediction_intermediate.png``: the paper's Fig. 6 (vertex heatmap, distance transform per
       class, vertices by GNN class, adjacency edges);
     * ``prediction.json``: the sample's predictions in the submission format.
@@ -351,7 +352,8 @@ def predict_sample(
         "prediction_cameras.png": prediction_cameras_figure(
             **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
             cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
-            predictions=preds, ground_truth=gts, camera_names=dataset.camera_names, classes=classes),
+            predictions=preds, ground_truth=gts, camera_names=dataset.camera_names, classes=classes,
+            ground_z=float(sample["ground_height"])),
         "prediction_intermediate.png": intermediate_figure(
             outputs["pred_heatmap"][0], outputs["pred_distance"][0], outputs["pred_vertices_px"][0][mask],
             outputs["pred_class_log_probs"][0][mask].argmax(-1), edges, kept, grid, classes, cfg.data.dt_clip,

@@ -46,16 +46,18 @@ from pathlib import Path
 import numpy as np
 import shapely
 import torch
-from shapely.geometry import LineString, MultiLineString, Polygon
+from shapely.geometry import LineString, Polygon
 
 from ..config import ExperimentConfig, UserError
 from .base import DatasetError, MapDataset
-from .local_map import LocalMapBuilder, MapError, _LocationMap
+from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
 from .transforms import ImageAug, load_image, sample_augmentation
 
 AV2_EXTRA = 'pip install -e ".[av2]"'
 BOUNDARY_OVERLAP_M = 0.3  # a painted lane boundary this close to a drivable-area edge is that edge
 DEDUP_DECIMALS = 2  # shared lane boundaries are equal to 1 cm
+GROUND_DISC_M = 1.5  # the ground height at the ego: the median of the raster within this radius ...
+GROUND_RES_M = 0.3  # ... sampled at the raster's resolution (AV2: 30 cm)
 CAMERA_WINDOW_MS = 25  # av2's SynchronizationDB: a ring image within half a 20 Hz frame of the sweep
 
 
@@ -78,8 +80,10 @@ def _line_key(xy: np.ndarray) -> tuple:
     return min(a, b)
 
 
-def painted_dividers(avm, area_edges) -> list[LineString]:
-    """Painted lane boundaries of an ``ArgoverseStaticMap`` (module docstring), city frame."""
+def painted_dividers(avm) -> list[LineString]:
+    """Painted lane boundaries of an ``ArgoverseStaticMap`` (module docstring), city frame, each shared
+    boundary once; not merged (the divider-on-kerb rule judges each clipped piece, then the builder
+    merges the kept ones)."""
     from av2.map.lane_segment import LaneMarkType
 
     unpainted = (LaneMarkType.NONE, LaneMarkType.UNKNOWN)
@@ -94,13 +98,16 @@ def painted_dividers(avm, area_edges) -> list[LineString]:
             if key not in seen:
                 seen.add(key)
                 lines.append(LineString(xy))
-    if lines and not area_edges.is_empty:
-        near_edge = area_edges.buffer(BOUNDARY_OVERLAP_M)
-        lines = [ln for ln in lines if ln.intersection(near_edge).length <= 0.5 * ln.length]
-    if not lines:
-        return []
-    merged = shapely.line_merge(MultiLineString(lines))
-    return [g for g in shapely.get_parts(merged) if g.length > 0]
+    return [ln for ln in lines if ln.length > 0]
+
+
+def _crossings(avm):
+    """``(id, ring, (edge1, edge2))`` of the map's crossings for ``collect_crossings``: the ring is
+    ``PedestrianCrossing.polygon``'s (edge1, then edge2 backwards), built here so that an edge of other
+    than two points does not raise."""
+    for pc in avm.get_scenario_ped_crossings():
+        e1, e2 = (np.asarray(e.xyz, dtype=np.float64)[:, :2] for e in (pc.edge1, pc.edge2))
+        yield pc.id, np.concatenate([e1, e2[::-1]]), (e1, e2)
 
 
 def load_log_map(log_dir: Path) -> _LocationMap:
@@ -120,11 +127,42 @@ def load_log_map(log_dir: Path) -> _LocationMap:
     areas = [Polygon(np.asarray(da.xyz)[:, :2]) for da in avm.get_scenario_vector_drivable_areas()]
     areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
     edges = shapely.union_all(areas).boundary if len(areas) else LineString()
-    peds = [Polygon(np.asarray(pc.polygon)[:, :2]) for pc in avm.get_scenario_ped_crossings()]
-    peds = np.array([p for p in peds if p.is_valid and not p.is_empty], dtype=object)
-    dividers = np.array(painted_dividers(avm, edges), dtype=object)
-    return _LocationMap(dividers, shapely.STRtree(dividers), peds, shapely.STRtree(peds), areas,
-                        shapely.STRtree(areas))
+    peds, ped_edges, report = collect_crossings(_crossings(avm), str(files[0]))
+    dividers = np.array(painted_dividers(avm), dtype=object)
+    return _LocationMap(dividers, peds, ped_edges, areas,
+                        divider_exclusion=edges.buffer(BOUNDARY_OVERLAP_M) if not edges.is_empty else None,
+                        merge_dividers=True, crossing_report=report)
+
+
+def load_ground_height(log_dir: Path):
+    """The log's ground-height raster (``GroundHeightLayer.from_file``: ``map/*_ground_height_surface____*.npy``
+    and ``map/*___img_Sim2_city.json``), or a ``MapError`` naming the folder."""
+    from av2.map.map_api import GroundHeightLayer
+
+    map_dir = log_dir / "map"
+    try:
+        return GroundHeightLayer.from_file(map_dir)
+    except (RuntimeError, KeyError, ValueError, OSError, json.JSONDecodeError) as e:
+        raise MapError(f"log {log_dir.name}: cannot read the ground-height raster in {map_dir} "
+                       f"(*_ground_height_surface____*.npy and *___img_Sim2_city.json): {type(e).__name__}: {e}; "
+                       "the log folder is incomplete (re-extract it from the AV2 sensor dataset)") from None
+
+
+def ego_ground_height(layer, city_SE3_ego) -> float:
+    """The height of the road below the ego origin in the ego frame (metres along its z; about -0.3 to
+    -0.4 on AV2, whose ego origin is the rear axle): the raster's city-frame ground points within
+    ``GROUND_DISC_M`` of the ego's (x, y), mapped into the ego frame by the full SE(3), their median z
+    (robust to a missing or noisy raster cell). NaN where the raster has no value there."""
+    xy = np.asarray(city_SE3_ego.translation, dtype=np.float64)[:2]
+    step = GROUND_RES_M
+    offsets = np.stack(np.meshgrid(*[np.arange(-GROUND_DISC_M, GROUND_DISC_M + 1e-9, step)] * 2), -1).reshape(-1, 2)
+    offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) <= GROUND_DISC_M]
+    points = np.c_[xy + offsets, np.zeros(len(offsets))]
+    points[:, 2] = layer.get_ground_height_at_xy(points)
+    points = points[np.isfinite(points[:, 2])]
+    if not len(points):
+        return math.nan
+    return float(np.median(city_SE3_ego.inverse().transform_point_cloud(points)[:, 2]))
 
 
 class AV2LocalMapBuilder(LocalMapBuilder):
@@ -166,8 +204,9 @@ class AV2MapDataset(MapDataset):
                                    "(AV2 samples are the sweeps); the log folder is incomplete")
             self.samples += [(log, int(ts)) for ts in sweeps[:: d.av2_frame_step]]
         self.sample_tokens = [f"{log}/{ts}" for log, ts in self.samples]
-        self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist)
+        self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist, d.ped_crossing)
         self._poses: dict[str, dict] = {}
+        self._grounds: dict[str, object] = {}
         self._cameras: dict[str, dict] = {}
 
     def _check_root(self) -> None:
@@ -259,6 +298,17 @@ class AV2MapDataset(MapDataset):
 
     def ego_pose(self, index: int) -> torch.Tensor:
         return torch.tensor(self._pose(index).transform_matrix, dtype=torch.float32)
+
+    def ground_height(self, index: int) -> float:
+        """The road's height below the ego origin at the sample's pose (``ego_ground_height``)."""
+        log, ts = self.samples[index]
+        if log not in self._grounds:
+            self._grounds[log] = load_ground_height(self.split_dir / log)
+        z = ego_ground_height(self._grounds[log], self._pose(index))
+        if not math.isfinite(z):
+            raise DatasetError(f"log {log}: the ground-height raster in {self.split_dir / log / 'map'} has no value "
+                               f"at the ego position of lidar sweep {ts}")
+        return z
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""

@@ -9,6 +9,8 @@ string per sample) and ``camera_names`` (V names, in the order of the camera ten
 * ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
   [V, 3, 3], ``cam_to_ego_trans`` [V, 3], ``post_rot`` [V, 3, 3], ``post_tran`` [V, 3];
 * ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
+* ``ground_height(i)``: the height of the road below the ego origin, metres along the ego frame's z
+  (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster);
 * ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals).
 
 Bad input raises a ``UserError`` naming the file and sample; with ``data.on_bad_sample=skip`` a bad
@@ -71,6 +73,9 @@ class MapDataset(Dataset):
     def camera_files(self, index: int) -> list:
         raise NotImplementedError
 
+    def ground_height(self, index: int) -> float:
+        raise NotImplementedError
+
     def set_epoch(self, epoch: int) -> None:
         """Select the augmentation draws of ``epoch`` (the training loop calls it before each epoch)."""
         self.epoch = epoch
@@ -88,6 +93,7 @@ class MapDataset(Dataset):
             polylines = self.gt_polylines(index)
             cams = self.load_cameras(index)
             ego_pose = self.ego_pose(index)
+            ground_height = torch.tensor(self.ground_height(index), dtype=torch.float32)
         except UserError as e:
             msg = str(e) if token in str(e) else f"sample {token}: {e}"
             raise type(e)(msg) from None
@@ -96,6 +102,7 @@ class MapDataset(Dataset):
         return {
             **cams,
             "ego_pose": ego_pose,
+            "ground_height": ground_height,
             "sample_token": token,
             "gt_polylines": polylines,
             **targets,

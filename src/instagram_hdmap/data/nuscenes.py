@@ -159,7 +159,7 @@ class NuScenesMapDataset(MapDataset):
                 token = self.nusc.get("sample", token)["next"]
         if not self.sample_tokens:
             raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
-        self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist)
+        self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist, d.ped_crossing)
         self._map_errors: dict[str, MapError] = {}
         for loc in sorted({self._location(t) for t in self.sample_tokens}):
             try:
@@ -222,6 +222,11 @@ class NuScenesMapDataset(MapDataset):
         """[4, 4] ego -> global of the sample's reference pose (LIDAR_TOP, else CAM_FRONT)."""
         pose = self._reference_pose(self.nusc.get("sample", self.sample_tokens[index]))
         return _pose_matrix(pose["rotation"], pose["translation"])
+
+    def ground_height(self, index: int) -> float:
+        """0: nuScenes' ego frame lies on the ground (its ego poses have z = 0, the sensors' heights are
+        above the road)."""
+        return 0.0
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``CAMERAS`` order."""
