@@ -270,8 +270,8 @@ def test_official_and_custom_splits(tmp_path):
 
 SAMPLE_KEYS = {
     "images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran", "ego_pose",
-    "ground_height", "sample_token", "gt_polylines", "gt_vertex_cells", "gt_distance", "gt_vertices_px", "gt_vertex_mask",
-    "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order", "gt_vertex_next", "gt_vertex_prev",
+    "ground_height", "sample_token", "gt_polylines", "gt_vertex_cells", "gt_distance", "gt_vertices_px",
+    "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order", "gt_vertex_next", "gt_vertex_prev",
 }
 
 
@@ -310,17 +310,28 @@ def test_sample_keys_shapes_dtypes(train_set, tiny_world_cfg):
     assert torch.allclose(s["ego_pose"][3], torch.tensor([0.0, 0, 0, 1]))
 
 
+def with_crossings(cfg, convention: str):
+    """``cfg`` with ``data.ped_crossing = convention``."""
+    import dataclasses
+
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, ped_crossing=convention))
+
+
 @pytest.mark.parametrize("convention", ["edges", "union", "each"])
 def test_gt_inside_patch_and_targets_consistent(train_set, convention):
     """Every crossing convention (data.ped_crossing) gives GT inside the patch whose targets round-trip:
     closed crossings (union, each) are cycles of the vertex graph, open ones (edges) paths."""
-    import dataclasses
-
     from instagram_hdmap.data.nuscenes import NuScenesMapDataset
+
+    check_gt_and_targets(NuScenesMapDataset(with_crossings(train_set.cfg, convention), "train", nusc=train_set.nusc))
+
+
+def check_gt_and_targets(ds) -> None:
+    """The GT of every sample of ``ds`` lies inside the patch, its targets round-trip, and each crossing
+    is one cycle (closed conventions) or one path (``edges``) of the vertex graph."""
     from instagram_hdmap.targets import build_targets, cells_to_vertices_px
 
-    cfg = dataclasses.replace(train_set.cfg, data=dataclasses.replace(train_set.cfg.data, ped_crossing=convention))
-    ds = NuScenesMapDataset(cfg, "train", nusc=train_set.nusc)
+    convention = ds.data_cfg.ped_crossing
     g, S = ds.grid, ds.grid.cell_size
     n_peds = 0
     for i in range(len(ds)):
