@@ -102,12 +102,15 @@ def painted_dividers(avm) -> list[LineString]:
 
 
 def _crossings(avm):
-    """``(id, ring, (edge1, edge2))`` of the map's crossings for ``collect_crossings``: the ring is
+    """``(id, ring, edges)`` of the map's crossings for ``collect_crossings``: the ring is
     ``PedestrianCrossing.polygon``'s (edge1, then edge2 backwards), built here so that an edge of other
-    than two points does not raise."""
+    than two points does not raise; the edges run as the ring does (edge1, edge2 backwards). AV2 stores
+    both edges pointing the same way: left so, the official join of collinear edges (``connect_lines``,
+    ``data.local_map.join_collinear_edges``), made for a ring's antiparallel edges, would join a narrow
+    crossing's two edges into one chord between their far ends (it does on the real log)."""
     for pc in avm.get_scenario_ped_crossings():
         e1, e2 = (np.asarray(e.xyz, dtype=np.float64)[:, :2] for e in (pc.edge1, pc.edge2))
-        yield pc.id, np.concatenate([e1, e2[::-1]]), (e1, e2)
+        yield pc.id, np.concatenate([e1, e2[::-1]]), (e1, e2[::-1])
 
 
 def load_log_map(log_dir: Path) -> _LocationMap:

@@ -19,7 +19,8 @@ expansion records are turned into polyline dicts (docs/conventions.md), in metre
     ``connect_lines`` joins two such lines whose first segments point within 5 deg of each other and
     whose ends lie within 2 m, into the line between their far ends (``join_collinear_edges``). On AV2
     a crossing is stored as its two principal edges (``PedestrianCrossing.edge1 / edge2``, the lines a
-    pedestrian walks along); those are its two edges here (StreamMapNet's ``polygon_ped=False``).
+    pedestrian walks along); those are its two edges here (StreamMapNet's ``polygon_ped=False``), in the
+    direction of the crossing's ring (edge2 reversed), as on nuScenes.
   - ``union`` (MapTR's ``ped_poly_geoms_to_instances``): the union of the crossing polygons, clipped to
     the patch; every ring of every part, the exterior (clockwise) **and the interiors**
     (counter-clockwise: where four overlapping crossings enclose a junction, its inner outline), each

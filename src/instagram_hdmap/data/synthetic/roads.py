@@ -391,9 +391,10 @@ def _overlapping_corners(codes: list[int], crossing: dict[int, bool], fillet: di
                          rng: np.random.Generator) -> dict[int, tuple[float, float]]:
     """The junction corners whose two arms (a, a + 1) both have a crossing (every arm of a 4-way junction
     has one with probability ``CITY_JUNCTION_P``, where the four crossings ring the junction as in the
-    real log) get crossings that overlap there, as real ones do (the rate above): the overlap's depths along the two arms
-    (``_crossing_corners`` stretches both crossings past the kerb that far into each other's band), and
-    the junction tight kerb radii (``fillet`` set in place) so that the crossings lie near the corner.
+    real log) get crossings that overlap there, as real ones do (the rate above): the overlap's depths
+    along the two arms (``_crossing_corners`` stretches both crossings past the kerb that far into each
+    other's band), and the junction tight kerb radii (``fillet`` set in place) so that the crossings lie
+    near the corner.
     Returns {corner a: (depth along a, depth along a + 1)}; ``_drop_far_overlaps`` keeps the reachable."""
     if len(codes) == 4 and rng.random() < CITY_JUNCTION_P:  # a crossing on every arm (``crossing`` in place)
         crossing.update({a: True for a in codes})
