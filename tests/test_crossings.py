@@ -180,14 +180,22 @@ def test_bad_crossings_of_a_nuscenes_map_are_repaired_or_skipped_and_reported_on
     _check_bad_input(build, f"{LOCATION}.json", [LineString(BOWTIE[0:2]), LineString(BOWTIE[2:4])])
 
 
-def write_av2_map(log_dir: Path, crossings: list[tuple[list, list]], areas: list[list]) -> None:
-    """A minimal AV2 log map archive: crossings as (edge1, edge2), drivable areas as rings, no lanes."""
+def write_av2_map(log_dir: Path, crossings: list[tuple[list, list]], areas: list[list],
+                  lanes: list[tuple[list, str, list, str]] = ()) -> None:
+    """A minimal AV2 log map archive: crossings as (edge1, edge2), drivable areas as rings, lane segments
+    as (left boundary, its mark type, right boundary, its mark type)."""
     def xyz(pts):
         return [{"x": float(x), "y": float(y), "z": 0.0} for x, y in pts]
 
+    segments = {str(200 + i): {"id": 200 + i, "is_intersection": False, "lane_type": "VEHICLE",
+                               "left_lane_boundary": xyz(left), "left_lane_mark_type": left_mark,
+                               "right_lane_boundary": xyz(right), "right_lane_mark_type": right_mark,
+                               "left_neighbor_id": None, "right_neighbor_id": None, "predecessors": [],
+                               "successors": []}
+                for i, (left, left_mark, right, right_mark) in enumerate(lanes)}
     obj = {"pedestrian_crossings": {str(i): {"id": i, "edge1": xyz(e1), "edge2": xyz(e2)}
                                     for i, (e1, e2) in enumerate(crossings)},
-           "lane_segments": {},
+           "lane_segments": segments,
            "drivable_areas": {str(100 + i): {"id": 100 + i, "area_boundary": xyz(r)} for i, r in enumerate(areas)}}
     (log_dir / "map").mkdir(parents=True)
     (log_dir / "map" / f"log_map_archive_{log_dir.name}____PIT_city_1.json").write_text(json.dumps(obj))
@@ -210,3 +218,23 @@ def test_bad_crossings_of_an_av2_map_are_repaired_or_skipped_and_reported_once(t
     # edges: AV2's stored edge1 and edge2, whatever the polygon they make
     _check_bad_input(build, "log_map_archive_log-a____PIT_city_1.json",
                      [LineString([BOWTIE[0], BOWTIE[3]]), LineString([BOWTIE[1], BOWTIE[2]])])
+
+
+def test_the_divider_on_kerb_rule_judges_the_clipped_pieces(tmp_path):
+    """AV2: a painted lane boundary that runs along the kerb for most of its length, but through the middle
+    of the road inside the patch, is a divider there (the rule judges each clipped piece, as StreamMapNet's
+    remove_boundary_dividers does); paint along the kerb inside the patch is left to the boundary class."""
+    pytest.importorskip("av2", reason='the Argoverse 2 API is the optional extra: pip install -e ".[av2]"')
+    from instagram_hdmap.data.av2 import AV2LocalMapBuilder
+    from instagram_hdmap.data.local_map import BOUNDARY, DIVIDER
+
+    long_way = [[-300, -9], [-40, -9], [-30, 0], [30, 0]]  # 260 m along the kerb y = -9, 60 m mid-road
+    along_kerb = [[-30, 9], [30, 9]]  # the kerb y = 9, inside the patch
+    unpainted = [[-300, -12], [30, -12]]
+    write_av2_map(tmp_path / "log-k", [], [_rect(-400, 100, -9, 9)],
+                  lanes=[(long_way, "SOLID_WHITE", unpainted, "NONE"), (along_kerb, "SOLID_YELLOW", unpainted, "NONE")])
+    polys = AV2LocalMapBuilder(tmp_path, GRID, 0.5, "each")("log-k", 0.0, 0.0, 0.0)
+    dividers = [LineString(p["pts"]) for p in polys if p["label"] == DIVIDER]
+    assert coverage([LineString([(-29.99, 0), (29.99, 0)])], [{"pts": np.asarray(d.coords)} for d in dividers]) == 1.0
+    assert all(abs(float(np.asarray(d.coords)[:, 1].mean())) < 1 for d in dividers)  # none along y = 9
+    assert any(np.allclose(p["pts"][:, 1], 9.0) for p in polys if p["label"] == BOUNDARY)
