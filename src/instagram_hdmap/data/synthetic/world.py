@@ -59,7 +59,7 @@ from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, pl
 VERSION = "v1.0-trainval"
 MANIFEST = "world.json"
 FORMAT = "instagram-hdmap synthetic nuScenes world"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: crossings overlap at junction corners (roads._overlapping_corners)
 BASE_TIMESTAMP_US = 1532402927647951  # 2018-07-24 03:28:47 UTC, the first mini scene; no wall clock
 SCENE_SPACING_US = 3600 * 1_000_000
 MP_START_METHOD = "spawn"  # workers start clean: no copied locks or threads (torch, OpenCV) from the caller
