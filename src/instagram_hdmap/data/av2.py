@@ -24,15 +24,26 @@ local map (data/local_map.py: the same patch, edge margin and ``sample_dist``):
 
 * **divider**: lane-segment boundaries that are painted, i.e. whose mark type is not ``NONE`` or
   ``UNKNOWN`` (``LaneSegment.left/right_lane_marking.mark_type``); a boundary shared by two lane
-  segments (each lists it) is kept once (equal points to 1 cm, either direction); a painted boundary
-  lying along the drivable-area edge (more than half its length within ``BOUNDARY_OVERLAP_M``) is left
-  to the boundary class; consecutive pieces are merged end to end (``line_merge``).
-* **ped_crossing**: each crossing's polygon (``PedestrianCrossing.polygon``: its two edges).
+  segments (each lists it) is kept once (equal points to 1 cm, either direction); each boundary is
+  clipped to the patch and a clipped piece lying along the drivable-area edge (more than half its
+  length within ``BOUNDARY_OVERLAP_M``) is left to the boundary class (the rule judges the clipped
+  pieces, as StreamMapNet's ``remove_boundary_dividers`` in ``plugin/datasets/map_utils/utils.py``,
+  applied after clipping in ``av2map_extractor.py``: a boundary that runs along a kerb elsewhere is
+  still a divider where it is paint in the middle of the road); the kept pieces are merged end to end
+  (``line_merge``).
+* **ped_crossing**: each crossing's polygon (``PedestrianCrossing.polygon``) or, under ``edges``, its
+  two principal edges (``edge1``, ``edge2``), in the convention of ``data.ped_crossing``
+  (docs/conventions.md; configs/av2 use ``each``, the field's AV2 convention).
 * **boundary**: the edges of the union of the drivable areas (``get_scenario_vector_drivable_areas``),
   exterior and interior rings.
 
-Bad input (a dataroot without the split folder of logs, a log without a map archive, poses or
-calibration, a missing calibration row or camera image, a camera whose images do not match the
+Ground height (``ground_height``): AV2's ego origin is the rear axle, 0.33-0.43 m above the road; the
+sample's ``ground_height`` is the road's height below it in the ego frame, from the log's ground-height
+raster (``GroundHeightLayer``, ``map/*_ground_height_surface____*.npy``) around the ego, mapped through
+the full SE(3) of the pose (``ego_ground_height``).
+
+Bad input (a dataroot without the split folder of logs, a log without a map archive, ground-height
+raster, poses or calibration, a missing calibration row or camera image, a camera whose images do not match the
 sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file; with
 ``data.on_bad_sample=skip`` the sample is skipped and counted instead (data/base.py).
 """
