@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 from pathlib import Path
 
 import cv2
@@ -258,10 +257,10 @@ def _stand_in_log(dst: Path) -> Path:
 
 
 def test_show_gt_draws_every_crossing_of_a_real_junction(tmp_path, monkeypatch, avm, capsys):
+    """show-gt on a real sample (stand-in images) draws the four overlapping crossings of the junction
+    ahead whole, and projects the GT into the cameras from the real ground height."""
     import instagram_hdmap.visualize as visualize
 
-    if shutil.which("true") is None:  # symlinks and a POSIX tree: the stand-in log is a link tree
-        pytest.skip("needs a POSIX file system")
     root = _stand_in_log(tmp_path / "av2")
     drawn = []
     real_figure = visualize.bev_polylines_figure
@@ -271,6 +270,14 @@ def test_show_gt_draws_every_crossing_of_a_real_junction(tmp_path, monkeypatch, 
         return real_figure(polylines, *args, **kwargs)
 
     monkeypatch.setattr(visualize, "bev_polylines_figure", spy)
+    planes = []
+    real_cameras = visualize.cameras_figure
+
+    def spy_cameras(*args, **kwargs):
+        planes.append(args[8])  # ground_z: the plane the GT is drawn on in the camera images
+        return real_cameras(*args, **kwargs)
+
+    monkeypatch.setattr(visualize, "cameras_figure", spy_cameras)
     out = tmp_path / "gt"
     # a 60 m x 60 m patch holds the whole junction ahead of the ego (its four crossings overlap at the corners)
     config = Path(__file__).resolve().parents[1] / "configs" / "av2" / "table1_b0_lss_128x352.yaml"
@@ -280,6 +287,8 @@ def test_show_gt_draws_every_crossing_of_a_real_junction(tmp_path, monkeypatch, 
     assert main(args) == 0, capsys.readouterr().err
     assert {p.name for p in out.iterdir()} >= {"bev_polylines.png", "cameras.png", "vertex_cells.png", "distance.png"}
     (polylines,) = drawn
+    (plane,) = planes
+    assert -0.45 < plane < -0.2  # the real road below the rear axle, not z = 0
     table = read_city_SE3_ego(REAL / "val" / LOG)
     pose = table[min(int(p.stem) for p in (REAL / "val" / LOG / "sensors" / "lidar").glob("*.feather"))]
     patch = box(GRID.xmin, -30.0, GRID.xmax, 30.0)
