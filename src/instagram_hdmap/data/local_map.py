@@ -60,8 +60,7 @@ from pathlib import Path
 
 import numpy as np
 import shapely
-from shapely.geometry import LinearRing, LineString, MultiLineString, Polygon, box
-from shapely.geometry.polygon import orient
+from shapely.geometry import LineString, MultiLineString, Polygon, box
 
 from ..config import UserError
 from ..geometry import BEVGrid
@@ -80,6 +79,7 @@ DISTINCT_DECIMALS = 6  # crossing ring points equal to 1 um are one point (degen
 # divider-on-kerb rule (maps that set _LocationMap.divider_exclusion, i.e. AV2): a clipped divider piece
 # with more than this fraction of its length inside the exclusion zone is dropped
 EXCLUDED_FRACTION = 0.5
+EXCLUDED_STEP_M = 0.5  # ... the fraction measured at points this far apart along the piece
 
 
 class MapError(UserError):
@@ -110,6 +110,8 @@ class _LocationMap:
         self.ped_tree = shapely.STRtree(self.peds)
         self.ped_edge_tree = shapely.STRtree(self.ped_edges)
         self.area_tree = shapely.STRtree(self.areas)
+        if self.divider_exclusion is not None:
+            shapely.prepare(self.divider_exclusion)  # point-in-zone tests per sample (_divider_pieces)
 
 
 def map_expansion_path(dataroot: str | Path, location: str) -> Path:
@@ -273,6 +275,15 @@ def _polygons(geom) -> list[Polygon]:
     return [g for g in shapely.get_parts(geom) if g.geom_type == "Polygon" and g.area > 0]
 
 
+def _rings(poly: Polygon, exterior_ccw: bool) -> list[LineString]:
+    """The polygon's rings as lines, the exterior counter-clockwise if ``exterior_ccw`` (else clockwise)
+    and the interiors the other way (shapely's ``orient``, with GEOS's orientation test)."""
+    rings = [poly.exterior, *poly.interiors]
+    want = np.array([exterior_ccw] + [not exterior_ccw] * (len(rings) - 1))
+    flip = shapely.is_ccw(np.array(rings, dtype=object)) != want
+    return [LineString(np.asarray(r.coords)[::-1] if f else r.coords) for r, f in zip(rings, flip)]
+
+
 class LocalMapBuilder:
     """``builder(location, x, y, yaw) -> list of polyline dicts`` (see the module docstring).
 
@@ -322,33 +333,40 @@ class LocalMapBuilder:
         def to_ego(geoms: np.ndarray) -> np.ndarray:
             return shapely.transform(geoms, lambda p: (p - [x, y]) @ rot)
 
+        def to_global(pts: np.ndarray) -> np.ndarray:
+            return pts @ rot.T + [x, y]
+
         def query(tree: shapely.STRtree) -> np.ndarray:  # map order, so that the output does not depend on the tree
             return np.sort(tree.query(patch, predicate="intersects"))
 
         out: list[dict] = []
         out += [self._poly(line, DIVIDER, closed=False)
-                for line in self._divider_pieces(lmap, query(lmap.divider_tree), patch, to_ego)]
+                for line in self._divider_pieces(lmap, query(lmap.divider_tree), to_ego, to_global)]
         out += self._crossings(lmap, query, to_ego)
         # boundaries: union of road segments and lanes, exterior and interior rings
         cand = lmap.areas[query(lmap.area_tree)]
         if len(cand):
             union = shapely.union_all(shapely.intersection(to_ego(cand), self._clip_box))
             for poly in _polygons(union):
-                poly = orient(poly, sign=-1.0)
-                for ring in [poly.exterior, *poly.interiors]:
+                for ring in _rings(poly, exterior_ccw=False):
                     out += self._ring_pieces(ring)
         return out
 
-    def _divider_pieces(self, lmap: _LocationMap, idx: np.ndarray, patch: Polygon, to_ego) -> list[LineString]:
+    def _divider_pieces(self, lmap: _LocationMap, idx: np.ndarray, to_ego, to_global) -> list[LineString]:
         """The divider lines clipped to the grid; with a divider exclusion zone (AV2), each clipped piece
-        with more than ``EXCLUDED_FRACTION`` of its length in the zone is dropped (the rule on the
-        clipped pieces, as StreamMapNet's ``remove_boundary_dividers``), and the kept ones are
-        line-merged (``merge_dividers``)."""
+        with more than ``EXCLUDED_FRACTION`` of its length in the zone (measured at points every
+        ``EXCLUDED_STEP_M``) is dropped (the rule on the clipped pieces, as StreamMapNet's
+        ``remove_boundary_dividers``), and the kept ones are line-merged (``merge_dividers``)."""
         pieces = [ln for g in shapely.intersection(to_ego(lmap.dividers[idx]), self._clip_box) for ln in _lines(g)]
         if lmap.divider_exclusion is not None and pieces:
-            zone = to_ego(np.array([shapely.intersection(lmap.divider_exclusion, patch)], dtype=object))[0]
-            inside = shapely.length(shapely.intersection(np.array(pieces, dtype=object), zone))
-            pieces = [p for p, a in zip(pieces, inside) if a <= EXCLUDED_FRACTION * p.length]
+            geoms = np.array(pieces, dtype=object)
+            counts = np.maximum(np.ceil(shapely.length(geoms) / EXCLUDED_STEP_M).astype(np.int64), 1)
+            starts = np.cumsum(counts) - counts
+            dists = (np.arange(counts.sum()) - np.repeat(starts, counts) + 0.5) * EXCLUDED_STEP_M
+            pts = to_global(shapely.get_coordinates(shapely.line_interpolate_point(np.repeat(geoms, counts), dists)))
+            inside = shapely.contains_xy(lmap.divider_exclusion, pts[:, 0], pts[:, 1])
+            keep = np.add.reduceat(inside.astype(np.float64), starts) / counts <= EXCLUDED_FRACTION
+            pieces = [p for p, k in zip(pieces, keep) if k]
         if lmap.merge_dividers and len(pieces) > 1:
             pieces = _lines(shapely.line_merge(MultiLineString(pieces)))
         return pieces
@@ -364,20 +382,15 @@ class LocalMapBuilder:
             return []
         clipped = shapely.intersection(to_ego(cand), self._clip_box)
         if self.ped_crossing == "union":  # MapTR: exterior clockwise, interiors counter-clockwise
-            parts, sign = _polygons(shapely.union_all(clipped)), -1.0
+            parts, ccw = _polygons(shapely.union_all(clipped)), False
         else:  # each, StreamMapNet: counter-clockwise
-            parts, sign = [p for g in clipped for p in _polygons(g)], 1.0
-        out = []
-        for poly in parts:
-            poly = orient(poly, sign=sign)
-            out += [self._poly(LineString(ring.coords), PED_CROSSING, closed=True)
-                    for ring in [poly.exterior, *poly.interiors]]
-        return out
+            parts, ccw = [p for g in clipped for p in _polygons(g)], True
+        return [self._poly(ring, PED_CROSSING, closed=True) for poly in parts for ring in _rings(poly, ccw)]
 
-    def _ring_pieces(self, ring: LinearRing) -> list[dict]:
+    def _ring_pieces(self, ring: LineString) -> list[dict]:
         if ring.within(self._edge_box):
-            return [self._poly(LineString(ring.coords), BOUNDARY, closed=True)]
-        cut = shapely.intersection(LineString(ring.coords), self._edge_box)
+            return [self._poly(ring, BOUNDARY, closed=True)]
+        cut = shapely.intersection(ring, self._edge_box)
         if isinstance(cut, MultiLineString):
             cut = shapely.line_merge(cut)
         return [self._poly(line, BOUNDARY, closed=False) for line in _lines(cut)]
