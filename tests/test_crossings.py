@@ -238,3 +238,40 @@ def test_the_divider_on_kerb_rule_judges_the_clipped_pieces(tmp_path):
     assert coverage([LineString([(-29.99, 0), (29.99, 0)])], [{"pts": np.asarray(d.coords)} for d in dividers]) == 1.0
     assert all(abs(float(np.asarray(d.coords)[:, 1].mean())) < 1 for d in dividers)  # none along y = 9
     assert any(np.allclose(p["pts"][:, 1], 9.0) for p in polys if p["label"] == BOUNDARY)
+
+
+@pytest.mark.parametrize("convention", ["edges", "union", "each"])
+def test_every_part_downstream_takes_each_convention(crossing_map, convention):
+    """GT crossings of a convention -> targets -> the outputs of a perfect model (predict.gt_outputs) ->
+    the decoders -> the same crossings (cycles for closed ones, paths for open ones), which score AP 1
+    under both protocols; the distance transform draws every crossing; the BEV picture draws each one."""
+    from instagram_hdmap.data.nuscenes import collate_fn
+    from instagram_hdmap.evaluation import Evaluator
+    from instagram_hdmap.postprocess import postprocess_batch
+    from instagram_hdmap.predict import gt_outputs
+    from instagram_hdmap.targets import build_targets
+    from instagram_hdmap.visualize import bev_polylines_figure
+
+    grid = BEVGrid(-16.0, 16.0, -16.0, 16.0, 0.25, 4)  # the junction whole, and nothing of the row
+    polys = LocalMapBuilder(crossing_map, grid, 0.5, convention)(LOCATION, 0.0, 0.0, 0.0)
+    peds = _peds(polys)
+    assert len(peds) == {"edges": 8, "union": 2, "each": 4}[convention]
+    sample = {"gt_polylines": polys, **build_targets(polys, grid)}
+    dt = sample["gt_distance"][PED_CROSSING].numpy()
+    for p in peds:  # every crossing polyline is drawn into its class's distance transform
+        uv = np.clip(grid.px_index(grid.m_to_px(p["pts"])), 0, [grid.W - 1, grid.H - 1])
+        assert (dt[uv[:, 1], uv[:, 0]] == 0).all()
+    outputs = gt_outputs(collate_fn([sample]), grid, 3)
+    for decode in ({"decoder": "greedy"}, {"decoder": "classwise", "match_threshold": 0.02, "min_vertices": 4},
+                   {"decoder": "mutual"}):
+        got = [p for p in postprocess_batch(outputs, grid, **decode)[0] if p["label"] == PED_CROSSING]
+        assert sorted(p["closed"] for p in got) == sorted(p["closed"] for p in peds), decode
+        # one vertex per 1 m cell: the decoded crossings follow the GT to within a cell's half diagonal
+        assert coverage([LineString(p["pts"]) for p in peds], got, tol=0.75) == 1.0, decode
+        for protocol in ("vector", "raster"):
+            ev = Evaluator(protocol, grid=grid)
+            ev.update([[dict(p, score=1.0) for p in got]], [polys])
+            assert ev.compute()["AP_class"]["ped_crossing"] == pytest.approx(1.0), (decode, protocol)
+    fig = bev_polylines_figure(polys, grid)
+    drawn = [line for ax in fig.axes for line in ax.lines]
+    assert len(drawn) >= len(polys)
