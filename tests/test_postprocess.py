@@ -397,8 +397,8 @@ def test_decode_options_follow_the_config():
                     "max_edge_px": 10.0, "min_vertices": 4}
     paper = load_config(Path(__file__).resolve().parents[1] / "configs" / "paper" / "table1_b0_lss_128x352.yaml")
     assert decode_options(paper.model.gnn, BEVGrid.from_config(paper.grid)) == {
-        "match_threshold": 0.1, "decoder": "greedy", "class_min_prob": 0.05, "same_class_edges": False,
-        "max_edge_px": None, "min_vertices": 2}
+        "match_threshold": 0.1, "decoder": "official", "class_min_prob": 0.05, "same_class_edges": False,
+        "max_edge_px": None, "min_vertices": 2}  # the official export's decoding
 
 
 # --- the classwise decoder ----------------------------------------------------------------------------
@@ -457,3 +457,248 @@ def test_classwise_graphs_are_per_class_and_batched_equals_one_by_one():
         assert as_set(postprocess_batch(outputs, GRID, 0.1, decoder="classwise")[b]) == gt_set(scene)
         one = neighbours({k: v[b : b + 1] for k, v in outputs.items()}, 0.1, decoder="classwise")
         assert torch.equal(one[0], graphs[b])
+
+
+def edge_probs(N: int, edges=(), one_way=()) -> torch.Tensor:
+    """[N+1, N+1] probabilities: 0.5 both ways along ``edges``, 0.5 from i to j only along ``one_way``,
+    the rest of each real row on the dustbin."""
+    P = torch.zeros(N + 1, N + 1)
+    for i, j in edges:
+        P[i, j] = P[j, i] = 0.5
+    for i, j in one_way:
+        P[i, j] = 0.5
+    P[:N, N] = (1 - P[:N, :N].sum(1)).clamp(min=0)
+    P[N] = 1.0 / (N + 1)
+    return P
+
+
+def decoded_indices(instances, outputs) -> list[list[int]]:
+    """Polylines decoded from ``chain_outputs`` (vertex i at v = 20 + 10 i px) -> vertex index lists."""
+    v = GRID.m_to_px(np.stack([d["pts"] for d in instances]))[..., 1] if instances else []
+    return [[int(round((x - 20) / 10)) for x in row] for row in v]
+
+
+def test_the_official_decoder_reproduces_the_official_walk():
+    """decoder='official' against the official export (postprocess/vectorize.py:104-198 at
+    juyebshin/InstaGraM 2b978e4). The expected vertex lists are what that function returns on these
+    inputs (run on them, outside this repository): it records a vertex only when the next vertex of
+    its walk points back to it, so the last vertex of every walk is lost."""
+    cases = [
+        (5, dict(edges=[(0, 1), (1, 2), (2, 3), (3, 4)]), [[3, 2, 1, 0]]),  # the path's end 4 is lost
+        (3, dict(edges=[(0, 1), (1, 2)]), [[1, 0]]),
+        (3, dict(edges=[(1, 0), (0, 2)]), []),  # the lowest index in the middle: two walks of one vertex each
+        (5, dict(edges=[(2, 0), (0, 1), (1, 3), (3, 4)]), [[0, 1, 3]]),  # both walks lose their ends
+        (2, dict(edges=[(0, 1)]), []),  # a pair gives nothing
+        (4, dict(edges=[(0, 1), (1, 2), (2, 3), (3, 0)]), [[0, 1, 2]]),  # a cycle comes out open, one short
+        (5, dict(edges=[(0, 1), (1, 2), (3, 4)], one_way=[(2, 3)]), [[3, 1, 0]]),  # walks on over 2 -> 3
+    ]
+    for n, kw, expected in cases:
+        outputs = chain_outputs(edge_probs(n, **kw))
+        outputs["pred_class_log_probs"] = torch.tensor([[0.8, 0.1, 0.1]] * n).log()[None]
+        out = postprocess_batch(outputs, GRID, decoder="official")[0]
+        assert decoded_indices(out, outputs) == expected, (kw, expected)
+        assert all(not d["closed"] and d["label"] == 0 and d["score"] == pytest.approx(0.8) for d in out)
+    # the class condition: vertex 2 of another argmax class splits 0..4 into two pairs, which both vanish
+    outputs = chain_outputs(edge_probs(5, edges=[(0, 1), (1, 2), (2, 3), (3, 4)]))
+    outputs["pred_class_log_probs"] = torch.tensor([[0.8, 0.1, 0.1]] * 2 + [[0.1, 0.8, 0.1]] + [[0.8, 0.1, 0.1]] * 2
+                                                   ).log()[None]
+    assert postprocess_batch(outputs, GRID, decoder="official")[0] == []
+
+
+def test_the_mutual_decoder_is_the_official_rule_with_whole_instances():
+    """decoder='mutual': the official edges (two best real columns, p > 0.1, both ways, the same argmax
+    class at both ends) and the official confidence (mean probability of the class, no vertex score),
+    traced into whole paths and cycles."""
+    outputs = chain_outputs(edge_probs(5, edges=[(0, 1), (1, 2), (2, 3), (3, 4)]))
+    probs = torch.tensor([[0.7, 0.2, 0.1], [0.6, 0.3, 0.1], [0.5, 0.4, 0.1], [0.9, 0.05, 0.05], [0.8, 0.1, 0.1]])
+    outputs["pred_class_log_probs"] = probs.log()[None]
+    outputs["pred_vertex_scores"] = torch.tensor([[0.9, 0.1, 0.5, 0.3, 0.2]])
+    (inst,) = postprocess_batch(outputs, GRID, decoder="mutual")[0]
+    assert sorted(decoded_indices([inst], outputs)[0]) == [0, 1, 2, 3, 4] and inst["label"] == 0
+    assert inst["score"] == pytest.approx(probs[:, 0].mean().item(), rel=1e-6)  # not x mean vertex score
+    (greedy,) = postprocess_batch(outputs, GRID)[0]
+    assert greedy["score"] == pytest.approx(probs[:, 0].mean().item() * 0.4, rel=1e-6)
+    # vertex 2 turns to class 1: no edge joins it to a class-0 vertex, whatever same_class_edges says
+    outputs["pred_class_log_probs"] = probs[[0, 1, 3, 3, 4]].clone().index_put_(
+        (torch.tensor([2]),), torch.tensor([[0.2, 0.7, 0.1]])).log()[None]
+    for flag in (False, True):
+        out = postprocess_batch(outputs, GRID, decoder="mutual", same_class_edges=flag)[0]
+        assert sorted(sorted(i) for i in decoded_indices(out, outputs)) == [[0, 1], [3, 4]]
+    # a cycle stays closed
+    outputs = chain_outputs(edge_probs(4, edges=[(0, 1), (1, 2), (2, 3), (3, 0)]))
+    (inst,) = postprocess_batch(outputs, GRID, decoder="mutual")[0]
+    assert inst["closed"] and len(inst["pts"]) == 5
+
+
+# --- the vectorised decoding equals the sequential loops ----------------------------------------------------
+
+
+def _greedy_loop(log_assignment, mask, threshold, class_log_probs=None, same_class=False, vertices=None,
+                 max_edge_px=None) -> torch.Tensor:
+    """The greedy rule as a plain sequential loop (the reference): dense pair weights, every pair above
+    the threshold in order (strongest first, ties row-major), kept while both ends have < 2 edges."""
+    B, N = mask.shape
+    scores = log_assignment[:, :N, :N].float()
+    w = 0.5 * (scores + scores.transpose(1, 2))
+    out = torch.full((B, N, 2), -1, dtype=torch.long)
+    for b in range(B):
+        pairs = []
+        for i in range(N):
+            for j in range(i + 1, N):
+                if not (mask[b, i] and mask[b, j]) or not w[b, i, j] > math.log(threshold):
+                    continue
+                if same_class and class_log_probs[b, i].argmax() != class_log_probs[b, j].argmax():
+                    continue
+                if max_edge_px is not None:
+                    d = vertices[b, i].double() - vertices[b, j].double()
+                    if math.hypot(float(d[0]), float(d[1])) > max_edge_px:
+                        continue
+                pairs.append((-float(w[b, i, j]), i, j))
+        degree = [0] * N
+        for _, i, j in sorted(pairs):  # strongest first; equal weights in row-major order
+            if degree[i] < 2 and degree[j] < 2:
+                out[b, i, degree[i]], out[b, j, degree[j]] = j, i
+                degree[i] += 1
+                degree[j] += 1
+    return out
+
+
+def _trace_loop(nbr0: list[int], nbr1: list[int], min_vertices: int = 2) -> list[tuple[list[int], bool]]:
+    """The walk as a plain loop (the reference): paths from their lower-index end, then cycles from their
+    lowest vertex towards its first neighbour."""
+    n, seen, out = len(nbr0), [False] * len(nbr0), []
+    for s in range(n):
+        if seen[s] or nbr0[s] < 0 or nbr1[s] >= 0:
+            continue
+        path, prev, cur = [s], s, nbr0[s]
+        seen[s] = True
+        while cur >= 0:
+            path.append(cur)
+            seen[cur] = True
+            prev, cur = cur, (nbr1[cur] if nbr0[cur] == prev else nbr0[cur])
+        if len(path) >= min_vertices:
+            out.append((path, False))
+    for s in range(n):
+        if seen[s] or nbr0[s] < 0:
+            continue
+        cycle, prev, cur = [s], s, nbr0[s]
+        seen[s] = True
+        while cur != s:
+            cycle.append(cur)
+            seen[cur] = True
+            prev, cur = cur, (nbr1[cur] if nbr0[cur] == prev else nbr0[cur])
+        if len(cycle) >= max(min_vertices, 3):
+            out.append((cycle, True))
+    return out
+
+
+def _chain_outputs(B: int, N: int, seed: int, noise: float) -> dict:
+    """Model outputs whose assignment follows random chains (some closed) plus noise: the decoding then
+    meets real paths, cycles, spurious candidates and ties of its greedy rule."""
+    gen = torch.Generator().manual_seed(seed)
+    nxt = torch.full((B, N), N, dtype=torch.long)
+    prv = torch.full((B, N), N, dtype=torch.long)
+    for b in range(B):
+        perm = torch.randperm(N, generator=gen).tolist()
+        k = 0
+        while k < N - 1:
+            length = int(torch.randint(2, 9, (1,), generator=gen))
+            chain = perm[k : k + length]
+            for a, c in zip(chain[:-1], chain[1:]):
+                nxt[b, a], prv[b, c] = c, a
+            if len(chain) >= 3 and float(torch.rand(1, generator=gen)) < 0.3:  # close it
+                nxt[b, chain[-1]], prv[b, chain[0]] = chain[0], chain[-1]
+            k += length
+    log_assignment = target_log_assignment(nxt, prv, floor=1e-3)
+    log_assignment = (log_assignment + noise * torch.randn(log_assignment.shape, generator=gen)).log_softmax(-1)
+    mask = torch.rand(B, N, generator=gen) < 0.9
+    return {"pred_log_assignment": log_assignment, "pred_vertex_mask": mask,
+            "pred_vertices_px": torch.randint(0, 60, (B, N, 2), generator=gen).float(),
+            "pred_vertex_scores": torch.rand(B, N, generator=gen) * mask,
+            "pred_class_log_probs": (2 * torch.randn(B, N, K, generator=gen)).log_softmax(-1)}
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_vectorised_greedy_equals_the_sequential_loop(seed):
+    from instagram_hdmap.postprocess import greedy_neighbours, neighbours
+
+    for outputs in (_chain_outputs(3, 40, seed, 0.5), _chain_outputs(2, 25, seed, 3.0)):
+        logA, mask = outputs["pred_log_assignment"], outputs["pred_vertex_mask"]
+        clp, verts = outputs["pred_class_log_probs"], outputs["pred_vertices_px"]
+        for thr, same, max_edge in ((0.1, False, None), (0.02, True, None), (0.02, False, 14.0)):
+            got = greedy_neighbours(logA, mask, thr, clp, same, verts, max_edge)
+            assert torch.equal(got, _greedy_loop(logA, mask, thr, clp, same, verts, max_edge)), (thr, same)
+        # classwise: the greedy rule per class over the vertices with p_k >= class_min_prob
+        graphs = neighbours(outputs, 0.02, decoder="classwise", class_min_prob=0.2, max_edge_px=14.0)
+        for k in range(K):
+            member = mask & (clp[..., k].exp() >= 0.2)
+            assert torch.equal(graphs[:, k], _greedy_loop(logA, member, 0.02, None, False, verts, 14.0)), k
+
+
+def test_ties_are_broken_in_row_major_order_like_the_loop():
+    """Equal pair weights everywhere: the first pairs in row-major order win, as in the sequential loop."""
+    N = 6
+    logA = torch.zeros(1, N + 1, N + 1).log_softmax(-1)
+    mask = torch.ones(1, N, dtype=torch.bool)
+    from instagram_hdmap.postprocess import greedy_neighbours
+
+    got = greedy_neighbours(logA, mask, 0.05)
+    assert torch.equal(got, _greedy_loop(logA, mask, 0.05))
+    assert got[0, 0].tolist() == [1, 2]  # (0, 1) then (0, 2)
+
+
+@pytest.mark.parametrize("min_vertices", [2, 3, 5])
+def test_vectorised_walk_equals_the_loop(min_vertices):
+    from instagram_hdmap.postprocess import greedy_neighbours, trace_graphs
+
+    outputs = _chain_outputs(4, 50, 11, 0.8)
+    nbr = greedy_neighbours(outputs["pred_log_assignment"], outputs["pred_vertex_mask"], 0.05)  # [B, N, 2]
+    vertices, lengths, closed = trace_graphs(nbr.numpy(), min_vertices)
+    expected = [([b * 50 + i for i in walk], shut) for b in range(4)
+                for walk, shut in _trace_loop(nbr[b, :, 0].tolist(), nbr[b, :, 1].tolist(), min_vertices)]
+    bounds = np.concatenate([[0], np.cumsum(lengths)])
+    got = [(vertices[a:z].tolist(), bool(c)) for a, z, c in zip(bounds[:-1], bounds[1:], closed)]
+    assert got == expected and any(c for _, c in expected) and not all(c for _, c in expected)
+    assert trace_instances(nbr[0, :, 0].tolist(), nbr[0, :, 1].tolist(), min_vertices) == \
+        _trace_loop(nbr[0, :, 0].tolist(), nbr[0, :, 1].tolist(), min_vertices)
+
+
+@pytest.mark.parametrize("decoder", ["greedy", "classwise", "mutual", "official"])
+def test_postprocess_batch_equals_its_loop_reference(decoder):
+    """The whole decoding against one built from the loops: same instances, points, labels and scores
+    (exactly), sample by sample."""
+    from test_assignment import GRID as grid
+
+    from instagram_hdmap.postprocess import OFFICIAL_CONFIDENCE, neighbours, official_instances
+
+    outputs = _chain_outputs(3, 40, 5, 0.6)
+    options = {"match_threshold": 0.05, "min_vertices": 3}
+    if decoder in ("greedy", "classwise"):
+        options["max_edge_px"] = 20.0
+    got = postprocess_batch(outputs, grid, decoder=decoder, **options)
+    B, N = outputs["pred_vertex_mask"].shape
+    if decoder == "official":
+        walks = official_instances(outputs, 0.05)
+        traced = [[[(w, False) for w, k in walks[b] if k == g and len(w) >= 3] for g in range(K)] for b in range(B)]
+    else:
+        opts = {k: v for k, v in options.items() if k != "min_vertices"}
+        nbr = neighbours(outputs, decoder=decoder, **opts)
+        traced = [[_trace_loop(nbr[b, g, :, 0].tolist(), nbr[b, g, :, 1].tolist(), 3) for g in range(nbr.shape[1])]
+                  for b in range(B)]
+    pts_m = grid.px_to_m(outputs["pred_vertices_px"].numpy().astype(np.float64))
+    probs = outputs["pred_class_log_probs"].exp().numpy()
+    scores = outputs["pred_vertex_scores"].numpy()
+    for b in range(B):
+        expected = []
+        for g, instances in enumerate(traced[b]):
+            for walk, shut in instances:
+                n = np.array([len(walk)])  # an int array: the means are float64, as in the decoding
+                mean = (np.add.reduceat(probs[b][walk], [0], axis=0) / n[:, None])[0]
+                label = int(mean.argmax()) if len(traced[b]) == 1 else g
+                score = mean[label]
+                if decoder not in OFFICIAL_CONFIDENCE:
+                    score = score * (np.add.reduceat(scores[b][walk], [0]) / n)[0]
+                score = float(score)
+                expected.append((pts_m[b][walk + [walk[0]] if shut else walk].tolist(), label, shut, score))
+        assert [(p["pts"].tolist(), p["label"], p["closed"], p["score"]) for p in got[b]] == expected
+    assert sum(len(s) for s in got) > 0

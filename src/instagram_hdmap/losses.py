@@ -1,32 +1,35 @@
 """The criterion (DETR's SetCriterion pattern): named raw losses, a weight dict, the total in one place.
 
 Shapes: B batch, K classes, H x W BEV grid, S cell size, Hc x Wc = H/S x W/S, N padded predicted
-vertices. Terms (paper Eqs. 4-8):
+vertices. Terms (paper Eqs. 5-9):
 
-``loss_vertex``     Eq. 4: cross-entropy of ``pred_vertex_logits`` [B, S*S+1, Hc, Wc] against
+``loss_vertex``     Eq. 5: cross-entropy of ``pred_vertex_logits`` [B, S*S+1, Hc, Wc] against
                     ``gt_vertex_cells`` [B, Hc, Wc], mean over all B*Hc*Wc cells.
-``loss_distance``   Eq. 4: squared error of ``pred_distance`` [B, K, H, W] against ``gt_distance``,
+``loss_distance``   Eq. 5: squared error of ``pred_distance`` [B, K, H, W] against ``gt_distance``,
                     mean over all B*K*H*W pixels.
-``loss_adjacency``  Eq. 6: bidirectional NLL on ``pred_log_assignment`` [B, N+1, N+1]. For every real
+``loss_adjacency``  Eq. 7: bidirectional NLL on ``pred_log_assignment`` [B, N+1, N+1]. For every real
                     predicted vertex i the forward target column ``target_next[i]`` and the backward
                     target column ``target_prev[i]`` (both in [0, N], N = dustbin; assignment.py)
                     are supervised in row i: ``-log A[i, next(i)] - log A[i, prev(i)]``, which is
-                    Eq. 6's sum over M and M^T (an entry (j, i) of M^T is the row-j entry pointing
+                    Eq. 7's sum over M and M^T (an entry (j, i) of M^T is the row-j entry pointing
                     back to j's predecessor i). Normalisation: each direction's sum is divided by
                     the sample's number of real predicted vertices and the two directions are
                     *added*; samples are averaged (a sample without real vertices adds 0). This is
                     the normalisation of the official implementation (mean NLL forward + mean NLL
                     backward, mean over the batch), under which lambda_3 = 5e-3 was tuned; it
-                    equals Eq. 6 x 2 / N_real. Without a 1/N normalisation (a plain sum), the term
+                    equals Eq. 7 x 2 / N_real. Without a 1/N normalisation (a plain sum), the term
                     would scale with the vertex count (~400) and lambda_3 would mean something else.
                     The dustbin row N is not supervised (as in the official code). Unlike the
                     official code, a sample without GT still trains all its vertices to the dustbin.
-``loss_class``      Eq. 7: NLL of ``pred_class_log_probs`` [B, N, K] at the class of sigma(i), over
-                    the predicted vertices matched within D0; mean per sample, mean over samples
-                    (a sample without matched vertices adds 0).
+``loss_class``      Eq. 8: NLL of ``pred_class_log_probs`` [B, N, K] at the class of sigma(i), over
+                    the predicted vertices matched within D0 (``loss.class_targets=nearest``: over
+                    every real predicted vertex, at the class of its nearest GT vertex, as the
+                    official code); mean per sample, mean over samples (a sample without such
+                    vertices adds 0).
+``loss_distance`` is absent when the model has no distance head (``with_distance=False``).
 
 ``weight_dict`` holds lambda_1..4 (``loss.*_weight``); the output has each raw term, each weighted
-term (``loss_<name>_weighted``) and ``loss_total`` = the sum of the weighted terms (Eq. 8). Logging
+term (``loss_<name>_weighted``) and ``loss_total`` = the sum of the weighted terms (Eq. 9). Logging
 diagnostics (detached, names without the ``loss_`` prefix): ``adjacency_accuracy`` (fraction of
 the predicted vertices that represent a GT vertex whose two best columns of their assignment row are
 exactly their targets {next, prev}; at a polyline end one of them is the dustbin; where next == prev,
@@ -106,24 +109,30 @@ def adjacency_correct(log_assignment: torch.Tensor, pred_vertex_mask: torch.Tens
 class Criterion(nn.Module):
     """``Criterion(cfg.loss, grid)(outputs, batch) -> dict`` of named losses and diagnostics."""
 
-    def __init__(self, cfg: LossConfig, grid: BEVGrid):
+    def __init__(self, cfg: LossConfig, grid: BEVGrid, *, with_distance: bool = True):
         super().__init__()
         self.cfg = cfg
         self.grid = grid
+        # with_distance=False (model.bev_heads.distance_head=false): no loss_distance term at all
+        self.with_distance = with_distance
         self.weight_dict = {
             "loss_vertex": cfg.vertex_weight,
             "loss_distance": cfg.distance_weight,
             "loss_adjacency": cfg.adjacency_weight,
             "loss_class": cfg.class_weight,
         }
+        if not with_distance:
+            del self.weight_dict["loss_distance"]
 
     def assign(self, outputs: dict, batch: dict) -> dict[str, torch.Tensor]:
         """The graph targets for these outputs (no autograd), see assignment.py."""
-        return assign_batch(outputs, batch, self.grid, self.cfg.match_dist, self.cfg.skip_missed_vertices)
+        return assign_batch(outputs, batch, self.grid, self.cfg.match_dist, self.cfg.skip_missed_vertices,
+                            match_space=self.cfg.match_space, class_targets=self.cfg.class_targets)
 
     def forward(self, outputs: dict, batch: dict, assignment: dict | None = None) -> dict[str, torch.Tensor]:
-        missing = [k for k in REQUIRED_OUTPUTS if k not in outputs]
-        missing += [k for k in REQUIRED_TARGETS if k not in batch]
+        skip = () if self.with_distance else ("pred_distance", "gt_distance")
+        missing = [k for k in REQUIRED_OUTPUTS if k not in outputs and k not in skip]
+        missing += [k for k in REQUIRED_TARGETS if k not in batch and k not in skip]
         if missing:
             raise KeyError(f"the criterion needs {missing}, missing from the model output / batch "
                            "(see docs/conventions.md)")
@@ -140,10 +149,11 @@ class Criterion(nn.Module):
 
         losses = {
             "loss_vertex": F.cross_entropy(outputs["pred_vertex_logits"].float(), batch["gt_vertex_cells"].long()),
-            "loss_distance": F.mse_loss(outputs["pred_distance"].float(), batch["gt_distance"].float()),
             "loss_adjacency": adjacency_nll(log_assignment, target_next, target_prev).mean(),
             "loss_class": class_nll(class_log_probs, target_class).mean(),
         }
+        if self.with_distance:
+            losses["loss_distance"] = F.mse_loss(outputs["pred_distance"].float(), batch["gt_distance"].float())
         out = dict(losses)
         for name, value in losses.items():
             out[f"{name}_weighted"] = value * self.weight_dict[name]

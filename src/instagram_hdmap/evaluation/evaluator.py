@@ -5,6 +5,7 @@
         ev.update(pred_polylines, gt_polylines, sample_ids=batch_indices, tokens=batch_tokens)
     ev.gather()                      # under torchrun: every rank ends with the merged state
     metrics = ev.compute()           # {"protocol", "thresholds", "classes", "AP", "AP_class", "mAP", ...}
+    metrics = evaluate_files("pred.json", "gt.json", "raster")   # two submission files (evaluate-json)
 
 Memory stays bounded over any number of samples: the vector protocol keeps one (sample id,
 score, TP flags) record per detection, the raster protocol per-class sums of per-sample APs.
@@ -16,14 +17,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from ..config import ExperimentConfig
 from ..geometry import BEVGrid
 from .inputs import EvaluationInputError
+from .io import SubmissionError, read_submission
 from .raster_ap import RasterAP
 from .vector_ap import VectorAP
 
@@ -66,6 +70,8 @@ class Evaluator:
         num_sample_points, resample_predictions: vector only; MapTR's 100 points and its
             ``eval_use_same_gt_sample_num_flag`` (True in every MapTR config).
         device: raster only; where ``torch.cdist`` runs.
+        also: protocols computed as well on the same predictions (``eval.also_protocols``), with the
+            same options; ``compute()`` reports each under ``metrics["also"][protocol]``.
     """
 
     def __init__(
@@ -80,9 +86,16 @@ class Evaluator:
         num_sample_points: int = 100,
         resample_predictions: bool = True,
         device: str | torch.device = "cpu",
+        also: Sequence[str] = (),
     ) -> None:
         if protocol not in PROTOCOLS:
             raise EvaluationInputError(f"unknown evaluation protocol {protocol!r}; choose one of {PROTOCOLS}")
+        self.also = {
+            p: Evaluator(p, thresholds, classes, grid=grid, rank_by=rank_by, fix_instance_ids=fix_instance_ids,
+                         num_sample_points=num_sample_points, resample_predictions=resample_predictions,
+                         device=device)
+            for p in dict.fromkeys(also) if p != protocol
+        }
         self.protocol = protocol
         self.thresholds = check_thresholds(thresholds)
         self.classes = tuple(classes)
@@ -101,7 +114,7 @@ class Evaluator:
     def from_config(cls, cfg: ExperimentConfig, device: str | torch.device = "cpu") -> Evaluator:
         ev = cfg.eval
         return cls(ev.protocol, ev.thresholds, cfg.data.classes, grid=BEVGrid.from_config(cfg.grid),
-                   rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device)
+                   rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device, also=ev.also_protocols)
 
     # --- accumulation ------------------------------------------------------------------------
     def update(
@@ -114,17 +127,28 @@ class Evaluator:
         """Add B samples: ``preds[b]`` polyline dicts with "pts" [P, 2] metres, "label", "score";
         ``gts[b]`` the same without "score". Errors name the token (or sample id) and index."""
         self.impl.update(preds, gts, sample_ids=sample_ids, tokens=tokens)
+        for ev in self.also.values():
+            ev.update(preds, gts, sample_ids=sample_ids, tokens=tokens)
 
     def reset(self) -> None:
         self.impl.reset()
+        for ev in self.also.values():
+            ev.reset()
 
     def state_dict(self) -> dict:
-        """Picklable accumulated state (NumPy arrays and numbers)."""
-        return self.impl.state_dict()
+        """Picklable accumulated state (NumPy arrays and numbers); the ``also`` protocols' under "also"."""
+        state = self.impl.state_dict()
+        if self.also:
+            state = {**state, "also": {p: ev.state_dict() for p, ev in self.also.items()}}
+        return state
 
     def merge(self, state: dict) -> None:
         """Add another evaluator's ``state_dict()`` (e.g. from another process) to this one."""
+        state = dict(state)
+        also = state.pop("also", {})
         self.impl.merge_state(state)
+        for p, ev in self.also.items():
+            ev.merge(also[p])
 
     def gather(self) -> None:
         """Under torch.distributed: all-gather every rank's state and merge them in rank order, so
@@ -143,7 +167,8 @@ class Evaluator:
         """Metrics dict (JSON-ready; NaN where the protocol yields NaN):
         ``protocol``, ``protocol_description``, ``thresholds``, ``classes``, ``AP`` (class -> list
         per threshold), ``AP_class`` (class -> mean over thresholds), ``mAP``, ``num_gt``,
-        ``num_pred``, ``counters``, ``options``, ``notes``."""
+        ``num_pred``, ``counters``, ``options``, ``notes``; ``also`` (protocol -> the same dict) when
+        other protocols were computed as well."""
         res = self.impl.compute()
         ap = np.asarray(res["AP"], dtype=np.float64)  # [K, T]
         if self.protocol == "vector":
@@ -174,6 +199,8 @@ class Evaluator:
             out["mAP_classes_with_gt"] = float(ap_class[with_gt].mean()) if with_gt else 0.0
         else:
             out["samples_counted"] = {c: int(res["count"][k]) for k, c in enumerate(self.classes)}
+        if self.also:
+            out["also"] = {p: ev.compute() for p, ev in self.also.items()}
         return out
 
     def _notes(self, res: dict, counters: dict) -> list[str]:
@@ -214,4 +241,52 @@ def format_table(metrics: dict) -> str:
         lines.append(f"{c:<14}" + "".join(f"{v:>10.4f}" for v in metrics["AP"][c]) + f"{metrics['AP_class'][c]:>10.4f}")
     lines.append("-" * len(head))
     lines.append(f"{'mAP':<14}" + " " * (10 * len(thr)) + f"{metrics['mAP']:>10.4f}")
+    for other in metrics.get("also", {}).values():
+        lines += ["", "also computed on the same predictions:", format_table(other)]
     return "\n".join(lines)
+
+
+def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "vector",
+                   thresholds: Sequence[float] = (0.5, 1.0, 1.5), *, grid: BEVGrid | None = None,
+                   rank_by: str = "ascending", fix_instance_ids: bool = False, device: str = "cpu",
+                   ignore_extra_predictions: bool = False, progress: bool = False, chunk: int = 64) -> dict:
+    """AP of the submission file ``pred_path`` against the GT file ``gt_path`` (both in the HDMapNet
+    format, evaluation/io.py) under ``protocol`` (``instagram-hdmap evaluate-json``).
+
+    The GT file's samples, in its order, are scored (``chunk`` at a time); a GT sample without
+    predictions is scored as a sample without predictions (a note says how many). A prediction token
+    that is not in the GT file is a ``SubmissionError`` unless ``ignore_extra_predictions``. Returns
+    ``Evaluator.compute``'s metrics with ``notes`` (both files' and the evaluator's) and ``inputs``.
+    """
+    gt = read_submission(gt_path, "gt")
+    pred = read_submission(pred_path, "pred")
+    if not gt.samples:
+        raise SubmissionError(f"{gt_path}: the GT file holds no samples")
+    extra = [t for t in pred.samples if t not in gt.samples]
+    if extra and not ignore_extra_predictions:
+        raise SubmissionError(
+            f"{pred_path}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {gt_path} "
+            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
+        )
+    missing = sum(t not in pred.samples for t in gt.samples)
+    ev = Evaluator(protocol, thresholds, grid=grid, rank_by=rank_by, fix_instance_ids=fix_instance_ids,
+                   device=device)
+    tokens = list(gt.samples)  # the GT file's order is the pooling order
+    try:
+        for s in tqdm(range(0, len(tokens), chunk), desc=f"evaluate-json ({protocol})", unit="chunk",
+                      disable=not progress):
+            part = tokens[s : s + chunk]
+            ev.update([pred.samples.get(t, []) for t in part], [gt.samples[t] for t in part],
+                      sample_ids=range(s, s + len(part)), tokens=part)
+    except EvaluationInputError as e:
+        raise SubmissionError(f"evaluating {pred_path} against {gt_path}: {e}") from None
+    metrics = ev.compute()
+    notes = [*gt.notes, *pred.notes]
+    if missing:
+        notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {pred_path}: scored as samples "
+                     "without predictions")
+    if extra:
+        notes.append(f"{len(extra)} sample tokens only in {pred_path} were ignored (--ignore-extra-predictions)")
+    metrics["notes"] = notes + metrics["notes"]
+    metrics["inputs"] = {"pred": str(pred_path), "gt": str(gt_path)}
+    return metrics
