@@ -242,13 +242,13 @@ def test_the_divider_on_kerb_rule_judges_the_clipped_pieces(tmp_path):
 
 @pytest.mark.parametrize("convention", ["edges", "union", "each"])
 def test_every_part_downstream_takes_each_convention(crossing_map, convention):
-    """GT crossings of a convention -> targets -> the outputs of a perfect model (predict.gt_outputs) ->
+    """GT crossings of a convention -> targets -> the outputs of a perfect model (inference.gt_outputs) ->
     the decoders -> the same crossings (cycles for closed ones, paths for open ones), which score AP 1
     under both protocols; the distance transform draws every crossing; the BEV picture draws each one."""
-    from instagram_hdmap.data.nuscenes import collate_fn
+    from instagram_hdmap.data.base import collate_fn
     from instagram_hdmap.evaluation import Evaluator
+    from instagram_hdmap.inference import gt_outputs
     from instagram_hdmap.postprocess import postprocess_batch
-    from instagram_hdmap.predict import gt_outputs
     from instagram_hdmap.targets import build_targets
     from instagram_hdmap.visualize import bev_polylines_figure
 
