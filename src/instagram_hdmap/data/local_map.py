@@ -41,7 +41,7 @@ area polygons are skipped, as the devkit's ``_get_layer_polygon`` does. A crossi
 invalid (self-intersecting) is repaired with ``shapely.make_valid`` (its polygonal parts kept), one
 with fewer than 3 distinct points is skipped; both are counted and reported once per map (a
 ``UserWarning`` naming the file; ``_LocationMap.crossing_report``), never silently and never at the
-cost of a valid neighbour (``clean_crossings``). Every line is resampled every ``sample_dist`` metres
+cost of a valid neighbour (``collect_crossings``). Every line is resampled every ``sample_dist`` metres
 along its length, plus its end point (InstaGraM's ``np.arange(0, L, d)`` + end point); a closed ring
 is resampled the same way and repeats its first point at the end (a ring shorter than
 ``3 * sample_dist`` is resampled at ``L / 3`` so that it keeps 3 distinct points). All points are
