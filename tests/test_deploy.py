@@ -281,8 +281,8 @@ def test_onnxruntime_equals_torch_and_decodes_the_same_polylines(tiny_export, ov
         if seed == 2:  # an AV2-like ground 0.38 m below the ego origin: the graph reads it, IPM / MLP use it
             batch["ground_height"] = torch.tensor([-0.38])
             with torch.no_grad():
-                flat = model(dict(batch, ground_height=torch.zeros(1)))["pred_distance"]
-                moved = not torch.equal(model(batch)["pred_distance"], flat)
+                flat = model(dict(batch, ground_height=torch.zeros(1)))["pred_vertex_logits"]
+                moved = not torch.equal(model(batch)["pred_vertex_logits"], flat)
             assert moved == (cfg.model.view_transform.kind != "lss")
         with torch.no_grad():
             expected = model(batch)
