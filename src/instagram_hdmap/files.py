@@ -26,9 +26,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 
-def temporary_sibling(path: str | Path, tag: str = "tmp") -> Path:
-    """``.NAME.TAG-PID`` next to ``path``: where ``atomic_path`` writes before the rename."""
+def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Path:
+    """``.NAME.TAG-PID`` next to ``path``: where ``atomic_path`` writes before the rename
+    (``.STEM.TAG-PID.SUFFIX`` with ``keep_suffix``, for writers that choose a format by the suffix)."""
     path = Path(path)
+    if keep_suffix:
+        return path.with_name(f".{path.stem}.{tag}-{os.getpid()}{path.suffix}")
     return path.with_name(f".{path.name}.{tag}-{os.getpid()}")
 
 
@@ -45,12 +48,13 @@ def _replace(src: Path, dst: Path) -> None:
 
 
 @contextmanager
-def atomic_path(path: str | Path, tag: str = "tmp") -> Iterator[Path]:
-    """Yield a temporary sibling of ``path`` to write a file or a folder at; on success it replaces
-    ``path`` (a file is fsync'ed first), on any exception it is removed (module docstring)."""
+def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
+    success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
+    docstring)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_sibling(path, tag)
+    tmp = temporary_sibling(path, tag, keep_suffix)
     try:
         yield tmp
         if tmp.is_file():

@@ -324,6 +324,9 @@ class AV2MapDataset(MapDataset):
                                f"at the ego position of lidar sweep {ts}")
         return z
 
+    def scene_of(self, index: int) -> str:
+        return self.samples[index][0]
+
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""
         log, ts = self.samples[index]
