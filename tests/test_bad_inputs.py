@@ -64,6 +64,7 @@ class Env:
     tmp: Path  # this row's own folder
     capsys: pytest.CaptureFixture
     monkeypatch: pytest.MonkeyPatch
+    request: pytest.FixtureRequest  # for the fixtures only some rows need (av2_world)
 
     def cli(self, *argv) -> tuple[int, str, str]:
         self.capsys.readouterr()
@@ -251,6 +252,58 @@ def row_nan_ego_pose(env):
     root = env.shadow_world(damage)
     env.error(r"ego.?pose.*(NaN|finite)", "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt,
               "--out", env.tmp / "eval")
+
+
+def _av2_copy(env: Env) -> tuple[Path, Path]:
+    """A private copy of the tiny AV2 world and the folder of its first train log."""
+    root = env.tmp / "av2"
+    shutil.copytree(env.request.getfixturevalue("av2_world"), root)
+    return root, sorted((root / "train").iterdir())[0]
+
+
+def _av2_error(env: Env, root: Path, pattern: str) -> str:
+    return env.error(pattern, "show-gt", env.yaml, "data.dataset=av2", "data.av2_frame_step=1",
+                     "data.image_fit=contain", f"data.dataroot={root}", "--split", "train", "--index", "0",
+                     "--out", env.tmp / "show")
+
+
+def _edit_feather(path: Path, column: str, row: int, value: float) -> None:
+    import pyarrow as pa
+    from pyarrow import feather
+
+    table = feather.read_table(str(path))
+    values = table.column(column).to_pylist()
+    values[row] = value
+    feather.write_feather(table.set_column(table.column_names.index(column), column, pa.array(values)), str(path))
+
+
+@row("2", "AV2: a camera calibration with NaN is named")
+def row_av2_nan_calibration(env):
+    root, log = _av2_copy(env)
+    _edit_feather(log / "calibration" / "egovehicle_SE3_sensor.feather", "tx_m", 0, float("nan"))
+    _av2_error(env, root, rf"log {log.name}: .*egovehicle_SE3_sensor\.feather.*(NaN|finite)")
+
+
+@row("2", "AV2: an intrinsics row with a negative focal length is named")
+def row_av2_negative_focal_length(env):
+    root, log = _av2_copy(env)
+    _edit_feather(log / "calibration" / "intrinsics.feather", "fx_px", 2, -100.0)
+    _av2_error(env, root, rf"log {log.name}: camera \w+ in .*intrinsics\.feather.*focal")
+
+
+@row("2", "AV2: an ego pose with NaN is named")
+def row_av2_nan_ego_pose(env):
+    root, log = _av2_copy(env)
+    _edit_feather(log / "city_SE3_egovehicle.feather", "ty_m", 0, float("nan"))
+    _av2_error(env, root, rf"log {log.name}: the ego pose .*city_SE3_egovehicle\.feather.*(NaN|finite)")
+
+
+@row("10", "AV2: a missing camera folder is named as such, not blamed on timestamps")
+def row_av2_missing_camera_folder(env):
+    root, log = _av2_copy(env)
+    shutil.rmtree(log / "sensors" / "cameras" / "ring_side_left")
+    line = _av2_error(env, root, r"camera folder .*ring_side_left does not exist")
+    assert "timestamps" not in line
 
 
 def _flip_bits(path: Path, entry: str) -> None:
@@ -586,7 +639,7 @@ def row_malicious_checkpoint(env):
 
 
 @pytest.mark.parametrize("row", ROWS, ids=[f"{r.case}-{r.id}" for r in ROWS])
-def test_bad_input(row: Row, shared, tmp_path, capsys, monkeypatch):
+def test_bad_input(row: Row, shared, tmp_path, capsys, monkeypatch, request):
     world, yaml, ckpt = shared
     monkeypatch.chdir(tmp_path)
-    row.run(Env(world, yaml, ckpt, tmp_path, capsys, monkeypatch))
+    row.run(Env(world, yaml, ckpt, tmp_path, capsys, monkeypatch, request))
