@@ -17,8 +17,9 @@ and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_
 * A prediction without ``confidence_level`` gets 1.0 (the HDMapNet reference's default) and a
   note says how many.
 * Malformed JSON, a missing ``results``, a repeated sample token, coordinates that are not
-  finite numbers of shape [P, 2], a non-integer or unknown ``type``: :class:`SubmissionError`
-  naming the file, the token and the vector index.
+  finite numbers of shape [P, 2] within ``MAX_COORD_M`` of the ego vehicle, a non-integer or
+  unknown ``type``, a ``confidence_level`` outside [0, 1]: :class:`SubmissionError` naming the
+  file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
 
 Python's ``json`` reads and writes ``NaN`` (not strict JSON): metrics files use it for the raster
@@ -37,6 +38,11 @@ from typing import Literal
 import numpy as np
 
 from ..config import UserError
+
+
+# Points are metres in the ego frame; a map patch spans tens of metres. Beyond this, the file is in
+# another frame (global coordinates) or in other units, or broken (1e308 overflows the distances).
+MAX_COORD_M = 1e4
 
 
 class SubmissionError(UserError, ValueError):
@@ -135,6 +141,9 @@ def vectors_to_polylines(
                 s = 1.0
             if isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s):
                 raise SubmissionError(f"{what}: 'confidence_level' must be a finite number, got {s!r}")
+            if not -1e-6 <= s <= 1 + 1e-6:  # a probability (to float32 rounding)
+                raise SubmissionError(f"{what}: 'confidence_level' must be a probability in [0, 1], got {s!r} "
+                                      "(rescale the scores, e.g. with a sigmoid, before writing them)")
             poly["score"] = float(s)
         out.append(poly)
     return out
@@ -151,6 +160,10 @@ def _points(raw: object, what: str) -> np.ndarray:
         raise SubmissionError(f"{what}: 'pts' must be a list of [x, y] pairs, got shape {pts.shape}")
     if not np.isfinite(pts).all():
         raise SubmissionError(f"{what}: 'pts' contains NaN or infinite coordinates")
+    if np.abs(pts).max() > MAX_COORD_M:
+        raise SubmissionError(f"{what}: 'pts' has a coordinate of {np.abs(pts).max():.6g}; points are metres in the "
+                              f"ego frame (|x|, |y| <= {MAX_COORD_M:g}): is the file in global coordinates or "
+                              "another unit?")
     return pts
 
 
