@@ -162,7 +162,7 @@ class BackboneConfig:
     # input for backward and recompute the block there, with the same drop-connect masks and without
     # updating BatchNorm statistics twice, so gradients and buffers are bit-identical to the plain run.
     # CPU, 128x352, batch 1 (benchmarks/train_speed.py): peak memory B0 2.04 -> 1.54 GB, B4 3.40 ->
-    # 1.97 GB, for +6 % / +22 % step time. Set false when memory is plentiful (a large GPU).
+    # 1.97 GB, for +6 % / +22 % step time (under load). Set false when memory is plentiful (a large GPU).
     grad_checkpoint: bool = True
     # name=tiny only: channels of its five stride-2 conv stages (the CPU demo's image encoder)
     tiny_widths: tuple[int, ...] = bounded((8, 16, 24, 32, 48), ge=1)
