@@ -184,3 +184,12 @@ def test_a_key_written_twice_in_a_yaml_mapping_is_an_error(tmp_path):
     (tmp_path / "merge.yaml").write_text("a: &a {lr: 0.1}\ntrain:\n  <<: *a\n  lr: 0.2\n")  # a merge key may repeat
     with pytest.raises(ConfigError, match=r"unknown config key 'a'"):  # (and then 'a' is unknown)
         load_config(tmp_path / "merge.yaml")
+
+
+def test_yaml_reads_exponent_floats_and_base_must_be_a_path(tmp_path):
+    (tmp_path / "e.yaml").write_text("train:\n  lr: 1e-3\n  weight_decay: 1E-7\n")
+    cfg = load_config(tmp_path / "e.yaml")
+    assert (cfg.train.lr, cfg.train.weight_decay) == (1e-3, 1e-7)  # YAML 1.1 would read strings
+    (tmp_path / "b.yaml").write_text("_base_: [e.yaml]\n")
+    with pytest.raises(ConfigError, match=r"'_base_' must name one YAML file"):
+        load_config(tmp_path / "b.yaml")

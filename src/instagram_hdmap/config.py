@@ -425,6 +425,18 @@ class _StrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+# YAML 1.2 floats: PyYAML (YAML 1.1) reads "1e-3" (no dot, no exponent sign) as a string
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                  |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                  |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                  |[-+]?\.(?:inf|Inf|INF)
+                  |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
 def load_yaml(text: str):
     """YAML text -> Python values (safe types only; a key repeated in a mapping is an error)."""
     return yaml.load(text, Loader=_StrictLoader)
@@ -453,6 +465,9 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     base = data.pop("_base_", None)
     if base is None:
         return data
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"config file {path}: '_base_' must name one YAML file (a path relative to {path.parent}), "
+                          f"got {base!r}")
     merged = _read_yaml(path.parent / base, (*seen, path.resolve()))
     deep_update(merged, data)
     return merged
