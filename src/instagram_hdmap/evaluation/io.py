@@ -39,7 +39,6 @@ import numpy as np
 
 from ..config import UserError
 
-
 # Points are metres in the ego frame; a map patch spans tens of metres. Beyond this, the file is in
 # another frame (global coordinates) or in other units, or broken (1e308 overflows the distances).
 MAX_COORD_M = 1e4
