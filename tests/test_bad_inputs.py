@@ -490,6 +490,22 @@ for _how in ("missing", "truncated", "undecodable"):
                     _worker_image_row(_how)))
 
 
+@row("S", "a checkpoint whose 'model' is not a state dict is named (was a TypeError)")
+def row_model_not_a_state_dict(env):
+    path = env.tmp / "list.pt"
+    torch.save({"model": [1, 2], "config": {}}, path)
+    env.error(r"list\.pt holds no 'model' state dict", "evaluate", env.yaml, "--checkpoint", path, "--out", env.tmp / "e")
+
+
+@row("S", "--resume from a weights-only checkpoint is named (was a KeyError)")
+def row_resume_from_weights_only(env):
+    path = env.tmp / "weights.pt"
+    save_checkpoint({"model": load_checkpoint(env.ckpt)["model"]}, path)
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"weights\.pt cannot be resumed: it holds no optimizer, epoch, step, step_in_epoch, rng, config",
+              "train", env.yaml, f"train.out_dir={env.tmp / 'r'}", "--resume", path)
+
+
 # ==================================================================================================
 # Too late or misleading
 # ==================================================================================================

@@ -87,16 +87,27 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise CheckpointError(
             f"checkpoint {path} is truncated or corrupt and cannot be loaded ({type(e).__name__}: {_one_line(e)})"
         ) from None
-    if not isinstance(state, dict) or "model" not in state:
-        raise CheckpointError(f"checkpoint {path} holds no 'model' state; is it an instagram_hdmap checkpoint?")
-    if isinstance(state["model"], dict):
-        bad = [k for k, v in state["model"].items()
-               if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
-        if bad:
-            more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""
-            raise CheckpointError(f"checkpoint {path}: the weights {bad[0]}{more} hold NaN or infinite values (a "
-                                  "diverged training saved them); use an earlier checkpoint such as best.pt")
+    if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
+        raise CheckpointError(f"checkpoint {path} holds no 'model' state dict; is it an instagram_hdmap checkpoint?")
+    bad = [k for k, v in state["model"].items()
+           if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""
+        raise CheckpointError(f"checkpoint {path}: the weights {bad[0]}{more} hold NaN or infinite values (a "
+                              "diverged training saved them); use an earlier checkpoint such as best.pt")
     return state
+
+
+# What ``train --resume`` needs besides the weights (train.py writes them all)
+RESUME_KEYS = ("optimizer", "epoch", "step", "step_in_epoch", "rng", "config")
+
+
+def check_resumable(state: dict, path: str | Path) -> None:
+    """A checkpoint to resume a training from holds the full training state, not just weights."""
+    missing = [k for k in RESUME_KEYS if k not in state]
+    if missing or not isinstance(state.get("config"), dict):
+        raise CheckpointError(f"checkpoint {path} cannot be resumed: it holds no {', '.join(missing or ['config'])} "
+                              "(only weights); resume from the last.pt or best.pt that instagram-hdmap train wrote")
 
 
 def _check_archive(path: Path) -> None:
