@@ -494,7 +494,8 @@ for _how in ("missing", "truncated", "undecodable"):
 def row_model_not_a_state_dict(env):
     path = env.tmp / "list.pt"
     torch.save({"model": [1, 2], "config": {}}, path)
-    env.error(r"list\.pt holds no 'model' state dict", "evaluate", env.yaml, "--checkpoint", path, "--out", env.tmp / "e")
+    env.error(r"list\.pt holds no 'model' state dict", "evaluate", env.yaml, "--checkpoint", path,
+              "--out", env.tmp / "e")
 
 
 @row("S", "--resume from a weights-only checkpoint is named (was a KeyError)")
