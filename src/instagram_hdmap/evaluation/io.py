@@ -54,6 +54,17 @@ class Submission:
     meta: dict
     samples: dict[str, list[dict]]  # token -> polyline dicts {"pts" [P, 2], "label"[, "score"]}, file order
     notes: list[str] = field(default_factory=list)
+    confidences: int = 0  # vectors that carry a confidence_level (a GT file has none)
+
+    def looks_like(self) -> Literal["pred", "gt"] | None:
+        """What the file itself says it is: its ``meta.ground_truth`` flag, else whether its vectors
+        carry confidences; None when it holds no vectors and no flag."""
+        flag = self.meta.get("ground_truth")
+        if isinstance(flag, bool):
+            return "gt" if flag else "pred"
+        if any(self.samples.values()):
+            return "pred" if self.confidences else "gt"
+        return None
 
 
 def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: int = 3) -> Submission:
@@ -89,7 +100,7 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: '{key}' must be a dict token -> vectors or a list of "
                               f"{{'sample_token', 'vectors'}}, got {type(results).__name__}")
     samples: dict[str, list[dict]] = {}
-    counts = {"defaulted_confidence": 0, "truncated": 0}
+    counts = {"defaulted_confidence": 0, "truncated": 0, "confidences": 0}
     for token, vectors in items:
         if not isinstance(token, str):
             raise SubmissionError(f"{path}: sample token {token!r} is not a string")
@@ -106,14 +117,14 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         notes.append(
             f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
         )
-    return Submission(str(path), meta, samples, notes)
+    return Submission(str(path), meta, samples, notes, counts["confidences"])
 
 
 def vectors_to_polylines(
     vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str, counts: dict | None = None
 ) -> list[dict]:
     """One sample's submission vectors -> polyline dicts, checked (see the module docstring)."""
-    counts = counts if counts is not None else {"defaulted_confidence": 0, "truncated": 0}
+    counts = counts if counts is not None else {"defaulted_confidence": 0, "truncated": 0, "confidences": 0}
     if not isinstance(vectors, list):
         raise SubmissionError(f"{where}: expected a list of vectors, got {type(vectors).__name__}")
     out = []
@@ -133,6 +144,7 @@ def vectors_to_polylines(
             raise SubmissionError(f"{what}: 'type' must be a class id 0..{num_classes - 1} "
                                   f"(0 divider, 1 ped_crossing, 2 boundary), got {k!r}")
         poly = {"pts": pts, "label": k}
+        counts["confidences"] = counts.get("confidences", 0) + ("confidence_level" in v)
         if role == "pred":
             s = v.get("confidence_level")
             if s is None:
