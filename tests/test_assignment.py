@@ -288,3 +288,73 @@ def test_target_log_assignment_is_the_bidirectional_target_distribution():
     assert P[1, 0] == pytest.approx(0.5, abs=1e-4) and P[1, 2] == pytest.approx(0.5, abs=1e-4)  # interior
     assert P[4, 5] == pytest.approx(0.5, abs=1e-4) and P[4, 7] == pytest.approx(0.5, abs=1e-4)  # square
     assert P[8, N] == pytest.approx(1.0, abs=1e-4)  # isolated
+
+
+def official_graph_loss_matching(pred_px: np.ndarray, gt_m: np.ndarray, gt_labels: np.ndarray, grid: BEVGrid,
+                                 d0: float) -> tuple[np.ndarray, np.ndarray]:
+    """A direct reading of the official GraphLoss (juyebshin/InstaGraM @2b978e4, loss.py:9-13,86-88,119,
+    131,143-149,157-158): predicted pixels normalised by nx - 1, GT metres by (pt + bound) / (2 bound),
+    the nearest GT point in that space, matched iff closer than norm(d0 / (2 bound)); every predicted
+    vertex takes the type of its nearest GT point. -> (matched nearest index or -1, class) per vertex."""
+    dx = np.array([grid.resolution, grid.resolution])
+    bx = np.array([grid.xmin, grid.ymin]) + dx / 2.0
+    nx = np.array([(grid.xmax - grid.xmin) / grid.resolution, (grid.ymax - grid.ymin) / grid.resolution])
+    bound = dx / 2 - bx
+    threshold = np.linalg.norm(d0 / (2 * bound))
+    position = pred_px / (nx - 1)
+    position_gt = (gt_m + bound) / (2 * bound)
+    cdist = np.linalg.norm(position[:, None] - position_gt[None], axis=-1)
+    nearest, nearest_dist = cdist.argmin(-1), cdist.min(-1)
+    return np.where(nearest_dist < threshold, nearest, -1), gt_labels[nearest]
+
+
+def test_patch_space_matching_and_nearest_class_targets_follow_the_official_graph_loss():
+    """loss.match_space=patch and loss.class_targets=nearest against a direct reading of the official
+    rule on random vertices, many of them near the ellipse's border (3.35 m along x, 1.68 m along y)."""
+    rng = np.random.default_rng(7)
+    B, N, M = 3, 60, 25
+    gt_px = rng.integers(0, [GRID.W, GRID.H], size=(B, M, 2)).astype(np.float32)  # integer pixels, as targets.py
+    labels = rng.integers(0, 3, size=(B, M))
+    # predicted vertices: offsets from a GT vertex up to ~4 m along x and ~2 m along y, some far away
+    base = gt_px[np.arange(B)[:, None], rng.integers(0, M, size=(B, N))]
+    offset = rng.uniform(-1, 1, size=(B, N, 2)) * np.array([27.0, 14.0])
+    pred_px = np.clip(np.round(base + offset), 0, [GRID.W - 1, GRID.H - 1]).astype(np.float32)
+    pred_px[:, :5] = rng.integers(0, [GRID.W, GRID.H], size=(B, 5, 2))
+    gt = {"gt_vertices_px": torch.from_numpy(gt_px), "gt_vertex_mask": torch.ones(B, M, dtype=torch.bool),
+          "gt_vertex_labels": torch.from_numpy(labels), "gt_vertex_next": torch.full((B, M), -1),
+          "gt_vertex_prev": torch.full((B, M), -1)}
+    mask = torch.ones(B, N, dtype=torch.bool)
+    out = run_assign(torch.from_numpy(pred_px), mask, gt, match_space="patch", class_targets="nearest")
+    metres = run_assign(torch.from_numpy(pred_px), mask, gt)
+    n_matched = n_circle = 0
+    for b in range(B):
+        ref_match, ref_class = official_graph_loss_matching(pred_px[b].astype(np.float64),
+                                                            GRID.px_to_m(gt_px[b].astype(np.float64)), labels[b],
+                                                            GRID, D0)
+        assert out["pred_to_gt"][b].tolist() == ref_match.tolist()
+        assert out["target_class"][b].tolist() == ref_class.tolist()
+        n_matched += int((ref_match >= 0).sum())
+        n_circle += int((metres["pred_to_gt"][b] >= 0).sum())
+    assert n_matched > n_circle  # the ellipse reaches 3.35 m along x: more vertices match than within 1.5 m
+    # matched-only class targets (ours) leave the unmatched vertices without a class
+    assert ((metres["target_class"] == IGNORE_INDEX) == (metres["pred_to_gt"] == UNMATCHED)).all()
+
+
+def test_patch_space_is_an_ellipse_of_3_35_m_by_1_68_m_at_the_centre():
+    gt = graph_tensors([[(np.array([[199.5, 99.5]], np.float32), 0, False)]])  # the patch centre, (0, 0) m
+    along_x = [[199.5 + d / GRID.resolution, 99.5] for d in (3.30, 3.40)]
+    along_y = [[199.5, 99.5 + d / GRID.resolution] for d in (1.64, 1.72)]
+    pred = torch.tensor([along_x + along_y])
+    out = run_assign(pred, torch.ones(1, 4, dtype=torch.bool), gt, match_space="patch")
+    assert out["pred_to_gt"].tolist() == [[0, UNMATCHED, 0, UNMATCHED]]
+    circle = run_assign(pred, torch.ones(1, 4, dtype=torch.bool), gt)
+    assert circle["pred_to_gt"].tolist() == [[UNMATCHED] * 4]
+
+
+def test_nearest_class_targets_without_gt_or_on_padding_are_ignored():
+    gt = graph_tensors([[(line([50, 50], [50, 74], 3), 2, False)], []], M=3)
+    pred = torch.tensor([[[50.0, 50.0], [300.0, 150.0], [0.0, 0.0]], [[50.0, 50.0], [1.0, 1.0], [2.0, 2.0]]])
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    out = run_assign(pred, mask, gt, class_targets="nearest")
+    assert out["target_class"].tolist() == [[2, 2, IGNORE_INDEX], [IGNORE_INDEX] * 3]
+    assert out["pred_to_gt"].tolist() == [[0, UNMATCHED, UNMATCHED], [UNMATCHED] * 3]

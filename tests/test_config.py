@@ -1,8 +1,10 @@
 """Config system: defaults, YAML overrides with _base_, CLI overrides, round trip, clear errors."""
 
+import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from instagram_hdmap.config import (
     ConfigError,
@@ -193,3 +195,88 @@ def test_yaml_reads_exponent_floats_and_base_must_be_a_path(tmp_path):
     (tmp_path / "b.yaml").write_text("_base_: [e.yaml]\n")
     with pytest.raises(ConfigError, match=r"'_base_' must name one YAML file"):
         load_config(tmp_path / "b.yaml")
+
+
+PAPER = sorted((REPO / "configs" / "paper").glob("*.yaml"))
+
+
+def test_every_paper_config_carries_the_official_settings():
+    """configs/paper/*: the official code's values where our defaults differ (benchmarks/README.md,
+    "The paper configs against the official code")."""
+    for f in PAPER:
+        cfg = load_config(f)
+        name = f.name
+        assert cfg.eval.protocol == "raster" and cfg.eval.also_protocols == ("vector",), name
+        assert cfg.eval.thresholds == (0.5, 1.0, 1.5) and cfg.eval.rank_by == "ascending", name
+        assert cfg.model.backbone.weights == "imagenet" and not cfg.model.backbone.from_scratch, name
+        assert cfg.model.gnn.nms == "superpoint" and cfg.model.gnn.nms_radius == cfg.grid.cell_size // 2, name
+        assert cfg.model.gnn.decoder == "official" and cfg.model.gnn.match_threshold == 0.1, name
+        assert (cfg.loss.match_space, cfg.loss.class_targets, cfg.loss.match_dist) == ("patch", "nearest", 1.5), name
+        assert cfg.data.image_fit == "stretch" and cfg.data.sample_dist == 1.5 and not cfg.data.augment, name
+        assert cfg.model.view_transform.bev_downsample == 1, name
+        assert (cfg.train.epochs, cfg.train.lr, cfg.train.lr_step, cfg.train.lr_gamma) == (30, 1e-3, 10, 0.1), name
+        assert (cfg.train.weight_decay, cfg.train.grad_clip, cfg.data.dt_clip) == (1e-7, 5.0, 10.0), name
+        vd = name.startswith("fig7_vd")
+        assert cfg.model.bev_heads.distance_head is not vd, name  # the official VD variant has no DT head
+        assert (cfg.model.gnn.embedding, cfg.model.gnn.vd_sampling) == (("pe+vd", "cell") if vd else
+                                                                       (cfg.model.gnn.embedding, "vertex")), name
+
+
+def _farthest_seen_depth(cfg) -> float:
+    """Over the BEV cell centres a nuScenes camera sees (inside its 1600 x 900 image, in front of it), the
+    largest distance along the optical axis to the nearest camera that sees it (LSS's depth)."""
+    from instagram_hdmap.benchmark import nuscenes_like_rig
+
+    rig = nuscenes_like_rig((128, 352))
+    grid = BEVGrid.from_config(cfg.grid)
+    centres = torch.from_numpy(grid.cell_centres_m().reshape(-1, 2)).float()
+    pts = torch.cat([centres, torch.zeros(len(centres), 1)], 1)
+    best = torch.full((len(pts),), float("inf"))
+    for K, R, t in zip(rig["intrinsics"], rig["cam_to_ego_rot"], rig["cam_to_ego_trans"]):
+        cam = (pts - t) @ R
+        uv = cam @ K.T
+        u, v = uv[:, 0] / cam[:, 2], uv[:, 1] / cam[:, 2]
+        seen = (cam[:, 2] > 0) & (u >= 0) & (u < 1600) & (v >= 0) & (v < 900)
+        best = torch.where(seen, torch.minimum(best, cam[:, 2]), best)
+    return float(best[torch.isfinite(best)].max())
+
+
+def test_lss_depth_bins_reach_every_bev_cell_the_cameras_see():
+    """No BEV cell beyond the LSS depth range: for every paper config with LSS, each cell a camera of a
+    nuScenes rig sees lies within the last depth bin of it (the 100 m x 100 m range of Table II needs
+    bins to ~73 m, the official default stops at 44 m)."""
+    checked = 0
+    for f in PAPER:
+        cfg = load_config(f)
+        if cfg.model.view_transform.kind != "lss":
+            continue
+        start, stop, step = cfg.model.view_transform.depth_bound
+        last_bin = start + step * (math.ceil((stop - start) / step) - 1)
+        assert _farthest_seen_depth(cfg) <= last_bin, f.name
+        checked += 1
+    assert checked >= 20
+    long_range = load_config(REPO / "configs/paper/table2_range100x100.yaml",
+                             ["model.view_transform.depth_bound=[4,45,1]"])
+    assert _farthest_seen_depth(long_range) > 44  # the official default leaves the far cells without features
+
+
+def test_also_protocols_are_checked():
+    assert load_config(None, ["eval.also_protocols=[raster]"]).eval.also_protocols == ("raster",)
+    for bad in ("[vector]", "[raster,raster]", "[lidar]"):
+        with pytest.raises(ConfigError, match="eval.also_protocols"):
+            load_config(None, [f"eval.also_protocols={bad}"])
+
+
+def test_no_shipped_config_trains_an_efficientnet_from_random_weights_by_accident():
+    """Paper and AV2 configs ask for ImageNet weights, the CPU demo / tiny configs use the tiny backbone,
+    configs/synthetic/full.yaml trains from scratch on purpose: none warns. A paper config with its
+    weights removed does."""
+    from instagram_hdmap.models import random_init_warning
+
+    for f in sorted((REPO / "configs").rglob("*.yaml")):
+        cfg = load_config(f)
+        assert random_init_warning(cfg) is None, f
+        assert (cfg.model.backbone.weights == "imagenet") != (cfg.model.backbone.name == "tiny"
+                                                             or cfg.model.backbone.from_scratch), f
+    warning = random_init_warning(load_config(PAPER[0], ["model.backbone.weights=null"]))
+    assert "RANDOM" in warning and "model.backbone.from_scratch=true" in warning

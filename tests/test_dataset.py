@@ -211,6 +211,28 @@ def test_post_rot_tran_describe_the_warp(pattern_jpeg, out_hw, aug, reduced):
     assert err < 2.5 and err_shifted > err + 1.0, (err, err_shifted)
 
 
+@pytest.mark.parametrize("aug", [ImageAug(), ImageAug(1.05, 0.04, -0.05, 5.4)])
+@pytest.mark.parametrize("reduced", [True, False])
+def test_stretch_fit_resizes_the_whole_image_each_axis_on_its_own(pattern_jpeg, aug, reduced):
+    """data.image_fit=stretch (the official loader): 1600 x 900 -> 352 x 128 by (352/1600, 128/900), no
+    crop, and post_rot / post_tran still describe the warp (same check as above)."""
+    image, post_rot, post_tran = load_image(pattern_jpeg, (1600, 900), (128, 352), aug, reduced, fit="stretch")
+    if aug == ImageAug():
+        sx, sy = 352 / 1600, 128 / 900
+        torch.testing.assert_close(post_rot[:2, :2], torch.diag(torch.tensor([sx, sy])))
+        torch.testing.assert_close(post_tran[:2], torch.tensor([0.5 * sx - 0.5, 0.5 * sy - 0.5]))
+    blue = denormalize(image)[2].numpy() * 255
+    v, u = np.mgrid[0:128, 0:352].astype(np.float64)
+    A, t = post_rot[:2, :2].double().numpy(), post_tran[:2].double().numpy()
+    orig = (np.stack([u, v], -1) - t) @ np.linalg.inv(A).T
+    inside = (orig[..., 0] > 3) & (orig[..., 0] < 1596) & (orig[..., 1] > 3) & (orig[..., 1] < 896)
+    assert inside.mean() > (0.97 if aug == ImageAug() else 0.8)
+    err = np.abs(blue - np.clip(_pattern(orig[..., 0], orig[..., 1]), 0, 255))[inside].mean()
+    err_shifted = np.abs(blue - np.clip(_pattern(orig[..., 0] + 1, orig[..., 1]), 0, 255))[inside].mean()
+    # a 7x vertical shrink area-averages the pattern's 48-px period (~3 levels), hence a looser bound
+    assert err < 4.0 and err_shifted > err + 1.0, (err, err_shifted)
+
+
 def test_camera_projection_round_trip():
     K = torch.tensor([[1266.0, 0, 816.0], [0, 1266.0, 491.0], [0, 0, 1]])
     # a front camera 1.5 m up, looking along +x (camera z forward, x right, y down)

@@ -596,6 +596,38 @@ def test_evaluator_from_config():
     assert ev.protocol == "raster" and ev.options["rank_by"] == "descending" and ev.thresholds == THR
 
 
+def test_also_protocols_score_the_same_predictions_and_merge_like_the_main_one():
+    """eval.also_protocols (the paper configs: raster, and vector as well): each protocol as if run alone,
+    streamed and merged across "ranks" together with the main one, reported under metrics["also"]."""
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.evaluation import format_table
+
+    rng = np.random.default_rng(6)
+    preds, gts = random_raster_data(rng, 8)
+    ids = list(range(len(preds)))
+    cfg = load_config(None, ["eval.protocol=raster", "eval.also_protocols=[vector]"])
+    ranks = [Evaluator.from_config(cfg) for _ in range(2)]
+    for r, ev in enumerate(ranks):
+        ev.update(preds[r::2], gts[r::2], sample_ids=ids[r::2])
+    merged = Evaluator.from_config(cfg)
+    for ev in ranks:
+        merged.merge(ev.state_dict())
+    got = merged.compute()
+    alone = {}
+    for protocol in ("raster", "vector"):
+        ev = Evaluator(protocol, grid=BEVGrid.from_config(cfg.grid))
+        ev.update(preds, gts, sample_ids=ids)
+        alone[protocol] = ev.compute()
+    assert got["protocol"] == "raster" and list(got["also"]) == ["vector"] and "also" not in got["also"]["vector"]
+    for name, metrics in (("raster", got), ("vector", got["also"]["vector"])):
+        assert metrics["protocol"] == name
+        np.testing.assert_allclose(metrics["mAP"], alone[name]["mAP"], rtol=0, atol=1e-12)
+    table = format_table(got)
+    assert "protocol: raster" in table and "protocol: vector" in table
+    # the override of one protocol (evaluate --protocol vector) does not score vector twice
+    assert list(Evaluator("vector", also=("vector", "raster")).also) == ["raster"]
+
+
 def test_bad_inputs_raise_clear_errors():
     with pytest.raises(EvaluationInputError, match="> 0"):
         Evaluator("vector", thresholds=(0.5, 0.0))

@@ -257,3 +257,31 @@ def test_config_switches_and_shape_errors():
         Criterion(LossConfig(), GRID)(bad, batch)
     with pytest.raises(KeyError, match="gt_distance"):
         Criterion(LossConfig(), GRID)(outputs, {k: v for k, v in batch.items() if k != "gt_distance"})
+
+
+def test_without_a_distance_head_there_is_no_distance_term_and_the_rest_is_unchanged():
+    """model.bev_heads.distance_head=false (the official visual-descriptor variant): no pred_distance, no
+    gt_distance needed, no loss_distance; every other term as with the head."""
+    outputs, batch = make_case(3)
+    full = Criterion(LossConfig(), GRID)(outputs, batch)
+    crit = Criterion(LossConfig(), GRID, with_distance=False)
+    assert "loss_distance" not in crit.weight_dict
+    out = crit({k: v for k, v in outputs.items() if k != "pred_distance"},
+               {k: v for k, v in batch.items() if k != "gt_distance"})
+    assert "loss_distance" not in out and "loss_distance_weighted" not in out
+    for name in ("loss_vertex", "loss_adjacency", "loss_class"):
+        assert torch.equal(out[name], full[name])
+    assert out["loss_total"].item() == pytest.approx(
+        full["loss_total"].item() - full["loss_distance_weighted"].item(), rel=1e-6)
+    with pytest.raises(KeyError, match="pred_distance"):  # with the head, the term is required
+        Criterion(LossConfig(), GRID)({k: v for k, v in outputs.items() if k != "pred_distance"}, batch)
+
+
+def test_the_loss_config_selects_the_official_matching_space_and_class_targets():
+    outputs, batch = make_case(4)
+    ours = Criterion(LossConfig(), GRID).assign(outputs, batch)
+    official = Criterion(LossConfig(match_space="patch", class_targets="nearest"), GRID).assign(outputs, batch)
+    real = outputs["pred_vertex_mask"]
+    assert (official["target_class"][real] != IGNORE_INDEX).all()  # every real vertex has a class
+    assert ((ours["target_class"] != IGNORE_INDEX) == (ours["pred_to_gt"] >= 0)).all()
+    assert (official["pred_to_gt"] >= 0).sum() >= (ours["pred_to_gt"] >= 0).sum()

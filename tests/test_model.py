@@ -15,9 +15,17 @@ from efficientnet_pytorch import EfficientNet
 from instagram_hdmap.config import ConfigError, UserError, load_config
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model, summarize_parameters
+from instagram_hdmap.models.backbone import load_pretrained_backbone
 from instagram_hdmap.models.gnn import AttentionalGNN, GraphHead, positional_encoding
 from instagram_hdmap.models.matching import log_optimal_transport, score_matrix
-from instagram_hdmap.models.vertices import cell_patches, depth_to_space, extract_vertices, vertex_heatmap
+from instagram_hdmap.models.vertices import (
+    cell_features,
+    cell_patches,
+    depth_to_space,
+    extract_vertices,
+    superpoint_nms,
+    vertex_heatmap,
+)
 from instagram_hdmap.models.view_transform import (
     IPMViewTransform,
     LSSViewTransform,
@@ -670,7 +678,11 @@ def test_imagenet_weights_load_from_a_local_file_and_bad_files_are_user_errors(t
     cfg = load_config(None, ["model.backbone.name=efficientnet-b0", f"model.backbone.weights={good}",
                              "model.gnn.layers=0", "model.bev_heads.stage_channels=[8]",
                              "model.bev_heads.channels=8", "model.bev_heads.head_channels=8"])
-    model = build_model(cfg)
+    # the weights are loaded when training starts (pretrained=True), not by every build (evaluation,
+    # model-summary, export load a checkpoint or need none)
+    assert not torch.equal(build_model(cfg).backbone.trunk._blocks[3]._depthwise_conv.weight,
+                           reference._blocks[3]._depthwise_conv.weight)
+    model = build_model(cfg, pretrained=True)
     torch.testing.assert_close(model.backbone.trunk._blocks[3]._depthwise_conv.weight,
                                reference._blocks[3]._depthwise_conv.weight)
     backbone = model.backbone
@@ -776,3 +788,158 @@ def test_neighbour_suppression_equals_a_loop_over_cells(radius):
         plain = extract_vertices(logits, S, num_vertices=Hc * Wc, threshold=0.0)
         for k in plain:
             assert torch.equal(plain[k], out[k])
+
+
+# ---------------------------------------------------------------------------------------------
+# Paper fidelity (issue 18): SuperPoint NMS, no distance head, the official visual descriptor,
+# ImageNet weights
+# ---------------------------------------------------------------------------------------------
+
+
+def _loop_superpoint_nms(scores: torch.Tensor, r: int) -> torch.Tensor:
+    """SuperPoint's simple_nms written as loops over pixels: maxima of the (2r+1)^2 window, then twice
+    the maxima of what lies beyond r (Chebyshev) of every kept pixel."""
+    H, W = scores.shape
+
+    def window_max(x, i, j):
+        return x[max(0, i - r):i + r + 1, max(0, j - r):j + r + 1].max()
+
+    keep = torch.tensor([[bool(scores[i, j] == window_max(scores, i, j)) for j in range(W)] for i in range(H)])
+    for _ in range(2):
+        near = torch.tensor([[bool(window_max(keep.float(), i, j) > 0) for j in range(W)] for i in range(H)])
+        rest = torch.where(near, torch.zeros_like(scores), scores)
+        new = torch.tensor([[bool(rest[i, j] == window_max(rest, i, j)) for j in range(W)] for i in range(H)])
+        keep = keep | (new & ~near)
+    return keep
+
+
+def test_superpoint_nms_equals_a_loop_and_keeps_no_two_untied_vertices_within_the_radius():
+    gen = torch.Generator().manual_seed(11)
+    for r in (1, 2, 4):
+        scores = torch.rand(2, 13, 17, generator=gen) * (torch.rand(2, 13, 17, generator=gen) < 0.3)
+        scores[0, 5, 5] = scores[0, 5, 7]  # a tie
+        kept = superpoint_nms(scores, r)
+        for b in range(2):
+            assert torch.equal(kept[b], _loop_superpoint_nms(scores[b], r))
+            pts = [(i, j) for i, j in zip(*torch.nonzero(kept[b] & (scores[b] > 0), as_tuple=True))]
+            for a in pts:
+                for c in pts:
+                    if a != c and max(abs(int(a[0] - c[0])), abs(int(a[1] - c[1]))) <= r:
+                        assert scores[b][a] == scores[b][c]
+
+
+def _cell_winners(S: int, Hc: int, Wc: int, winners: dict) -> torch.Tensor:
+    """Vertex logits whose cell (r, c) has its maximum at pixel offset (dy, dx) with the probability given
+    in ``winners[(r, c)] = (dy, dx, p)`` (empty cells ~ 1/(S*S+1) everywhere)."""
+    logits = torch.zeros(1, S * S + 1, Hc, Wc)
+    for (r, c), (dy, dx, p) in winners.items():
+        others = math.log((1 - p) / (S * S))  # the other S*S channels share 1 - p
+        logits[0, :, r, c] = others
+        logits[0, dy * S + dx, r, c] = math.log(p)
+    return logits
+
+
+def test_superpoint_nms_brings_back_a_vertex_whose_suppressor_was_suppressed():
+    """Winners A (0.9) at u = 3, B (0.8) at u = 6, C (0.7) at u = 9 on one row, radius 4: B lies within 4 px
+    of A and goes; C lies within 4 px of B only, which is gone, so SuperPoint NMS keeps it (the official
+    rule). Our 'cells' rule drops C for its stronger neighbour B."""
+    S = 4
+    logits = _cell_winners(S, 2, 4, {(0, 0): (1, 3, 0.9), (0, 1): (1, 2, 0.8), (0, 2): (1, 1, 0.7)})
+    kept = {}
+    for nms in ("superpoint", "cells"):
+        out = extract_vertices(logits, S, num_vertices=8, threshold=0.1, nms_radius=4, nms=nms)
+        kept[nms] = sorted(int(u) for (u, v), m in zip(out["vertices_px"][0], out["mask"][0]) if m)
+    assert kept == {"superpoint": [3, 9], "cells": [3]}
+    plain = extract_vertices(logits, S, num_vertices=8, threshold=0.1)
+    assert int(plain["mask"].sum()) == 3
+
+
+def test_the_paper_configs_extract_vertices_with_the_official_nms():
+    cfg = load_config(REPO / "configs/paper/table1_b4_lss_128x352.yaml")
+    assert (cfg.model.gnn.nms, cfg.model.gnn.nms_radius) == ("superpoint", cfg.grid.cell_size // 2)
+    with pytest.raises(ConfigError, match="model.gnn.nms_radius"):
+        build_model(tiny_cfg("model.gnn.nms=superpoint", "model.gnn.nms_radius=1.5"))
+    model = tiny_model("model.gnn.nms=superpoint", "model.gnn.nms_radius=2").eval()
+    assert model.graph_head.nms == "superpoint"
+    with torch.no_grad():
+        out = model(make_batch(tiny_cfg()))
+    assert out["pred_vertex_mask"].any()
+
+
+def test_a_model_without_a_distance_head_builds_runs_and_trains_every_parameter():
+    cfg = tiny_cfg("model.bev_heads.distance_head=false", "model.gnn.embedding=pe+vd", "model.gnn.vd_sampling=cell")
+    torch.manual_seed(0)
+    model = build_model(cfg).train()
+    assert model.bev_heads.distance_head is None
+    with_head = tiny_model("model.gnn.embedding=pe+vd")
+    n_head = sum(p.numel() for p in with_head.bev_heads.distance_head.parameters())
+    assert sum(p.numel() for p in with_head.parameters()) - sum(p.numel() for p in model.parameters()) == n_head
+    for name, p in model.named_parameters():
+        if name.endswith("bn2.weight"):
+            torch.nn.init.ones_(p)
+    out = model(make_batch(cfg))
+    assert "pred_distance" not in out and set(OUTPUT_KEYS) - set(out) == {"pred_distance"}
+    mask = out["pred_vertex_mask"]
+    pair = mask[:, :, None] & mask[:, None, :]
+    loss = (out["pred_vertex_logits"].logsumexp(1).mean() + out["pred_class_log_probs"][mask].mean()
+            + out["pred_log_assignment"][:, :-1, :-1][pair].mean()
+            + out["pred_log_assignment"][:, :-1, -1][mask].mean())
+    loss.backward()
+    assert not [n for n, p in model.named_parameters() if p.grad is None or not (p.grad != 0).any()]
+    for embedding in ("pe+dt", "dt"):  # those read the distance transform
+        with pytest.raises(ConfigError, match="model.bev_heads.distance_head"):
+            build_model(tiny_cfg("model.bev_heads.distance_head=false", f"model.gnn.embedding={embedding}"))
+
+
+def test_the_official_visual_descriptor_is_the_bev_feature_of_the_vertex_cell():
+    """vd_sampling=cell: F_bev resized to the cell grid (bilinear, align_corners=True, as the official
+    F.interpolate(scale_factor=0.25) at S = 8) and read at the vertex's cell."""
+    gen = torch.Generator().manual_seed(2)
+    B, C, Hc, Wc, S = 2, 5, 3, 4, 8
+    features = torch.randn(B, C, Hc * S // 2, Wc * S // 2, generator=gen)  # F_bev at H/2
+    cells = torch.randint(0, Hc * Wc, (B, 6), generator=gen)
+    got = cell_features(features, cells, Hc, Wc)
+    official = torch.nn.functional.interpolate(features, scale_factor=0.25, mode="bilinear", align_corners=True)
+    for b in range(B):
+        for n in range(6):
+            r, c = divmod(int(cells[b, n]), Wc)
+            torch.testing.assert_close(got[b, n], official[b, :, r, c])
+
+
+def test_imagenet_weights_download_through_an_injectable_function_and_fail_in_one_line(tmp_path):
+    """model.backbone.weights=imagenet: the state dict comes from ``download(name)`` (efficientnet_pytorch's
+    release through torch's hub cache by default; never the network here); without a network the error
+    is one line that says how to give a local file; a local path keeps working."""
+    cfg = load_config(None, ["model.backbone.name=efficientnet-b0", "model.backbone.weights=imagenet",
+                             "data.image_size=[64,96]", "model.gnn.layers=0", "model.bev_heads.stage_channels=[8]",
+                             "model.bev_heads.channels=8", "model.bev_heads.head_channels=8"])
+    torch.manual_seed(1)
+    reference = EfficientNet.from_name("efficientnet-b0")
+    asked = []
+
+    def download(name):
+        asked.append(name)
+        return reference.state_dict()
+
+    model = build_model(cfg, pretrained=True, download=download)
+    assert asked == ["efficientnet-b0"]
+    torch.testing.assert_close(model.backbone.trunk._blocks[5]._depthwise_conv.weight,
+                               reference._blocks[5]._depthwise_conv.weight)
+    assert build_model(cfg, download=download) is not None and asked == ["efficientnet-b0"]  # not pretrained: no call
+
+    def offline(name):
+        raise OSError("<urlopen error [Errno -3] Temporary failure\n in name resolution>")
+
+    with pytest.raises(UserError) as err:
+        build_model(cfg, pretrained=True, download=offline)
+    message = str(err.value)
+    assert "\n" not in message and "model.backbone.weights=imagenet" in message
+    assert "model.backbone.weights=/path/to/efficientnet-b0.pth" in message and "Temporary failure" in message
+    local = tmp_path / "b0.pth"
+    torch.save(reference.state_dict(), local)
+    backbone = build_model(load_config(None, ["model.backbone.name=efficientnet-b0", f"model.backbone.weights={local}",
+                                              "data.image_size=[64,96]"])).backbone
+    load_pretrained_backbone(backbone, str(local), download=offline)  # a path never downloads
+    torch.testing.assert_close(backbone.trunk._conv_stem.weight, reference._conv_stem.weight)
+    with pytest.raises(ConfigError, match="model.backbone.from_scratch"):
+        build_model(load_config(None, ["model.backbone.weights=imagenet", "model.backbone.from_scratch=true"]))

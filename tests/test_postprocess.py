@@ -397,8 +397,8 @@ def test_decode_options_follow_the_config():
                     "max_edge_px": 10.0, "min_vertices": 4}
     paper = load_config(Path(__file__).resolve().parents[1] / "configs" / "paper" / "table1_b0_lss_128x352.yaml")
     assert decode_options(paper.model.gnn, BEVGrid.from_config(paper.grid)) == {
-        "match_threshold": 0.1, "decoder": "greedy", "class_min_prob": 0.05, "same_class_edges": False,
-        "max_edge_px": None, "min_vertices": 2}
+        "match_threshold": 0.1, "decoder": "official", "class_min_prob": 0.05, "same_class_edges": False,
+        "max_edge_px": None, "min_vertices": 2}  # the official export's decoding
 
 
 # --- the classwise decoder ----------------------------------------------------------------------------
@@ -457,3 +457,74 @@ def test_classwise_graphs_are_per_class_and_batched_equals_one_by_one():
         assert as_set(postprocess_batch(outputs, GRID, 0.1, decoder="classwise")[b]) == gt_set(scene)
         one = neighbours({k: v[b : b + 1] for k, v in outputs.items()}, 0.1, decoder="classwise")
         assert torch.equal(one[0], graphs[b])
+
+
+def edge_probs(N: int, edges=(), one_way=()) -> torch.Tensor:
+    """[N+1, N+1] probabilities: 0.5 both ways along ``edges``, 0.5 from i to j only along ``one_way``,
+    the rest of each real row on the dustbin."""
+    P = torch.zeros(N + 1, N + 1)
+    for i, j in edges:
+        P[i, j] = P[j, i] = 0.5
+    for i, j in one_way:
+        P[i, j] = 0.5
+    P[:N, N] = (1 - P[:N, :N].sum(1)).clamp(min=0)
+    P[N] = 1.0 / (N + 1)
+    return P
+
+
+def decoded_indices(instances, outputs) -> list[list[int]]:
+    """Polylines decoded from ``chain_outputs`` (vertex i at v = 20 + 10 i px) -> vertex index lists."""
+    v = GRID.m_to_px(np.stack([d["pts"] for d in instances]))[..., 1] if instances else []
+    return [[int(round((x - 20) / 10)) for x in row] for row in v]
+
+
+def test_the_official_decoder_reproduces_the_official_walk():
+    """decoder='official' against the official export (postprocess/vectorize.py:104-198 at
+    juyebshin/InstaGraM 2b978e4). The expected vertex lists are what that function returns on these
+    inputs (run on them, outside this repository): it records a vertex only when the next vertex of
+    its walk points back to it, so the last vertex of every walk is lost."""
+    cases = [
+        (5, dict(edges=[(0, 1), (1, 2), (2, 3), (3, 4)]), [[3, 2, 1, 0]]),  # the path's end 4 is lost
+        (3, dict(edges=[(0, 1), (1, 2)]), [[1, 0]]),
+        (3, dict(edges=[(1, 0), (0, 2)]), []),  # the lowest index in the middle: two walks of one vertex each
+        (5, dict(edges=[(2, 0), (0, 1), (1, 3), (3, 4)]), [[0, 1, 3]]),  # both walks lose their ends
+        (2, dict(edges=[(0, 1)]), []),  # a pair gives nothing
+        (4, dict(edges=[(0, 1), (1, 2), (2, 3), (3, 0)]), [[0, 1, 2]]),  # a cycle comes out open, one short
+        (5, dict(edges=[(0, 1), (1, 2), (3, 4)], one_way=[(2, 3)]), [[3, 1, 0]]),  # walks on over 2 -> 3
+    ]
+    for n, kw, expected in cases:
+        outputs = chain_outputs(edge_probs(n, **kw))
+        outputs["pred_class_log_probs"] = torch.tensor([[0.8, 0.1, 0.1]] * n).log()[None]
+        out = postprocess_batch(outputs, GRID, decoder="official")[0]
+        assert decoded_indices(out, outputs) == expected, (kw, expected)
+        assert all(not d["closed"] and d["label"] == 0 and d["score"] == pytest.approx(0.8) for d in out)
+    # the class condition: vertex 2 of another argmax class splits 0..4 into two pairs, which both vanish
+    outputs = chain_outputs(edge_probs(5, edges=[(0, 1), (1, 2), (2, 3), (3, 4)]))
+    outputs["pred_class_log_probs"] = torch.tensor([[0.8, 0.1, 0.1]] * 2 + [[0.1, 0.8, 0.1]] + [[0.8, 0.1, 0.1]] * 2
+                                                   ).log()[None]
+    assert postprocess_batch(outputs, GRID, decoder="official")[0] == []
+
+
+def test_the_mutual_decoder_is_the_official_rule_with_whole_instances():
+    """decoder='mutual': the official edges (two best real columns, p > 0.1, both ways, the same argmax
+    class at both ends) and the official confidence (mean probability of the class, no vertex score),
+    traced into whole paths and cycles."""
+    outputs = chain_outputs(edge_probs(5, edges=[(0, 1), (1, 2), (2, 3), (3, 4)]))
+    probs = torch.tensor([[0.7, 0.2, 0.1], [0.6, 0.3, 0.1], [0.5, 0.4, 0.1], [0.9, 0.05, 0.05], [0.8, 0.1, 0.1]])
+    outputs["pred_class_log_probs"] = probs.log()[None]
+    outputs["pred_vertex_scores"] = torch.tensor([[0.9, 0.1, 0.5, 0.3, 0.2]])
+    (inst,) = postprocess_batch(outputs, GRID, decoder="mutual")[0]
+    assert sorted(decoded_indices([inst], outputs)[0]) == [0, 1, 2, 3, 4] and inst["label"] == 0
+    assert inst["score"] == pytest.approx(probs[:, 0].mean().item(), rel=1e-6)  # not x mean vertex score
+    (greedy,) = postprocess_batch(outputs, GRID)[0]
+    assert greedy["score"] == pytest.approx(probs[:, 0].mean().item() * 0.4, rel=1e-6)
+    # vertex 2 turns to class 1: no edge joins it to a class-0 vertex, whatever same_class_edges says
+    outputs["pred_class_log_probs"] = probs[[0, 1, 3, 3, 4]].clone().index_put_(
+        (torch.tensor([2]),), torch.tensor([[0.2, 0.7, 0.1]])).log()[None]
+    for flag in (False, True):
+        out = postprocess_batch(outputs, GRID, decoder="mutual", same_class_edges=flag)[0]
+        assert sorted(sorted(i) for i in decoded_indices(out, outputs)) == [[0, 1], [3, 4]]
+    # a cycle stays closed
+    outputs = chain_outputs(edge_probs(4, edges=[(0, 1), (1, 2), (2, 3), (3, 0)]))
+    (inst,) = postprocess_batch(outputs, GRID, decoder="mutual")[0]
+    assert inst["closed"] and len(inst["pts"]) == 5

@@ -151,7 +151,11 @@ def test_gt_outputs_and_pictures_of_an_empty_map(tmp_path):
     mask = out["pred_vertex_mask"][0]
     figs = {"bev.png": prediction_bev_figure([], [], grid),
             "inter.png": intermediate_figure(out["pred_heatmap"][0], out["pred_distance"][0],
-                                             out["pred_vertices_px"][0][mask], torch.zeros(0), edges, kept, grid)}
+                                             out["pred_vertices_px"][0][mask], torch.zeros(0), edges, kept, grid),
+            # a model without a distance head (configs/paper/fig7_vd_*): no distance panels
+            "inter_no_dt.png": intermediate_figure(out["pred_heatmap"][0], None, out["pred_vertices_px"][0][mask],
+                                                   torch.zeros(0), edges, kept, grid)}
+    assert len(figs["inter_no_dt.png"].axes) < len(figs["inter.png"].axes)
     for name, fig in figs.items():
         assert _is_png(save_figure(fig, tmp_path / name))
 

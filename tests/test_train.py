@@ -261,3 +261,74 @@ def test_training_runs_with_its_threads_and_gives_the_setting_back(tmp_path, mon
     summary = train(cfg, loaders=_loaders(cfg), validate=False)
     assert seen == [1] and summary["cpu_threads"] == 1
     assert torch.get_num_threads() == before
+
+
+def test_a_model_without_a_distance_head_trains(tmp_path):
+    """The official visual-descriptor variant (configs/paper/fig7_vd_*): no distance head, no distance
+    loss, the descriptor read at the vertex's cell."""
+    cfg = _tiny_cfg(tmp_path, "train.epochs=1", "model.bev_heads.distance_head=false", "model.gnn.embedding=pe+vd",
+                    "model.gnn.vd_sampling=cell")
+    summary = train(cfg, loaders=_loaders(cfg), validate=False)
+    assert summary["step"] == 2 and "loss_distance" not in summary["train"]
+    assert math.isfinite(summary["train"]["loss_total"]) and summary["train"]["loss_adjacency"] > 0
+    assert not any(k.startswith("bev_heads.distance_head") for k in _weights(tmp_path / "run" / "last.pt"))
+
+
+B0 = ["model.backbone.name=efficientnet-b0", "train.max_steps=1", "train.epochs=1"]
+
+
+def test_random_efficientnet_weights_warn_loudly_unless_deliberate(tmp_path, capsys, monkeypatch):
+    """A paper config starts from ImageNet weights; an EfficientNet left random says so at the start of
+    training, unless model.backbone.from_scratch makes it deliberate; weights=imagenet downloads them
+    (mocked here: never the network) and a failed download is one UserError line."""
+    from instagram_hdmap.models import backbone as backbone_module
+
+    cfg = _tiny_cfg(tmp_path / "random", *B0)
+    summary = train(cfg, loaders=_loaders(cfg), validate=False)
+    assert "WARNING: efficientnet-b0 starts from RANDOM weights" in capsys.readouterr().out
+    assert "model.backbone.from_scratch=true" in summary["warnings"][0]
+
+    cfg = _tiny_cfg(tmp_path / "scratch", *B0, "model.backbone.from_scratch=true")
+    summary = train(cfg, loaders=_loaders(cfg), validate=False)
+    assert "RANDOM" not in capsys.readouterr().out and "warnings" not in summary
+    tiny = _tiny_cfg(tmp_path / "tiny", "train.max_steps=1", "train.epochs=1")  # the tiny backbone: no warning
+    train(tiny, loaders=_loaders(tiny), validate=False)
+    assert "RANDOM" not in capsys.readouterr().out
+
+    def offline(name):
+        raise OSError("[Errno -3] Temporary failure in name resolution")
+
+    monkeypatch.setattr(backbone_module, "download_imagenet", offline)
+    cfg = _tiny_cfg(tmp_path / "offline", *B0, "model.backbone.weights=imagenet")
+    with pytest.raises(UserError, match="model.backbone.weights=/path/to/efficientnet-b0.pth") as err:
+        train(cfg, loaders=_loaders(cfg), validate=False)
+    assert "\n" not in str(err.value)
+
+    from efficientnet_pytorch import EfficientNet
+
+    torch.manual_seed(5)
+    reference = EfficientNet.from_name("efficientnet-b0").state_dict()
+    monkeypatch.setattr(backbone_module, "download_imagenet", lambda name: reference)
+    cfg = _tiny_cfg(tmp_path / "imagenet", *B0, "model.backbone.weights=imagenet", "train.lr=1e-12")
+    summary = train(cfg, loaders=_loaders(cfg), validate=False)
+    assert "RANDOM" not in capsys.readouterr().out and "warnings" not in summary
+    stem = _weights(tmp_path / "imagenet" / "run" / "last.pt")["backbone.trunk._conv_stem.weight"]
+    torch.testing.assert_close(stem, reference["_conv_stem.weight"], rtol=0, atol=1e-6)
+
+
+def test_the_cli_stops_a_paper_config_offline_in_one_line_before_loading_data(tmp_path, capsys, monkeypatch):
+    """instagram-hdmap train configs/paper/... without internet: exit 2 and one line on how to give the
+    weights as a file, before the (long) dataset setup (the dataroot here does not even exist)."""
+    from instagram_hdmap.cli import main
+    from instagram_hdmap.models import backbone as backbone_module
+
+    def offline(name):
+        raise OSError("[Errno -3] Temporary failure in name resolution")
+
+    monkeypatch.setattr(backbone_module, "download_imagenet", offline)
+    config = os.path.join(os.path.dirname(__file__), "..", "configs", "paper", "table1_b0_lss_128x352.yaml")
+    code = main(["train", config, f"data.dataroot={tmp_path / 'absent'}", f"train.out_dir={tmp_path / 'run'}",
+                 "train.device=cpu"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "model.backbone.weights=/path/to/efficientnet-b0.pth" in err and "absent" not in err

@@ -10,6 +10,14 @@ Matching (paper Eq. 5)
     Each real predicted vertex ``i`` is matched to its nearest real GT vertex ``sigma(i)`` if the
     distance is strictly below ``D0`` (``loss.match_dist``, metres; converted to BEV pixels with the
     grid resolution). Otherwise ``sigma(i) = UNMATCHED``. Ties go to the lowest GT index.
+    ``match_space="patch"`` (config ``loss.match_space``) measures that distance, and picks the
+    nearest GT vertex, as the official ``GraphLoss`` does (``loss.py:86-88,119,131,143-149`` at
+    juyebshin/InstaGraM 2b978e4): a predicted vertex's pixel divided by ``(W - 1, H - 1)``, a GT
+    point's metres shifted to the patch corner and divided by the patch extent ``(W, H) x res`` (for
+    our pixel-centre GT vertices ``(u + 1/2) / W``), Euclidean distance there, strictly below
+    ``|D0 / extent|`` = ``sqrt((D0 / 60)^2 + (D0 / 30)^2)`` on the 60 m x 30 m patch: an ellipse of
+    semi-axes 3.35 m (along x) and 1.68 m (along y) at D0 = 1.5 m, and a shift of up to half a pixel
+    between the two normalisations at the patch border.
 
 Several predicted vertices on one GT vertex: one representative
     Among the predicted vertices with ``sigma(i) = g``, only the nearest one (ties: lowest index)
@@ -47,7 +55,12 @@ Outputs (``assign(...)`` dict)
     ``target_next``           [B, N] int64   forward target column in [0, N] (N = dustbin);
                                              IGNORE_INDEX on padded predicted vertices
     ``target_prev``           [B, N] int64   backward target column, same convention
-    ``target_class``          [B, N] int64   class of sigma(i); IGNORE_INDEX if unmatched / padding
+    ``target_class``          [B, N] int64   class of sigma(i); IGNORE_INDEX if unmatched / padding.
+                                             ``class_targets="nearest"`` (config
+                                             ``loss.class_targets``): the class of the nearest GT
+                                             vertex for every real predicted vertex, at any distance
+                                             (the official ``loss.py:157-158``); IGNORE_INDEX only
+                                             on padding and in samples without GT
 """
 
 from __future__ import annotations
@@ -103,6 +116,9 @@ def assign(
     grid: BEVGrid,
     match_dist_m: float,
     skip_missed: bool = True,
+    *,
+    match_space: str = "metres",
+    class_targets: str = "matched",
 ) -> dict[str, torch.Tensor]:
     """Match predicted to GT vertices and derive the graph targets (module docstring has the rules).
 
@@ -127,22 +143,34 @@ def assign(
     gt_mask = gt_vertex_mask.bool()
 
     # --- Eq. 5: nearest real GT vertex within D0 ----------------------------------------------
-    if M > 0:
-        dist_px = torch.cdist(pred_vertices_px.float(), gt_vertices_px.float(),
-                              compute_mode="donot_use_mm_for_euclid_dist")  # [B, N, M], exact
-        dist_px = dist_px.masked_fill(~(pred_mask[:, :, None] & gt_mask[:, None, :]), math.inf)
-        nearest_px, nearest = dist_px.min(dim=2)  # [B, N]
+    pred_xy, gt_xy = pred_vertices_px.float(), gt_vertices_px.float()
+    if match_space == "patch":  # the official GraphLoss's normalised coordinates (module docstring)
+        pred_xy = pred_xy / pred_xy.new_tensor([grid.W - 1, grid.H - 1])
+        gt_xy = (gt_xy + 0.5) / gt_xy.new_tensor([grid.W, grid.H])
+        limit = match_dist_m * math.hypot(1 / (grid.W * grid.resolution), 1 / (grid.H * grid.resolution))
+    elif match_space == "metres":
+        limit = match_dist_m / grid.resolution
     else:
-        nearest_px = pred_vertices_px.new_full((B, N), math.inf, dtype=torch.float32)
+        raise ValueError(f"match_space must be 'metres' or 'patch', got {match_space!r}")
+    if class_targets not in ("matched", "nearest"):
+        raise ValueError(f"class_targets must be 'matched' or 'nearest', got {class_targets!r}")
+    if M > 0:
+        dist = torch.cdist(pred_xy, gt_xy, compute_mode="donot_use_mm_for_euclid_dist")  # [B, N, M], exact
+        dist = dist.masked_fill(~(pred_mask[:, :, None] & gt_mask[:, None, :]), math.inf)
+        nearest_d, nearest = dist.min(dim=2)  # [B, N], in the matching space
+        offset_px = pred_vertices_px.float() - gt_vertices_px.float().gather(1, nearest[..., None].expand(B, N, 2))
+        nearest_px = torch.where(torch.isfinite(nearest_d), offset_px.norm(dim=2), nearest_d)
+    else:
+        nearest_d = nearest_px = pred_vertices_px.new_full((B, N), math.inf, dtype=torch.float32)
         nearest = torch.zeros(B, N, dtype=torch.long, device=device)
-    matched = nearest_px < (match_dist_m / grid.resolution)  # inf (padding / no GT) never matches
+    matched = nearest_d < limit  # inf (padding / no GT) never matches
     pred_to_gt = torch.where(matched, nearest, torch.full_like(nearest, UNMATCHED))
 
     # --- one representative per GT vertex: nearest of its matches, ties -> lowest index ---------
     slot = torch.where(matched, nearest, torch.full_like(nearest, M))  # M = scratch slot
-    best_px = nearest_px.new_full((B, M + 1), math.inf).scatter_reduce(
-        1, slot, nearest_px, reduce="amin", include_self=True)
-    is_best = matched & (nearest_px == best_px.gather(1, slot))
+    best_d = nearest_d.new_full((B, M + 1), math.inf).scatter_reduce(
+        1, slot, nearest_d, reduce="amin", include_self=True)
+    is_best = matched & (nearest_d == best_d.gather(1, slot))
     pred_idx = torch.arange(N, device=device).expand(B, N)
     slot_best = torch.where(is_best, slot, torch.full_like(slot, M))
     rep = torch.full((B, M + 1), N, dtype=torch.long, device=device).scatter_reduce(
@@ -163,8 +191,9 @@ def assign(
         out = torch.where(is_rep, out, torch.full_like(out, N))  # ...and go to the dustbin
         return torch.where(pred_mask, out, torch.full_like(out, IGNORE_INDEX))
 
-    target_class = gt_vertex_labels.long().gather(1, slot.clamp(max=max(M - 1, 0))) if M > 0 else slot
-    target_class = torch.where(matched, target_class, torch.full_like(slot, IGNORE_INDEX))
+    target_class = gt_vertex_labels.long().gather(1, nearest.clamp(max=max(M - 1, 0))) if M > 0 else slot
+    has_class = matched if class_targets == "matched" else torch.isfinite(nearest_d)
+    target_class = torch.where(has_class, target_class, torch.full_like(slot, IGNORE_INDEX))
 
     return {
         "pred_to_gt": pred_to_gt,
@@ -178,8 +207,9 @@ def assign(
 
 
 def assign_batch(outputs: dict, batch: dict, grid: BEVGrid, match_dist_m: float,
-                 skip_missed: bool = True) -> dict[str, torch.Tensor]:
-    """``assign`` on a model output dict and a collated batch (docs/conventions.md keys)."""
+                 skip_missed: bool = True, **options) -> dict[str, torch.Tensor]:
+    """``assign`` on a model output dict and a collated batch (docs/conventions.md keys); ``options``:
+    ``match_space``, ``class_targets``."""
     missing = [k for k in GT_GRAPH_KEYS if k not in batch]
     missing += [k for k in ("pred_vertices_px", "pred_vertex_mask") if k not in outputs]
     if missing:
@@ -187,7 +217,7 @@ def assign_batch(outputs: dict, batch: dict, grid: BEVGrid, match_dist_m: float,
                        "(see docs/conventions.md)")
     return assign(outputs["pred_vertices_px"], outputs["pred_vertex_mask"], batch["gt_vertices_px"],
                   batch["gt_vertex_mask"], batch["gt_vertex_labels"], batch["gt_vertex_next"],
-                  batch["gt_vertex_prev"], grid, match_dist_m, skip_missed)
+                  batch["gt_vertex_prev"], grid, match_dist_m, skip_missed, **options)
 
 
 @torch.no_grad()

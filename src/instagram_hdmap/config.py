@@ -1,7 +1,10 @@
 """Experiment configuration: nested dataclasses, one per component.
 
 A YAML file holds *overrides only* of the defaults below (the defaults are the paper's main
-setting: EfficientNet-B4, LSS, 128x352 images, 60 m x 30 m at 0.15 m, S = 8, N = 400, 7 GNN layers).
+setting: EfficientNet-B4, LSS, 128x352 images, 60 m x 30 m at 0.15 m, S = 8, N = 400, 7 GNN layers;
+configs/paper/table1_b4_lss_128x352.yaml adds what the official code does differently from our
+defaults: ImageNet weights, SuperPoint NMS, its matching space and class targets, its decoder, the
+raster protocol, ...; benchmarks/README.md, "The paper configs against the official code").
 A YAML file may name another one to start from with ``_base_: relative/path.yaml``. Command-line
 overrides use dotted keys, ``model.gnn.layers=9``, and are parsed as YAML values.
 
@@ -133,8 +136,10 @@ class DataConfig:
     val_split: str = "val"
     image_size: tuple[int, int] = bounded((128, 352), ge=1)  # (h, w) fed to the backbone
     # cover: resize to cover (h, w), crop (lift-splat-shoot); contain: resize to fit inside, pad with
-    # black (for cameras of different aspect ratios, e.g. AV2's portrait ring_front_center)
-    image_fit: Literal["cover", "contain"] = "cover"
+    # black (for cameras of different aspect ratios, e.g. AV2's portrait ring_front_center); stretch:
+    # resize the whole image to (h, w), each axis on its own (the official InstaGraM / HDMapNet
+    # loader: 1600 x 900 -> 352 x 128, no crop; configs/paper)
+    image_fit: Literal["cover", "contain", "stretch"] = "cover"
     av2_cameras: tuple[str, ...] = AV2_RING_CAMERAS  # av2: the ring cameras fed to the model, in this order
     av2_frame_step: int = bounded(5, ge=1)  # av2: one lidar sweep in N is a sample (AV2's sweeps come at 10 Hz)
     sample_dist: float = bounded(1.5, gt=0)  # metres between resampled map vertices
@@ -154,7 +159,13 @@ class DataConfig:
 @dataclass
 class BackboneConfig:
     name: Literal["efficientnet-b0", "efficientnet-b4", "tiny"] = "efficientnet-b4"
-    weights: str | None = None  # local ImageNet checkpoint in efficientnet_pytorch's format
+    # ImageNet weights of the EfficientNet, loaded when training starts (not on resume): "imagenet"
+    # downloads them through efficientnet_pytorch (torch's hub cache), a path reads a local file in
+    # that package's state-dict format, null starts from random weights (models/backbone.py)
+    weights: str | None = None
+    # train an EfficientNet from random weights on purpose: without it (and without weights) training
+    # warns loudly at start, since every paper number starts from ImageNet weights
+    from_scratch: bool = False
     # C of the per-camera features handed to the view transform (reduction 4 + 5 fused by an up-block).
     # The official code uses 256 with LSS and 64 with IPM / MLP (configs/paper/table5_*.yaml).
     out_channels: int = bounded(256, ge=1)
@@ -188,6 +199,9 @@ class BEVHeadsConfig:
     # "3 residual blocks": ResNet-18 stages layer1..3, two BasicBlocks each, strides 1, 2, 2
     stage_channels: tuple[int, ...] = bounded((64, 128, 256), ge=1)
     head_channels: int = bounded(128, ge=1)  # hidden width of the vertex and distance-transform heads
+    # the distance-transform (edge map) head and its loss; false: no head, no pred_distance, no
+    # loss_distance (the official visual-descriptor variant of Fig. 7, which needs embedding pe+vd)
+    distance_head: bool = True
 
 
 @dataclass
@@ -195,9 +209,16 @@ class GraphHeadConfig:
     num_vertices: int = bounded(400, ge=1)  # N, top-N vertices fed to the GNN
     conf_threshold: float = bounded(0.01, ge=0, lt=1)
     # BEV pixels: a cell's vertex within this distance of a stronger one in a neighbouring cell is
-    # dropped (0: one vertex per cell only, the paper's rule; models/vertices.py)
+    # dropped (0: one vertex per cell only, the paper's text; models/vertices.py)
     nms_radius: float = bounded(0.0, ge=0)
+    # how nms_radius suppresses: "cells" (ours: Euclidean distance to a stronger winner of one of the
+    # 8 neighbouring cells, one pass) or "superpoint" (SuperPoint's simple_nms on the map of cell
+    # winners: (2r+1)^2 max-pool window, two rescue passes; the official code, radius S/2 px)
+    nms: Literal["cells", "superpoint"] = "cells"
     embedding: Literal["pe+dt", "pe", "dt", "pe+vd"] = "pe+dt"
+    # pe+vd: where the visual descriptor is read from F_bev: "vertex" (bilinear at the vertex) or
+    # "cell" (F_bev resized to the cell grid, the vertex's cell: the official code)
+    vd_sampling: Literal["vertex", "cell"] = "vertex"
     dim: int = bounded(256, ge=1)  # D
     pe_frequencies: int = bounded(10, ge=0)  # sinusoidal positional encoding bands per coordinate
     layers: int = bounded(7, ge=0)  # L attentional message-passing layers (0-11 in the paper)
@@ -211,12 +232,15 @@ class GraphHeadConfig:
     match_threshold: float = bounded(0.1, gt=0, lt=1, note="an adjacency probability")
     # inference decoder of the adjacency (postprocess.py): "greedy" (strongest pairs first, degree
     # <= 2, one class-agnostic graph), "classwise" (the same per class, over the vertices whose class
-    # probability is >= class_min_prob) or "mutual" (the official rule: each end ranks the other
-    # among its two best)
-    decoder: Literal["classwise", "greedy", "mutual"] = "greedy"
+    # probability is >= class_min_prob), "mutual" (the official rule: each end ranks the other among
+    # its two best, both ends of the same argmax class, confidence = mean class probability) or
+    # "official" (the official export's walk over that rule, quirks included: it drops the last
+    # vertex of every walk)
+    decoder: Literal["classwise", "greedy", "mutual", "official"] = "greedy"
     # classwise: a vertex takes part in class k's graph if p_k >= this
     class_min_prob: float = bounded(0.05, ge=0, lt=1, note="a class probability")
-    same_class_edges: bool = False  # greedy / mutual: an edge needs both vertices' argmax class to agree
+    # greedy: an edge needs both vertices' argmax class to agree (mutual and official always do)
+    same_class_edges: bool = False
     # greedy / classwise: no edge longer than this (metres)
     max_edge_m: float | None = bounded(None, gt=0, note="metres, or null: no limit")
     # a decoded instance needs at least this many vertices
@@ -237,7 +261,15 @@ class LossConfig:
     distance_weight: float = bounded(1.0, ge=0)  # lambda_2, distance-transform L2
     adjacency_weight: float = bounded(5e-3, ge=0)  # lambda_3, bidirectional adjacency NLL
     class_weight: float = bounded(1e-2, ge=0)  # lambda_4, vertex class NLL
-    match_dist: float = bounded(1.5, gt=0)  # D_0, metres: a predicted vertex farther from every GT vertex is unmatched
+    # D_0, metres: a predicted vertex farther from every GT vertex is unmatched
+    match_dist: float = bounded(1.5, gt=0)
+    # the space of Eq. 5's distance (assignment.py): "metres" (a circle of radius D_0) or "patch" (the
+    # official GraphLoss: offsets divided by the patch extent and compared with D_0 divided the same
+    # way, an ellipse of 3.35 m x 1.68 m on the 60 m x 30 m patch; the nearest GT vertex too)
+    match_space: Literal["metres", "patch"] = "metres"
+    # class targets (Eq. 7): "matched" (the predicted vertices within D_0 of a GT vertex) or "nearest"
+    # (every real predicted vertex takes the class of its nearest GT vertex at any distance: official)
+    class_targets: Literal["matched", "nearest"] = "matched"
     # adjacency targets skip GT vertices that no prediction represents (assignment.py); False: dustbin
     skip_missed_vertices: bool = True
 
@@ -286,6 +318,8 @@ class EvalConfig:
     # InstaGraM paper's numbers carry), "descending" fixes it
     rank_by: Literal["ascending", "descending"] = "ascending"
     fix_instance_ids: bool = False  # raster only: int32 ids, each instance keeps its own confidence
+    # protocols computed as well, on the same predictions, reported under metrics["also"][protocol]
+    also_protocols: tuple[Literal["vector", "raster"], ...] = ()
 
 
 @dataclass
@@ -547,7 +581,7 @@ def validate_config(cfg: ExperimentConfig) -> None:
         if not hi > lo:
             raise ConfigError(f"config key 'grid.{name}': upper bound must exceed lower, got {(lo, hi)}")
     gnn = cfg.model.gnn
-    if gnn.max_edge_m is not None and gnn.decoder == "mutual":
+    if gnn.max_edge_m is not None and gnn.decoder in ("mutual", "official"):
         raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy and classwise decoders; "
                           "set model.gnn.decoder=greedy (or classwise), or max_edge_m=null")
     d = cfg.data
@@ -561,6 +595,10 @@ def validate_config(cfg: ExperimentConfig) -> None:
     if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
         raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "
                           f"{', '.join(AV2_RING_CAMERAS)}; got {list(d.av2_cameras)}")
+    also = cfg.eval.also_protocols
+    if cfg.eval.protocol in also or len(set(also)) != len(also):
+        raise ConfigError(f"config key 'eval.also_protocols' lists protocols besides eval.protocol="
+                          f"{cfg.eval.protocol!r}, each once; got {list(also)}")
     if not cfg.eval.thresholds:
         raise ConfigError("config key 'eval.thresholds' needs at least one Chamfer threshold in metres")
 

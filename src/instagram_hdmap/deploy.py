@@ -56,13 +56,19 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
                 "pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")
 # Config keys that shape the graph (predict.MODEL_KEYS) less those the graph does not read.
 BAKED_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
-NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.grad_checkpoint")
+NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.from_scratch", "model.backbone.grad_checkpoint")
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
 META_CONFIG_SHA = "instagram_hdmap.config_sha256"
 META_SHAPES = "instagram_hdmap.shapes"
 META_SOURCE = "instagram_hdmap.source"
 DEPLOY_EXTRA = 'pip install -e ".[deploy]"'
+
+
+def output_names(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """``OUTPUT_NAMES`` of a model built from ``cfg``: without ``pred_distance`` when it has no distance
+    head (``model.bev_heads.distance_head=false``)."""
+    return tuple(k for k in OUTPUT_NAMES if k != "pred_distance" or cfg.model.bev_heads.distance_head)
 
 
 class DeployError(UserError):
@@ -107,7 +113,7 @@ class TensorInterface(nn.Module):
 
     def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         outputs = self.model(dict(zip(INPUT_NAMES, inputs)))
-        return tuple(outputs[k] for k in OUTPUT_NAMES)
+        return tuple(outputs[k] for k in OUTPUT_NAMES if k in outputs)
 
 
 def example_inputs(cfg: ExperimentConfig, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -182,7 +188,8 @@ def compare_outputs(expected: dict[str, torch.Tensor], got: dict[str, torch.Tens
 
     same = torch.equal(e["pred_vertex_mask"], g["pred_vertex_mask"]) and torch.equal(
         e["pred_vertices_px"], g["pred_vertices_px"])
-    return {"dense": worst(("pred_vertex_logits", "pred_heatmap", "pred_distance")), "same_vertices": same,
+    dense = tuple(k for k in ("pred_vertex_logits", "pred_heatmap", "pred_distance") if k in e)
+    return {"dense": worst(dense), "same_vertices": same,
             "graph": worst(("pred_vertex_scores", "pred_class_log_probs", "pred_log_assignment")) if same else None}
 
 
@@ -207,11 +214,12 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
     args = tuple(batch[k] for k in INPUT_NAMES)
     with torch.no_grad():
         expected = interface(*args)
-        program = torch.onnx.export(interface, args, input_names=list(INPUT_NAMES), output_names=list(OUTPUT_NAMES),
-                                    opset_version=opset, dynamo=True, optimize=optimize, verbose=False)
+        program = torch.onnx.export(interface, args, input_names=list(INPUT_NAMES),
+                                    output_names=list(output_names(cfg)), opset_version=opset, dynamo=True,
+                                    optimize=optimize, verbose=False)
     proto = program.model_proto
     shapes = {"inputs": {k: list(a.shape) for k, a in zip(INPUT_NAMES, args)},
-              "outputs": {k: list(t.shape) for k, t in zip(OUTPUT_NAMES, expected)}}
+              "outputs": {k: list(t.shape) for k, t in zip(output_names(cfg), expected)}}
     baked = baked_config(cfg)
     sha = config_sha256(baked)
     from . import __version__
@@ -360,6 +368,7 @@ class OnnxModel:
         options.log_severity_level = 3  # errors only
         self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
         self.input_shapes = self.meta["shapes"]["inputs"]
+        self.output_names = output_names(cfg)
 
     def __call__(self, batch: dict) -> dict[str, torch.Tensor]:
         feed = {}
@@ -371,8 +380,8 @@ class OnnxModel:
                 raise DeployError(f"{self.path} takes {name} of shape {self.input_shapes[name]} (static, batch 1); "
                                   f"the batch has {list(tensor.shape)}")
             feed[name] = tensor.detach().to("cpu", torch.float32).contiguous().numpy()
-        results = self.session.run(list(OUTPUT_NAMES), feed)
-        return {name: torch.from_numpy(value) for name, value in zip(OUTPUT_NAMES, results)}
+        results = self.session.run(list(self.output_names), feed)
+        return {name: torch.from_numpy(value) for name, value in zip(self.output_names, results)}
 
 
 # --- fast torch paths: torch.compile and CUDA graphs -------------------------------------------------------

@@ -69,11 +69,11 @@ class ClassDiagnostics:
         matched_cls = gt_labels.gather(1, pred_to_gt.clamp(min=0)) if gt_labels.shape[1] else pred_cls
         ok = (pred_to_gt != UNMATCHED) & (matched_cls == pred_cls)
         self._add("vertex_precision", ok, pred_mask, pred_cls)
-        # distance transform
-        pred_dt, gt_dt = outputs["pred_distance"].float(), batch["gt_distance"].float()
+        # distance transform (none without a distance head)
+        pred_dt, gt_dt = outputs.get("pred_distance"), batch["gt_distance"].float()
         band = gt_dt < self.dt_clip
-        err = (pred_dt - gt_dt).abs()
-        for k in range(self.K):
+        err = (pred_dt.float() - gt_dt).abs() if pred_dt is not None else None
+        for k in range(self.K if pred_dt is not None else 0):
             n = int(band[:, k].sum())
             self.hits["dt_error_px"][k] += float(err[:, k][band[:, k]].sum())
             self.totals["dt_error_px"][k] += n

@@ -22,8 +22,11 @@ vertices. Terms (paper Eqs. 4-8):
                     The dustbin row N is not supervised (as in the official code). Unlike the
                     official code, a sample without GT still trains all its vertices to the dustbin.
 ``loss_class``      Eq. 7: NLL of ``pred_class_log_probs`` [B, N, K] at the class of sigma(i), over
-                    the predicted vertices matched within D0; mean per sample, mean over samples
-                    (a sample without matched vertices adds 0).
+                    the predicted vertices matched within D0 (``loss.class_targets=nearest``: over
+                    every real predicted vertex, at the class of its nearest GT vertex, as the
+                    official code); mean per sample, mean over samples (a sample without such
+                    vertices adds 0).
+``loss_distance`` is absent when the model has no distance head (``with_distance=False``).
 
 ``weight_dict`` holds lambda_1..4 (``loss.*_weight``); the output has each raw term, each weighted
 term (``loss_<name>_weighted``) and ``loss_total`` = the sum of the weighted terms (Eq. 8). Logging
@@ -106,24 +109,30 @@ def adjacency_correct(log_assignment: torch.Tensor, pred_vertex_mask: torch.Tens
 class Criterion(nn.Module):
     """``Criterion(cfg.loss, grid)(outputs, batch) -> dict`` of named losses and diagnostics."""
 
-    def __init__(self, cfg: LossConfig, grid: BEVGrid):
+    def __init__(self, cfg: LossConfig, grid: BEVGrid, *, with_distance: bool = True):
         super().__init__()
         self.cfg = cfg
         self.grid = grid
+        # with_distance=False (model.bev_heads.distance_head=false): no loss_distance term at all
+        self.with_distance = with_distance
         self.weight_dict = {
             "loss_vertex": cfg.vertex_weight,
             "loss_distance": cfg.distance_weight,
             "loss_adjacency": cfg.adjacency_weight,
             "loss_class": cfg.class_weight,
         }
+        if not with_distance:
+            del self.weight_dict["loss_distance"]
 
     def assign(self, outputs: dict, batch: dict) -> dict[str, torch.Tensor]:
         """The graph targets for these outputs (no autograd), see assignment.py."""
-        return assign_batch(outputs, batch, self.grid, self.cfg.match_dist, self.cfg.skip_missed_vertices)
+        return assign_batch(outputs, batch, self.grid, self.cfg.match_dist, self.cfg.skip_missed_vertices,
+                            match_space=self.cfg.match_space, class_targets=self.cfg.class_targets)
 
     def forward(self, outputs: dict, batch: dict, assignment: dict | None = None) -> dict[str, torch.Tensor]:
-        missing = [k for k in REQUIRED_OUTPUTS if k not in outputs]
-        missing += [k for k in REQUIRED_TARGETS if k not in batch]
+        skip = () if self.with_distance else ("pred_distance", "gt_distance")
+        missing = [k for k in REQUIRED_OUTPUTS if k not in outputs and k not in skip]
+        missing += [k for k in REQUIRED_TARGETS if k not in batch and k not in skip]
         if missing:
             raise KeyError(f"the criterion needs {missing}, missing from the model output / batch "
                            "(see docs/conventions.md)")
@@ -140,10 +149,11 @@ class Criterion(nn.Module):
 
         losses = {
             "loss_vertex": F.cross_entropy(outputs["pred_vertex_logits"].float(), batch["gt_vertex_cells"].long()),
-            "loss_distance": F.mse_loss(outputs["pred_distance"].float(), batch["gt_distance"].float()),
             "loss_adjacency": adjacency_nll(log_assignment, target_next, target_prev).mean(),
             "loss_class": class_nll(class_log_probs, target_class).mean(),
         }
+        if self.with_distance:
+            losses["loss_distance"] = F.mse_loss(outputs["pred_distance"].float(), batch["gt_distance"].float())
         out = dict(losses)
         for name, value in losses.items():
             out[f"{name}_weighted"] = value * self.weight_dict[name]

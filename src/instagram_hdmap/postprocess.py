@@ -21,17 +21,28 @@ dustbin.
      is at least ``class_min_prob``; graph k's paths and cycles are class-k instances. A vertex not
      ruled out for two classes can serve both: where a crossing meets a kerb, one BEV cell (one
      vertex) lies on both lines, and one class-agnostic graph of degree <= 2 cannot give it to both.
-   - ``"mutual"`` (``vertex_neighbours``, the official decoder's rule): vertex i's candidate
-     neighbours are the (up to) two best real columns j != i of its row whose probability exceeds
-     ``match_threshold`` (the official 0.1, strict ``>``); an edge {i, j} is kept only if it is
-     mutual: j is a candidate of i and i a candidate of j. ``same_class_edges`` as above.
+   - ``"mutual"`` (``vertex_neighbours``, the official decoder's rule, ``postprocess/vectorize.py:
+     104-198`` at juyebshin/InstaGraM 2b978e4): vertex i's candidate neighbours are the (up to) two
+     best real columns j of its row whose probability exceeds ``match_threshold`` (the official 0.1,
+     strict ``>``, ``:133-137``) and whose argmax class is i's (``:139,142-146``: one graph per
+     class); an edge {i, j} is kept only if it is mutual: j is a candidate of i and i a candidate of
+     j. The instance's class is that shared class and its confidence the mean probability of it
+     over the instance's vertices (``:152,161,195``), without the vertex scores.
+   - ``"official"`` (``official_instances``): the official export's own walk over the same
+     directed candidate edges, reproduced with its quirks, since the paper's numbers carry them:
+     per class, starting from the lowest-index vertex with an out-edge, it follows out-edges
+     (one-sided ones too) in both directions and records a vertex only when the next vertex of the
+     walk points back to it, so the last vertex of every walk is never recorded (a 3-vertex path
+     whose middle vertex has the lowest index gives nothing; benchmarks/README.md, "The paper configs
+     against the official code"). ``mutual`` is the same rule without the walk's losses.
 
-   By default the graph is class-agnostic and the class is decided per instance (below), so one
+   ``greedy``'s graph is class-agnostic and the class is decided per instance (below), so one
    vertex with a flipped class does not split an instance. The demo model (a tiny graph head
    after ~3500 steps) gives true edges probabilities of only ~0.02-0.3 and its crossings touch
    the kerbs: it decodes ``classwise`` with ``match_threshold`` 0.02, ``class_min_prob`` 0.05,
    ``model.gnn.max_edge_m`` 2.5 and ``min_vertices`` 4 (configs/synthetic/demo.yaml;
-   benchmarks/README.md, "Decoding": +0.08 to +0.19 mAP over ``mutual`` on five demo models).
+   benchmarks/README.md, "Decoding": +0.08 to +0.19 mAP over the class-agnostic mutual rule of
+   before issue 18 on five demo models).
 2. Tracing (``trace_instances``): a linear walk over the neighbour pointers, O(N) per sample. Paths
    are walked from their lower-index end; what remains are cycles, walked from their lowest-index
    vertex in the direction of that vertex's first neighbour. Vertices without an edge (none above
@@ -40,8 +51,10 @@ dustbin.
 3. Instances: a path becomes a polyline (``closed=False``), a cycle a closed polygon whose first
    point is repeated at the end (``closed=True``, >= 4 points). Class and confidence:
    ``label = argmax_k mean_i p_ik`` (mean class probability over the instance's vertices, a soft
-   vote; ``classwise``: the class of its graph) and ``score = mean_i p_i,label x mean_i s_i`` with
-   ``s_i = pred_vertex_scores`` (vertex heatmap confidence). Points are converted to metres in the
+   vote; ``classwise``, ``mutual``, ``official``: the class of its graph) and
+   ``score = mean_i p_i,label x mean_i s_i`` with ``s_i = pred_vertex_scores`` (vertex heatmap
+   confidence); ``mutual`` and ``official``: ``score = mean_i p_i,label`` (the official confidence).
+   Points are converted to metres in the
    ego frame by ``geometry.BEVGrid``. Output per sample: a list of ``{"pts", "label", "closed",
    "score"}`` (docs/conventions.md).
 """
@@ -57,7 +70,9 @@ from .geometry import BEVGrid
 
 REQUIRED_OUTPUTS = ("pred_log_assignment", "pred_vertices_px", "pred_vertex_mask", "pred_vertex_scores",
                     "pred_class_log_probs")
-DECODERS = ("classwise", "greedy", "mutual")
+DECODERS = ("classwise", "greedy", "mutual", "official")
+# the decoders whose confidence is the official one (mean class probability, no vertex score)
+OFFICIAL_CONFIDENCE = ("mutual", "official")
 # the config keys read here (decode_options), at inference only: an ONNX export leaves them free
 DECODE_KEYS = ("model.gnn.match_threshold", "model.gnn.decoder", "model.gnn.class_min_prob",
                "model.gnn.same_class_edges", "model.gnn.max_edge_m", "model.gnn.min_vertices")
@@ -86,7 +101,8 @@ def vertex_neighbours(
 
     Entry (b, i, k) is the k-th neighbour of vertex i (a real vertex index) or -1; a single
     neighbour is always in slot 0. Symmetric: j is listed for i iff i is listed for j. Padded
-    vertices have no neighbours. ``class_log_probs`` [B, N, K] is needed for ``same_class_edges``.
+    vertices have no neighbours. ``class_log_probs`` [B, N, K] is needed for ``same_class_edges``
+    (which the ``mutual`` decoder always sets: the official rule).
     """
     B, N = pred_vertex_mask.shape
     device = log_assignment.device
@@ -172,6 +188,87 @@ def greedy_neighbours(
     return torch.tensor(nbr, dtype=torch.long).view(B, N, 2).to(device)
 
 
+@torch.no_grad()
+def official_edges(log_assignment: torch.Tensor, pred_vertex_mask: torch.Tensor, class_log_probs: torch.Tensor,
+                   match_threshold: float = 0.1) -> torch.Tensor:
+    """The official decoder's directed candidate edges: [B, N+1, N+1], [B, N], [B, N, K] -> [B, N, N]
+    bool, (i, j) True iff i and j are real, j is among the two largest real columns of row i (the
+    diagonal included as a column, as ``vectorize.py:134`` ranks it; its probability is 0),
+    ``P_ij > match_threshold`` and i and j share their argmax class."""
+    B, N = pred_vertex_mask.shape
+    mask = pred_vertex_mask.bool()
+    if N < 2:
+        return torch.zeros(B, N, N, dtype=torch.bool, device=mask.device)
+    probs = log_assignment[:, :N, :N].float().exp()
+    ranked = probs.masked_fill(~mask[:, None, :], -1.0)  # real columns only
+    top2 = torch.zeros_like(mask[:, :, None].expand(B, N, N)).scatter_(2, ranked.topk(2, dim=2).indices, True)
+    cls = class_log_probs.argmax(2)
+    same = cls[:, :, None] == cls[:, None, :]
+    return top2 & (probs > match_threshold) & same & mask[:, :, None] & mask[:, None, :]
+
+
+def official_walks(out_edges: dict[int, list[int]]) -> list[list[int]]:
+    """The official export's walk (``vectorize.py:154-196``) over one class's directed edges
+    ``{source: [targets, ascending]}`` -> instances (vertex lists in the official order, >= 2).
+
+    While edges remain: the source ``s`` of the first remaining edge (in (source, target) order)
+    starts an instance; for each of its out-edges at that time, the first remaining edge
+    ``(cur, nxt)`` is removed and walked: if ``cur`` is not yet taken and ``nxt`` has a remaining
+    edge back to it, ``cur`` is taken; the walk stops when ``nxt == cur``; else ``cur <- nxt``, ``nxt``
+    becomes its last out-target not yet taken (or stays), and ``cur``'s out-edges are removed. After
+    each walk the taken list is reversed. A vertex is taken only when its successor confirms it, so
+    the last vertex of a walk never is.
+    """
+    out = {a: list(bs) for a, bs in out_edges.items() if bs}
+    sources = sorted(out)
+    k = 0
+
+    def first_source() -> int | None:
+        nonlocal k
+        while k < len(sources) and not out[sources[k]]:
+            k += 1
+        return sources[k] if k < len(sources) else None
+
+    instances = []
+    while (start := first_source()) is not None:
+        taken, seen = [start], {start}
+        for _ in range(len(out[start])):
+            cur = first_source()
+            nxt = out[cur].pop(0)
+            while True:
+                if cur not in seen and cur in out.get(nxt, ()):
+                    taken.append(cur)
+                    seen.add(cur)
+                if cur == nxt:
+                    break
+                cur = nxt
+                for b in out.get(cur, ()):
+                    if b not in seen:
+                        nxt = b
+                if cur in out:
+                    out[cur] = []
+            taken.reverse()
+        if len(taken) >= 2:
+            instances.append(taken)
+    return instances
+
+
+@torch.no_grad()
+def official_instances(outputs: dict, match_threshold: float = 0.1) -> list[list[tuple[list[int], int]]]:
+    """The ``official`` decoder: per sample, ``[(vertex indices in the official order, class)]``,
+    class by class (``official_edges`` then ``official_walks``)."""
+    edges = official_edges(outputs["pred_log_assignment"], outputs["pred_vertex_mask"],
+                           outputs["pred_class_log_probs"], match_threshold)
+    cls = outputs["pred_class_log_probs"].argmax(2)
+    K = outputs["pred_class_log_probs"].shape[2]
+    b_idx, i_idx, j_idx = (t.cpu().tolist() for t in edges.nonzero(as_tuple=True))  # row-major: sorted
+    cls_list = cls.cpu().tolist()
+    per: list[list[dict[int, list[int]]]] = [[{} for _ in range(K)] for _ in range(edges.shape[0])]
+    for b, i, j in zip(b_idx, i_idx, j_idx):
+        per[b][cls_list[b][i]].setdefault(i, []).append(j)
+    return [[(walk, k) for k in range(K) for walk in official_walks(per[b][k])] for b in range(len(per))]
+
+
 def graph_options(decode: dict) -> dict:
     """``decode_options`` less the instance rule (``min_vertices``): the keyword arguments of ``neighbours``."""
     return {k: v for k, v in decode.items() if k != "min_vertices"}
@@ -194,8 +291,9 @@ def neighbours(
 ) -> torch.Tensor:
     """The decoder's neighbour graphs of model outputs: [B, G, N, 2] (module docstring, step 1).
 
-    G = 1 for the class-agnostic decoders (``greedy``, ``mutual``): one graph whose instances are
-    labelled by a vote; G = K for ``classwise``: graph k holds the class-k instances.
+    G = 1 for ``greedy`` and ``mutual`` (one graph; mutual's edges join vertices of one argmax class
+    only); G = K for ``classwise``: graph k holds the class-k instances, and for ``official``: graph k
+    joins consecutive vertices of its class-k instances.
     """
     logA, mask = outputs["pred_log_assignment"], outputs["pred_vertex_mask"]
     class_log_probs, vertices = outputs.get("pred_class_log_probs"), outputs.get("pred_vertices_px")
@@ -215,7 +313,19 @@ def neighbours(
     if decoder == "mutual":
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
-        return vertex_neighbours(logA, mask, match_threshold, class_log_probs, same_class_edges)[:, None]
+        return vertex_neighbours(logA, mask, match_threshold, class_log_probs, True)[:, None]
+    if decoder == "official":
+        if max_edge_px is not None:
+            raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
+        B, N = mask.shape
+        K = class_log_probs.shape[2]
+        nbr = torch.full((B, K, N, 2), -1, dtype=torch.long)
+        for b, instances in enumerate(official_instances(outputs, match_threshold)):
+            for walk, k in instances:
+                for i, j in zip(walk[:-1], walk[1:]):
+                    nbr[b, k, i, int(nbr[b, k, i, 0] >= 0)] = j
+                    nbr[b, k, j, int(nbr[b, k, j, 0] >= 0)] = i
+        return nbr.to(logA.device)
     raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
 
 
@@ -276,19 +386,29 @@ def postprocess_batch(
     missing = [k for k in REQUIRED_OUTPUTS if k not in outputs]
     if missing:
         raise KeyError(f"post-processing needs {missing}, missing from the model output (docs/conventions.md)")
-    nbr = neighbours(outputs, match_threshold, decoder=decoder, same_class_edges=same_class_edges,
-                     max_edge_px=max_edge_px, class_min_prob=class_min_prob)  # [B, G, N, 2]
+    if decoder == "official":
+        if max_edge_px is not None:
+            raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
+        K = outputs["pred_class_log_probs"].shape[2]
+        walks = official_instances(outputs, match_threshold)
+        # per sample, one "graph" per class holding its instances in the official order (open)
+        traced = [[[(w, False) for w, k in sample if k == g and len(w) >= min_vertices] for g in range(K)]
+                  for sample in walks]
+    else:
+        nbr = neighbours(outputs, match_threshold, decoder=decoder, same_class_edges=same_class_edges,
+                         max_edge_px=max_edge_px, class_min_prob=class_min_prob)  # [B, G, N, 2]
+        traced = [[trace_instances([r[0] for r in rows], [r[1] for r in rows], min_vertices) for rows in graphs]
+                  for graphs in nbr.cpu().tolist()]
     # one transfer per tensor for the whole batch
     pts_m = grid.px_to_m(outputs["pred_vertices_px"].detach().float().cpu().numpy().astype(np.float64))  # [B, N, 2]
     class_probs = outputs["pred_class_log_probs"].detach().float().exp().cpu().numpy()  # [B, N, K]
     vertex_scores = outputs["pred_vertex_scores"].detach().float().cpu().numpy()  # [B, N]
-    nbr_lists = nbr.cpu().tolist()
+    official_confidence = decoder in OFFICIAL_CONFIDENCE
 
     results: list[list[dict]] = []
-    for b, graphs in enumerate(nbr_lists):
+    for b, graphs in enumerate(traced):
         sample = []
-        for g, rows in enumerate(graphs):
-            instances = trace_instances([r[0] for r in rows], [r[1] for r in rows], min_vertices)
+        for g, instances in enumerate(graphs):
             if not instances:
                 continue
             order = np.fromiter((i for idx, _ in instances for i in idx), dtype=np.int64)
@@ -298,7 +418,9 @@ def postprocess_batch(
             mean_score = np.add.reduceat(vertex_scores[b][order], starts) / lengths  # [I]
             # one class-agnostic graph: the soft vote decides; class graph g: its instances are class g
             labels = mean_probs.argmax(1) if len(graphs) == 1 else np.full(len(instances), g)
-            conf = mean_probs[np.arange(len(labels)), labels] * mean_score
+            conf = mean_probs[np.arange(len(labels)), labels]
+            if not official_confidence:
+                conf = conf * mean_score
             for k, (idx, closed) in enumerate(instances):
                 pts = pts_m[b][idx + [idx[0]] if closed else idx]
                 sample.append({"pts": pts, "label": int(labels[k]), "closed": closed, "score": float(conf[k])})

@@ -353,7 +353,8 @@ def predict_sample(
             cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
             predictions=preds, ground_truth=gts, camera_names=dataset.camera_names, classes=classes),
         "prediction_intermediate.png": intermediate_figure(
-            outputs["pred_heatmap"][0], outputs["pred_distance"][0], outputs["pred_vertices_px"][0][mask],
+            outputs["pred_heatmap"][0], outputs["pred_distance"][0] if "pred_distance" in outputs else None,
+            outputs["pred_vertices_px"][0][mask],
             outputs["pred_class_log_probs"][0][mask].argmax(-1), edges, kept, grid, classes, cfg.data.dt_clip,
             f"{heading}; match threshold {threshold}"),
     }

@@ -142,7 +142,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
     (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
     from .losses import Criterion
-    from .models import build_model
+    from .models import build_model, random_init_warning
     from .postprocess import decode_options, postprocess_batch
 
     device = du.init_distributed(resolve_device(cfg))
@@ -162,12 +162,20 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     grid = BEVGrid.from_config(cfg.grid)
     decode = decode_options(cfg.model.gnn, grid)
 
+    if state is None and cfg.model.backbone.name != "tiny" and cfg.model.backbone.weights == "imagenet":
+        from .models.backbone import imagenet_state
+
+        imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
     if loaders is None:
         loaders = build_loaders(cfg, world, with_val=validate)
     train_loader, sampler, val_loader = loaders
 
-    model = build_model(cfg).to(device)
-    criterion = Criterion(cfg.loss, grid)
+    # ImageNet weights on a fresh start only (a resumed run has its own)
+    model = build_model(cfg, pretrained=state is None).to(device)
+    random_init = random_init_warning(cfg) if state is None else None
+    if random_init:
+        du.print_main(random_init)
+    criterion = Criterion(cfg.loss, grid, with_distance=cfg.model.bev_heads.distance_head)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
     steps_per_epoch = math.ceil(sampler.num_samples / train_loader.batch_size)
     total_steps = cfg.train.epochs * steps_per_epoch  # the schedule's length; max_steps only cuts it
@@ -249,6 +257,9 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     du.print_main(f"schedule: {cfg.train.schedule}, {total_steps} steps"
                   + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
                   + f"; progress {clock.last:.3f}, lr {optimizer.param_groups[0]['lr']:.3g}")
+    if random_init:  # again where the log ends up being read
+        du.print_main(random_init)
+        summary["warnings"] = [random_init]
     try:
         summary["cpu_threads"] = torch.get_num_threads() if device.type == "cpu" else None
         finished = should_stop(global_step)

@@ -283,7 +283,7 @@ def prediction_bev_figure(
 @_default_style
 def intermediate_figure(
     heatmap: np.ndarray | torch.Tensor,
-    distance: np.ndarray | torch.Tensor,
+    distance: np.ndarray | torch.Tensor | None,
     vertices_px: np.ndarray | torch.Tensor,
     vertex_labels: np.ndarray | torch.Tensor,
     edges: np.ndarray | torch.Tensor,
@@ -294,7 +294,8 @@ def intermediate_figure(
     title: str = "",
 ) -> Figure:
     """The intermediate results of the paper's Fig. 6 on upright BEV panels: the vertex heatmap
-    [H, W], the distance transform per class [K, H, W] (BEV pixels), the real vertices [N, 2] (u, v)
+    [H, W], the distance transform per class [K, H, W] (BEV pixels; None: a model without a distance
+    head, no panel), the real vertices [N, 2] (u, v)
     coloured by their GNN class [N], and the adjacency: ``edges`` [E, 2] vertex index pairs whose
     assignment probability exceeds the match threshold, ``edge_kept`` [E] bool for those the
     post-processing follows (mutual); the others are drawn dashed red. The heatmap is shown through a
@@ -303,12 +304,13 @@ def intermediate_figure(
 
     heat = torch.as_tensor(_np(heatmap), dtype=torch.float32)
     heat = torch.nn.functional.max_pool2d(heat[None, None], 3, stride=1, padding=1)[0, 0].numpy()
-    dist = _np(distance).astype(np.float64)
+    dist = None if distance is None else _np(distance).astype(np.float64)
     pts = grid.px_to_m(_np(vertices_px).astype(np.float64).reshape(-1, 2))
     labels = _np(vertex_labels).astype(np.int64).reshape(-1)
     edges, kept = _np(edges).astype(np.int64).reshape(-1, 2), _np(edge_kept).astype(bool).reshape(-1)
-    K = dist.shape[0]
-    panels = K + 3
+    n_dt = 0 if dist is None else dist.shape[0]  # distance-transform panels
+    K = len(classes) if dist is None else n_dt
+    panels = n_dt + 3
     cols = panels if (grid.xmax - grid.xmin) >= 1.5 * (grid.ymax - grid.ymin) else (panels + 1) // 2
     rows = -(-panels // cols)
     w, h = _upright_panel_size(grid, 6.0 if rows == 1 else 4.5)
@@ -329,13 +331,13 @@ def intermediate_figure(
     im = _upright_image(ax, heat, grid, cmap="magma", vmin=0.0, vmax=heat_max)
     colorbar(im, ax, "vertex probability")
     _upright_axes(ax, grid, f"vertex heatmap, 3x3 max filter (peak {heat.max():.2f})")
-    for k in range(K):
+    for k in range(n_dt):
         ax = axes[1 + k]
         im = _upright_image(ax, dist[k], grid, cmap="magma_r", vmin=0.0, vmax=dt_clip)
         colorbar(im, ax, "distance (BEV px)")
         _upright_axes(ax, grid, f"distance transform: {names[k]}")
 
-    ax = axes[K + 1]
+    ax = axes[n_dt + 1]
     _upright_image(ax, heat, grid, cmap="Greys", vmin=0.0, vmax=2 * heat_max)
     for k in range(K):
         sel = labels == k
@@ -344,7 +346,7 @@ def intermediate_figure(
     ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
     _upright_axes(ax, grid, f"{len(pts)} vertices by GNN class")
 
-    ax = axes[K + 2]
+    ax = axes[n_dt + 2]
     ax.plot(pts[:, 1], pts[:, 0], "o", color="0.45", markersize=2.5, label=f"vertices ({len(pts)})")
     segments = pts[edges][..., ::-1]  # [E, 2 ends, (y, x)]
     ax.add_collection(LineCollection(segments[~kept], colors="tab:red", linewidths=0.8, linestyles="--",

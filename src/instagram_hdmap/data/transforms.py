@@ -10,6 +10,10 @@ the output, as lift-splat-shoot), crop a (h, w) window (horizontally centred, ve
 so the road is kept and the sky cut; jittered by augmentation), rotate about the output centre. With
 ``fit="contain"`` (``data.image_fit``) the resize is ``r = min(h / H, w / W) * scale``: the whole image
 fits, centred, and the rest of the window is black (cameras of mixed aspect ratios, e.g. AV2's).
+With ``fit="stretch"`` each axis is resized on its own, ``(r_x, r_y) = (w / W, h / H) * scale``: the
+whole image fills the window, its aspect ratio changed (the official InstaGraM / HDMapNet loader,
+``data/dataset.py:100-104`` and ``data/image.py:34-49`` at juyebshin/InstaGraM 2b978e4: 1600 x 900 ->
+352 x 128, no crop).
 
 Decoding: JPEG images are decoded with OpenCV's reduced-resolution DCT decode
 (``cv2.IMREAD_REDUCED_COLOR_{2,4,8}``) at the largest factor f in {1, 2, 4, 8} with ``r * f <= 1``
@@ -81,14 +85,17 @@ def image_affine(orig_wh: tuple[int, int], out_hw: tuple[int, int], aug: ImageAu
     """3x3 affine: original-image pixel (u, v, 1) -> network-input pixel (see module docstring)."""
     W, H = orig_wh
     h, w = out_hw
-    r = (max if fit == "cover" else min)(h / H, w / W) * aug.scale
-    new_w, new_h = W * r, H * r
+    if fit == "stretch":
+        rx, ry = w / W * aug.scale, h / H * aug.scale
+    else:
+        rx = ry = (max if fit == "cover" else min)(h / H, w / W) * aug.scale
+    new_w, new_h = W * rx, H * ry
     crop_x = (new_w - w) / 2 + aug.crop_dx * w
     # keep the bottom of a taller image; centre a shorter one (contain)
     crop_y = (new_h - h if new_h >= h else (new_h - h) / 2) + aug.crop_dy * h
     crop_x = min(max(crop_x, min(0.0, new_w - w)), max(0.0, new_w - w))
     crop_y = min(max(crop_y, min(0.0, new_h - h)), max(0.0, new_h - h))
-    A = _scale_matrix(r, r)
+    A = _scale_matrix(rx, ry)
     A = np.array([[1, 0, -crop_x], [0, 1, -crop_y], [0, 0, 1]]) @ A
     if aug.rotate_deg:
         c = np.array([(w - 1) / 2, (h - 1) / 2])
@@ -139,15 +146,16 @@ def load_image(
     """Decode, warp and normalise one camera image.
 
     orig_wh: (W, H) of the image file (as in its nuScenes ``sample_data`` record).
-    fit: "cover" or "contain" (module docstring).
+    fit: "cover", "contain" or "stretch" (module docstring).
     Returns ``image`` [3, h, w] float32 (RGB, ImageNet-normalised), ``post_rot`` [3, 3] and
     ``post_tran`` [3] float32 mapping original pixels to network pixels.
     """
     W, H = orig_wh
     h, w = out_hw
     A = image_affine(orig_wh, out_hw, aug, fit)
-    scale = math.hypot(A[0, 0], A[0, 1])  # the uniform resize r (rotation aside)
-    f = decode_factor(scale, reduced_decode)
+    # the resize along each original axis (rotation aside): the columns of A's linear part
+    sx, sy = math.hypot(A[0, 0], A[1, 0]), math.hypot(A[0, 1], A[1, 1])
+    f = decode_factor(max(sx, sy), reduced_decode)
     img = read_image(path, f)
     exp_w, exp_h = math.ceil(W / f), math.ceil(H / f)
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
@@ -157,9 +165,9 @@ def load_image(
         )
     # decoded pixel -> original pixel (the inverse of a resize by s is the resize by 1 / s)
     to_orig = _scale_matrix(f, f)
-    r = scale * f
-    if r < 0.5:  # big shrink left (full decode): area-average first, bilinear cannot
-        sw, sh = max(1, round(img.shape[1] * r)), max(1, round(img.shape[0] * r))
+    rx, ry = sx * f, sy * f
+    if min(rx, ry) < 0.5:  # big shrink left (full decode): area-average first, bilinear cannot
+        sw, sh = max(1, round(img.shape[1] * rx)), max(1, round(img.shape[0] * ry))
         sx, sy = sw / img.shape[1], sh / img.shape[0]
         img = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
         to_orig = to_orig @ _scale_matrix(1 / sx, 1 / sy)

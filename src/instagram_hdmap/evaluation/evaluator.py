@@ -66,6 +66,8 @@ class Evaluator:
         num_sample_points, resample_predictions: vector only; MapTR's 100 points and its
             ``eval_use_same_gt_sample_num_flag`` (True in every MapTR config).
         device: raster only; where ``torch.cdist`` runs.
+        also: protocols computed as well on the same predictions (``eval.also_protocols``), with the
+            same options; ``compute()`` reports each under ``metrics["also"][protocol]``.
     """
 
     def __init__(
@@ -80,9 +82,16 @@ class Evaluator:
         num_sample_points: int = 100,
         resample_predictions: bool = True,
         device: str | torch.device = "cpu",
+        also: Sequence[str] = (),
     ) -> None:
         if protocol not in PROTOCOLS:
             raise EvaluationInputError(f"unknown evaluation protocol {protocol!r}; choose one of {PROTOCOLS}")
+        self.also = {
+            p: Evaluator(p, thresholds, classes, grid=grid, rank_by=rank_by, fix_instance_ids=fix_instance_ids,
+                         num_sample_points=num_sample_points, resample_predictions=resample_predictions,
+                         device=device)
+            for p in dict.fromkeys(also) if p != protocol
+        }
         self.protocol = protocol
         self.thresholds = check_thresholds(thresholds)
         self._seen: set[str] = set()  # tokens scored so far (update)
@@ -103,7 +112,7 @@ class Evaluator:
     def from_config(cls, cfg: ExperimentConfig, device: str | torch.device = "cpu") -> Evaluator:
         ev = cfg.eval
         return cls(ev.protocol, ev.thresholds, cfg.data.classes, grid=BEVGrid.from_config(cfg.grid),
-                   rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device)
+                   rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device, also=ev.also_protocols)
 
     # --- accumulation ------------------------------------------------------------------------
     def update(
@@ -130,18 +139,29 @@ class Evaluator:
             if not tokens:
                 return
         self.impl.update(preds, gts, sample_ids=sample_ids, tokens=tokens)
+        for ev in self.also.values():
+            ev.update(preds, gts, sample_ids=sample_ids, tokens=tokens)
 
     def reset(self) -> None:
         self.impl.reset()
         self._seen, self.repeated = set(), 0
+        for ev in self.also.values():
+            ev.reset()
 
     def state_dict(self) -> dict:
-        """Picklable accumulated state (NumPy arrays and numbers)."""
-        return self.impl.state_dict()
+        """Picklable accumulated state (NumPy arrays and numbers); the ``also`` protocols' under "also"."""
+        state = self.impl.state_dict()
+        if self.also:
+            state = {**state, "also": {p: ev.state_dict() for p, ev in self.also.items()}}
+        return state
 
     def merge(self, state: dict) -> None:
         """Add another evaluator's ``state_dict()`` (e.g. from another process) to this one."""
+        state = dict(state)
+        also = state.pop("also", {})
         self.impl.merge_state(state)
+        for p, ev in self.also.items():
+            ev.merge(also[p])
 
     def gather(self) -> None:
         """Under torch.distributed: all-gather every rank's state and merge them in rank order, so
@@ -160,7 +180,8 @@ class Evaluator:
         """Metrics dict (JSON-ready; NaN where the protocol yields NaN):
         ``protocol``, ``protocol_description``, ``thresholds``, ``classes``, ``AP`` (class -> list
         per threshold), ``AP_class`` (class -> mean over thresholds), ``mAP``, ``num_gt``,
-        ``num_pred``, ``counters``, ``options``, ``notes``."""
+        ``num_pred``, ``counters``, ``options``, ``notes``; ``also`` (protocol -> the same dict) when
+        other protocols were computed as well."""
         res = self.impl.compute()
         ap = np.asarray(res["AP"], dtype=np.float64)  # [K, T]
         if self.protocol == "vector":
@@ -191,6 +212,8 @@ class Evaluator:
             out["mAP_classes_with_gt"] = float(ap_class[with_gt].mean()) if with_gt else 0.0
         else:
             out["samples_counted"] = {c: int(res["count"][k]) for k, c in enumerate(self.classes)}
+        if self.also:
+            out["also"] = {p: ev.compute() for p, ev in self.also.items()}
         return out
 
     def _notes(self, res: dict, counters: dict) -> list[str]:
@@ -234,4 +257,6 @@ def format_table(metrics: dict) -> str:
         lines.append(f"{c:<14}" + "".join(f"{v:>10.4f}" for v in metrics["AP"][c]) + f"{metrics['AP_class'][c]:>10.4f}")
     lines.append("-" * len(head))
     lines.append(f"{'mAP':<14}" + " " * (10 * len(thr)) + f"{metrics['mAP']:>10.4f}")
+    for other in metrics.get("also", {}).values():
+        lines += ["", "also computed on the same predictions:", format_table(other)]
     return "\n".join(lines)

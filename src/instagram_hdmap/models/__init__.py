@@ -22,13 +22,13 @@ from torch import nn
 
 from ..config import ConfigError, ExperimentConfig
 from ..geometry import BEVGrid
-from .backbone import FEATURE_DOWNSAMPLE, IMAGE_DIVISOR, EfficientNetBackbone, TinyBackbone
+from .backbone import FEATURE_DOWNSAMPLE, IMAGE_DIVISOR, EfficientNetBackbone, TinyBackbone, load_pretrained_backbone
 from .bev_heads import BEVHeads
 from .gnn import EMBEDDINGS, GraphHead
 from .instagram import InstaGraM
 from .view_transform import IPMViewTransform, LSSViewTransform, MLPViewTransform
 
-__all__ = ["InstaGraM", "build_model", "summarize_parameters"]
+__all__ = ["InstaGraM", "build_model", "random_init_warning", "summarize_parameters"]
 
 BACKBONES = ("efficientnet-b0", "efficientnet-b4", "tiny")
 
@@ -49,6 +49,9 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(m.backbone.out_channels > 0, "model.backbone.out_channels", "must be > 0")
     _require(m.backbone.weights is None or m.backbone.name != "tiny", "model.backbone.weights",
              "ImageNet weights exist for the EfficientNets only, not for the 'tiny' backbone")
+    _require(not (m.backbone.from_scratch and m.backbone.weights), "model.backbone.from_scratch",
+             f"true asks for random weights, but model.backbone.weights={m.backbone.weights!r} gives ImageNet "
+             "weights; set one of them only")
     _require(grid.cell_size % 2 == 0, "grid.cell_size",
              f"S={grid.cell_size} must be even: F_bev is at half resolution and the vertex head "
              "strides from it to the S x S cell grid")
@@ -75,7 +78,13 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(0 <= gh.conf_threshold < 1, "model.gnn.conf_threshold", "must be in [0, 1)")
     _require(0 <= gh.nms_radius < 2 * grid.cell_size, "model.gnn.nms_radius",
              f"must be in [0, 2 x grid.cell_size = {2 * grid.cell_size}) BEV pixels")
+    _require(gh.nms != "superpoint" or float(gh.nms_radius).is_integer(), "model.gnn.nms_radius",
+             f"model.gnn.nms=superpoint takes a whole number of pixels (its max-pool window is 2r+1), "
+             f"got {gh.nms_radius}; the official radius is S/2 = {grid.cell_size // 2}")
     _require(gh.embedding in EMBEDDINGS, "model.gnn.embedding", f"choose one of {', '.join(EMBEDDINGS)}")
+    _require(bh.distance_head or not gh.embedding.endswith("dt"), "model.bev_heads.distance_head",
+             f"the embedding {gh.embedding!r} reads the distance transform; without the distance head use "
+             "model.gnn.embedding=pe or pe+vd (the official visual-descriptor variant)")
     _require(gh.layers >= 0, "model.gnn.layers", "must be >= 0")
     _require(gh.pe_frequencies >= 0, "model.gnn.pe_frequencies", "must be >= 0")
     _require(gh.heads > 0 and gh.dim % gh.heads == 0, "model.gnn.heads",
@@ -83,8 +92,10 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(gh.sinkhorn_iters >= 1, "model.gnn.sinkhorn_iters", "must be >= 1")
 
 
-def build_model(cfg: ExperimentConfig) -> InstaGraM:
-    """Config -> InstaGraM (randomly initialised; ImageNet backbone weights if configured)."""
+def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=None) -> InstaGraM:
+    """Config -> InstaGraM, randomly initialised; with ``pretrained`` (a training run that starts,
+    not one that resumes or loads a checkpoint) the EfficientNet gets ``model.backbone.weights``
+    (``load_pretrained_backbone``; ``download`` replaces the ImageNet download, for tests)."""
     grid = BEVGrid.from_config(cfg.grid)  # ConfigError if the grid does not tile into S x S cells
     _check(cfg, grid)
     m, image_size = cfg.model, tuple(cfg.data.image_size)
@@ -97,8 +108,8 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     else:
         backbone = EfficientNetBackbone(m.backbone.name, channels, image_size,
                                         grad_checkpoint=m.backbone.grad_checkpoint)
-        if m.backbone.weights:
-            backbone.load_imagenet_weights(m.backbone.weights)
+        if pretrained and m.backbone.weights:
+            load_pretrained_backbone(backbone, m.backbone.weights, download)
 
     vt = m.view_transform
     view_grid = BEVGrid(grid.xmin, grid.xmax, grid.ymin, grid.ymax, grid.resolution * vt.bev_downsample, 1)
@@ -118,15 +129,27 @@ def build_model(cfg: ExperimentConfig) -> InstaGraM:
     bh = m.bev_heads
     bev_heads = BEVHeads(
         channels, num_classes, grid.cell_size, cfg.data.dt_clip, bh.channels, tuple(bh.stage_channels),
-        bh.head_channels, stem_stride=2 // vt.bev_downsample,
+        bh.head_channels, stem_stride=2 // vt.bev_downsample, distance_head=bh.distance_head,
     )
     gh = m.gnn
     graph_head = GraphHead(
         grid, num_classes, cfg.data.dt_clip, bh.channels, gh.num_vertices, gh.conf_threshold, gh.embedding,
         gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters, gh.sinkhorn_grad,
-        gh.nms_radius,
+        gh.nms_radius, gh.nms, gh.vd_sampling,
     )
     return InstaGraM(backbone, view_transform, bev_heads, graph_head)
+
+
+def random_init_warning(cfg: ExperimentConfig) -> str | None:
+    """The warning a training run from random EfficientNet weights prints at start, or None (a tiny
+    backbone, weights configured, or ``model.backbone.from_scratch`` set on purpose)."""
+    b = cfg.model.backbone
+    if b.name == "tiny" or b.weights or b.from_scratch:
+        return None
+    return (f"WARNING: {b.name} starts from RANDOM weights (model.backbone.weights is null). The paper and the "
+            "official code start from ImageNet weights; every paper number assumes them. Set "
+            "model.backbone.weights=imagenet (or a local file), or model.backbone.from_scratch=true to train "
+            "from scratch on purpose and silence this.")
 
 
 def _count(module: nn.Module | None) -> int:

@@ -13,8 +13,11 @@ B4, which would put the LSS model 5 % above the paper's Table V).
 Shapes: B' = batch x cameras, h x w the network input size (a multiple of 32).
 
 ``EfficientNetBackbone``: ``efficientnet-b0`` / ``efficientnet-b4`` from ``efficientnet_pytorch``,
-randomly initialised; ``load_imagenet_weights(path)`` loads a local checkpoint in that package's
-state-dict format (as written by ``torch.save(EfficientNet.from_pretrained(name).state_dict())``).
+randomly initialised; ``load_pretrained_backbone(backbone, weights)`` gives it ImageNet weights
+(``model.backbone.weights``): ``"imagenet"`` downloads efficientnet_pytorch's release (the official
+code's ``EfficientNet.from_pretrained``, ``model/base.py:167``) into torch's hub cache, a path reads a
+local checkpoint in that package's state-dict format (as written by
+``torch.save(EfficientNet.from_pretrained(name).state_dict())``).
 ``TinyBackbone``: five strided convolutions, for tests on CPU.
 """
 
@@ -141,6 +144,12 @@ class EfficientNetBackbone(nn.Module):
             state = torch.load(path, map_location=device, weights_only=True)
         except Exception as e:  # any unreadable file is a user error
             raise UserError(f"{key}: cannot read {path} as a torch checkpoint: {e}") from None
+        self.load_imagenet_state(state, str(path))
+
+    def load_imagenet_state(self, state: object, source: str) -> None:
+        """Load an ImageNet state dict in efficientnet_pytorch's format (``source`` names it in errors)."""
+        key = "model.backbone.weights"
+        path = source
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
             raise UserError(
                 f"{key}: {path} is not a state dict of tensors; save one with "
@@ -161,6 +170,44 @@ class EfficientNetBackbone(nn.Module):
                 f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?"
             )
         self.trunk.load_state_dict(state)
+
+
+def download_imagenet(name: str) -> dict:
+    """efficientnet_pytorch's ImageNet state dict of ``name``, through torch's hub cache (downloaded
+    once, read from the cache afterwards, also offline). Raises what the download raises."""
+    from efficientnet_pytorch.utils import url_map
+
+    return torch.hub.load_state_dict_from_url(url_map[name], progress=False)  # host tensors, as released
+
+
+def imagenet_state(name: str, download=None) -> dict:
+    """The ImageNet state dict of EfficientNet ``name`` through ``download(name)`` (``download_imagenet``
+    by default: once over the network, then from torch's hub cache). A failed download is one
+    ``UserError`` saying how to give the file instead."""
+    try:
+        return (download or download_imagenet)(name)
+    except Exception as e:  # no network, a proxy, a full disk: the user gives the file instead
+        from efficientnet_pytorch.utils import url_map
+
+        reason = " ".join(str(e).split()) or type(e).__name__
+        raise UserError(
+            f"model.backbone.weights=imagenet: cannot download the ImageNet weights of {name} ({reason}). "
+            f"Where there is internet, fetch {url_map[name]} (or run python -c \"import torch; "
+            f"from efficientnet_pytorch import EfficientNet; torch.save(EfficientNet.from_pretrained("
+            f"'{name}').state_dict(), '{name}.pth')\"), copy the file here and pass "
+            f"model.backbone.weights=/path/to/{name}.pth, or put it in torch's hub cache as "
+            f"{Path(torch.hub.get_dir()) / 'checkpoints' / url_map[name].rsplit('/', 1)[-1]}"
+        ) from None
+
+
+def load_pretrained_backbone(backbone: EfficientNetBackbone, weights: str, download=None) -> None:
+    """Give ``backbone`` the ImageNet weights of ``model.backbone.weights``: ``"imagenet"``
+    (``imagenet_state``) or a local file."""
+    if weights != "imagenet":
+        backbone.load_imagenet_weights(weights)
+        return
+    state = imagenet_state(backbone.name, download)
+    backbone.load_imagenet_state(state, f"the downloaded ImageNet weights of {backbone.name}")
 
 
 class TinyBackbone(nn.Module):

@@ -79,6 +79,7 @@ class BEVHeads(nn.Module):
         stage_channels: tuple[int, ...] = (64, 128, 256),
         head_channels: int = 128,
         stem_stride: int = 1,
+        distance_head: bool = True,
     ):
         super().__init__()
         self.cell_size, self.dt_clip = cell_size, dt_clip
@@ -97,22 +98,23 @@ class BEVHeads(nn.Module):
             strided_conv_bn_relu(channels, head_channels, s2),
             nn.Conv2d(head_channels, cell_size * cell_size + 1, kernel_size=1),
         )
+        # without it (model.bev_heads.distance_head=false): no pred_distance, as the official
+        # visual-descriptor variant (its BevEncode built without distance_reg)
         self.distance_head = nn.Sequential(
             conv_bn_relu(channels, head_channels), nn.Conv2d(head_channels, num_classes, kernel_size=1)
-        )
+        ) if distance_head else None
 
     def forward(self, bev: torch.Tensor) -> dict[str, torch.Tensor]:
         """bev [B, C_in, H/2, W/2] (or [B, C_in, H, W] with stem_stride 2) ->
         ``bev_features`` [B, 256, H/2, W/2], ``pred_vertex_logits`` [B, S*S+1, Hc, Wc],
-        ``pred_distance`` [B, K, H, W] in [0, dt_clip]."""
+        ``pred_distance`` [B, K, H, W] in [0, dt_clip] (only with the distance head)."""
         x = first = self.stages[0](self.stem(bev))
         for stage in self.stages[1:]:
             x = stage(x)
         features = self.up(first, x)  # F_bev
-        distance = self.distance_head(features)
-        distance = F.interpolate(distance, scale_factor=2.0, mode="bilinear", align_corners=False)
-        return {
-            "bev_features": features,
-            "pred_vertex_logits": self.vertex_head(features),
-            "pred_distance": distance.relu().clamp(max=self.dt_clip),
-        }
+        out = {"bev_features": features, "pred_vertex_logits": self.vertex_head(features)}
+        if self.distance_head is not None:
+            distance = self.distance_head(features)
+            distance = F.interpolate(distance, scale_factor=2.0, mode="bilinear", align_corners=False)
+            out["pred_distance"] = distance.relu().clamp(max=self.dt_clip)
+        return out

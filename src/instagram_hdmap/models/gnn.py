@@ -23,7 +23,7 @@ from torch import nn
 
 from ..geometry import BEVGrid
 from .matching import log_optimal_transport, score_matrix
-from .vertices import cell_patches, extract_vertices, sample_at_vertices
+from .vertices import cell_features, cell_patches, extract_vertices, sample_at_vertices
 
 EMBEDDINGS = ("pe+dt", "pe", "dt", "pe+vd")
 
@@ -102,10 +102,13 @@ class GraphHead(nn.Module):
         sinkhorn_iters: int = 100,
         sinkhorn_grad: str = "implicit",
         nms_radius: float = 0.0,
+        nms: str = "cells",
+        vd_sampling: str = "vertex",
     ):
         super().__init__()
         self.grid, self.dt_clip, self.embedding = grid, dt_clip, embedding
         self.num_vertices, self.conf_threshold, self.nms_radius = num_vertices, conf_threshold, nms_radius
+        self.nms, self.vd_sampling = nms, vd_sampling
         self.pe_frequencies, self.sinkhorn_iters, self.sinkhorn_grad = pe_frequencies, sinkhorn_iters, sinkhorn_grad
         hidden = [64, 128, 256]
         S = grid.cell_size
@@ -123,13 +126,14 @@ class GraphHead(nn.Module):
     def extract(self, vertex_logits: torch.Tensor) -> dict[str, torch.Tensor]:
         """[B, S*S+1, Hc, Wc] -> vertices_px, scores, mask, cells (see ``extract_vertices``)."""
         return extract_vertices(vertex_logits, self.grid.cell_size, self.num_vertices, self.conf_threshold,
-                                self.nms_radius)
+                                self.nms_radius, self.nms)
 
     def embed(
-        self, vertices: dict[str, torch.Tensor], distance: torch.Tensor, bev_features: torch.Tensor
+        self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
     ) -> torch.Tensor:
         """Initial graph g0 [B, N, D] (Eq. 1) from the vertices, distance [B, K, H, W] in
-        [0, dt_clip] and bev_features [B, C, H/2, W/2] (used by 'pe+vd' only)."""
+        [0, dt_clip] (used by the 'dt' embeddings only; None without a distance head) and
+        bev_features [B, C, H/2, W/2] (used by 'pe+vd' only)."""
         g = 0
         xy_norm = self.grid.px_to_norm(vertices["vertices_px"])
         if self.embedding.startswith("pe"):
@@ -139,7 +143,10 @@ class GraphHead(nn.Module):
             patches = cell_patches(distance, vertices["cells"], self.grid.cell_size) / self.dt_clip
             g = g + self.local_encoder(patches)
         elif self.embedding.endswith("vd"):
-            g = g + self.local_encoder(sample_at_vertices(bev_features, xy_norm))
+            if self.vd_sampling == "cell":
+                g = g + self.local_encoder(cell_features(bev_features, vertices["cells"], self.grid.Hc, self.grid.Wc))
+            else:
+                g = g + self.local_encoder(sample_at_vertices(bev_features, xy_norm))
         return g
 
     def match(self, g: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -148,7 +155,7 @@ class GraphHead(nn.Module):
                                      self.sinkhorn_grad)
 
     def associate(
-        self, vertices: dict[str, torch.Tensor], distance: torch.Tensor, bev_features: torch.Tensor
+        self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
     ) -> dict[str, torch.Tensor]:
         """Given vertices (``vertices_px`` [B, N, 2], ``scores`` [B, N], ``mask`` [B, N], ``cells``
         [B, N]) -> ``pred_class_log_probs`` [B, N, K], ``pred_log_assignment`` [B, N+1, N+1]."""
@@ -159,7 +166,7 @@ class GraphHead(nn.Module):
         }
 
     def forward(
-        self, vertex_logits: torch.Tensor, distance: torch.Tensor, bev_features: torch.Tensor
+        self, vertex_logits: torch.Tensor, distance: torch.Tensor | None, bev_features: torch.Tensor
     ) -> dict[str, torch.Tensor]:
         """-> ``pred_vertices_px``, ``pred_vertex_mask``, ``pred_vertex_scores``,
         ``pred_class_log_probs``, ``pred_log_assignment`` (docs/conventions.md)."""

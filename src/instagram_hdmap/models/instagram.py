@@ -21,7 +21,8 @@ class InstaGraM(nn.Module):
     forward(batch) with ``images`` [B, V, 3, h, w] and the calibration (``intrinsics``,
     ``cam_to_ego_rot``, ``cam_to_ego_trans``, ``post_rot``, ``post_tran``) returns
       ``pred_vertex_logits`` [B, S*S+1, Hc, Wc], ``pred_heatmap`` [B, H, W],
-      ``pred_distance`` [B, K, H, W], ``pred_vertices_px`` [B, N, 2], ``pred_vertex_mask`` [B, N],
+      ``pred_distance`` [B, K, H, W] (absent without a distance head), ``pred_vertices_px`` [B, N, 2],
+      ``pred_vertex_mask`` [B, N],
       ``pred_vertex_scores`` [B, N], ``pred_class_log_probs`` [B, N, K],
       ``pred_log_assignment`` [B, N+1, N+1] (float32).
     """
@@ -42,10 +43,12 @@ class InstaGraM(nn.Module):
         features = self.backbone(images.flatten(0, 1)).unflatten(0, (B, V))  # [B, V, C, h/16, w/16]
         bev = self.view_transform(features, {k: batch[k] for k in CALIBRATION_KEYS})
         heads = self.bev_heads(bev)
-        graph = self.graph_head(heads["pred_vertex_logits"], heads["pred_distance"], heads["bev_features"])
-        return {
+        distance = heads.get("pred_distance")  # None without a distance head
+        graph = self.graph_head(heads["pred_vertex_logits"], distance, heads["bev_features"])
+        out = {
             "pred_vertex_logits": heads["pred_vertex_logits"],
             "pred_heatmap": vertex_heatmap(heads["pred_vertex_logits"], self.graph_head.grid.cell_size),
-            "pred_distance": heads["pred_distance"],
-            **graph,
         }
+        if distance is not None:
+            out["pred_distance"] = distance
+        return {**out, **graph}

@@ -5,9 +5,11 @@ N padded vertices, C channels. Inside a cell the position index is ``c = dy * S 
 (docs/conventions.md), ``c = S*S`` is the dustbin.
 
 All batched: one vertex per cell at the cell's most likely position (the paper's "one distinctive
-vertex per S x S cell, acting similar to NMS"), kept if its probability exceeds the threshold, the
-N most confident cells by ``torch.topk``, padded with ``mask = False``. The official code loops over
-the batch with ``nonzero`` and Python lists.
+vertex per S x S cell, acting similar to NMS"), optionally thinned across cells (``nms_radius``: the
+official code always runs SuperPoint's ``simple_nms`` with radius S/2 on the cell winners,
+``model/base.py:501``), kept if its probability exceeds the threshold, the N most confident cells by
+``torch.topk``, padded with ``mask = False``. The official code loops over the batch with
+``nonzero`` and Python lists.
 """
 
 from __future__ import annotations
@@ -57,11 +59,35 @@ def neighbour_suppression(best_prob: torch.Tensor, u: torch.Tensor, v: torch.Ten
     return suppressed
 
 
+def superpoint_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
+    """SuperPoint's non-maximum suppression (``simple_nms``, as the official InstaGraM code applies it
+    to the map of cell winners with radius S/2): [B, H, W] scores -> [B, H, W] bool, True where kept.
+
+    A pixel is kept if it is the maximum of its (2r+1) x (2r+1) window (ties: all kept); then, twice,
+    the pixels within r (Chebyshev) of a kept one are set aside and a pixel that is the maximum of its
+    window among what is left is kept too: a vertex suppressed only by one that was itself suppressed
+    comes back. Padding never wins a window (max-pooling pads with -inf).
+    """
+
+    def window_max(x: torch.Tensor) -> torch.Tensor:
+        return F.max_pool2d(x[:, None], kernel_size=2 * radius + 1, stride=1, padding=radius)[:, 0]
+
+    keep = scores == window_max(scores)
+    for _ in range(2):
+        near_kept = window_max(keep.to(scores.dtype)) > 0
+        rest = torch.where(near_kept, torch.zeros_like(scores), scores)
+        keep = keep | ((rest == window_max(rest)) & ~near_kept)
+    return keep
+
+
 def extract_vertices(
-    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float, nms_radius: float = 0.0
+    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float, nms_radius: float = 0.0,
+    nms: str = "cells",
 ) -> dict[str, torch.Tensor]:
-    """Top-N vertices, one per cell (and, with ``nms_radius`` > 0 pixels, none within that distance
-    of a stronger vertex of a neighbouring cell: ``neighbour_suppression``).
+    """Top-N vertices, one per cell, and with ``nms_radius`` > 0 pixels a suppression of the cell
+    winners: ``nms="cells"`` drops a winner within that distance of a stronger winner of a
+    neighbouring cell (``neighbour_suppression``); ``nms="superpoint"`` runs ``superpoint_nms`` with
+    the integer radius on the map that holds each cell's winner (zeros elsewhere), the official code.
 
     vertex_logits [B, S*S+1, Hc, Wc] -> dict of
       ``vertices_px`` [B, N, 2] float (u, v) BEV pixels (0 on padding),
@@ -73,7 +99,15 @@ def extract_vertices(
     S = cell_size
     probs = vertex_logits.softmax(dim=1)[:, :-1].flatten(2)  # [B, S*S, Hc*Wc]
     best_prob, best_pos = probs.max(dim=1)  # [B, Hc*Wc]: the one vertex of each cell
-    if nms_radius > 0:
+    if nms_radius > 0 and nms == "superpoint":
+        winners = torch.zeros_like(probs).scatter_(1, best_pos[:, None], best_prob[:, None])  # [B, S*S, Hc*Wc]
+        kept = superpoint_nms(depth_to_space(winners.view(B, S * S, Hc, Wc), S), round(nms_radius))  # [B, H, W]
+        cell = torch.arange(Hc * Wc, device=best_pos.device)
+        row = torch.div(cell, Wc, rounding_mode="floor") * S + torch.div(best_pos, S, rounding_mode="floor")
+        col = (cell % Wc) * S + best_pos % S
+        gone = ~kept.flatten(1).gather(1, row * (Wc * S) + col)  # [B, Hc*Wc] at each cell's winner pixel
+        best_prob = torch.where(gone, torch.zeros_like(best_prob), best_prob)
+    elif nms_radius > 0:
         cell = torch.arange(Hc * Wc, device=best_pos.device)
         cu = (cell % Wc) * S + best_pos % S  # [B, Hc*Wc] pixel u, v of each cell's winner
         cv = torch.div(cell, Wc, rounding_mode="floor") * S + torch.div(best_pos, S, rounding_mode="floor")
@@ -123,3 +157,14 @@ def sample_at_vertices(features: torch.Tensor, vertices_norm: torch.Tensor) -> t
     """
     sampled = F.grid_sample(features.float(), vertices_norm[:, :, None].float(), align_corners=False)
     return sampled[..., 0].transpose(1, 2)
+
+
+def cell_features(features: torch.Tensor, cells: torch.Tensor, Hc: int, Wc: int) -> torch.Tensor:
+    """The feature of each vertex's cell (the official visual descriptor): the feature map is resized
+    to the cell grid (bilinear, ``align_corners=True``, as the official code's ``F.interpolate``) and
+    read at the vertex's cell.
+
+    features [B, C, h, w] (any resolution of the grid), cells [B, N] flat cell index -> [B, N, C].
+    """
+    coarse = F.interpolate(features.float(), size=(Hc, Wc), mode="bilinear", align_corners=True)
+    return coarse.flatten(2).gather(2, cells[:, None, :].expand(-1, coarse.shape[1], -1)).transpose(1, 2)
