@@ -25,7 +25,7 @@ import torch
 
 from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from instagram_hdmap.cli import main
-from instagram_hdmap.config import config_to_dict, load_config
+from instagram_hdmap.config import UserError, config_to_dict, load_config
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
@@ -548,6 +548,38 @@ def row_evaluate_json_out_not_writable(env):
     gt.write_text(json.dumps({"results": {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}}))
     forbid(env, "instagram_hdmap.evaluation.Evaluator.compute", "the evaluation")
     env.error(r"taken", "evaluate-json", "--pred", gt, "--gt", gt, "--out", env.tmp / "taken" / "m.json")
+
+
+@row("S", "export-gt --out that is a folder: refused before the export (was an IsADirectoryError after it)")
+def row_export_gt_out_is_a_folder(env):
+    (env.tmp / "folder").mkdir()
+    forbid(env, "instagram_hdmap.data.base.gt_submission", "the export")
+    env.error(r"--out .*folder.*is a folder", "export-gt", env.yaml, "--out", env.tmp / "folder")
+
+
+@row("S", "evaluate-json --out that is a folder: refused before the evaluation (was an IsADirectoryError)")
+def row_evaluate_json_out_is_a_folder(env):
+    (env.tmp / "folder").mkdir()
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    forbid(env, "instagram_hdmap.evaluation.Evaluator.compute", "the evaluation")
+    env.error(r"--out .*folder.*is a folder", "evaluate-json", "--pred", gt, "--gt", gt, "--out", env.tmp / "folder")
+
+
+@row("S", "train --force --resume: refused, the checkpoint to resume is not deleted")
+def row_force_and_resume(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    before = (run / "last.pt").read_bytes()
+    env.error(r"--force.*--resume", "train", env.yaml, f"train.out_dir={run}", "--force", "--resume", run / "last.pt")
+    assert (run / "last.pt").read_bytes() == before
+
+
+@row("S", "--resume of a finished run with more train.epochs is named, not a silent exit 0")
+def row_resume_a_finished_schedule(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=1")
+    with pytest.raises(UserError, match=r"last\.pt .*completed its schedule.*train\.epochs"):
+        _toy_run(env, [], "train.epochs=3", resume=str(run / "last.pt"))
 
 
 @row("12", "a run killed before its first checkpoint can be run again")
