@@ -26,7 +26,8 @@ from shapely.geometry import LineString
 
 from instagram_hdmap.config import load_config
 from instagram_hdmap.data.local_map import resample_line
-from instagram_hdmap.data.nuscenes import CAMERAS, NuScenesMapDataset
+from instagram_hdmap.data.nuscenes import NuScenesMapDataset
+from instagram_hdmap.data.rig import CAMERAS
 from instagram_hdmap.data.transforms import load_image
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.targets import build_targets

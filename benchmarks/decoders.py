@@ -31,12 +31,13 @@ from tqdm import tqdm
 
 from instagram_hdmap.checkpoint import load_checkpoint
 from instagram_hdmap.config import config_from_dict, config_to_dict, deep_update, parse_overrides
-from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+from instagram_hdmap.data.base import collate_fn
+from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.demo import world_overrides
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import load_model
 from instagram_hdmap.postprocess import DECODE_KEYS, REQUIRED_OUTPUTS, decode_options, postprocess_batch
-from instagram_hdmap.predict import load_model
 
 
 def run_outputs(checkpoint: str, world: str) -> tuple[list[tuple[dict, list]], object]:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from instagram_hdmap import deploy
+from instagram_hdmap import deploy, inference
 from instagram_hdmap.benchmark import device_name
 from instagram_hdmap.config import load_config
 from instagram_hdmap.models import build_model
@@ -63,14 +63,14 @@ def build_paths(path: str, rows: list[str], onnx_dir: Path, threads: int, ort_le
             file = onnx_dir / f"{Path(path).stem}_seed0.onnx"
             if not file.is_file():
                 deploy.export_onnx(model, cfg, file, source="benchmarks/deploy_speed.py random weights, seed 0")
-            paths[row] = deploy.OnnxModel(file, cfg, threads=threads, optimization=ort_level)
+            paths[row] = inference.OnnxModel(file, cfg, threads=threads, optimization=ort_level)
         setup[row] = time.perf_counter() - start
         print(f"  {Path(path).stem}: {row} ready in {setup[row]:.0f} s", flush=True)
         with torch.inference_mode():
             diffs[row] = max_diff(expected, paths[row](batch))
         if row == "onnxruntime" and diffs[row][0] > 1e-2:  # a stale file from other weights: export again
             deploy.export_onnx(model, cfg, file, source="benchmarks/deploy_speed.py random weights, seed 0")
-            paths[row] = deploy.OnnxModel(file, cfg, threads=threads, optimization=ort_level)
+            paths[row] = inference.OnnxModel(file, cfg, threads=threads, optimization=ort_level)
             diffs[row] = max_diff(expected, paths[row](batch))
     return paths, setup, diffs
 

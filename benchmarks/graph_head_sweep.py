@@ -26,15 +26,16 @@ from tqdm import tqdm
 
 from instagram_hdmap.checkpoint import load_checkpoint
 from instagram_hdmap.config import config_from_dict, config_to_dict, deep_update, parse_overrides
-from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+from instagram_hdmap.data.base import collate_fn
+from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.demo import world_overrides
 from instagram_hdmap.diagnostics import ClassDiagnostics, format_table
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import load_model
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
 from instagram_hdmap.postprocess import decode_options, postprocess_batch
-from instagram_hdmap.predict import load_model
 
 KEEP = ("gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order",
         "gt_vertex_next", "gt_vertex_prev", "gt_vertex_cells", "gt_distance", "gt_polylines", "sample_token")

@@ -5,7 +5,7 @@ It isolates the association step: GT vertices (extracted from one-hot GT vertex 
 the model extracts them) and GT distance transforms go into ``GraphHead.associate``; Adam trains it
 with ``losses.Criterion``'s adjacency and class terms; ``postprocess_batch`` decodes; the vector
 protocol scores the synthetic validation split. Next to it: the upper bound, the GT vertex graph
-decoded as is (``predict.gt_outputs``), which any graph head trained on these targets can reach.
+decoded as is (``inference.gt_outputs``), which any graph head trained on these targets can reach.
 
 Default: a synthetic world generated into a temporary folder (160 train + 64 val scenes x 2 key
 frames, 64x36 camera images since no image is read), the graph config of
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     print(f"\ntrained {train['steps']} steps x batch {args.batch_size} in {train['seconds']:.0f} s "
           f"({train['seconds'] / max(train['steps'], 1) * 1000:.0f} ms/step) on {result['num_train']} training maps "
           f"({'4 mirror images each' if not args.no_mirror else 'not mirrored'}); {result['num_val']} val samples")
-    print("\nupper bound: the GT vertex graph decoded as is (predict.gt_outputs -> postprocess_batch)")
+    print("\nupper bound: the GT vertex graph decoded as is (inference.gt_outputs -> postprocess_batch)")
     print(format_table(result["upper_bound"]))
     print("\nGNN oracle: the trained graph head on GT vertices + GT distance transforms")
     print(format_table(m))

@@ -46,7 +46,7 @@ from pathlib import Path
 import torch
 
 from instagram_hdmap.config import ExperimentConfig, UserError, load_config
-from instagram_hdmap.engine import move_to, train_one_epoch
+from instagram_hdmap.engine import EpochHooks, Position, StepSettings, move_to, train_one_epoch
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
@@ -73,7 +73,8 @@ def world_overrides(dataroot: str | Path) -> list[str]:
 
 def overfit_batch(cfg: ExperimentConfig, num_samples: int) -> dict:
     """The first ``num_samples`` samples of ``cfg.data.train_split``, unaugmented, collated into one batch."""
-    from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+    from instagram_hdmap.data.base import collate_fn
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 
     dataset = NuScenesMapDataset(cfg, cfg.data.train_split, augment=False)
     if len(dataset) < num_samples:
@@ -137,9 +138,9 @@ def run_overfit(
         # one "epoch" of `steps` identical batches: train_one_epoch is the step of `instagram-hdmap train`;
         # its progress bar (stderr) would interleave with the table
         with contextlib.redirect_stderr(io.StringIO()):
-            train_one_epoch(model, criterion, [batch] * steps, optimizer, dev, epoch=0, amp="none",
-                            grad_clip=cfg.train.grad_clip, on_nonfinite="stop", log_every=steps + 1,
-                            on_step=on_step, total=steps)
+            train_one_epoch(model, criterion, [batch] * steps, optimizer, dev, Position(0), total=steps,
+                            settings=StepSettings(grad_clip=cfg.train.grad_clip, log_every=steps + 1),
+                            hooks=EpochHooks(on_step=on_step))
         seconds = time.perf_counter() - t0
 
         model.eval()

@@ -26,14 +26,15 @@ from tqdm import tqdm
 
 from instagram_hdmap.checkpoint import load_checkpoint
 from instagram_hdmap.config import config_from_dict
-from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn
+from instagram_hdmap.data.base import collate_fn
+from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.diagnostics import ClassDiagnostics, format_table
 from instagram_hdmap.engine import move_to
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import load_model
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.postprocess import decode_options, postprocess_batch
-from instagram_hdmap.predict import load_model
 
 
 def diagnose(checkpoint: str, world: str, limit: int | None = None, threads: int | None = None,

@@ -29,12 +29,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from instagram_hdmap.data.rig import parse_image_size, rig
 from instagram_hdmap.data.synthetic import generate_world
+from instagram_hdmap.data.synthetic.jobs import available_cpus
 from instagram_hdmap.data.synthetic.render import MapPainter, SceneRenderer, scene_look
-from instagram_hdmap.data.synthetic.rig import parse_image_size, rig
 from instagram_hdmap.data.synthetic.roads import build_network
 from instagram_hdmap.data.synthetic.traffic import place_vehicles, plan_drive
-from instagram_hdmap.data.synthetic.world import available_cpus
 
 
 def _cpu() -> float:
@@ -63,7 +63,7 @@ def _render_only(size: tuple[int, int], frames: int, threads: int) -> tuple[floa
     rng = np.random.default_rng(0)
     drive = plan_drive(net, frames, rng)
     vehicles = place_vehicles(net, drive, rng)
-    renderer = SceneRenderer(MapPainter(net, 0), scene_look(rng), rig(size), size, rng)
+    renderer = SceneRenderer(MapPainter(net, 0), scene_look(rng, rig(size)), rig(size), size, rng)
     poses = drive.poses()
     renderer.render(poses[0], [v.box(0.0) for v in vehicles])  # warm-up (texture tiles)
     return _timed(lambda: [renderer.render(p, [v.box(0.5 * k) for v in vehicles]) for k, p in enumerate(poses)])

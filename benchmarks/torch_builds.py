@@ -55,7 +55,7 @@ def child(args: argparse.Namespace) -> dict:
     torch.set_num_threads(int(args.threads))
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import default_config_path, world_overrides
-    from instagram_hdmap.engine import train_one_epoch
+    from instagram_hdmap.engine import EpochHooks, Position, StepSettings, train_one_epoch
     from instagram_hdmap.geometry import BEVGrid
     from instagram_hdmap.losses import Criterion
     from instagram_hdmap.models import build_model
@@ -80,8 +80,9 @@ def child(args: argparse.Namespace) -> dict:
 
     n = args.warmup + args.steps
     marks.append(("start", time.perf_counter(), time.process_time()))
-    train_one_epoch(model, criterion, loader, optimizer, torch.device("cpu"), 0, grad_clip=cfg.train.grad_clip,
-                    log_every=10**9, should_stop=lambda s: s >= n, on_step=after, before_step=before, total=n)
+    train_one_epoch(model, criterion, loader, optimizer, torch.device("cpu"), Position(0), total=n,
+                    settings=StepSettings(grad_clip=cfg.train.grad_clip, log_every=10**9),
+                    hooks=EpochHooks(should_stop=lambda s: s >= n, on_step=after, before_step=before))
     done = [m for m in marks if m[0] == "done"]
     got = [m for m in marks if m[0] == "got"]
     t0, c0 = done[args.warmup - 1][1:] if args.warmup else marks[0][1:]

@@ -18,7 +18,7 @@ wait for each other); with ``--threads 1`` the CPU time per step is close to the
 idle machine, a load-robust figure to read next to the wall time.
 
 Input: random images (six cameras, the network input size of the config) with the calibration of
-a nuScenes sample (``benchmark.nuscenes_like_rig``: the published rig, 1600x900 images resized and
+a nuScenes sample (``data.rig.nuscenes_like_rig``: the published rig, 1600x900 images resized and
 cropped like the dataset does), and the targets the dataset would give for a plausible local map
 (``plausible_map``: a four-lane road with a divider and lane dividers, a side road with its own
 divider, three zebra crossings and the road boundaries, at a random offset and heading per sample,
@@ -63,11 +63,12 @@ import torch
 from shapely import affinity
 from shapely.geometry import LineString, Polygon, box
 
-from instagram_hdmap.benchmark import BenchmarkError, device_name, nuscenes_like_rig
+from instagram_hdmap.benchmark import BenchmarkError, device_name
 from instagram_hdmap.config import ExperimentConfig, load_config
+from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.data.local_map import resample_line
-from instagram_hdmap.data.nuscenes import collate_fn
-from instagram_hdmap.engine import move_to, train_one_epoch
+from instagram_hdmap.data.rig import nuscenes_like_rig
+from instagram_hdmap.engine import EpochHooks, Position, StepSettings, move_to, train_one_epoch
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
@@ -212,9 +213,9 @@ def measure_training(cfg: ExperimentConfig, batch_size: int, *, steps: int, warm
     sync()
     start, cpu_start = time.perf_counter(), time.process_time()
     with contextlib.redirect_stderr(io.StringIO()):  # the engine's progress bar
-        train_one_epoch(model, criterion, [batch] * total, optimizer, dev, epoch=0, amp=amp, scaler=scaler,
-                        grad_clip=cfg.train.grad_clip, on_nonfinite="stop", log_every=total + 1, on_step=on_step,
-                        total=total)
+        train_one_epoch(model, criterion, [batch] * total, optimizer, dev, Position(0), scaler=scaler, total=total,
+                        settings=StepSettings(amp=amp, grad_clip=cfg.train.grad_clip, log_every=total + 1),
+                        hooks=EpochHooks(on_step=on_step))
     times = np.diff([start, *stamps])[warmup:]
     cpu_times = np.diff([cpu_start, *cpu_stamps])[warmup:]
     median = float(np.median(times))

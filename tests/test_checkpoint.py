@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from instagram_hdmap import checkpoint as ckpt
+from instagram_hdmap import files
 from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from instagram_hdmap.distributed import ResumableSampler
 
@@ -25,7 +25,7 @@ def test_interrupted_save_keeps_the_previous_file(tmp_path, monkeypatch):
     def killed(src, dst):  # the process dies between the write and the rename
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(ckpt, "_replace", killed)
+    monkeypatch.setattr(files, "_replace", killed)
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(_state(9.0), path)
     assert torch.equal(load_checkpoint(path)["model"]["w"], torch.full((4,), 1.0))

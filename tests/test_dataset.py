@@ -410,7 +410,7 @@ def test_projection_round_trip_with_augmentation(tiny_world_cfg):
 
 
 def test_collate_equals_one_by_one(train_set):
-    from instagram_hdmap.data.nuscenes import VERTEX_KEYS, collate_fn
+    from instagram_hdmap.data.base import VERTEX_KEYS, collate_fn
 
     samples = [train_set[i] for i in (0, 3, 5)]
     batch = collate_fn(samples)
@@ -533,7 +533,8 @@ def test_missing_or_corrupt_image(copy_world, world_overrides):
 
 
 def test_empty_map_around_a_pose(copy_world, world_overrides):
-    from instagram_hdmap.data.nuscenes import NuScenesMapDataset, collate_fn, open_nuscenes
+    from instagram_hdmap.data.base import collate_fn
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset, open_nuscenes
 
     root = copy_world()
     cfg = _world_cfg(root, world_overrides)

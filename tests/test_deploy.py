@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from instagram_hdmap import deploy
+from instagram_hdmap import benchmark, deploy, inference
 from instagram_hdmap.checkpoint import save_checkpoint
 from instagram_hdmap.cli import main
 from instagram_hdmap.config import config_to_dict, load_config
@@ -57,7 +57,7 @@ def batch_for(cfg, seed: int) -> dict:
 def assert_parity(expected: dict, got: dict) -> None:
     """Equal within the tolerance, up to the order of the vertex slots; the same vertices exactly."""
     # every output, pred_distance but for a model without a distance head
-    assert set(got) == set(expected) and set(deploy.OUTPUT_NAMES) - set(expected) <= {"pred_distance"}
+    assert set(got) == set(expected) and set(inference.OUTPUT_NAMES) - set(expected) <= {"pred_distance"}
     expected, got = deploy.align_vertex_slots(expected), deploy.align_vertex_slots(got)
     for name in expected:
         e, g = expected[name], got[name]
@@ -148,15 +148,16 @@ def test_static_batch_copies_in_place_and_refuses_other_shapes():
     new = batch_for(cfg, 1)
     loaded = static.load(new)
     assert {k: t.data_ptr() for k, t in loaded.items()} == addresses
-    assert all(torch.equal(loaded[k], new[k]) for k in deploy.INPUT_NAMES)
+    assert all(torch.equal(loaded[k], new[k]) for k in inference.INPUT_NAMES)
     # a model run on the static buffers equals one on the batch itself
     model = random_model(cfg)
     with torch.no_grad():
         assert_parity(model(new), model(loaded))
     wrong = {**new, "images": new["images"][:, :5]}
-    with pytest.raises(deploy.DeployError, match=r"images was captured as \[1, 6, 3, 64, 160\].*\[1, 5, 3, 64, 160\]"):
+    with pytest.raises(inference.DeployError,
+                       match=r"images was captured as \[1, 6, 3, 64, 160\].*\[1, 5, 3, 64, 160\]"):
         static.load(wrong)
-    with pytest.raises(deploy.DeployError, match="float64"):
+    with pytest.raises(inference.DeployError, match="float64"):
         static.load({**new, "post_rot": new["post_rot"].double()})
 
 
@@ -164,7 +165,7 @@ def test_cuda_graphs_need_a_cuda_device(capsys):
     if torch.cuda.is_available():
         pytest.skip("a CUDA device is present")
     cfg = tiny_cfg()
-    with pytest.raises(deploy.DeployError, match="--cuda-graphs needs a CUDA device"):
+    with pytest.raises(inference.DeployError, match="--cuda-graphs needs a CUDA device"):
         deploy.fast_forward(random_model(cfg), batch_for(cfg, 0), cuda_graphs=True)
     assert main(["benchmark", str(TINY), "--device", "cpu", "--cuda-graphs", "--runs", "1"]) == 2
     assert "--cuda-graphs needs a CUDA device" in _error_line(capsys)
@@ -209,7 +210,7 @@ def test_benchmark_flags_reach_the_fast_forward(monkeypatch, capsys):
         calls.append((compile, cuda_graphs, amp, tuple(example["images"].shape)))
         return model
 
-    monkeypatch.setattr(deploy, "fast_forward", spy)
+    monkeypatch.setattr(benchmark, "fast_forward", spy)  # the name benchmark.py calls
     assert main(["benchmark", str(TINY), *FAST, "data.dataroot=/nonexistent", "--device", "cpu", "--compile",
                  "--runs", "1", "--warmup", "0"]) == 0
     assert calls == [(True, False, "none", (1, 6, 3, 64, 160))]
@@ -229,8 +230,8 @@ def test_the_package_does_not_import_onnx():
 
 def test_a_missing_extra_is_a_one_line_error_naming_it(monkeypatch, tmp_path, capsys):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import onnxruntime -> ImportError
-    with pytest.raises(deploy.DeployError, match=r'pip install -e "\.\[deploy\]"'):
-        deploy.require_onnx()
+    with pytest.raises(inference.DeployError, match=r'pip install -e "\.\[deploy\]"'):
+        inference.require_onnx()
     assert main(["export-onnx", str(TINY), "--checkpoint", str(tmp_path / "x.pt"), "--out",
                  str(tmp_path / "m.onnx")]) == 2
     assert 'pip install -e ".[deploy]"' in _error_line(capsys)
@@ -272,7 +273,7 @@ def tiny_export(ort, tmp_path_factory):
                                         "model.gnn.nms=superpoint", "model.gnn.nms_radius=2"]])
 def test_onnxruntime_equals_torch_and_decodes_the_same_polylines(tiny_export, overrides):
     cfg, model, path = tiny_export(*overrides)
-    onnx_model = deploy.OnnxModel(path, cfg)
+    onnx_model = inference.OnnxModel(path, cfg)
     grid = BEVGrid.from_config(cfg.grid)
     decoded = 0
     for seed in (1, 2):  # not the export's example input
@@ -296,16 +297,16 @@ def test_the_graph_uses_standard_ops_only_with_the_documented_interface(tiny_exp
     onnx.checker.check_model(proto)
     assert {op.domain for op in proto.opset_import} <= {"", "ai.onnx"}
     assert {node.domain for node in proto.graph.node} <= {"", "ai.onnx"}
-    assert [i.name for i in proto.graph.input] == list(deploy.INPUT_NAMES)
-    assert [o.name for o in proto.graph.output] == list(deploy.OUTPUT_NAMES)
+    assert [i.name for i in proto.graph.input] == list(inference.INPUT_NAMES)
+    assert [o.name for o in proto.graph.output] == list(inference.OUTPUT_NAMES)
     ops = {node.op_type for node in proto.graph.node}
     assert {"TopK", "ScatterND"} <= ops and "Loop" not in ops  # top-N extraction, LSS splat, unrolled Sinkhorn
     for value in [*proto.graph.input, *proto.graph.output]:  # every dimension static
         assert all(d.HasField("dim_value") for d in value.type.tensor_type.shape.dim), value.name
     meta = {p.key: p.value for p in proto.metadata_props}
-    assert meta[deploy.META_FORMAT] == str(deploy.EXPORT_FORMAT)
-    assert json.loads(meta[deploy.META_CONFIG]) == deploy.baked_config(cfg)
-    assert json.loads(meta[deploy.META_CONFIG])["model.gnn.sinkhorn_iters"] == 5
+    assert meta[inference.META_FORMAT] == str(inference.EXPORT_FORMAT)
+    assert json.loads(meta[inference.META_CONFIG]) == inference.baked_config(cfg)
+    assert json.loads(meta[inference.META_CONFIG])["model.gnn.sinkhorn_iters"] == 5
 
 
 # --- ONNX: the commands and their errors ---------------------------------------------------------------------
@@ -344,7 +345,7 @@ def test_predict_onnx_draws_the_same_pictures_as_predict(world, checkpoint, expo
     from the same data (their titles name the source, so their pixels differ there)."""
     from matplotlib.image import imread
 
-    from instagram_hdmap import visualize
+    from instagram_hdmap import predict, visualize
     from instagram_hdmap.evaluation import read_submission
 
     drawn: dict[str, list] = {"bev": [], "intermediate": []}
@@ -359,8 +360,8 @@ def test_predict_onnx_draws_the_same_pictures_as_predict(world, checkpoint, expo
         drawn["intermediate"].append((heatmap.clone(), distance.clone(), rows))
         return intermediate(heatmap, distance, vertices_px, vertex_labels, *args, **kwargs)
 
-    monkeypatch.setattr(visualize, "prediction_bev_figure", record_bev)
-    monkeypatch.setattr(visualize, "intermediate_figure", record_intermediate)
+    monkeypatch.setattr(predict, "prediction_bev_figure", record_bev)  # the names predict.py calls
+    monkeypatch.setattr(predict, "intermediate_figure", record_intermediate)
     capsys.readouterr()
     base = ["predict", str(TINY), *world, "model.gnn.match_threshold=0.03", "--index", "1"]
     assert main([*base, "--checkpoint", str(checkpoint), "--out", str(tmp_path / "torch")]) == 0
@@ -414,7 +415,7 @@ def test_bad_exports_are_one_line_errors(ort, world, checkpoint, exported, tmp_p
     # an older export, and a file that is not ours
     proto = onnx.load(str(exported))
     for prop in proto.metadata_props:
-        if prop.key == deploy.META_FORMAT:
+        if prop.key == inference.META_FORMAT:
             prop.value = "0"
     onnx.save(proto, str(tmp_path / "old.onnx"))
     assert main([*predict, "--onnx", str(tmp_path / "old.onnx")]) == 2
@@ -445,7 +446,7 @@ def test_default_sinkhorn_iterations_export_with_parity(ort, tmp_path, monkeypat
     batch = batch_for(cfg, 1)
     with torch.no_grad():
         expected = model(batch)
-    got = deploy.OnnxModel(tmp_path / "m.onnx", cfg)(batch)
+    got = inference.OnnxModel(tmp_path / "m.onnx", cfg)(batch)
     assert_parity(expected, got)
     grid = BEVGrid.from_config(cfg.grid)
     threshold = decoding_threshold(expected)

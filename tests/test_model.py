@@ -232,7 +232,7 @@ def test_cell_patches_are_the_cells_under_the_vertices():
 def _graph_head(embedding="pe+dt", seed=0):
     torch.manual_seed(seed)
     grid = BEVGrid(-8, 8, -4, 4, 0.25, 4)
-    head = GraphHead(grid, num_classes=3, dt_clip=10.0, bev_channels=6, num_vertices=8, embedding=embedding,
+    head = GraphHead(grid=grid, num_classes=3, dt_clip=10.0, bev_channels=6, num_vertices=8, embedding=embedding,
                      dim=32, pe_frequencies=4, layers=2, heads=4, sinkhorn_iters=100)
     return head.train(), grid  # train mode: no BatchNorm in the graph head, padding must still not matter
 

@@ -13,9 +13,9 @@ from instagram_hdmap import oracle
 from instagram_hdmap.assignment import assign_batch, target_log_assignment
 from instagram_hdmap.config import ConfigError, load_config
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import gt_outputs
 from instagram_hdmap.models import build_model
 from instagram_hdmap.postprocess import postprocess_batch
-from instagram_hdmap.predict import gt_outputs
 
 TINY_YAML = Path(__file__).resolve().parents[1] / "configs" / "synthetic" / "tiny.yaml"
 

@@ -15,10 +15,11 @@ import torch
 from instagram_hdmap.checkpoint import CheckpointError, save_checkpoint
 from instagram_hdmap.cli import main
 from instagram_hdmap.config import config_to_dict, load_config
-from instagram_hdmap.data.nuscenes import collate_fn
+from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.geometry import BEVGrid
+from instagram_hdmap.inference import gt_outputs, inference_config
 from instagram_hdmap.postprocess import postprocess_batch
-from instagram_hdmap.predict import adjacency_edges, gt_outputs, inference_config
+from instagram_hdmap.predict import adjacency_edges
 from instagram_hdmap.targets import build_targets, graph_to_polylines
 
 TINY_YAML = Path(__file__).resolve().parents[1] / "configs" / "synthetic" / "tiny.yaml"
@@ -237,8 +238,10 @@ def test_predict_and_evaluate_with_a_random_checkpoint(world, checkpoint, tmp_pa
 def test_evaluate_scores_gt_derived_predictions_perfectly_on_classes_with_gt(world, tmp_path):
     """The submission written for GT-derived predictions, scored by evaluate-json against the split's
     GT, gives AP = 1 for every class that has GT (vector protocol)."""
-    from instagram_hdmap.data.nuscenes import NuScenesMapDataset, gt_submission, write_json
+    from instagram_hdmap.data.base import gt_submission
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset
     from instagram_hdmap.evaluation import write_submission
+    from instagram_hdmap.files import write_json
 
     cfg = load_config(TINY_YAML, world)
     grid = BEVGrid.from_config(cfg.grid)
@@ -274,8 +277,7 @@ def test_benchmark_prints_an_fps_table(capsys):
 
 
 def test_nuscenes_like_rig_sees_the_road_ahead_in_the_front_camera():
-    from instagram_hdmap.benchmark import nuscenes_like_rig
-    from instagram_hdmap.data.nuscenes import CAMERAS
+    from instagram_hdmap.data.rig import CAMERAS, nuscenes_like_rig
     from instagram_hdmap.data.transforms import project_to_image
 
     h, w = 128, 352
@@ -334,7 +336,7 @@ def test_benchmark_device_errors(capsys):
 
 
 def test_a_corrupt_checkpoint_is_a_checkpoint_error(tmp_path):
-    from instagram_hdmap.predict import load_model
+    from instagram_hdmap.inference import load_model
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")

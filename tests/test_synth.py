@@ -24,10 +24,10 @@ from shapely.geometry import box
 from shapely.ops import unary_union
 
 from instagram_hdmap.cli import main
+from instagram_hdmap.data.rig import CAMERAS, rig
 from instagram_hdmap.data.synthetic import generate_world
 from instagram_hdmap.data.synthetic.map_writer import Ref
 from instagram_hdmap.data.synthetic.preview import write_preview
-from instagram_hdmap.data.synthetic.rig import CAMERAS, rig
 from instagram_hdmap.data.synthetic.roads import LOCATIONS, build_network
 
 SEED = 0

@@ -10,7 +10,7 @@ import pytest
 
 from instagram_hdmap.cli import main
 from instagram_hdmap.config import UserError
-from instagram_hdmap.data.synthetic import generate_world, world
+from instagram_hdmap.data.synthetic import generate_world, jobs, world
 
 ARGS = dict(scenes_train=2, scenes_val=1, samples_per_scene=2, seed=5, image_size="200x113", progress=False)
 
@@ -71,16 +71,16 @@ def _worker_hangs(*args):
     time.sleep(3600)
 
 
-_REAL_WORKER_MAIN = world._worker_main
+_REAL_WORKER_MAIN = jobs._worker_main
 
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_scene_error_names_the_scene_and_leaves_nothing(tmp_path, monkeypatch, workers):
-    assert world.MP_START_METHOD == "spawn"
+    assert jobs.MP_START_METHOD == "spawn"
     monkeypatch.setattr(world, "_render_scene", _render_failing_scene_1)  # the in-process path (workers=1)
-    monkeypatch.setattr(world, "_worker_main", _worker_failing_scene_1)  # the worker processes
+    monkeypatch.setattr(jobs, "_worker_main", _worker_failing_scene_1)  # the worker processes
     name = world.scene_names(ARGS["scenes_train"], ARGS["scenes_val"])[0][1]
-    with pytest.raises(world.SceneGenerationError, match=rf"{name} \(train scene #1.*ValueError: paint ran out") as e:
+    with pytest.raises(jobs.SceneGenerationError, match=rf"{name} \(train scene #1.*ValueError: paint ran out") as e:
         generate_world(tmp_path / "w", workers=workers, **ARGS)
     assert ("worker process" in str(e.value)) == (workers > 1)
     assert "paint ran out" in str(e.value.__cause__)  # the worker's traceback, or the original error
@@ -89,9 +89,9 @@ def test_scene_error_names_the_scene_and_leaves_nothing(tmp_path, monkeypatch, w
 
 
 def test_hung_worker_is_stopped_with_a_message(tmp_path, monkeypatch):
-    monkeypatch.setattr(world, "_worker_main", _worker_hangs)
-    monkeypatch.setattr(world, "STALL_S", 20.0)  # > a worker's start-up (it imports torch) on a slow machine
-    with pytest.raises(world.SceneGenerationError, match=r"no progress .* for 20 s \(rendering: .*scene #\d.*hung"):
+    monkeypatch.setattr(jobs, "_worker_main", _worker_hangs)
+    monkeypatch.setattr(jobs, "STALL_S", 20.0)  # > a worker's start-up (it imports torch) on a slow machine
+    with pytest.raises(jobs.SceneGenerationError, match=r"no progress .* for 20 s \(rendering: .*scene #\d.*hung"):
         generate_world(tmp_path / "w", workers=2, **ARGS)
     assert list(tmp_path.iterdir()) == []
     assert multiprocessing.active_children() == []

@@ -15,7 +15,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint
 from instagram_hdmap.config import ConfigError, UserError, load_config
-from instagram_hdmap.data.nuscenes import collate_fn
+from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.distributed import ResumableSampler
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.targets import build_targets
@@ -119,7 +119,7 @@ def _ddp_worker(rank: int, world: int, port: int, out: str, cfg_dir: str) -> Non
                       LOCAL_RANK=str(rank))
     torch.set_num_threads(1)
     from instagram_hdmap import distributed as du
-    from instagram_hdmap.engine import train_one_epoch
+    from instagram_hdmap.engine import EpochHooks, Position, train_one_epoch
     from instagram_hdmap.losses import Criterion
     from instagram_hdmap.models import build_model
 
@@ -139,7 +139,8 @@ def _ddp_worker(rank: int, world: int, port: int, out: str, cfg_dir: str) -> Non
         gathered = du.all_gather_object(flat)
         checks.append(all(torch.equal(gathered[0], g) for g in gathered))
 
-    train_one_epoch(net, Criterion(cfg.loss, BEVGrid.from_config(cfg.grid)), loader, opt, device, 0, on_step=on_step)
+    train_one_epoch(net, Criterion(cfg.loss, BEVGrid.from_config(cfg.grid)), loader, opt, device, Position(0),
+                    hooks=EpochHooks(on_step=on_step))
     if rank == 0:
         torch.save({"checks": checks, "samples": len(sampler)}, out)
     du.cleanup()

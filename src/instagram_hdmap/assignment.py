@@ -6,7 +6,7 @@ vertices or instances); the criterion (losses.py) only compares its outputs with
 Shapes: B batch, N padded predicted vertices, M padded GT vertices, K classes. Column / row ``N``
 of the assignment is the dustbin ("no neighbour").
 
-Matching (paper Eq. 5)
+Matching (paper Eq. 6)
     Each real predicted vertex ``i`` is matched to its nearest real GT vertex ``sigma(i)`` if the
     distance is strictly below ``D0`` (``loss.match_dist``, metres; converted to BEV pixels with the
     grid resolution). Otherwise ``sigma(i) = UNMATCHED``. Ties go to the lowest GT index.
@@ -142,7 +142,7 @@ def assign(
     pred_mask = pred_vertex_mask.bool()
     gt_mask = gt_vertex_mask.bool()
 
-    # --- Eq. 5: nearest real GT vertex within D0 ----------------------------------------------
+    # --- Eq. 6: nearest real GT vertex within D0 ----------------------------------------------
     pred_xy, gt_xy = pred_vertices_px.float(), gt_vertices_px.float()
     if match_space == "patch":  # the official GraphLoss's normalised coordinates (module docstring)
         pred_xy = pred_xy / pred_xy.new_tensor([grid.W - 1, grid.H - 1])

@@ -5,7 +5,7 @@
 
 Inputs: random images with a realistic calibration: the rig of the first sample of
 ``data.val_split`` when ``data.dataroot`` holds a dataset, otherwise a nuScenes-like rig built here
-(``nuscenes_like_rig``: the published calibration of a nuScenes log, 1600 x 900 images). Timing: eval
+(``data.rig.nuscenes_like_rig``: the published calibration of a nuScenes log, 1600 x 900 images). Timing: eval
 mode, ``torch.inference_mode``, autocast per ``--amp`` (``engine.autocast_context``), ``warmup``
 untimed runs, then ``runs`` timed runs, each bracketed by a device synchronisation
 (``torch.cuda.synchronize`` on a GPU), reported as the median and the 10th / 90th percentiles of
@@ -27,7 +27,15 @@ import numpy as np
 import torch
 
 from .config import ExperimentConfig, UserError
+from .data import build_dataset
+from .data.rig import nuscenes_like_rig
+from .deploy import fast_forward
+from .distributed import resolve_device
+from .engine import autocast_context
 from .geometry import BEVGrid
+from .inference import load_model
+from .models import build_model
+from .postprocess import decode_options, postprocess_batch
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
 DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
@@ -37,36 +45,9 @@ class BenchmarkError(UserError):
     """A device or precision that cannot be benchmarked here."""
 
 
-def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
-    """Calibration of one sample [V = 6, ...] in the dataset's camera order: the published
-    calibration of a real nuScenes log (``data.synthetic.rig``: 1600 x 900 images) and the
-    ``post_rot`` / ``post_tran`` of the dataset's resize-and-crop to ``image_size`` (h, w)
-    (``data.transforms.image_affine``)."""
-    from .data.nuscenes import CAMERAS
-    from .data.synthetic.rig import NUSCENES_IMAGE_SIZE, rig
-    from .data.transforms import image_affine
-
-    sensors = rig(NUSCENES_IMAGE_SIZE)
-    A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
-    post_rot = torch.eye(3)
-    post_rot[:2, :2] = A[:2, :2]
-    post_tran = torch.zeros(3)
-    post_tran[:2] = A[:2, 2]
-    V = len(CAMERAS)
-    return {
-        "intrinsics": torch.stack([torch.from_numpy(sensors[c].intrinsic).float() for c in CAMERAS]),
-        "cam_to_ego_rot": torch.stack([torch.from_numpy(sensors[c].rot).float() for c in CAMERAS]),
-        "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
-        "post_rot": post_rot.expand(V, 3, 3).clone(),
-        "post_tran": post_tran.expand(V, 3).clone(),
-    }
-
-
 def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
     """The calibration [V, ...] to benchmark with and where it came from."""
     if Path(cfg.data.dataroot).is_dir():
-        from .data import build_dataset
-
         try:
             dataset = build_dataset(cfg, cfg.data.val_split, augment=False)
             cams = dataset.load_cameras(0)
@@ -133,13 +114,8 @@ def run_benchmark(
     statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``). ``compile`` / ``cuda_graphs``: time
     ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
     """
-    from .engine import autocast_context
-    from .models import build_model
-    from .postprocess import decode_options, postprocess_batch
-    from .train import resolve_device
-
     if device is None:
-        device = resolve_device(cfg)
+        device = str(resolve_device(cfg.train.device))
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise BenchmarkError("--device cuda but no CUDA device is available; use --device cpu")
@@ -154,8 +130,6 @@ def run_benchmark(
 
     notes: list[str] = []
     if checkpoint is not None:
-        from .predict import load_model
-
         model, cfg, notes = load_model(checkpoint, cfg, overrides, device=dev)
     else:
         with torch.random.fork_rng(devices=[]):  # reproducible random weights, global RNG untouched
@@ -175,8 +149,6 @@ def run_benchmark(
             torch.cuda.synchronize(dev)
 
     if compile or cuda_graphs:
-        from .deploy import fast_forward
-
         with torch.inference_mode():  # the mode of the timed calls (compiled code is specialised to it)
             fast = fast_forward(model, batch, compile=compile, cuda_graphs=cuda_graphs, amp=amp)
 

@@ -1,4 +1,4 @@
-"""Checkpoints: atomic writes, safe loads (``weights_only=True``), full-state resume.
+"""Checkpoints: atomic saves (files.py), safe loads (``weights_only=True``), full-state resume.
 
 A checkpoint is a plain dict of tensors and Python scalars/containers, so that it loads with
 ``torch.load(weights_only=True)``:
@@ -13,7 +13,6 @@ seed and the epoch; see distributed.ResumableSampler).
 
 from __future__ import annotations
 
-import os
 import pickle
 import random
 import re
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from .config import UserError
+from .files import atomic_path
 
 
 class CheckpointError(UserError):
@@ -32,26 +32,12 @@ class CheckpointError(UserError):
 
 
 def save_checkpoint(state: dict, path: str | Path) -> Path:
-    """Write ``state`` to ``path`` atomically: a temporary file in the same folder, flushed and
-    fsync'ed, then renamed over the target. A crash leaves either the old file or the new one."""
+    """Write ``state`` to ``path`` atomically (``files.atomic_path``: a temporary file in the same
+    folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        _replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
     return path
-
-
-def _replace(src: Path, dst: Path) -> None:
-    """The rename step (a function of its own so tests can interrupt between write and rename)."""
-    os.replace(src, dst)
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:

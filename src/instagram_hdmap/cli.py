@@ -1,6 +1,6 @@
 """``instagram-hdmap``: one subcommand per job, each a thin wrapper over the library.
 
-Each ``_cmd_*`` function imports what it needs lazily so that ``instagram-hdmap --help`` is fast.
+Each ``_cmd_*`` function turns the parsed arguments into one library call and prints its result.
 User errors (``config.UserError``) print one line and exit with code 2.
 """
 
@@ -10,7 +10,22 @@ import argparse
 import sys
 from pathlib import Path
 
-from .config import UserError
+from .benchmark import format_benchmark, run_benchmark
+from .config import UserError, load_config
+from .data import build_dataset
+from .data.base import gt_submission
+from .data.synthetic import generate_world
+from .data.synthetic.av2_writer import generate_av2_world
+from .data.synthetic.preview import write_preview
+from .demo import run_demo
+from .deploy import export_checkpoint
+from .evaluation import evaluate_files, format_table
+from .files import write_json
+from .geometry import BEVGrid
+from .models import build_model, summarize_parameters
+from .predict import predict_sample, run_evaluation
+from .train import train
+from .visualize import write_sample_pngs
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -19,8 +34,6 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 
 def _load(args: argparse.Namespace):
-    from .config import load_config
-
     return load_config(args.config, args.overrides)
 
 
@@ -28,11 +41,7 @@ def _load(args: argparse.Namespace):
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    if args.format == "av2":
-        from .data.synthetic.av2_writer import generate_av2_world as generate
-    else:
-        from .data.synthetic import generate_world as generate
-
+    generate = generate_av2_world if args.format == "av2" else generate_world
     manifest = generate(
         out=args.out,
         scenes_train=args.scenes_train,
@@ -50,8 +59,6 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_synth_preview(args: argparse.Namespace) -> int:
-    from .data.synthetic.preview import write_preview
-
     write_preview(args.dataroot, args.out, index=args.index)
     print(f"wrote {args.out}")
     return 0
@@ -66,16 +73,11 @@ def _load_data_cfg(args: argparse.Namespace):
     extra = [f"data.dataroot={args.dataroot}"] if args.dataroot else []
     extra += [f"data.version={args.version}"] if args.version else []
     if extra:
-        from .config import load_config
-
         cfg = load_config(args.config, [*args.overrides, *extra])
     return cfg
 
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
-    from .data import build_dataset
-    from .data.nuscenes import gt_submission, write_json
-
     cfg = _load_data_cfg(args)
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
@@ -86,9 +88,6 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
 
 
 def _cmd_show_gt(args: argparse.Namespace) -> int:
-    from .data import build_dataset
-    from .visualize import write_sample_pngs
-
     cfg = _load_data_cfg(args)
     dataset = build_dataset(cfg, args.split, augment=args.augment)
     if not -len(dataset) <= args.index < len(dataset):
@@ -104,8 +103,6 @@ def _cmd_show_gt(args: argparse.Namespace) -> int:
 
 
 def _cmd_model_summary(args: argparse.Namespace) -> int:
-    from .models import build_model, summarize_parameters
-
     cfg = _load(args)
     print(summarize_parameters(build_model(cfg)))
     return 0
@@ -115,8 +112,6 @@ def _cmd_model_summary(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .train import train
-
     cfg = _load(args)
     summary = train(cfg, resume=args.resume, force=args.force)
     print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
@@ -127,56 +122,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_json(args: argparse.Namespace) -> int:
-    import json
-
-    from tqdm import tqdm
-
-    from .evaluation import EvaluationInputError, Evaluator, SubmissionError, format_table, read_submission
-    from .geometry import BEVGrid
-
-    gt = read_submission(args.gt, "gt")
-    pred = read_submission(args.pred, "pred")
-    if not gt.samples:
-        raise SubmissionError(f"{args.gt}: the GT file holds no samples")
-    extra = [t for t in pred.samples if t not in gt.samples]
-    if extra and not args.ignore_extra_predictions:
-        raise SubmissionError(
-            f"{args.pred}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {args.gt} "
-            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
-        )
-    missing = sum(t not in pred.samples for t in gt.samples)
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
     grid.check()
-    ev = Evaluator(args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
-                   fix_instance_ids=args.fix_instance_ids, device=args.device)
-    tokens = list(gt.samples)  # the GT file's order is the pooling order
-    chunk = 64
-    try:
-        for s in tqdm(range(0, len(tokens), chunk), desc=f"evaluate-json ({args.protocol})", unit="chunk",
-                      disable=not sys.stderr.isatty()):
-            part = tokens[s : s + chunk]
-            ev.update([pred.samples.get(t, []) for t in part], [gt.samples[t] for t in part],
-                      sample_ids=range(s, s + len(part)), tokens=part)
-    except EvaluationInputError as e:
-        raise SubmissionError(f"evaluating {args.pred} against {args.gt}: {e}") from None
-    metrics = ev.compute()
-    notes = [*gt.notes, *pred.notes]
-    if missing:
-        notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {args.pred}: scored as samples "
-                     "without predictions")
-    if extra:
-        notes.append(f"{len(extra)} sample tokens only in {args.pred} were ignored (--ignore-extra-predictions)")
-    metrics["notes"] = notes + metrics["notes"]
-    metrics["inputs"] = {"pred": str(args.pred), "gt": str(args.gt)}
+    metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
+                             fix_instance_ids=args.fix_instance_ids, device=args.device,
+                             ignore_extra_predictions=args.ignore_extra_predictions, progress=sys.stderr.isatty())
     print(format_table(metrics))
-    for note in metrics["notes"]:
-        print(f"note: {note}")
+    _print_notes(metrics["notes"])
     if args.out:
-
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(metrics, indent=2))  # NaN is written as NaN (Python's json reads it)
-        print(f"wrote {out}")
+        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as NaN (Python's json reads it)
     return 0
 
 
@@ -189,9 +143,6 @@ def _print_notes(notes: list[str]) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import format_table
-    from .predict import run_evaluation
-
     result = run_evaluation(_load(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
     if not result["paths"]:  # not rank 0 under torchrun
         return 0
@@ -205,8 +156,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_predict(args: argparse.Namespace) -> int:
-    from .predict import predict_sample
-
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
                             split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
                             onnx=args.onnx)
@@ -217,8 +166,6 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 
 
 def _cmd_benchmark(args: argparse.Namespace) -> int:
-    from .benchmark import format_benchmark, run_benchmark
-
     result = run_benchmark(_load(args), device=args.device, amp=args.amp, runs=args.runs, warmup=args.warmup,
                            checkpoint=args.checkpoint, overrides=args.overrides, compile=args.compile,
                            cuda_graphs=args.cuda_graphs)
@@ -227,8 +174,6 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
-    from .deploy import export_checkpoint
-
     info = export_checkpoint(_load(args), args.checkpoint, args.out, overrides=args.overrides, opset=args.opset)
     print(f"wrote {info['path']}: opset {info['opset']}, {info['nodes']} nodes, static batch 1, config "
           f"{info['config'].name} (sha256 {info['config_sha256'][:12]})")
@@ -243,8 +188,6 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
-
     try:
         run_demo(args.out, minutes=args.minutes, cache_dir=args.cache, config=args.config,
                  overrides=args.overrides, workers=args.workers, raster=not args.no_raster)

@@ -32,6 +32,8 @@ from typing import Any, Literal, Union
 
 import yaml
 
+from .files import write_text
+
 
 class UserError(Exception):
     """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line
@@ -642,11 +644,38 @@ def config_from_dict(data: dict) -> ExperimentConfig:
 
 def save_config(cfg: ExperimentConfig, path: str | Path) -> None:
     """Write the fully resolved config as YAML (atomically)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    tmp.replace(path)
+    write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False), path)
+
+
+# --- dotted keys ("model.gnn.layers") of nested config dicts -----------------------------------------
+
+
+def flatten(nested: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"model": {"gnn": {"layers": 7}}}`` -> ``{"model.gnn.layers": 7}`` (leaves in order)."""
+    out: dict[str, Any] = {}
+    for k, v in nested.items():
+        out.update(flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def get_key(nested: dict, dotted: str) -> Any:
+    """The value at ``dotted`` (``"model.gnn.layers"``) of a nested dict."""
+    for part in dotted.split("."):
+        nested = nested[part]
+    return nested
+
+
+def set_key(nested: dict, dotted: str, value: Any) -> None:
+    """Set the value at ``dotted`` of a nested dict (its parents must exist)."""
+    *parents, last = dotted.split(".")
+    for part in parents:
+        nested = nested[part]
+    nested[last] = value
+
+
+def is_under(key: str, prefixes) -> bool:
+    """``key`` is one of ``prefixes`` or lies below one: ``is_under("model.gnn.layers", ["model"])``."""
+    return any(key == p or key.startswith(p + ".") for p in prefixes)
 
 
 def diff_configs(a: ExperimentConfig, b: ExperimentConfig) -> list[str]:

@@ -33,7 +33,16 @@ import shutil
 import time
 from pathlib import Path
 
+from .checkpoint import load_checkpoint
 from .config import ExperimentConfig, UserError, load_config
+from .data import build_dataset
+from .data.synthetic import VERSION, generate_world, read_manifest
+from .data.synthetic.jobs import TMP_TAG
+from .evaluation import Evaluator
+from .files import temporary_sibling, write_json
+from .predict import predict_sample, run_evaluation
+from .schedule import final_lr_factor
+from .train import train
 
 # The demo's worlds: 480 x 270 camera images (the network sees 64 x 192), about 0.1 s per sample on
 # one core. Training uses WORLD's train split. Validation uses VAL_WORLD, a world of another seed:
@@ -94,8 +103,6 @@ def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, wo
     A world is written under a temporary name and renamed when complete, so a folder of the final
     name is complete unless it was altered later; a folder whose manifest or camera files do not
     match is reported (delete it and run again) rather than used."""
-    from .data.synthetic import generate_world, read_manifest
-
     root = Path(cache_dir) / world_key(world)
     if root.exists() and not (root / "world.json").is_file():
         raise DemoError(f"{root} is not a complete synthetic world (no world.json); delete it and run the demo "
@@ -127,7 +134,7 @@ def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, wo
 def _remove_stale_partial_worlds(root: Path) -> None:
     """Delete the temporary folders of generations of this world that were killed (their process is
     gone: ``kill -9``, a power cut), so they do not pile up in the cache."""
-    for tmp in root.parent.glob(f".{root.name}.synth-tmp-*"):
+    for tmp in root.parent.glob(temporary_sibling(root, TMP_TAG).name.rsplit("-", 1)[0] + "-*"):
         pid = tmp.name.rsplit("-", 1)[-1]
         if pid.isdigit() and not _process_alive(int(pid)):
             print(f"removing {tmp}: a world generation that did not finish (process {pid} is gone)", flush=True)
@@ -145,8 +152,6 @@ def _process_alive(pid: int) -> bool:
 
 
 def world_overrides(dataroot: Path) -> list[str]:
-    from .data.synthetic import VERSION
-
     dataroot = Path(dataroot)
     return [f"data.dataroot={dataroot}", f"data.version={VERSION}", f"data.splits_file={dataroot / 'splits.json'}"]
 
@@ -157,9 +162,6 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     of a uniformly drawn training sample (score 1): the map prior without looking at the images.
     The training split comes from ``cfg``'s world, the validation split from ``val_cfg``'s (default
     the same world). ``picks`` (one training index per validation sample) replaces the random draw."""
-    from .data import build_dataset
-    from .evaluation import Evaluator
-
     train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
     if val_cfg is None or val_cfg.data.dataroot == cfg.data.dataroot:
         val_cfg = cfg if val_cfg is None else val_cfg
@@ -199,10 +201,6 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     """Generate or reuse the worlds (default ``WORLD`` for training, ``VAL_WORLD`` for validation),
     train (resuming ``OUT/run/last.pt``) within the budget, evaluate, draw. Returns the metrics
     dict also written to ``OUT/metrics.json``."""
-    from .data.nuscenes import write_json
-    from .predict import predict_sample, run_evaluation
-    from .train import train
-
     t0 = time.perf_counter()
     world = WORLD if world is None else world
     val_world = VAL_WORLD if val_world is None else val_world
@@ -295,8 +293,6 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
 
 def _schedule_report(cfg: ExperimentConfig, state: dict, summary: dict) -> dict:
     """Whether the run went through its whole LR schedule (the final LR reached)."""
-    from .schedule import final_lr_factor
-
     clock = state.get("clock") or {}
     lrs = [g["lr"] for g in state["optimizer"]["param_groups"]]
     final = cfg.train.lr * final_lr_factor(cfg.train)
@@ -320,8 +316,6 @@ def _strict_json(obj):
 
 
 def _checkpoint_state(path: Path) -> dict:
-    from .checkpoint import load_checkpoint
-
     return load_checkpoint(path)
 
 

@@ -1,4 +1,5 @@
-"""torchrun-aware helpers: init from the environment, rank-aware printing, reductions, sampler.
+"""Devices and torchrun: the device a job runs on, init from the environment, rank-aware printing,
+reductions, sampler.
 
 Works unchanged in a single process (world size 1). Under ``torchrun`` the environment variables
 ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK`` select NCCL on GPUs and gloo on CPU.
@@ -12,6 +13,23 @@ from collections.abc import Iterator
 import torch
 import torch.distributed as dist
 from torch.utils.data import Sampler
+
+from .config import UserError
+
+
+def resolve_device(choice: str | torch.device | None = "auto", key: str = "train.device") -> torch.device:
+    """The device of a job: ``"auto"`` (or None) is CUDA when a CUDA device is available, else the CPU;
+    ``"cpu"``, ``"cuda"``, ``"cuda:1"`` or a ``torch.device`` as given. Asking for CUDA on a machine
+    without it is a ``UserError`` naming ``key`` (the config key or argument that asked)."""
+    if choice is None or choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(choice)
+    except (RuntimeError, TypeError):
+        raise UserError(f"{key}={choice!r} is not a device; use auto, cpu, cuda or cuda:INDEX") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"{key}={choice} but no CUDA device is available; use {key}=cpu")
+    return device
 
 
 def is_dist() -> bool:

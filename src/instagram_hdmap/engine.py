@@ -25,11 +25,46 @@ class NonFiniteLossError(UserError):
 
 
 @dataclass
+class Position:
+    """Where training stands: the epoch in progress, optimisation steps done in total and batches of
+    this epoch consumed (a resumed run starts an epoch part-way)."""
+
+    epoch: int
+    step: int = 0
+    step_in_epoch: int = 0
+
+
+@dataclass
 class StepInfo:
     epoch: int
     step: int  # global optimisation step, after this step
     step_in_epoch: int  # batches of this epoch consumed, after this step
     losses: dict[str, float]
+
+
+@dataclass
+class StepSettings:
+    """How each optimisation step runs (the ``train.*`` keys of the same names)."""
+
+    amp: str = "none"  # autocast: none | bf16 | fp16 (fp16 with a GradScaler)
+    grad_clip: float = 0.0  # max gradient norm; 0: none
+    on_nonfinite: str = "stop"  # a NaN/inf loss: stop (NonFiniteLossError) | skip the step
+    log_every: int = 10  # steps between logged (reduced) losses
+
+    @classmethod
+    def from_config(cls, train_cfg) -> StepSettings:
+        return cls(amp=train_cfg.amp, grad_clip=train_cfg.grad_clip, on_nonfinite=train_cfg.on_nonfinite,
+                   log_every=train_cfg.log_every)
+
+
+@dataclass
+class EpochHooks:
+    """What the caller of ``train_one_epoch`` does around each step (every hook optional)."""
+
+    before_step: Callable[[int], None] | None = None  # steps done so far -> (the LR schedule sets the LR)
+    on_step: Callable[[StepInfo], None] | None = None  # after each step (mid-epoch checkpoints)
+    should_stop: Callable[[int], bool] | None = None  # steps done -> end the epoch now
+    writer: object | None = None  # a TensorBoard SummaryWriter for the logged scalars
 
 
 def autocast_context(device: torch.device, amp: str):
@@ -56,34 +91,48 @@ def _scalars(d: dict) -> dict[str, float]:
     return out
 
 
+def optimisation_step(loss: torch.Tensor, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                      scaler: torch.amp.GradScaler | None, grad_clip: float) -> torch.Tensor:
+    """Backward, gradient clipping (``grad_clip`` > 0; 0: none), optimizer step (through the fp16
+    ``scaler`` if any); returns the gradient norm before clipping."""
+    optimizer.zero_grad(set_to_none=True)
+    if scaler is not None:
+        scaler.scale(loss).backward()
+        scaler.unscale_(optimizer)
+    else:
+        loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip if grad_clip > 0 else math.inf)
+    if scaler is not None:
+        scaler.step(optimizer)
+        scaler.update()
+    else:
+        optimizer.step()
+    return grad_norm
+
+
 def train_one_epoch(
     model: torch.nn.Module,
     criterion: Callable[[dict, dict], dict],
     loader: Iterable[dict],
     optimizer: torch.optim.Optimizer,
     device: torch.device,
-    epoch: int,
+    position: Position,
     *,
-    global_step: int = 0,
-    step_in_epoch: int = 0,
-    amp: str = "none",
+    settings: StepSettings | None = None,
     scaler: torch.amp.GradScaler | None = None,
-    grad_clip: float = 0.0,
-    on_nonfinite: str = "stop",
-    log_every: int = 10,
-    writer=None,
-    should_stop: Callable[[int], bool] | None = None,
-    on_step: Callable[[StepInfo], None] | None = None,
-    before_step: Callable[[int], None] | None = None,
+    hooks: EpochHooks | None = None,
     total: int | None = None,
 ) -> dict:
-    """One pass over ``loader`` (which already starts at ``step_in_epoch`` on resume).
+    """One pass over ``loader`` from ``position`` (the loader already starts at its ``step_in_epoch``
+    on resume); ``total``: batches in the whole epoch (for the progress bar).
 
-    ``before_step(global_step)`` runs before each step with the number of steps done so far (the
-    LR schedule sets the learning rate there). Returns ``{"stats": mean of each logged scalar,
-    "global_step", "step_in_epoch", "stopped"}``;
-    ``stopped`` is True when ``should_stop(global_step)`` ended the epoch early.
+    ``hooks.before_step(global_step)`` runs before each step with the number of steps done so far
+    (the LR schedule sets the learning rate there). Returns ``{"stats": mean of each logged scalar,
+    "global_step", "step_in_epoch", "stopped", "seconds", "samples_per_s"}``; ``stopped`` is True
+    when ``hooks.should_stop(global_step)`` ended the epoch early.
     """
+    settings, hooks = settings or StepSettings(), hooks or EpochHooks()
+    epoch, global_step, step_in_epoch = position.epoch, position.step, position.step_in_epoch
     model.train()
     sums: dict[str, float] = defaultdict(float)
     count, n_samples, t_epoch = 0, 0, time.perf_counter()
@@ -93,9 +142,9 @@ def train_one_epoch(
                disable=not du.is_main_process(), leave=False)
     for batch in bar:
         batch = move_to(batch, device)
-        if before_step is not None:
-            before_step(global_step)
-        with autocast_context(device, amp):
+        if hooks.before_step is not None:
+            hooks.before_step(global_step)
+        with autocast_context(device, settings.amp):
             outputs = model(batch)
         losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters
         loss = losses["loss_total"]
@@ -103,7 +152,7 @@ def train_one_epoch(
         step_in_epoch += 1
         if not torch.isfinite(loss):
             terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items() if k.startswith("loss_"))
-            if on_nonfinite == "stop":
+            if settings.on_nonfinite == "stop":
                 raise NonFiniteLossError(
                     f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
                     "train.amp=none, or set train.on_nonfinite=skip to skip such steps"
@@ -112,19 +161,7 @@ def train_one_epoch(
             optimizer.zero_grad(set_to_none=True)
             continue
 
-        optimizer.zero_grad(set_to_none=True)
-        if scaler is not None:
-            scaler.scale(loss).backward()
-            scaler.unscale_(optimizer)
-        else:
-            loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip if grad_clip > 0 else math.inf)
-        if scaler is not None:
-            scaler.step(optimizer)
-            scaler.update()
-        else:
-            optimizer.step()
-
+        grad_norm = optimisation_step(loss, model, optimizer, scaler, settings.grad_clip)
         values = _scalars(losses)
         values["grad_norm"] = float(grad_norm)
         if "pred_vertex_mask" in outputs:
@@ -134,7 +171,7 @@ def train_one_epoch(
         count += 1
         n_samples += batch["images"].shape[0] * du.get_world_size()
 
-        if global_step % log_every == 0 or step_in_epoch == 1:
+        if global_step % settings.log_every == 0 or step_in_epoch == 1:
             logged = du.reduce_dict(values, device if device.type == "cuda" else None)
             now = time.perf_counter()
             batch_size = batch["images"].shape[0] * du.get_world_size()
@@ -143,14 +180,14 @@ def train_one_epoch(
             bar.set_postfix(loss=f"{logged['loss_total']:.3f}",
                             **{k[5:]: f"{v:.3f}" for k, v in logged.items()
                                if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
-            if writer is not None:
+            if hooks.writer is not None:
                 for k, v in logged.items():
-                    writer.add_scalar(f"train/{k}", v, global_step)
-                writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
-                writer.add_scalar("train/samples_per_s", throughput, global_step)
-        if on_step is not None:
-            on_step(StepInfo(epoch, global_step, step_in_epoch, values))
-        if should_stop is not None and should_stop(global_step):
+                    hooks.writer.add_scalar(f"train/{k}", v, global_step)
+                hooks.writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
+                hooks.writer.add_scalar("train/samples_per_s", throughput, global_step)
+        if hooks.on_step is not None:
+            hooks.on_step(StepInfo(epoch, global_step, step_in_epoch, values))
+        if hooks.should_stop is not None and hooks.should_stop(global_step):
             stopped = True
             break
     bar.close()

@@ -1,27 +1,27 @@
 """The criterion (DETR's SetCriterion pattern): named raw losses, a weight dict, the total in one place.
 
 Shapes: B batch, K classes, H x W BEV grid, S cell size, Hc x Wc = H/S x W/S, N padded predicted
-vertices. Terms (paper Eqs. 4-8):
+vertices. Terms (paper Eqs. 5-9):
 
-``loss_vertex``     Eq. 4: cross-entropy of ``pred_vertex_logits`` [B, S*S+1, Hc, Wc] against
+``loss_vertex``     Eq. 5: cross-entropy of ``pred_vertex_logits`` [B, S*S+1, Hc, Wc] against
                     ``gt_vertex_cells`` [B, Hc, Wc], mean over all B*Hc*Wc cells.
-``loss_distance``   Eq. 4: squared error of ``pred_distance`` [B, K, H, W] against ``gt_distance``,
+``loss_distance``   Eq. 5: squared error of ``pred_distance`` [B, K, H, W] against ``gt_distance``,
                     mean over all B*K*H*W pixels.
-``loss_adjacency``  Eq. 6: bidirectional NLL on ``pred_log_assignment`` [B, N+1, N+1]. For every real
+``loss_adjacency``  Eq. 7: bidirectional NLL on ``pred_log_assignment`` [B, N+1, N+1]. For every real
                     predicted vertex i the forward target column ``target_next[i]`` and the backward
                     target column ``target_prev[i]`` (both in [0, N], N = dustbin; assignment.py)
                     are supervised in row i: ``-log A[i, next(i)] - log A[i, prev(i)]``, which is
-                    Eq. 6's sum over M and M^T (an entry (j, i) of M^T is the row-j entry pointing
+                    Eq. 7's sum over M and M^T (an entry (j, i) of M^T is the row-j entry pointing
                     back to j's predecessor i). Normalisation: each direction's sum is divided by
                     the sample's number of real predicted vertices and the two directions are
                     *added*; samples are averaged (a sample without real vertices adds 0). This is
                     the normalisation of the official implementation (mean NLL forward + mean NLL
                     backward, mean over the batch), under which lambda_3 = 5e-3 was tuned; it
-                    equals Eq. 6 x 2 / N_real. Without a 1/N normalisation (a plain sum), the term
+                    equals Eq. 7 x 2 / N_real. Without a 1/N normalisation (a plain sum), the term
                     would scale with the vertex count (~400) and lambda_3 would mean something else.
                     The dustbin row N is not supervised (as in the official code). Unlike the
                     official code, a sample without GT still trains all its vertices to the dustbin.
-``loss_class``      Eq. 7: NLL of ``pred_class_log_probs`` [B, N, K] at the class of sigma(i), over
+``loss_class``      Eq. 8: NLL of ``pred_class_log_probs`` [B, N, K] at the class of sigma(i), over
                     the predicted vertices matched within D0 (``loss.class_targets=nearest``: over
                     every real predicted vertex, at the class of its nearest GT vertex, as the
                     official code); mean per sample, mean over samples (a sample without such
@@ -29,7 +29,7 @@ vertices. Terms (paper Eqs. 4-8):
 ``loss_distance`` is absent when the model has no distance head (``with_distance=False``).
 
 ``weight_dict`` holds lambda_1..4 (``loss.*_weight``); the output has each raw term, each weighted
-term (``loss_<name>_weighted``) and ``loss_total`` = the sum of the weighted terms (Eq. 8). Logging
+term (``loss_<name>_weighted``) and ``loss_total`` = the sum of the weighted terms (Eq. 9). Logging
 diagnostics (detached, names without the ``loss_`` prefix): ``adjacency_accuracy`` (fraction of
 the predicted vertices that represent a GT vertex whose two best columns of their assignment row are
 exactly their targets {next, prev}; at a polyline end one of them is the dustbin; where next == prev,

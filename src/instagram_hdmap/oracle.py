@@ -12,7 +12,7 @@ its targets or the decoding are wrong, whatever the image side does.
 
 Inputs the graph head sees, per batch (``oracle_vertices``):
 
-* vertices: ``predict.gt_outputs`` turns ``gt_vertex_cells`` into (log) one-hot vertex logits and
+* vertices: ``inference.gt_outputs`` turns ``gt_vertex_cells`` into (log) one-hot vertex logits and
   ``GraphHead.extract`` reads them exactly as it reads the vertex head's logits (top-N cells above
   ``conf_threshold``, sorted by score, padded, mask), so count, order and padding are the model's;
 * distance: ``gt_distance``; BEV features: none (the ``pe+vd`` embedding cannot run here).
@@ -27,7 +27,7 @@ terms, with the configured weights, as inside the full model.
 
 Evaluation post-processes with ``postprocess.postprocess_batch`` (``model.gnn.match_threshold``) and
 scores against the split's GT polylines with ``evaluation.Evaluator.from_config``. ``graph_head=None``
-evaluates ``predict.gt_outputs`` instead: the GT vertex graph decoded as is, the ceiling any graph
+evaluates ``inference.gt_outputs`` instead: the GT vertex graph decoded as is, the ceiling any graph
 head can reach with these targets (below 1 where one-vertex-per-cell subsampling changes a shape).
 """
 
@@ -42,7 +42,16 @@ import torch
 from tqdm import tqdm
 
 from .config import ConfigError, ExperimentConfig
+from .data.base import collate_fn
+from .data.nuscenes import NuScenesMapDataset, open_nuscenes
+from .engine import move_to
+from .evaluation import Evaluator
 from .geometry import BEVGrid
+from .inference import gt_outputs
+from .losses import Criterion, adjacency_correct
+from .models import build_model
+from .postprocess import decode_options, postprocess_batch
+from .targets import build_targets
 
 # diagnostics of losses.Criterion averaged over the evaluated batches
 DIAGNOSTICS = ("loss_adjacency", "loss_class", "adjacency_accuracy", "adjacency_accuracy_all", "class_accuracy")
@@ -82,9 +91,6 @@ def load_targets(cfg: ExperimentConfig, split: str, nusc=None, limit: int | None
     ``mirror``: also the three mirror images of each map (``MIRRORS``, a 4x larger training set;
     the association task is symmetric), each built into its own targets; needs a centred grid.
     """
-    from .data.nuscenes import NuScenesMapDataset
-    from .targets import build_targets
-
     grid, d = BEVGrid.from_config(cfg.grid), cfg.data
     if mirror:
         check_mirror_grid(grid)
@@ -101,11 +107,8 @@ def load_targets(cfg: ExperimentConfig, split: str, nusc=None, limit: int | None
 
 
 def collate_targets(samples: Sequence[dict], device: torch.device | str = "cpu") -> dict:
-    """``data.nuscenes.collate_fn`` over ``load_targets`` samples, tensors moved to ``device``;
+    """``data.base.collate_fn`` over ``load_targets`` samples, tensors moved to ``device``;
     ``index`` becomes a list of dataset indices."""
-    from .data.nuscenes import collate_fn
-    from .engine import move_to
-
     return move_to(collate_fn(list(samples)), torch.device(device))
 
 
@@ -117,10 +120,8 @@ def oracle_vertices(batch: dict, graph_head) -> tuple[dict[str, torch.Tensor], d
     vertex graph [B, M]). Returns ``(vertices, gt)``: ``vertices`` = ``GraphHead.extract`` of the GT
     one-hot vertex logits (``vertices_px`` [B, n, 2], ``scores`` [B, n], ``mask`` [B, n], ``cells``
     [B, n]), cut from N to n = the batch's largest real count (at least 1); ``gt`` =
-    ``predict.gt_outputs(batch)`` (its ``pred_vertex_logits`` and ``pred_distance`` are the inputs).
+    ``inference.gt_outputs(batch)`` (its ``pred_vertex_logits`` and ``pred_distance`` are the inputs).
     """
-    from .predict import gt_outputs
-
     gt = gt_outputs(batch, graph_head.grid, batch["gt_distance"].shape[1])
     vertices = graph_head.extract(gt["pred_vertex_logits"])
     n = max(1, int(vertices["mask"].sum(1).max()))
@@ -185,8 +186,6 @@ def train_oracle(
     Returns ``{"steps", "seconds", "history": [{"step", "seconds", "lr", "loss_adjacency", "loss_class",
     "adjacency_accuracy", "class_accuracy"}, ...]}`` (one entry every ``log_every`` steps and at the end).
     """
-    from .losses import Criterion
-
     check_oracle_config(cfg)
     if schedule not in ("constant", "cosine"):
         raise ConfigError(f"schedule must be 'constant' or 'cosine', got {schedule!r}")
@@ -252,18 +251,13 @@ def evaluate_oracle(
     """Vector- (or ``eval.protocol``-) protocol metrics of the oracle on ``samples``.
 
     ``graph_head``: the trained head (``oracle_forward``), or None for the GT vertex graph decoded as
-    is (``predict.gt_outputs``, the upper bound). Returns the ``Evaluator.compute()`` dict plus
+    is (``inference.gt_outputs``, the upper bound). Returns the ``Evaluator.compute()`` dict plus
     ``diagnostics``: the criterion's adjacency / class terms and accuracies (``DIAGNOSTICS``),
     averaged over batches, and per class, over all vertices that represent a GT vertex of that
     class: ``adjacency_accuracy_class`` (the criterion's per-vertex rule: the row's two best columns
     are exactly the GT successor and predecessor) and ``vertices_class`` (their number).
     One wrong row in a polyline of P vertices breaks it, so the instance AP needs these close to 1.
     """
-    from .evaluation import Evaluator
-    from .losses import Criterion, adjacency_correct
-    from .postprocess import decode_options, postprocess_batch
-    from .predict import gt_outputs
-
     grid = BEVGrid.from_config(cfg.grid)
     if graph_head is not None:
         check_oracle_config(cfg)
@@ -325,9 +319,6 @@ def run_oracle(
     Returns ``{"oracle": metrics, "upper_bound": metrics, "train": train_oracle's dict,
     "num_train": samples (mirror images included), "num_val", "seconds": {"targets", "train", "eval"}}``.
     """
-    from .data.nuscenes import open_nuscenes
-    from .models import build_model
-
     check_oracle_config(cfg)
     t0 = time.perf_counter()
     nusc = open_nuscenes(cfg.data.dataroot, cfg.data.version)

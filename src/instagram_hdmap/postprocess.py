@@ -130,6 +130,101 @@ def vertex_neighbours(
     return torch.where(swap, nbr.flip(2), nbr)
 
 
+def candidate_pairs(
+    log_assignment: torch.Tensor,
+    pred_vertex_mask: torch.Tensor,
+    match_threshold: float = 0.1,
+    class_log_probs: torch.Tensor | None = None,
+    same_class_edges: bool = False,
+    vertices_px: torch.Tensor | None = None,
+    max_edge_px: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs the greedy rule may take: ``(b, i, j, w)`` with i < j both real, in row-major order,
+    and their weight ``w = (log P_ij + log P_ji) / 2`` above ``log(match_threshold)`` (float32, as
+    the dense ``0.5 * (S + S^T)``), within ``max_edge_px`` (exact Euclidean distance of
+    ``vertices_px``) and, with ``same_class_edges``, of one argmax class.
+
+    Sparse: a pair's weight exceeds the threshold only if one of its directions does, and a log
+    assignment row has at most 1 / match_threshold such entries, so one comparison over the dense
+    [B, N, N] block finds every candidate; nothing else is computed densely.
+    """
+    N = pred_vertex_mask.shape[1]
+    scores = log_assignment[:, :N, :N].float()
+    log_t = math.log(match_threshold)
+    flat = np.flatnonzero((scores > log_t).cpu().numpy())
+    b, rest = np.divmod(flat, N * N)
+    i, j = np.divmod(rest, N)
+    key = np.unique((b * N + np.minimum(i, j)) * N + np.maximum(i, j))  # each pair once, row-major
+    b, rest = np.divmod(key, N * N)
+    i, j = np.divmod(rest, N)
+    b, i, j = b[i != j], i[i != j], j[i != j]
+    bt, it, jt = (torch.from_numpy(a).to(scores.device) for a in (b, i, j))
+    w = 0.5 * (scores[bt, it, jt] + scores[bt, jt, it])
+    mask = pred_vertex_mask.bool()
+    ok = (w > log_t) & mask[bt, it] & mask[bt, jt]
+    if same_class_edges:
+        if class_log_probs is None:
+            raise ValueError("same_class_edges=True needs class_log_probs")
+        cls = class_log_probs.argmax(2)
+        ok &= cls[bt, it] == cls[bt, jt]
+    ok = ok.cpu().numpy()
+    if max_edge_px is not None:
+        if vertices_px is None:
+            raise ValueError("max_edge_px needs vertices_px")
+        v = vertices_px.detach().float().cpu().numpy().astype(np.float64)
+        d = v[b, i] - v[b, j]
+        ok &= np.hypot(d[:, 0], d[:, 1]) <= max_edge_px
+    return b[ok], i[ok], j[ok], w.cpu().numpy()[ok]
+
+
+def greedy_two_matching(graph: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarray, num_graphs: int,
+                        N: int) -> np.ndarray:
+    """The greedy degree-<=2 rule on candidate pairs ``(graph, i, j)`` with weights ``w``: in each graph,
+    pairs strongest first (ties: row-major), each kept unless an end already has two edges.
+
+    Returns the neighbour table [num_graphs, N, 2] (-1 for none; a vertex's first kept edge in slot
+    0). Vectorised without changing the result: in one round, a pair is kept when it is among the
+    first (2 - edges kept so far) undecided pairs at both of its ends (in the sequential rule, fewer
+    than two earlier pairs can then be kept at either end), and the undecided pairs of a vertex that
+    has two edges are dropped (both its kept edges come before them). Each round keeps at least the
+    strongest undecided pair; the rule's graphs need a few rounds.
+    """
+    nbr = np.full((num_graphs * N, 2), -1, dtype=np.int64)
+    E = len(i)
+    if E == 0:
+        return nbr.reshape(num_graphs, N, 2)
+    order = np.lexsort((i * N + j, -w, graph))  # the sequential order: per graph, strongest first
+    i, j = i[order], j[order]
+    u, v = graph[order] * N + i, graph[order] * N + j  # vertex ids over all graphs
+    # incidences (each pair at both ends), by vertex, then by order
+    inc_vertex = np.concatenate([u, v])
+    inc_pair = np.concatenate([np.arange(E), np.arange(E)])
+    by_vertex = np.lexsort((inc_pair, inc_vertex))
+    inc_vertex, inc_pair = inc_vertex[by_vertex], inc_pair[by_vertex]
+    at = np.empty(2 * E, dtype=np.int64)
+    at[by_vertex] = np.arange(2 * E)  # where pair e sits at its end u (at[e]) and at v (at[E + e])
+    first = np.flatnonzero(np.r_[True, inc_vertex[1:] != inc_vertex[:-1]])
+    group_start = np.repeat(first, np.diff(np.r_[first, 2 * E]))
+    undecided, kept = np.ones(E, dtype=bool), np.zeros(E, dtype=bool)
+    degree = np.zeros(num_graphs * N, dtype=np.int64)
+    while undecided.any():
+        open_ = undecided[inc_pair]
+        seen = np.cumsum(open_)
+        rank = seen - (seen[group_start] - open_[group_start]) - 1  # among the vertex's undecided pairs
+        ok = open_ & (rank < 2 - degree[inc_vertex])
+        take = ok[at[:E]] & ok[at[E:]]
+        kept |= take
+        undecided &= ~take
+        degree += np.bincount(u[take], minlength=len(degree)) + np.bincount(v[take], minlength=len(degree))
+        full = degree >= 2
+        undecided &= ~(full[u] | full[v])
+    sel = kept[inc_pair]
+    vertex, pair = inc_vertex[sel], inc_pair[sel]
+    slot = np.r_[False, vertex[1:] == vertex[:-1]].astype(np.int64)  # the vertex's second kept pair: slot 1
+    nbr[vertex, slot] = np.where(u[pair] == vertex, j[pair], i[pair])
+    return nbr.reshape(num_graphs, N, 2)
+
+
 @torch.no_grad()
 def greedy_neighbours(
     log_assignment: torch.Tensor,
@@ -144,48 +239,14 @@ def greedy_neighbours(
 
     Same output convention as ``vertex_neighbours`` (symmetric, -1 for none, a single neighbour in
     slot 0). Pair weight ``(log P_ij + log P_ji) / 2``; pairs above ``log(match_threshold)`` are
-    accepted strongest first while both ends have fewer than two edges (ties: row-major pair order).
-    ``same_class_edges`` needs ``class_log_probs`` [B, N, K]; ``max_edge_px`` needs ``vertices_px``
-    [B, N, 2]. The weights are batched tensor code; the acceptance loop runs over the candidate
-    pairs only (those above the threshold), in Python, per sample.
+    accepted strongest first while both ends have fewer than two edges (ties: row-major pair order;
+    ``candidate_pairs``, ``greedy_two_matching``). ``same_class_edges`` needs ``class_log_probs``
+    [B, N, K]; ``max_edge_px`` needs ``vertices_px`` [B, N, 2].
     """
     B, N = pred_vertex_mask.shape
-    device = log_assignment.device
-    out = torch.full((B, N, 2), -1, dtype=torch.long)
-    if N < 2:
-        return out.to(device)
-    mask = pred_vertex_mask.bool()
-    scores = log_assignment[:, :N, :N].float()
-    w = 0.5 * (scores + scores.transpose(1, 2))  # [B, N, N], symmetric
-    allowed = mask[:, :, None] & mask[:, None, :]
-    allowed &= torch.ones(N, N, dtype=torch.bool, device=device).triu(1)  # each pair once, no self edge
-    if same_class_edges:
-        if class_log_probs is None:
-            raise ValueError("same_class_edges=True needs class_log_probs")
-        cls = class_log_probs.argmax(2)
-        allowed &= cls[:, :, None] == cls[:, None, :]
-    if max_edge_px is not None:
-        if vertices_px is None:
-            raise ValueError("max_edge_px needs vertices_px")
-        v = vertices_px.float()
-        allowed &= torch.cdist(v, v) <= max_edge_px
-    allowed &= w > math.log(match_threshold)
-    b_idx, i_idx, j_idx = allowed.nonzero(as_tuple=True)
-    vals = w[b_idx, i_idx, j_idx]
-    # strongest first within each sample: sort by weight, then (stably) by sample
-    order = torch.sort(vals, descending=True, stable=True).indices
-    order = order[torch.sort(b_idx[order], stable=True).indices]
-    cand = torch.stack([b_idx[order], i_idx[order], j_idx[order]], 1).cpu().tolist()
-    nbr = out.view(-1).tolist()  # flat [B * N * 2]
-    deg = [0] * (B * N)
-    for b, i, j in cand:
-        u, v = b * N + i, b * N + j
-        if deg[u] < 2 and deg[v] < 2:
-            nbr[2 * u + deg[u]] = j
-            nbr[2 * v + deg[v]] = i
-            deg[u] += 1
-            deg[v] += 1
-    return torch.tensor(nbr, dtype=torch.long).view(B, N, 2).to(device)
+    b, i, j, w = candidate_pairs(log_assignment, pred_vertex_mask, match_threshold, class_log_probs,
+                                 same_class_edges, vertices_px, max_edge_px)
+    return torch.from_numpy(greedy_two_matching(b, i, j, w, B, N)).to(log_assignment.device)
 
 
 @torch.no_grad()
@@ -274,11 +335,6 @@ def graph_options(decode: dict) -> dict:
     return {k: v for k, v in decode.items() if k != "min_vertices"}
 
 
-def _repeat_per_class(t: torch.Tensor | None, K: int) -> torch.Tensor | None:
-    """[B, ...] -> [B * K, ...]: each sample's tensor once per class (a view where possible)."""
-    return None if t is None else t[:, None].expand(t.shape[0], K, *t.shape[1:]).reshape(-1, *t.shape[1:])
-
-
 @torch.no_grad()
 def neighbours(
     outputs: dict,
@@ -305,11 +361,12 @@ def neighbours(
             raise ValueError("the classwise decoder needs pred_class_log_probs")
         B, N = mask.shape
         K = class_log_probs.shape[2]
-        # class k's vertices: those whose class-k probability is at least class_min_prob
-        member = mask.bool()[:, None, :] & (class_log_probs.float().exp().transpose(1, 2) >= class_min_prob)
-        nbr = greedy_neighbours(_repeat_per_class(logA, K), member.reshape(B * K, N), match_threshold, None, False,
-                                _repeat_per_class(vertices, K), max_edge_px)
-        return nbr.view(B, K, N, 2)
+        # the pairs of the class-agnostic rule, then class k's: both vertices have p_k >= class_min_prob
+        b, i, j, w = candidate_pairs(logA, mask, match_threshold, None, False, vertices, max_edge_px)
+        member = (class_log_probs.float().exp() >= class_min_prob).cpu().numpy()  # [B, N, K]
+        e, k = np.nonzero(member[b, i] & member[b, j])
+        nbr = greedy_two_matching(b[e] * K + k, i[e], j[e], w[e], B * K, N)
+        return torch.from_numpy(nbr).view(B, K, N, 2).to(logA.device)
     if decoder == "mutual":
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
@@ -329,40 +386,90 @@ def neighbours(
     raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
 
 
-def trace_instances(nbr0: list[int], nbr1: list[int], min_vertices: int = 2) -> list[tuple[list[int], bool]]:
-    """Walk a degree <= 2 symmetric neighbour graph: -> [(vertex indices in order, closed)].
+def _rank_chains(nxt: np.ndarray, live: np.ndarray, end: np.ndarray, dist: np.ndarray, low: np.ndarray,
+                 rounds: int | None = None) -> np.ndarray:
+    """List ranking by pointer jumping over the half-edges ``live`` (``nxt``: successor or -1), in place:
+    ``end`` the last half-edge of each one's chain, ``dist`` the steps to it, ``low`` the smallest of
+    ``low`` along the way. At most ``rounds`` rounds; returns the half-edges still unfinished (on a
+    cycle, whose ``low`` then covers the whole cycle once 2^rounds exceeds its length)."""
+    ptr = nxt.copy()
+    live = live[ptr[live] >= 0]
+    done = 0
+    while live.size and (rounds is None or done < rounds):
+        p = ptr[live]
+        end[live] = end[p]
+        dist[live] += 1 + dist[p]
+        low[live] = np.minimum(low[live], low[p])
+        ptr[live] = ptr[p]
+        live = live[ptr[live] >= 0]
+        done += 1
+    return live
 
-    ``nbr0[i]``, ``nbr1[i]``: the neighbours of vertex i or -1 (a single one in ``nbr0``). Paths
-    first (from their lower-index end), then cycles (from their lowest-index vertex). O(N).
+
+def trace_graphs(nbr: np.ndarray, min_vertices: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Walk G neighbour graphs of degree <= 2 at once: ``nbr`` [G, N, 2] (symmetric, -1 for none, a
+    single neighbour in slot 0) -> ``(vertices, lengths, closed)``: the instances of every graph,
+    concatenated, graph by graph; in a graph its paths (walked from their lower-index end, in that
+    order), then its cycles (walked from their lowest-index vertex towards its slot-0 neighbour).
+    ``vertices`` holds ids ``g * N + i``, ``lengths`` [I] the vertex count of each instance (a cycle's
+    first vertex is not repeated), ``closed`` [I] bool. Paths need ``min_vertices`` vertices, cycles
+    ``max(min_vertices, 3)``.
+
+    Vectorised: the walks are chains of directed half-edges (x -> y, then y -> its other neighbour),
+    ranked by pointer jumping (``_rank_chains``, O(E log L) for E edges and instances of at most L
+    vertices); a path's chain from one end finds the other end, a cycle's the lowest vertex, and
+    each cycle is cut open at it and ranked again.
     """
-    n = len(nbr0)
-    seen = [False] * n
-    out: list[tuple[list[int], bool]] = []
-    for s in range(n):  # paths: start at an end (exactly one neighbour)
-        if seen[s] or nbr0[s] < 0 or nbr1[s] >= 0:
-            continue
-        path, prev, cur = [s], s, nbr0[s]
-        seen[s] = True
-        while cur >= 0:
-            path.append(cur)
-            seen[cur] = True
-            a, b = nbr0[cur], nbr1[cur]
-            prev, cur = cur, (b if a == prev else a)
-        if len(path) >= min_vertices:
-            out.append((path, False))
-    for s in range(n):  # what is left with neighbours lies on a cycle
-        if seen[s] or nbr0[s] < 0:
-            continue
-        cycle, prev, cur = [s], s, nbr0[s]
-        seen[s] = True
-        while cur != s:
-            cycle.append(cur)
-            seen[cur] = True
-            a, b = nbr0[cur], nbr1[cur]
-            prev, cur = cur, (b if a == prev else a)
-        if len(cycle) >= max(min_vertices, 3):
-            out.append((cycle, True))
-    return out
+    G, N, _ = nbr.shape
+    V = G * N
+    has = nbr.reshape(V, 2) >= 0
+    glob = np.where(has, nbr.reshape(V, 2) + (np.arange(V) // N * N)[:, None], -1)  # neighbours as ids
+    half = np.flatnonzero(has.ravel())  # half-edge h = 2 x + slot: x -> glob[x, slot]
+    empty = np.zeros(0, dtype=np.int64)
+    if half.size == 0:
+        return empty, empty, np.zeros(0, dtype=bool)
+    tail, head = half // 2, glob.ravel()[half]
+    out_slot = (glob[head, 0] == tail).astype(np.int64)  # leave the head by its other slot
+    nxt = np.full(2 * V, -1, dtype=np.int64)
+    nxt[half] = np.where(has[head, out_slot], 2 * head + out_slot, -1)
+    end, dist, low = np.arange(2 * V), np.zeros(2 * V, dtype=np.int64), np.arange(2 * V) // 2
+    on_cycle = _rank_chains(nxt, half, end, dist, low, rounds=int(np.ceil(np.log2(max(N, 2)))) + 1)
+    # a path starts at its lower-index end: the end whose chain reaches a higher one
+    ends = np.flatnonzero(has[:, 0] & ~has[:, 1])
+    path_start = ends[ends < head[np.searchsorted(half, end[2 * ends])]]
+    cycle_start = np.unique(low[on_cycle])
+    for into in (glob[cycle_start, 1], glob[cycle_start, 0]):  # cut each cycle open at its start
+        nxt[2 * into + (glob[into, 0] != cycle_start)] = -1
+    end[on_cycle], dist[on_cycle] = on_cycle, 0
+    _rank_chains(nxt, on_cycle, end, dist, low)
+    start = np.concatenate([path_start, cycle_start])
+    cycle = np.r_[np.zeros(len(path_start), dtype=bool), np.ones(len(cycle_start), dtype=bool)]
+    # an instance's walk: the chain of its start's slot-0 half-edge; steps = its half-edges less one
+    owner = np.full(2 * V, -1, dtype=np.int64)
+    owner[end[2 * start]] = np.arange(len(start))
+    c = owner[end[half]]
+    walk = c >= 0
+    steps = dist[2 * start]
+    c, pos, heads = c[walk], steps[c[walk]] - dist[half[walk]], head[walk]
+    back = cycle[c] & (pos == steps[c])  # a cycle's last step returns to its start
+    count = steps + 1 + ~cycle  # vertices
+    order = np.lexsort((start, cycle, start // N))  # graph, paths before cycles, start vertex
+    rank = np.empty(len(start), dtype=np.int64)
+    rank[order] = np.arange(len(start))
+    sort = np.lexsort((np.r_[np.full(len(start), -1), pos[~back]], np.r_[rank, rank[c[~back]]]))
+    vertices = np.r_[start, heads[~back]][sort]
+    lengths, closed = count[order], cycle[order]
+    kept = lengths >= np.where(closed, max(min_vertices, 3), min_vertices)
+    return vertices[np.repeat(kept, lengths)], lengths[kept], closed[kept]
+
+
+def trace_instances(nbr0: list[int], nbr1: list[int], min_vertices: int = 2) -> list[tuple[list[int], bool]]:
+    """One graph's instances (``trace_graphs`` of one graph): ``nbr0[i]``, ``nbr1[i]`` the neighbours of
+    vertex i or -1 (a single one in ``nbr0``) -> ``[(vertex indices in order, closed)]``."""
+    vertices, lengths, closed = trace_graphs(np.array([nbr0, nbr1], dtype=np.int64).T.reshape(1, -1, 2),
+                                             min_vertices)
+    bounds = np.concatenate([[0], np.cumsum(lengths)]).tolist()
+    return [(vertices[a:z].tolist(), c) for a, z, c in zip(bounds[:-1], bounds[1:], closed.tolist())]
 
 
 @torch.no_grad()
@@ -389,40 +496,44 @@ def postprocess_batch(
     if decoder == "official":
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
-        K = outputs["pred_class_log_probs"].shape[2]
-        walks = official_instances(outputs, match_threshold)
+        (B, N), G = outputs["pred_vertex_mask"].shape, outputs["pred_class_log_probs"].shape[2]
         # per sample, one "graph" per class holding its instances in the official order (open)
-        traced = [[[(w, False) for w, k in sample if k == g and len(w) >= min_vertices] for g in range(K)]
-                  for sample in walks]
+        walks = [((b * G + g) * N + np.asarray(w, dtype=np.int64)) for b, sample in enumerate(
+            official_instances(outputs, match_threshold)) for g in range(G) for w, k in sample
+            if k == g and len(w) >= min_vertices]
+        vertices = np.concatenate(walks) if walks else np.zeros(0, dtype=np.int64)
+        lengths = np.array([len(w) for w in walks], dtype=np.int64)
+        closed = np.zeros(len(walks), dtype=bool)
     else:
         nbr = neighbours(outputs, match_threshold, decoder=decoder, same_class_edges=same_class_edges,
                          max_edge_px=max_edge_px, class_min_prob=class_min_prob)  # [B, G, N, 2]
-        traced = [[trace_instances([r[0] for r in rows], [r[1] for r in rows], min_vertices) for rows in graphs]
-                  for graphs in nbr.cpu().tolist()]
-    # one transfer per tensor for the whole batch
-    pts_m = grid.px_to_m(outputs["pred_vertices_px"].detach().float().cpu().numpy().astype(np.float64))  # [B, N, 2]
-    class_probs = outputs["pred_class_log_probs"].detach().float().exp().cpu().numpy()  # [B, N, K]
-    vertex_scores = outputs["pred_vertex_scores"].detach().float().cpu().numpy()  # [B, N]
-    official_confidence = decoder in OFFICIAL_CONFIDENCE
-
-    results: list[list[dict]] = []
-    for b, graphs in enumerate(traced):
-        sample = []
-        for g, instances in enumerate(graphs):
-            if not instances:
-                continue
-            order = np.fromiter((i for idx, _ in instances for i in idx), dtype=np.int64)
-            lengths = np.array([len(idx) for idx, _ in instances])
-            starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-            mean_probs = np.add.reduceat(class_probs[b][order], starts, axis=0) / lengths[:, None]  # [I, K]
-            mean_score = np.add.reduceat(vertex_scores[b][order], starts) / lengths  # [I]
-            # one class-agnostic graph: the soft vote decides; class graph g: its instances are class g
-            labels = mean_probs.argmax(1) if len(graphs) == 1 else np.full(len(instances), g)
-            conf = mean_probs[np.arange(len(labels)), labels]
-            if not official_confidence:
-                conf = conf * mean_score
-            for k, (idx, closed) in enumerate(instances):
-                pts = pts_m[b][idx + [idx[0]] if closed else idx]
-                sample.append({"pts": pts, "label": int(labels[k]), "closed": closed, "score": float(conf[k])})
-        results.append(sample)
+        B, G, N, _ = nbr.shape
+        vertices, lengths, closed = trace_graphs(nbr.cpu().numpy().reshape(B * G, N, 2), min_vertices)
+    results: list[list[dict]] = [[] for _ in range(B)]
+    if len(lengths) == 0:
+        return results
+    # one transfer per tensor for the whole batch; per-vertex values over the B * N vertices
+    pts_m = grid.px_to_m(outputs["pred_vertices_px"].detach().float().cpu().numpy().astype(np.float64))
+    class_probs = outputs["pred_class_log_probs"].detach().float().exp().cpu().numpy()
+    vertex_scores = outputs["pred_vertex_scores"].detach().float().cpu().numpy()
+    graph = vertices // N  # b * G + g
+    vertex = graph // G * N + vertices % N
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    mean_probs = np.add.reduceat(class_probs.reshape(B * N, -1)[vertex], starts, axis=0) / lengths[:, None]  # [I, K]
+    mean_score = np.add.reduceat(vertex_scores.reshape(B * N)[vertex], starts) / lengths  # [I]
+    # one class-agnostic graph: the soft vote decides; class graph g: its instances are class g
+    labels = mean_probs.argmax(1) if G == 1 else graph[starts] % G
+    conf = mean_probs[np.arange(len(labels)), labels]
+    if decoder not in OFFICIAL_CONFIDENCE:
+        conf = conf * mean_score
+    # the points of each instance, a closed one's first repeated at its end
+    shift = np.cumsum(closed) - closed  # closed instances before each
+    rows = np.empty(len(vertices) + int(closed.sum()), dtype=np.int64)
+    rows[np.arange(len(vertices)) + np.repeat(shift, lengths)] = vertex
+    rows[(starts + lengths + shift)[closed]] = vertex[starts[closed]]
+    pts = pts_m.reshape(B * N, 2)[rows]
+    bounds = np.concatenate([[0], np.cumsum(lengths + closed)]).tolist()
+    for a, z, b, label, score, shut in zip(bounds[:-1], bounds[1:], (graph[starts] // G).tolist(), labels.tolist(),
+                                           conf.tolist(), closed.tolist()):
+        results[b].append({"pts": pts[a:z], "label": label, "closed": shut, "score": score})
     return results

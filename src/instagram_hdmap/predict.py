@@ -1,19 +1,17 @@
-"""Inference with a trained model: one sample's pictures (``predict``) and a split's AP (``evaluate``).
+"""Pictures and AP of trained models: one sample's pictures (``predict``) and a split's AP (``evaluate``).
 
-    model, cfg, notes = load_model("runs/x/best.pt", load_config("configs/synthetic/tiny.yaml"))
     predict_sample(cfg, "out/", checkpoint="runs/x/best.pt", index=3)   # PNGs + prediction.json
     run_evaluation(cfg, "runs/x/best.pt", protocol="vector", out="eval/")  # submission + metrics JSON
 
-Which config a checkpoint runs with: the keys that shape the weights and their meaning
-(``MODEL_KEYS``: the grid, the model, the image size, the classes, the distance-transform clip) come
-from the config saved in the checkpoint; everything else (dataroot, splits, eval settings) from the
-CONFIG file. Command-line ``key=value`` overrides win over both, so
+Which config a checkpoint runs with (inference.py): the keys that define the model
+(``inference.MODEL_KEYS``: the grid, the model, the image size, the classes, the distance-transform
+clip) come from the config saved in the checkpoint; everything else (dataroot, splits, eval settings)
+from the CONFIG file. Command-line ``key=value`` overrides win over both, so
 ``model.gnn.num_vertices=600`` or ``model.gnn.match_threshold=0.2`` change the inference of a
 trained model. Where the CONFIG file disagrees with the checkpoint on a model key, a note says so.
 
-``gt_outputs`` builds what a perfect model would output from a batch's GT targets (vertex cells,
-distance transform, vertex graph -> ``assignment.target_log_assignment``), so the pictures and the
-evaluation path can be checked without a trained model (``predict --gt-as-prediction``).
+``--gt-as-prediction`` draws ``inference.gt_outputs``, what a perfect model would output, so the
+pictures and the evaluation path can be checked without a trained model.
 
 Predictions are written in HDMapNet's submission format: ``{"meta": {...}, "results":
 {sample_token: [{"pts": [[x, y], ...], "pts_num", "type", "confidence_level"}]}}`` (metres, ego
@@ -22,7 +20,6 @@ frame, x forward, y left; a closed shape repeats its first point).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -30,161 +27,24 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+from torch.utils.data import DataLoader
 
-from .checkpoint import CheckpointError, load_checkpoint
-from .config import (
-    ExperimentConfig,
-    UserError,
-    config_from_dict,
-    config_to_dict,
-    deep_update,
-    diff_configs,
-    parse_overrides,
-)
+from . import distributed as du
+from .config import ExperimentConfig, UserError
+from .data import build_dataset
+from .data.base import collate_fn
+from .data.transforms import load_image
+from .engine import evaluate, move_to
+from .evaluation import Evaluator, write_submission
+from .files import write_json
 from .geometry import BEVGrid
-
-# Config keys that define the weights and how the model's outputs are read: taken from the checkpoint.
-MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
+from .inference import OnnxModel, gt_outputs, load_model
+from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
+from .visualize import intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
 
 
 class PredictError(UserError):
     """A bad sample index or token, or a bad combination of arguments."""
-
-
-# --- model and config -------------------------------------------------------------------------------
-
-
-def _flatten(nested: dict, prefix: str = "") -> list[str]:
-    out = []
-    for k, v in nested.items():
-        out += _flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
-    return out
-
-
-
-
-def _get(d: dict, dotted: str):
-    for part in dotted.split("."):
-        d = d[part]
-    return d
-
-
-def _set(d: dict, dotted: str, value) -> None:
-    *parents, last = dotted.split(".")
-    for part in parents:
-        d = d[part]
-    d[last] = value
-
-
-def _is_under(key: str, prefixes: Sequence[str]) -> bool:
-    return any(key == p or key.startswith(p + ".") for p in prefixes)
-
-
-def inference_config(
-    cfg: ExperimentConfig, saved: dict, overrides: Sequence[str] = (), source: str = "the checkpoint"
-) -> tuple[ExperimentConfig, list[str]]:
-    """The config to run a checkpoint with: ``cfg`` (CONFIG file + overrides) with the ``MODEL_KEYS``
-    of the checkpoint's ``saved`` config, then the command-line ``overrides`` again (they win).
-
-    Returns the config and human-readable notes on where the CONFIG file was overruled.
-    """
-    try:
-        trained = config_from_dict(saved)
-    except UserError as e:
-        raise CheckpointError(f"{source} holds a config this version cannot read: {e}") from None
-    explicit = parse_overrides(list(overrides))
-    explicit_keys = _flatten(explicit)
-    merged, trained_d = config_to_dict(cfg), config_to_dict(trained)
-    for key in MODEL_KEYS:
-        _set(merged, key, copy.deepcopy(_get(trained_d, key)))
-    deep_update(merged, explicit)
-    out = config_from_dict(merged)
-    notes = []
-    ignored = [k for k in diff_configs(cfg, trained)
-               if _is_under(k, MODEL_KEYS) and not _is_under(k, explicit_keys)]
-    if ignored:
-        cfg_d = config_to_dict(cfg)
-        notes.append("the CONFIG file's model settings differ from those the checkpoint was trained with; using "
-                     "the checkpoint's: " + ", ".join(f"{k}={_get(trained_d, k)!r} (CONFIG: {_get(cfg_d, k)!r})"
-                                                       for k in ignored))
-    changed = [k for k in diff_configs(trained, out) if _is_under(k, MODEL_KEYS)]
-    if changed:
-        out_d = config_to_dict(out)
-        notes.append("overriding the checkpoint's " + ", ".join(
-            f"{k}={_get(trained_d, k)!r} with {_get(out_d, k)!r}" for k in changed))
-    return out, notes
-
-
-def resolve_inference_device(cfg: ExperimentConfig) -> torch.device:
-    from .train import resolve_device
-
-    return torch.device(resolve_device(cfg))
-
-
-def load_model(
-    checkpoint: str | Path, cfg: ExperimentConfig, overrides: Sequence[str] = (), device: torch.device | None = None
-) -> tuple[torch.nn.Module, ExperimentConfig, list[str]]:
-    """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode.
-
-    Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
-    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit.
-    """
-    from .models import build_model
-
-    state = load_checkpoint(checkpoint)
-    notes: list[str] = []
-    if isinstance(state.get("config"), dict):
-        cfg, notes = inference_config(cfg, state["config"], overrides, f"checkpoint {checkpoint}")
-    else:
-        notes.append(f"checkpoint {checkpoint} holds no config; building the model from the CONFIG file")
-    model = build_model(cfg)
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as e:
-        first = " ".join(str(e).split())[:300]
-        raise CheckpointError(
-            f"the weights in {checkpoint} do not fit the model built from its config and the overrides "
-            f"({first}); drop overrides that change layer sizes"
-        ) from None
-    device = device if device is not None else resolve_inference_device(cfg)
-    return model.eval().to(device), cfg, notes
-
-
-# --- predictions from the GT ------------------------------------------------------------------------
-
-
-@torch.no_grad()
-def gt_outputs(batch: dict, grid: BEVGrid, num_classes: int, floor: float = 1e-6) -> dict[str, torch.Tensor]:
-    """The outputs (docs/conventions.md keys) of a perfect model for the batch's GT targets.
-
-    Vertices = the GT graph vertices (M of them, so N = M), scores 1, class = the GT class, log
-    assignment = ``target_log_assignment`` of the assignment targets (each vertex matched to itself),
-    vertex logits = the log of the one-hot ``gt_vertex_cells``, distance = ``gt_distance``.
-    ``floor`` keeps every log finite. Post-processing these gives back the GT graph's polylines.
-    """
-    from .assignment import assign, target_log_assignment
-    from .models.vertices import vertex_heatmap
-
-    S = grid.cell_size
-    verts = batch["gt_vertices_px"].float()  # [B, M, 2]
-    mask = batch["gt_vertex_mask"].bool()  # [B, M]
-    # a vertex's nearest GT vertex is itself (distance 0); distinct vertices are >= 1 px apart
-    asg = assign(verts, mask, verts, mask, batch["gt_vertex_labels"], batch["gt_vertex_next"],
-                 batch["gt_vertex_prev"], grid, match_dist_m=0.5 * grid.resolution)
-    cells = F.one_hot(batch["gt_vertex_cells"].long(), S * S + 1).permute(0, 3, 1, 2).float()  # [B, S*S+1, Hc, Wc]
-    vertex_logits = (cells * (1 - floor) + floor / (S * S + 1)).log()
-    labels = F.one_hot(batch["gt_vertex_labels"].long().clamp(min=0), num_classes).float()  # [B, M, K]
-    return {
-        "pred_vertex_logits": vertex_logits,
-        "pred_heatmap": vertex_heatmap(vertex_logits, S),
-        "pred_distance": batch["gt_distance"].float(),
-        "pred_vertices_px": verts,
-        "pred_vertex_mask": mask,
-        "pred_vertex_scores": mask.float(),
-        "pred_class_log_probs": (labels * (1 - floor) + floor / num_classes).log(),
-        "pred_log_assignment": target_log_assignment(asg["target_next"], asg["target_prev"]),
-    }
 
 
 # --- submission format --------------------------------------------------------------------------------
@@ -225,8 +85,6 @@ def find_sample(dataset, index: int | None = None, token: str | None = None) -> 
 def display_cameras(dataset, index: int, width: int = 480) -> dict[str, torch.Tensor]:
     """The sample's original camera images, whole, resized to ``width`` for drawing: ``images``
     [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
-    from .data.transforms import load_image
-
     files = dataset.camera_files(index)
     # one picture size for all cameras, of the median aspect ratio; cameras of another one fit inside
     # (AV2's portrait front camera)
@@ -293,18 +151,11 @@ def predict_sample(
       class, vertices by GNN class, adjacency edges);
     * ``prediction.json``: the sample's predictions in the submission format.
 
-    ``onnx``: an ``export-onnx`` file run by onnxruntime instead of a checkpoint (``deploy.OnnxModel``:
+    ``onnx``: an ``export-onnx`` file run by onnxruntime instead of a checkpoint (``inference.OnnxModel``:
     its baked config must be ``cfg``'s); its outputs go through the same post-processing and pictures.
 
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
-    from .data import build_dataset
-    from .data.nuscenes import collate_fn
-    from .engine import move_to
-    from .evaluation import write_submission
-    from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-    from .visualize import intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
-
     if gt_as_prediction and checkpoint is not None:
         raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
                            "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
@@ -315,8 +166,6 @@ def predict_sample(
     model = None
     source = "GT-derived predictions (--gt-as-prediction)"  # computed where the dataset puts them
     if onnx is not None:
-        from .deploy import OnnxModel
-
         model, source = OnnxModel(onnx, cfg), f"ONNX {onnx} (onnxruntime)"
     if checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides)
@@ -389,16 +238,7 @@ def run_evaluation(
     states are gathered and rank 0 writes the files. Samples are scored with their dataset index as
     ``sample_ids``, so the result does not depend on the batch size or the number of processes.
     """
-    from torch.utils.data import DataLoader
-
-    from . import distributed as du
-    from .data import build_dataset
-    from .data.nuscenes import collate_fn, write_json
-    from .engine import evaluate
-    from .evaluation import Evaluator, write_submission
-    from .postprocess import decode_options, postprocess_batch
-
-    device = du.init_distributed(resolve_inference_device(cfg).type)
+    device = du.init_distributed(du.resolve_device(cfg.train.device).type)
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))

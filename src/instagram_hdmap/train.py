@@ -13,6 +13,7 @@ augmentation and data workers too, since each sample's augmentation is drawn fro
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -25,13 +26,22 @@ from torch.utils.data import DataLoader
 
 from . import distributed as du
 from .checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .config import ExperimentConfig, UserError, config_from_dict, config_to_dict, diff_configs, save_config
-from .engine import evaluate, train_one_epoch
+from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, get_key, is_under, save_config
+from .data import build_dataset
+from .data.base import collate_fn
+from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
+from .evaluation import Evaluator
 from .geometry import BEVGrid
+from .inference import MODEL_KEYS, saved_config
+from .losses import Criterion
+from .models import build_model, random_init_warning
+from .models.backbone import imagenet_state
+from .postprocess import decode_options, postprocess_batch
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
-# Config sections that must match for a checkpoint to be resumed (training knobs may change).
-_RESUME_MUST_MATCH = ("grid", "model", "loss", "data.image_size", "data.classes", "data.sample_dist")
+# Config keys that must match for a checkpoint to be resumed: those that define the model and those
+# that define its training targets (training knobs may change).
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist")
 
 
 def seed_everything(seed: int) -> None:
@@ -48,14 +58,6 @@ def _worker_init(worker_id: int) -> None:
     random.seed(seed)
 
 
-def resolve_device(cfg: ExperimentConfig) -> str:
-    if cfg.train.device == "cuda" and not torch.cuda.is_available():
-        raise UserError("train.device=cuda but no CUDA device is available; use train.device=cpu")
-    if cfg.train.device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return cfg.train.device
-
-
 def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
     """Refuse to write into a folder that already holds a run unless resuming or forced."""
     if not du.is_main_process():
@@ -69,27 +71,15 @@ def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
 
 
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
-    try:
-        old = config_from_dict(ckpt_cfg)
-    except UserError as e:
-        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {e}") from None
-    differ = [k for k in diff_configs(old, cfg) if k.startswith(_RESUME_MUST_MATCH)]
+    old = saved_config(ckpt_cfg, f"checkpoint {path}")
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, RESUME_KEYS)]
     if differ:
         old_d, new_d = config_to_dict(old), config_to_dict(cfg)
-
-        def get(d, key):
-            for p in key.split("."):
-                d = d[p]
-            return d
-
-        lines = "; ".join(f"{k}: checkpoint {get(old_d, k)!r} vs now {get(new_d, k)!r}" for k in differ)
+        lines = "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
 
 
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
-    from .data import build_dataset
-    from .data.nuscenes import collate_fn
-
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
@@ -109,12 +99,6 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
 
 
 ResumableSampler = du.ResumableSampler
-
-
-def make_evaluator(cfg: ExperimentConfig):
-    from .evaluation import Evaluator
-
-    return Evaluator.from_config(cfg)
 
 
 def usable_cores() -> int:
@@ -141,180 +125,247 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
     (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
-    from .losses import Criterion
-    from .models import build_model, random_init_warning
-    from .postprocess import decode_options, postprocess_batch
+    run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
+    with run.threads(), run.outputs():
+        run.announce()
+        run.fit()
+    return run.final_summary()
 
-    device = du.init_distributed(resolve_device(cfg))
-    world = du.get_world_size()
-    out_dir = Path(cfg.train.out_dir)
-    prepare_out_dir(out_dir, resume is not None, force)
-    du.barrier()
 
-    state = None
-    if resume is not None:
-        state = load_checkpoint(resume)
-        check_resume_config(state["config"], cfg, Path(resume))
+class TrainingRun:
+    """One training run's parts and position; ``train`` calls its steps in order:
 
-    seed_everything(cfg.train.seed + du.get_rank())
-    if cfg.train.deterministic:
-        torch.use_deterministic_algorithms(True)
-    grid = BEVGrid.from_config(cfg.grid)
-    decode = decode_options(cfg.model.gnn, grid)
+    ``start`` (the output folder, the checkpoint to resume, seeds, loaders, model, criterion,
+    optimizer, clock, scaler, restored state; in this order, which the RNG streams of an exact resume
+    depend on), ``threads`` and ``outputs`` (the threads and the writers, given back at the end),
+    ``announce``, ``fit`` (epochs of ``train_epoch``, ``validate``, ``save``, ``log`` until the schedule
+    or ``train.max_steps`` is done; Ctrl-C saves ``last.pt`` first), ``final_summary``.
+    """
 
-    if state is None and cfg.model.backbone.name != "tiny" and cfg.model.backbone.weights == "imagenet":
-        from .models.backbone import imagenet_state
+    def __init__(self, cfg: ExperimentConfig, device: torch.device, out_dir: Path, loaders, validate: bool,
+                 fresh: bool = True):
+        self.cfg, self.device, self.out_dir, self.validating = cfg, device, out_dir, validate
+        self.world = du.get_world_size()
+        self.grid = BEVGrid.from_config(cfg.grid)
+        self.decode = decode_options(cfg.model.gnn, self.grid)
+        self.train_loader, self.sampler, self.val_loader = loaders
+        # ImageNet weights on a fresh start only (a resumed run has its own)
+        self.model = build_model(cfg, pretrained=fresh).to(device)
+        self.random_init = random_init_warning(cfg) if fresh else None
+        if self.random_init:
+            du.print_main(self.random_init)
+        self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.train.lr,
+                                          weight_decay=cfg.train.weight_decay)
+        self.steps_per_epoch = math.ceil(self.sampler.num_samples / self.train_loader.batch_size)
+        self.total_steps = cfg.train.epochs * self.steps_per_epoch  # the schedule's length; max_steps only cuts it
+        self.clock = ProgressClock(cfg.train, self.total_steps)
+        self.scaler = torch.amp.GradScaler(device.type) if cfg.train.amp == "fp16" else None
+        self.position = Position(epoch=0)
+        self.best: dict = {"score": -math.inf}
+        self.net: torch.nn.Module = self.model
+        self.writer = self.log_file = None
+        self.summary: dict = {}
+        # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
+        self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
 
-        imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
-    if loaders is None:
-        loaders = build_loaders(cfg, world, with_val=validate)
-    train_loader, sampler, val_loader = loaders
+    # --- start --------------------------------------------------------------------------------------
 
-    # ImageNet weights on a fresh start only (a resumed run has its own)
-    model = build_model(cfg, pretrained=state is None).to(device)
-    random_init = random_init_warning(cfg) if state is None else None
-    if random_init:
-        du.print_main(random_init)
-    criterion = Criterion(cfg.loss, grid, with_distance=cfg.model.bev_heads.distance_head)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
-    steps_per_epoch = math.ceil(sampler.num_samples / train_loader.batch_size)
-    total_steps = cfg.train.epochs * steps_per_epoch  # the schedule's length; max_steps only cuts it
-    clock = ProgressClock(cfg.train, total_steps)
-    scaler = torch.amp.GradScaler(device.type) if cfg.train.amp == "fp16" else None
+    @classmethod
+    def start(cls, cfg: ExperimentConfig, *, resume: str | None, force: bool, loaders, validate: bool) -> TrainingRun:
+        device = du.init_distributed(du.resolve_device(cfg.train.device).type)
+        out_dir = Path(cfg.train.out_dir)
+        prepare_out_dir(out_dir, resume is not None, force)
+        du.barrier()
+        state = load_resume_state(resume, cfg)
+        seed_everything(cfg.train.seed + du.get_rank())
+        if cfg.train.deterministic:
+            torch.use_deterministic_algorithms(True)
+        if state is None and cfg.model.backbone.name != "tiny" and cfg.model.backbone.weights == "imagenet":
+            imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
+        if loaders is None:
+            loaders = build_loaders(cfg, du.get_world_size(), with_val=validate)
+        run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None)
+        if state is not None:
+            run.restore(state)
+            du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
+                          f"({run.position.step_in_epoch} into the epoch)")
+        if run.world > 1:
+            run.net = torch.nn.parallel.DistributedDataParallel(
+                run.model, device_ids=[device.index] if device.type == "cuda" else None)
+        return run
 
-    epoch, global_step, step_in_epoch, best = 0, 0, 0, {"score": -math.inf}
-    if state is not None:
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        clock.load_state_dict(state.get("clock") or {})
-        if scaler is not None and state.get("scaler") is not None:
-            scaler.load_state_dict(state["scaler"])
-        epoch, global_step, step_in_epoch = state["epoch"], state["step"], state["step_in_epoch"]
-        best = state.get("best", best)
+    def restore(self, state: dict) -> None:
+        """The full state of a checkpoint: weights, optimizer, clock, scaler, position, best, RNGs."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.clock.load_state_dict(state.get("clock") or {})
+        if self.scaler is not None and state.get("scaler") is not None:
+            self.scaler.load_state_dict(state["scaler"])
+        self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
+        self.best = state.get("best", self.best)
         set_rng_state(state["rng"])
-        du.print_main(f"resumed from {resume}: epoch {epoch}, step {global_step} ({step_in_epoch} into the epoch)")
 
-    net = model
-    if world > 1:
-        net = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None)
+    @contextlib.contextmanager
+    def threads(self):
+        """torch's intra-op threads for a CPU run (``cpu_threads``), restored afterwards."""
+        before = torch.get_num_threads()
+        threads = (cpu_threads(self.cfg, int(os.environ.get("LOCAL_WORLD_SIZE", 1)))
+                   if self.device.type == "cpu" else None)
+        self.chosen_threads = threads
+        if threads is not None:
+            torch.set_num_threads(threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
 
-    writer = None
-    if du.is_main_process():
-        save_config(cfg, out_dir / "config.yaml")
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(out_dir / "tb"))
-
-    def checkpoint(path: Path, ep: int, step: int, in_epoch: int, metrics: dict | None = None) -> None:
+    @contextlib.contextmanager
+    def outputs(self):
+        """Rank 0 writes config.yaml, TensorBoard events (tb/) and log.jsonl; closed at the end."""
         if du.is_main_process():
-            save_checkpoint({
-                "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "clock": clock.state_dict(), "scaler": scaler.state_dict() if scaler else None,
-                "epoch": ep, "step": step, "step_in_epoch": in_epoch, "rng": rng_state(),
-                "config": config_to_dict(cfg), "metrics": metrics or {}, "best": best,
-            }, path)
+            save_config(self.cfg, self.out_dir / "config.yaml")
+            from torch.utils.tensorboard import SummaryWriter  # slow to import; training only
 
-    sync = device if world > 1 and cfg.train.time_budget_min is not None else None
+            self.writer = SummaryWriter(str(self.out_dir / "tb"))
+            self.log_file = (self.out_dir / "log.jsonl").open("a")
+        try:
+            yield
+        finally:
+            for handle in (self.log_file, self.writer):
+                if handle is not None:
+                    handle.close()
 
-    def set_lr(step: int) -> None:
-        lr = cfg.train.lr * lr_factor(clock.progress(step, sync), cfg.train)
-        for group in optimizer.param_groups:
+    def announce(self) -> None:
+        """Start the clock, set the first learning rate, print the threads and the schedule."""
+        cfg, clock = self.cfg, self.clock
+        clock.start()
+        self.set_lr(self.position.step)
+        if self.device.type == "cpu":
+            how = (" (train.cpu_threads)" if cfg.train.cpu_threads else
+                   " (OMP_NUM_THREADS)" if self.chosen_threads is None else "")
+            du.print_main(f"cpu: {torch.get_num_threads()} torch thread(s), {cfg.data.num_workers} data worker(s), "
+                          f"{usable_cores()} usable core(s)" + how)
+        du.print_main(f"schedule: {cfg.train.schedule}, {self.total_steps} steps"
+                      + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
+                      + f"; progress {clock.last:.3f}, lr {self.optimizer.param_groups[0]['lr']:.3g}")
+        if self.random_init:  # again where the log ends up being read
+            du.print_main(self.random_init)
+            self.summary["warnings"] = [self.random_init]
+        self.summary["cpu_threads"] = torch.get_num_threads() if self.device.type == "cpu" else None
+
+    # --- the schedule -------------------------------------------------------------------------------
+
+    def set_lr(self, step: int) -> None:
+        lr = self.cfg.train.lr * lr_factor(self.clock.progress(step, self.sync), self.cfg.train)
+        for group in self.optimizer.param_groups:
             group["lr"] = lr
 
-    def should_stop(step: int) -> bool:
-        done = clock.progress(step, sync) >= 1.0  # always: clock.last is then the progress of `step` steps
-        return done or (cfg.train.max_steps is not None and step >= cfg.train.max_steps)
+    def should_stop(self, step: int) -> bool:
+        done = self.clock.progress(step, self.sync) >= 1.0  # always: clock.last is then the progress of `step` steps
+        return done or (self.cfg.train.max_steps is not None and step >= self.cfg.train.max_steps)
 
-    progress = {"epoch": epoch, "step": global_step, "in_epoch": step_in_epoch}
+    def schedule_summary(self) -> dict:
+        lr = self.optimizer.param_groups[0]["lr"]
+        final = self.cfg.train.lr * final_lr_factor(self.cfg.train)
+        return {"progress": round(self.clock.last, 4), "lr": lr, "final_lr": final,
+                "schedule_complete": bool(self.clock.last >= 1.0 and math.isclose(lr, final, rel_tol=1e-6)),
+                "elapsed_s": round(self.clock.elapsed(), 1)}
 
-    def schedule_summary() -> dict:
-        lr = optimizer.param_groups[0]["lr"]
-        final = cfg.train.lr * final_lr_factor(cfg.train)
-        return {"progress": round(clock.last, 4), "lr": lr, "final_lr": final,
-                "schedule_complete": bool(clock.last >= 1.0 and math.isclose(lr, final, rel_tol=1e-6)),
-                "elapsed_s": round(clock.elapsed(), 1)}
+    # --- the loop -----------------------------------------------------------------------------------
 
-    def on_step(info) -> None:
-        progress.update(epoch=info.epoch, step=info.step, in_epoch=info.step_in_epoch)
-        every = cfg.train.checkpoint_every
+    def fit(self) -> None:
+        """Epochs until the schedule (or ``train.max_steps``) is done; on Ctrl-C, ``last.pt`` holds the
+        weights after the last completed step, which ``position`` names, and the interrupt goes on."""
+        try:
+            finished = self.should_stop(self.position.step)
+            while not finished:
+                stopped = self.train_epoch()
+                finished = stopped or self.should_stop(self.position.step)  # also refreshes the clock saved below
+                if self.validating and self.val_loader is not None and (
+                        finished or self.position.epoch % self.cfg.train.val_every == 0):
+                    self.validate()
+                if not stopped:
+                    self.save("last.pt", self.summary.get("val", {}).get("metrics"))
+                self.log()
+        except KeyboardInterrupt:
+            self.save("last.pt")
+            du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
+                          f"{self.out_dir / 'last.pt'})")
+            raise
+
+    def train_epoch(self) -> bool:
+        """The rest of the epoch in progress; returns whether it stopped part-way (then ``last.pt`` is
+        saved at that step and a resume continues the epoch), else the position moves to the next epoch."""
+        p = self.position
+        self.sampler.set_epoch(p.epoch, start=p.step_in_epoch * self.train_loader.batch_size)
+        if hasattr(self.train_loader.dataset, "set_epoch"):
+            self.train_loader.dataset.set_epoch(p.epoch)  # augmentation draws follow (seed, epoch, index)
+        result = train_one_epoch(
+            self.net, self.criterion, self.train_loader, self.optimizer, self.device, p,
+            settings=StepSettings.from_config(self.cfg.train), scaler=self.scaler, total=self.steps_per_epoch,
+            hooks=EpochHooks(before_step=self.set_lr, on_step=self.on_step, should_stop=self.should_stop,
+                             writer=self.writer),
+        )
+        self.position = Position(p.epoch, result["global_step"], result["step_in_epoch"])
+        self.summary = {**self.summary, "epoch": p.epoch, "step": result["global_step"], "train": result["stats"],
+                        "train_seconds": round(result["seconds"], 2),
+                        "samples_per_s": round(result["samples_per_s"], 2), **self.schedule_summary()}
+        if result["stopped"]:
+            self.save("last.pt")
+        else:
+            self.position = Position(p.epoch + 1, result["global_step"], 0)
+        return result["stopped"]
+
+    def on_step(self, info: StepInfo) -> None:
+        """After each step: the position (for Ctrl-C), and ``last.pt`` every ``train.checkpoint_every`` steps."""
+        self.position = Position(info.epoch, info.step, info.step_in_epoch)
+        every = self.cfg.train.checkpoint_every
         if every and info.step % every == 0:
-            checkpoint(out_dir / "last.pt", info.epoch, info.step, info.step_in_epoch)
+            self.save("last.pt")
 
-    log = (out_dir / "log.jsonl").open("a") if du.is_main_process() else None
-    summary: dict = {}
-    stopped = False
-    threads_before = torch.get_num_threads()
-    threads = cpu_threads(cfg, int(os.environ.get("LOCAL_WORLD_SIZE", 1))) if device.type == "cpu" else None
-    if threads is not None:
-        torch.set_num_threads(threads)  # restored when train() returns (the finally below)
-    clock.start()
-    set_lr(global_step)
-    if device.type == "cpu":
-        du.print_main(f"cpu: {torch.get_num_threads()} torch thread(s), {cfg.data.num_workers} data worker(s), "
-                      f"{usable_cores()} usable core(s)" + (" (train.cpu_threads)" if cfg.train.cpu_threads
-                                                           else " (OMP_NUM_THREADS)" if threads is None else ""))
-    du.print_main(f"schedule: {cfg.train.schedule}, {total_steps} steps"
-                  + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
-                  + f"; progress {clock.last:.3f}, lr {optimizer.param_groups[0]['lr']:.3g}")
-    if random_init:  # again where the log ends up being read
-        du.print_main(random_init)
-        summary["warnings"] = [random_init]
-    try:
-        summary["cpu_threads"] = torch.get_num_threads() if device.type == "cpu" else None
-        finished = should_stop(global_step)
-        while not finished:
-            sampler.set_epoch(epoch, start=step_in_epoch * train_loader.batch_size)
-            if hasattr(train_loader.dataset, "set_epoch"):
-                train_loader.dataset.set_epoch(epoch)  # augmentation draws follow (seed, epoch, index)
-            result = train_one_epoch(
-                net, criterion, train_loader, optimizer, device, epoch, global_step=global_step,
-                step_in_epoch=step_in_epoch, amp=cfg.train.amp, scaler=scaler, grad_clip=cfg.train.grad_clip,
-                on_nonfinite=cfg.train.on_nonfinite, log_every=cfg.train.log_every, writer=writer,
-                should_stop=should_stop, on_step=on_step, before_step=set_lr, total=steps_per_epoch,
-            )
-            global_step, step_in_epoch, stopped = result["global_step"], result["step_in_epoch"], result["stopped"]
-            progress.update(epoch=epoch, step=global_step, in_epoch=step_in_epoch)
-            summary = {**summary, "epoch": epoch, "step": global_step, "train": result["stats"],
-                       "train_seconds": round(result["seconds"], 2), "samples_per_s": round(result["samples_per_s"], 2),
-                       **schedule_summary()}
-            if stopped:  # part-way through the epoch: resume continues it
-                checkpoint(out_dir / "last.pt", epoch, global_step, step_in_epoch)
-            else:
-                epoch, step_in_epoch = epoch + 1, 0
-                progress.update(epoch=epoch, in_epoch=0)
-            finished = stopped or should_stop(global_step)  # also refreshes the clock saved below
-            if validate and val_loader is not None and (finished or epoch % cfg.train.val_every == 0):
-                val = evaluate(net, criterion, val_loader, device,
-                               postprocess=lambda out: postprocess_batch(out, grid, **decode),
-                               evaluator=make_evaluator(cfg), amp=cfg.train.amp)
-                summary["val"] = val
-                score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
-                if writer is not None:
-                    for k, v in val["losses"].items():
-                        writer.add_scalar(f"val/{k}", v, global_step)
-                    if "metrics" in val:
-                        writer.add_scalar("val/mAP", val["metrics"]["mAP"], global_step)
-                if not math.isnan(score) and score > best["score"]:
-                    best = {"score": score, "epoch": epoch, "step": global_step}
-                    checkpoint(out_dir / "best.pt", epoch, global_step, step_in_epoch, val.get("metrics"))
-            if not stopped:
-                metrics = summary.get("val", {}).get("metrics")
-                checkpoint(out_dir / "last.pt", epoch, global_step, step_in_epoch, metrics)
-            if log is not None:
-                log.write(json.dumps(summary, default=float) + "\n")
-                log.flush()
-    except KeyboardInterrupt:
-        # The weights are those after the last completed step, which ``progress`` names.
-        checkpoint(out_dir / "last.pt", progress["epoch"], progress["step"], progress["in_epoch"])
-        du.print_main(f"interrupted: saved {out_dir / 'last.pt'} (resume with --resume {out_dir / 'last.pt'})")
-        raise
-    finally:
-        if log is not None:
-            log.close()
-        if writer is not None:
-            writer.close()
-        torch.set_num_threads(threads_before)
-    summary.update(schedule_summary())
-    summary["out_dir"] = str(out_dir)
-    return summary
+    def validate(self) -> None:
+        """Validation losses and AP; ``best.pt`` when the score (mAP, else -loss) improves."""
+        val = evaluate(self.net, self.criterion, self.val_loader, self.device,
+                       postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
+                       evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp)
+        self.summary["val"] = val
+        score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
+        step = self.position.step
+        if self.writer is not None:
+            for k, v in val["losses"].items():
+                self.writer.add_scalar(f"val/{k}", v, step)
+            if "metrics" in val:
+                self.writer.add_scalar("val/mAP", val["metrics"]["mAP"], step)
+        if not math.isnan(score) and score > self.best["score"]:
+            self.best = {"score": score, "epoch": self.position.epoch, "step": step}
+            self.save("best.pt", val.get("metrics"))
+
+    def save(self, name: str, metrics: dict | None = None) -> None:
+        """A full-state checkpoint at ``position`` (rank 0 writes it; the unwrapped model)."""
+        if not du.is_main_process():
+            return
+        p = self.position
+        save_checkpoint({
+            "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+            "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
+            "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
+            "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best,
+        }, self.out_dir / name)
+
+    def log(self) -> None:
+        if self.log_file is not None:
+            self.log_file.write(json.dumps(self.summary, default=float) + "\n")
+            self.log_file.flush()
+
+    def final_summary(self) -> dict:
+        return {**self.summary, **self.schedule_summary(), "out_dir": str(self.out_dir)}
+
+
+def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
+    """The checkpoint to resume (None: a fresh run), checked against ``cfg`` (``RESUME_KEYS``)."""
+    if resume is None:
+        return None
+    state = load_checkpoint(resume)
+    check_resume_config(state["config"], cfg, Path(resume))
+    return state

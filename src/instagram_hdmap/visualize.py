@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
+from .data.transforms import denormalize, project_to_image
 from .geometry import BEVGrid
 
 CLASS_COLORS = ("tab:orange", "tab:blue", "tab:green")  # divider, ped_crossing, boundary
@@ -142,8 +143,6 @@ def cameras_figure(
     """The V camera images [V, 3, h, w] (ImageNet-normalised) in a 2 x ceil(V/2) grid, with the GT
     polylines (metres, ego frame, on the plane z = ground_z) projected through the calibration and
     post_rot/post_tran."""
-    from .data.transforms import denormalize, project_to_image
-
     V, _, h, w = images.shape
     rgb = denormalize(images.detach().float().cpu()).permute(0, 2, 3, 1).numpy()
     cols = (V + 1) // 2
@@ -367,8 +366,6 @@ def _project_polyline(pts_m: np.ndarray, intrinsics, cam_to_ego_rot, cam_to_ego_
                       image_hw: tuple[int, int], ground_z: float = 0.0) -> np.ndarray:
     """A BEV polyline [P, 2] (metres, on the plane z = ground_z) -> image pixels [P', 2] of one camera,
     densified every 0.25 m, NaN where the line is behind the camera or far outside the image."""
-    from .data.transforms import project_to_image
-
     h, w = image_hw
     pts = _densify(pts_m.astype(np.float64), 0.25)
     pts3 = torch.from_numpy(np.c_[pts, np.full(len(pts), ground_z)]).float()
@@ -397,8 +394,6 @@ def prediction_cameras_figure(
     to them) with the predicted polylines (solid, by class) and the GT (white, dashed) projected from
     the ground plane z = ground_z of the ego frame through the calibration."""
     from matplotlib.lines import Line2D
-
-    from .data.transforms import denormalize
 
     V, _, h, w = images.shape
     rgb = denormalize(images.detach().float().cpu()).permute(0, 2, 3, 1).numpy()

@@ -1,5 +1,7 @@
 """What every map dataset shares (nuscenes.py, av2.py): the sample dict of docs/conventions.md built
-from the pieces a dataset provides, the augmentation stream, and the bad-sample policy.
+from the pieces a dataset provides, the augmentation stream, the bad-sample policy, the batching of
+samples (``collate_fn``, for every loader: training, evaluation, prediction) and a split's GT in the
+submission format (``gt_submission``).
 
 A dataset subclasses ``MapDataset`` (calling ``super().__init__(cfg, split, augment)``, which sets
 ``cfg``, ``data_cfg``, ``split``, ``grid`` and ``augment``), sets ``dataroot``, ``sample_tokens`` (one
@@ -23,10 +25,23 @@ import warnings
 import numpy as np
 import torch
 from torch.utils.data import Dataset
+from tqdm import tqdm
 
 from ..config import ConfigError, ExperimentConfig, UserError
 from ..geometry import BEVGrid
 from ..targets import build_targets
+
+# padding of the per-vertex keys in collate_fn (everything else is -1)
+VERTEX_KEYS = (
+    "gt_vertices_px",
+    "gt_vertex_mask",
+    "gt_vertex_labels",
+    "gt_vertex_instance",
+    "gt_vertex_order",
+    "gt_vertex_next",
+    "gt_vertex_prev",
+)
+_VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
 
 
 class DatasetError(UserError):
@@ -160,3 +175,68 @@ class MapDataset(Dataset):
                 warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip, {len(self._bad)} so far): {e}",
                               stacklevel=2)
         raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
+
+
+def collate_fn(samples: list[dict]) -> dict:
+    """Stack per-sample dicts into a batch (docs/conventions.md).
+
+    Same-shape tensors are stacked; ``sample_token`` and ``gt_polylines`` become per-sample lists;
+    the per-vertex keys are padded to the batch's largest M: ``gt_vertices_px`` with 0,
+    ``gt_vertex_mask`` with False, the integer keys (labels, instance, order, next, prev) with -1.
+    """
+    out: dict = {}
+    M = max(len(s["gt_vertices_px"]) for s in samples)
+    for key, first in samples[0].items():
+        values = [s[key] for s in samples]
+        if key in VERTEX_KEYS:
+            pad = _VERTEX_PAD.get(key, -1)
+            batch = first.new_full((len(samples), M, *first.shape[1:]), pad)
+            for b, v in enumerate(values):
+                batch[b, : len(v)] = v
+            out[key] = batch
+        elif isinstance(first, torch.Tensor):
+            out[key] = torch.stack(values)
+        else:
+            out[key] = values
+    return out
+
+
+def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
+    """The split's GT polylines in HDMapNet's submission format:
+    ``{"meta": {...}, "results": {sample_token: [{"pts": [[x, y], ...], "pts_num": n, "type": k}]}}``
+    with points in metres in the ego frame (x forward, y left); a closed shape repeats its first point.
+    Images are not read. With ``data.on_bad_sample=skip`` a sample whose map cannot be built is left
+    out (with a warning)."""
+    d, g = dataset.data_cfg, dataset.cfg.grid
+    results: dict[str, list] = {}
+    for i in tqdm(range(len(dataset)), desc="export-gt", disable=not progress):
+        token = dataset.sample_tokens[i]
+        try:
+            polylines = dataset.gt_polylines(i)
+        except UserError as e:
+            if d.on_bad_sample == "raise":
+                raise
+            warnings.warn(f"export-gt: skipping sample {token}: {e}", stacklevel=2)
+            continue
+        results[token] = [
+            {"pts": np.round(p["pts"], 4).tolist(), "pts_num": len(p["pts"]), "type": int(p["label"])}
+            for p in polylines
+        ]
+    meta = {
+        "use_camera": True,
+        "use_lidar": False,
+        "use_radar": False,
+        "use_external": False,
+        "vector": True,
+        "ground_truth": True,
+        "dataset": d.dataset,
+        "version": d.version,
+        "split": dataset.split,
+        "frame": "ego, x forward, y left, metres",
+        "classes": list(d.classes),
+        "xbound": list(g.xbound),
+        "ybound": list(g.ybound),
+        "sample_dist": d.sample_dist,
+    }
+    return {"meta": meta, "results": results}
+

@@ -1,6 +1,6 @@
 """nuScenes dataset for HD-map learning: six camera images, calibration, ego pose, the local
 vectorized map (data/local_map.py) and the InstaGraM targets (targets.py), as a dict per sample
-with the keys of docs/conventions.md; ``collate_fn`` batches them.
+with the keys of docs/conventions.md; ``data.base.collate_fn`` batches them.
 
     ds = NuScenesMapDataset(cfg, "train")          # cfg.data.dataroot / version / splits_file
     loader = DataLoader(ds, batch_size=4, collate_fn=collate_fn, num_workers=cfg.data.num_workers)
@@ -28,27 +28,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import ExperimentConfig, UserError
+from ..config import ExperimentConfig
 from .base import DatasetError, MapDataset, check_intrinsics, check_translation
 from .local_map import LocalMapBuilder, MapError
+from .rig import CAMERAS
 from .transforms import ImageAug, load_image, sample_augmentation
 
-CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 OFFICIAL_SPLITS = {
     "v1.0-trainval": {"train": "train", "val": "val"},
     "v1.0-mini": {"train": "mini_train", "val": "mini_val"},
 }
-# padding of the per-vertex keys in collate_fn (everything else is -1)
-VERTEX_KEYS = (
-    "gt_vertices_px",
-    "gt_vertex_mask",
-    "gt_vertex_labels",
-    "gt_vertex_instance",
-    "gt_vertex_order",
-    "gt_vertex_next",
-    "gt_vertex_prev",
-)
-_VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
 
 
 def open_nuscenes(dataroot: str | Path, version: str):
@@ -286,79 +275,3 @@ class NuScenesMapDataset(MapDataset):
             sd, _ = self._camera_records(sample, cam)
             out.append((self.dataroot / sd["filename"], (sd["width"], sd["height"])))
         return out
-
-
-def collate_fn(samples: list[dict]) -> dict:
-    """Stack per-sample dicts into a batch (docs/conventions.md).
-
-    Same-shape tensors are stacked; ``sample_token`` and ``gt_polylines`` become per-sample lists;
-    the per-vertex keys are padded to the batch's largest M: ``gt_vertices_px`` with 0,
-    ``gt_vertex_mask`` with False, the integer keys (labels, instance, order, next, prev) with -1.
-    """
-    out: dict = {}
-    M = max(len(s["gt_vertices_px"]) for s in samples)
-    for key, first in samples[0].items():
-        values = [s[key] for s in samples]
-        if key in VERTEX_KEYS:
-            pad = _VERTEX_PAD.get(key, -1)
-            batch = first.new_full((len(samples), M, *first.shape[1:]), pad)
-            for b, v in enumerate(values):
-                batch[b, : len(v)] = v
-            out[key] = batch
-        elif isinstance(first, torch.Tensor):
-            out[key] = torch.stack(values)
-        else:
-            out[key] = values
-    return out
-
-
-def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
-    """The split's GT polylines in HDMapNet's submission format:
-    ``{"meta": {...}, "results": {sample_token: [{"pts": [[x, y], ...], "pts_num": n, "type": k}]}}``
-    with points in metres in the ego frame (x forward, y left); a closed shape repeats its first point.
-    Images are not read. With ``data.on_bad_sample=skip`` a sample whose map cannot be built is left
-    out (with a warning)."""
-    from tqdm import tqdm
-
-    d, g = dataset.data_cfg, dataset.cfg.grid
-    results: dict[str, list] = {}
-    for i in tqdm(range(len(dataset)), desc="export-gt", disable=not progress):
-        token = dataset.sample_tokens[i]
-        try:
-            polylines = dataset.gt_polylines(i)
-        except UserError as e:
-            if d.on_bad_sample == "raise":
-                raise
-            warnings.warn(f"export-gt: skipping sample {token}: {e}", stacklevel=2)
-            continue
-        results[token] = [
-            {"pts": np.round(p["pts"], 4).tolist(), "pts_num": len(p["pts"]), "type": int(p["label"])}
-            for p in polylines
-        ]
-    meta = {
-        "use_camera": True,
-        "use_lidar": False,
-        "use_radar": False,
-        "use_external": False,
-        "vector": True,
-        "ground_truth": True,
-        "dataset": d.dataset,
-        "version": d.version,
-        "split": dataset.split,
-        "frame": "ego, x forward, y left, metres",
-        "classes": list(d.classes),
-        "xbound": list(g.xbound),
-        "ybound": list(g.ybound),
-        "sample_dist": d.sample_dist,
-    }
-    return {"meta": meta, "results": results}
-
-
-def write_json(obj: dict, path: str | Path) -> Path:
-    """Write JSON atomically (temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj))
-    tmp.replace(path)
-    return path

@@ -5,7 +5,7 @@
     ev = Evaluator("vector"); ev.update(preds, gts); metrics = ev.compute()
 """
 
-from .evaluator import CLASSES, PROTOCOLS, Evaluator, format_table
+from .evaluator import CLASSES, PROTOCOLS, Evaluator, evaluate_files, format_table
 from .inputs import EvaluationInputError
 from .io import SubmissionError, read_submission, write_submission
 
@@ -15,6 +15,7 @@ __all__ = [
     "EvaluationInputError",
     "Evaluator",
     "SubmissionError",
+    "evaluate_files",
     "format_table",
     "read_submission",
     "write_submission",

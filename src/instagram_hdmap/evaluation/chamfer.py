@@ -10,6 +10,7 @@ raster instance.
 * :func:`cloud_chamfer` -- the raster (HDMapNet) protocol: ``torch.cdist`` in float32 (its
   matrix-product path, with that path's rounding), mean nearest distance each way, averaged
   (``chamfer_distance.py:4-17``); the caller clips it at the threshold.
+* :func:`mean_dist_to_box` -- the lower bound both protocols prune candidate pairs with.
 """
 
 from __future__ import annotations
@@ -70,3 +71,11 @@ def cloud_chamfer(src: torch.Tensor, dst: torch.Tensor) -> float:
     d1 = dist.amin(2).mean(-1)  # the same values as .min(2).values, without the indices
     d2 = dist.amin(1).mean(-1)
     return float(((d1 + d2) / 2).item())
+
+
+def mean_dist_to_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[R, P, 2] points, [R, 2] box corners (low, high) -> [R] mean distance of each set's points to
+    its box: a lower bound of the Chamfer term from those points to any set inside the box (both
+    protocols prune pairs with it)."""
+    d = np.maximum(0.0, np.maximum(lo[:, None] - pts, pts - hi[:, None]))
+    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]).mean(1)

@@ -5,6 +5,7 @@
         ev.update(pred_polylines, gt_polylines, sample_ids=batch_indices, tokens=batch_tokens)
     ev.gather()                      # under torchrun: every rank ends with the merged state
     metrics = ev.compute()           # {"protocol", "thresholds", "classes", "AP", "AP_class", "mAP", ...}
+    metrics = evaluate_files("pred.json", "gt.json", "raster")   # two submission files (evaluate-json)
 
 Memory stays bounded over any number of samples: the vector protocol keeps one (sample id,
 score, TP flags) record per detection, the raster protocol per-class sums of per-sample APs.
@@ -16,14 +17,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from ..config import ExperimentConfig
 from ..geometry import BEVGrid
 from .inputs import EvaluationInputError
+from .io import SubmissionError, read_submission
 from .raster_ap import RasterAP
 from .vector_ap import VectorAP
 
@@ -260,3 +264,49 @@ def format_table(metrics: dict) -> str:
     for other in metrics.get("also", {}).values():
         lines += ["", "also computed on the same predictions:", format_table(other)]
     return "\n".join(lines)
+
+
+def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "vector",
+                   thresholds: Sequence[float] = (0.5, 1.0, 1.5), *, grid: BEVGrid | None = None,
+                   rank_by: str = "ascending", fix_instance_ids: bool = False, device: str = "cpu",
+                   ignore_extra_predictions: bool = False, progress: bool = False, chunk: int = 64) -> dict:
+    """AP of the submission file ``pred_path`` against the GT file ``gt_path`` (both in the HDMapNet
+    format, evaluation/io.py) under ``protocol`` (``instagram-hdmap evaluate-json``).
+
+    The GT file's samples, in its order, are scored (``chunk`` at a time); a GT sample without
+    predictions is scored as a sample without predictions (a note says how many). A prediction token
+    that is not in the GT file is a ``SubmissionError`` unless ``ignore_extra_predictions``. Returns
+    ``Evaluator.compute``'s metrics with ``notes`` (both files' and the evaluator's) and ``inputs``.
+    """
+    gt = read_submission(gt_path, "gt")
+    pred = read_submission(pred_path, "pred")
+    if not gt.samples:
+        raise SubmissionError(f"{gt_path}: the GT file holds no samples")
+    extra = [t for t in pred.samples if t not in gt.samples]
+    if extra and not ignore_extra_predictions:
+        raise SubmissionError(
+            f"{pred_path}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {gt_path} "
+            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
+        )
+    missing = sum(t not in pred.samples for t in gt.samples)
+    ev = Evaluator(protocol, thresholds, grid=grid, rank_by=rank_by, fix_instance_ids=fix_instance_ids,
+                   device=device)
+    tokens = list(gt.samples)  # the GT file's order is the pooling order
+    try:
+        for s in tqdm(range(0, len(tokens), chunk), desc=f"evaluate-json ({protocol})", unit="chunk",
+                      disable=not progress):
+            part = tokens[s : s + chunk]
+            ev.update([pred.samples.get(t, []) for t in part], [gt.samples[t] for t in part],
+                      sample_ids=range(s, s + len(part)), tokens=part)
+    except EvaluationInputError as e:
+        raise SubmissionError(f"evaluating {pred_path} against {gt_path}: {e}") from None
+    metrics = ev.compute()
+    notes = [*gt.notes, *pred.notes]
+    if missing:
+        notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {pred_path}: scored as samples "
+                     "without predictions")
+    if extra:
+        notes.append(f"{len(extra)} sample tokens only in {pred_path} were ignored (--ignore-extra-predictions)")
+    metrics["notes"] = notes + metrics["notes"]
+    metrics["inputs"] = {"pred": str(pred_path), "gt": str(gt_path)}
+    return metrics

@@ -38,6 +38,7 @@ from typing import Literal
 import numpy as np
 
 from ..config import UserError
+from ..files import write_json
 
 # Points are metres in the ego frame; a map patch spans tens of metres. Beyond this, the file is in
 # another frame (global coordinates) or in other units, or broken (1e308 overflows the distances).
@@ -194,9 +195,4 @@ def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: 
     """Write polyline dicts per token in the submission format (``results`` as a dict)."""
     data = {"meta": {"vector": True, **(meta or {})},
             "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(data, f)
-    tmp.replace(path)
+    write_json(data, path)

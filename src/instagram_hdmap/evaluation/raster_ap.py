@@ -57,7 +57,7 @@ import shapely
 import torch
 
 from ..geometry import BEVGrid
-from .chamfer import cloud_chamfer
+from .chamfer import cloud_chamfer, mean_dist_to_box
 from .inputs import EvaluationInputError, read_polylines, sample_name
 
 THICKNESS = 5  # evaluate_json.py --thickness default
@@ -172,11 +172,10 @@ def instance_clouds(mask: np.ndarray, res: float) -> tuple[np.ndarray, list[torc
     return ids, clouds, boxes * res
 
 
-def _mean_dist_to_box(cloud: np.ndarray, box: np.ndarray) -> float:
+def _cloud_to_box(cloud: np.ndarray, box: np.ndarray) -> float:
+    """``chamfer.mean_dist_to_box`` of one pixel cloud [M, 2] and a box (r0, r1, c0, c1) in metres."""
     r0, r1, c0, c1 = box
-    dr = np.maximum(0.0, np.maximum(r0 - cloud[:, 0], cloud[:, 0] - r1))
-    dc = np.maximum(0.0, np.maximum(c0 - cloud[:, 1], cloud[:, 1] - c1))
-    return float(np.sqrt(dr * dr + dc * dc).mean())
+    return float(mean_dist_to_box(cloud[None], np.array([[r0, c0]]), np.array([[r1, c1]]))[0])
 
 
 def cd_matrix(
@@ -210,7 +209,7 @@ def cd_matrix(
         gr = np.maximum(0.0, np.maximum(gt_box[:, 0] - pred_box[i, 1], pred_box[i, 0] - gt_box[:, 1]))
         gc = np.maximum(0.0, np.maximum(gt_box[:, 2] - pred_box[i, 3], pred_box[i, 2] - gt_box[:, 3]))
         for j in np.flatnonzero(np.hypot(gr, gc) < limit):
-            lb = 0.5 * (_mean_dist_to_box(pred64[i], gt_box[j]) + _mean_dist_to_box(gt64[j], pred_box[i]))
+            lb = 0.5 * (_cloud_to_box(pred64[i], gt_box[j]) + _cloud_to_box(gt64[j], pred_box[i]))
             if lb < limit:
                 cd[i, j] = cloud_chamfer(on_device("p", i, pred[i]), on_device("g", j, gt[j]))
     return cd

@@ -42,7 +42,7 @@ from collections.abc import Sequence
 import numpy as np
 import shapely
 
-from .chamfer import chamfer_pairs
+from .chamfer import chamfer_pairs, mean_dist_to_box
 from .inputs import EvaluationInputError, read_polylines, sample_name
 
 NUM_SAMPLE_POINTS = 100  # mean_ap.py:147
@@ -409,7 +409,7 @@ class VectorAP:
         for s in range(0, len(pi), 2048):
             a, b = pi[s : s + 2048], gj[s : s + 2048]
             lb[s : s + 2048] = 0.5 * (
-                _mean_dist_to_box(pred[a], g_lo[b], g_hi[b]) + _mean_dist_to_box(gt[b], p_lo[a], p_hi[a])
+                mean_dist_to_box(pred[a], g_lo[b], g_hi[b]) + mean_dist_to_box(gt[b], p_lo[a], p_hi[a])
             )
         keep = lb <= max_thr * (1 + 1e-9)
         pi, gj = pi[keep], gj[keep]
@@ -494,12 +494,6 @@ class VectorAP:
             o = np.argsort(ids[c], kind="stable")  # sample order; input order within a sample
             ap[c] = pooled_ap(scores[c][o], tp[c][o], int(self.num_gt[c]))
         return {"AP": ap, "num_gt": self.num_gt.copy(), "num_pred": np.array([len(s) for s in scores])}
-
-
-def _mean_dist_to_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """[R, P, 2] points, [R, 2] box corners -> [R] mean distance of the points to the box."""
-    d = np.maximum(0.0, np.maximum(lo[:, None] - pts, pts - hi[:, None]))
-    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]).mean(1)
 
 
 def _nearest_index(pts: np.ndarray, q: np.ndarray) -> np.ndarray:

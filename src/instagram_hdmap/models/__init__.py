@@ -128,14 +128,16 @@ def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=Non
     num_classes = len(cfg.data.classes)
     bh = m.bev_heads
     bev_heads = BEVHeads(
-        channels, num_classes, grid.cell_size, cfg.data.dt_clip, bh.channels, tuple(bh.stage_channels),
-        bh.head_channels, stem_stride=2 // vt.bev_downsample, distance_head=bh.distance_head,
+        in_channels=channels, num_classes=num_classes, cell_size=grid.cell_size, dt_clip=cfg.data.dt_clip,
+        channels=bh.channels, stage_channels=tuple(bh.stage_channels), head_channels=bh.head_channels,
+        stem_stride=2 // vt.bev_downsample, distance_head=bh.distance_head,
     )
     gh = m.gnn
     graph_head = GraphHead(
-        grid, num_classes, cfg.data.dt_clip, bh.channels, gh.num_vertices, gh.conf_threshold, gh.embedding,
-        gh.dim, gh.pe_frequencies, gh.layers, gh.heads, gh.sinkhorn_iters, gh.sinkhorn_grad,
-        gh.nms_radius, gh.nms, gh.vd_sampling,
+        grid=grid, num_classes=num_classes, dt_clip=cfg.data.dt_clip, bev_channels=bh.channels,
+        num_vertices=gh.num_vertices, conf_threshold=gh.conf_threshold, embedding=gh.embedding, dim=gh.dim,
+        pe_frequencies=gh.pe_frequencies, layers=gh.layers, heads=gh.heads, sinkhorn_iters=gh.sinkhorn_iters,
+        sinkhorn_grad=gh.sinkhorn_grad, nms_radius=gh.nms_radius, nms=gh.nms, vd_sampling=gh.vd_sampling,
     )
     return InstaGraM(backbone, view_transform, bev_heads, graph_head)
 

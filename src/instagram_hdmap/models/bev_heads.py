@@ -71,6 +71,7 @@ class BEVHeads(nn.Module):
 
     def __init__(
         self,
+        *,
         in_channels: int,
         num_classes: int,
         cell_size: int,

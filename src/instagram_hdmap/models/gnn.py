@@ -1,5 +1,5 @@
 """Graph head: vertex embeddings (Eq. 1), attentional GNN (Eq. 2), class and matching heads (Eq. 3),
-adjacency by Sinkhorn (Eq. 4).
+scores (Eq. 4) and adjacency by Sinkhorn.
 
 Shapes: B batch, N padded vertices, D embedding dimension, K classes, S cell size,
 H x W BEV grid, C BEV feature channels, F positional-encoding frequencies.
@@ -88,6 +88,7 @@ class GraphHead(nn.Module):
 
     def __init__(
         self,
+        *,
         grid: BEVGrid,
         num_classes: int,
         dt_clip: float,

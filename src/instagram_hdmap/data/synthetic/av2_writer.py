@@ -46,7 +46,7 @@ Map records (``map_archive``), from the generator's own geometry:
 Elements are written whole when they come within ``MAP_MARGIN_M`` of the log's drive (AV2's log maps
 are local too). The world is flat: every z is 0 and the ground height raster is 0.
 
-Scenes are rendered by world.py's machinery (one process or ``workers`` spawned ones, byte-identical
+Scenes are rendered by the scene-job pool (jobs.py: one process or ``workers`` spawned ones, byte-identical
 output), written next to DIR under a temporary name and renamed at the end; a failure or Ctrl-C
 leaves nothing behind.
 """
@@ -67,21 +67,21 @@ from shapely.ops import split as split_polygon
 from tqdm import tqdm
 
 from ...config import AV2_RING_CAMERAS
-from .render import MapPainter, SceneRenderer, scene_look
-from .rig import Sensor, parse_image_size
-from .roads import LOCATIONS, RoadNetwork, build_network
-from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
-from .world import (
+from ..av2 import require_av2
+from ..rig import Sensor, parse_image_size
+from .jobs import (
     BASE_TIMESTAMP_US,
     MANIFEST,
     SCENE_SPACING_US,
-    _check_counts,
-    _check_workers,
-    _render_parallel,
-    _render_serial,
-    _SceneJob,
-    _write_atomically,
+    SceneJob,
+    check_counts,
+    check_workers,
+    render_scenes,
+    write_world,
 )
+from .render import MapPainter, SceneRenderer, scene_look
+from .roads import LOCATIONS, RoadNetwork
+from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
 FORMAT_VERSION = 1
@@ -154,30 +154,23 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     """Write the synthetic world to ``out`` in the AV2 sensor layout (module docstring); returns the
     manifest. ``image_size``: 'WxH' (or (w, h)) of the landscape ring cameras. Deterministic whatever
     ``workers`` is; a script calling it with workers > 1 must do so under ``if __name__ == "__main__":``."""
-    from ..av2 import require_av2
-
     require_av2("instagram-hdmap synth --format av2")
     size = parse_image_size(image_size)
-    _check_counts(scenes_train, scenes_val, samples_per_scene)
-    workers = _check_workers(workers)
-    return _write_atomically(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
-                                                                     seed, size, progress, workers))
+    check_counts(scenes_train, scenes_val, samples_per_scene)
+    workers = check_workers(workers)
+    return write_world(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
+                                                              seed, size, progress, workers))
 
 
 def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress, workers) -> dict:
     splits = ["train"] * scenes_train + ["val"] * scenes_val
-    jobs = [_SceneJob(i, log_id(seed, i), split, LOCATIONS[i % len(LOCATIONS)], samples, seed, size, root, fmt="av2")
+    jobs = [SceneJob(i, log_id(seed, i), split, LOCATIONS[i % len(LOCATIONS)], samples, seed, size, root, render_log)
             for i, split in enumerate(splits)]
     for split in set(splits):
         (root / split).mkdir()
-    workers = min(workers, len(jobs))
     bar = tqdm(total=len(jobs) * samples, desc="synth av2", unit="sweep", disable=not progress)
     try:
-        if workers > 1:
-            results = _render_parallel(jobs, workers, lambda: bar.update(1))
-        else:
-            nets = {loc: build_network(loc, seed) for loc in sorted({job.location for job in jobs})}
-            results = _render_serial(jobs, nets, lambda: bar.update(1))
+        results = render_scenes(jobs, workers, lambda: bar.update(1))
     finally:
         bar.close()
     logs = {split: [job.name for job in jobs if job.split == split] for split in ("train", "val")}
@@ -213,7 +206,7 @@ def _write_feather(rows: list[dict] | dict, path: FsPath, types: dict | None = N
     feather.write_feather(table, str(path), compression="lz4")
 
 
-def render_log(job: _SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) -> dict:
+def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) -> dict:
     """Plans, renders and writes one complete log folder (world.py's ``_render_scene`` for AV2: the
     same draws in the same order, so the same drive and traffic). Returns {"log_id", "city"}."""
     import pyarrow as pa
@@ -221,8 +214,8 @@ def render_log(job: _SceneJob, net: RoadNetwork, painter: MapPainter, on_sample)
     rng = np.random.default_rng([job.seed, 1000 + job.index])
     drive = plan_drive(net, job.samples, rng)
     vehicles = place_vehicles(net, drive, rng)
-    look = scene_look(rng, AV2_RING_CAMERAS)
     sensors = av2_rig(job.size)
+    look = scene_look(rng, sensors)
     renderer = SceneRenderer(painter, look, sensors, (max(job.size), max(job.size)), rng)
     log_dir = job.root / job.split / job.name
     for cam in AV2_RING_CAMERAS:

@@ -17,8 +17,10 @@ from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon
 from shapely.ops import unary_union
 
 from ...config import UserError
+from ..rig import CAMERAS
+from .jobs import MANIFEST
+from .world import read_manifest
 
-LAYOUT = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 STYLE = {  # map element: (colour, line width)
     "road_divider": ("#ffa500", 1.6),
     "lane_divider": ("#00e5ff", 1.2),
@@ -29,8 +31,6 @@ RADIUS_M = 60.0
 
 
 def _version_of(dataroot: FsPath) -> str:
-    from .world import MANIFEST, read_manifest
-
     if (dataroot / MANIFEST).is_file():
         return read_manifest(dataroot)["version"]
     for v in ("v1.0-trainval", "v1.0-mini"):
@@ -118,7 +118,7 @@ def write_preview(dataroot, out_png, index: int = 0) -> None:
 
     fig = plt.figure(figsize=(26, 8.2))
     grid = fig.add_gridspec(2, 4, width_ratios=[1, 1, 1, 1.15], wspace=0.03, hspace=0.08)
-    for i, ch in enumerate(LAYOUT):
+    for i, ch in enumerate(CAMERAS):
         ax = fig.add_subplot(grid[i // 3, i % 3])
         sd = nusc.get("sample_data", sample["data"][ch])
         cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])

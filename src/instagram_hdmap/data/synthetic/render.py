@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .rig import CAMERAS, Sensor
+from ..rig import Sensor
 from .roads import Box, RoadNetwork, as_polygons
 
 JPEG_QUALITY = 90
@@ -56,7 +56,9 @@ class SceneLook:
     noise_sigma: float
 
 
-def scene_look(rng: np.random.Generator, cameras: tuple[str, ...] = CAMERAS) -> SceneLook:
+def scene_look(rng: np.random.Generator, sensors: dict[str, Sensor]) -> SceneLook:
+    """A scene's appearance, drawn from ``rng``; one exposure jitter per camera of ``sensors``, in its order."""
+    cameras = [ch for ch, s in sensors.items() if s.modality == "camera"]
     overcast = rng.random() < 0.4
     asphalt_grey = rng.uniform(55.0, 115.0)
     asphalt = asphalt_grey + rng.uniform(-6.0, 6.0, 3)

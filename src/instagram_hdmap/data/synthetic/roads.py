@@ -519,6 +519,9 @@ def build_network(location: str, seed: int) -> RoadNetwork:
 
 
 def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwork | None:
+    """One attempt at a map: layout, stretches, road surface, lanes, markings, sidewalks, props, each
+    step drawing from ``rng`` in turn. None when the draw is unusable (no 3- and 4-way junctions, no
+    median island, a road surface that is not one valid polygon with its islands as holes)."""
     drive_right = location.startswith("boston")
     pos, arms, stubs, canvas = _layout(rng)
     kinds = [len(a) for a in arms.values()]
@@ -526,15 +529,45 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
         return None
     chains = _chains(pos, arms, stubs)
     _assign_lanes(chains, pos, rng)
-    style = MapStyle(
+    style = _draw_style(rng)
+    junctions = _junctions(chains, pos, arms, rng)
+    rec = MapRecords(namespace=f"{seed}/{location}")
+    stretches = _build_stretches(chains, pos, junctions, canvas, rng)
+    if not any(st.island is not None for st in stretches):
+        return None
+    surface = _add_road_surface(stretches, junctions, rec, rng)
+    if surface is None:
+        return None
+    road, road_filled, islands = surface
+    lanes = _add_lanes_and_dividers(stretches, rec, drive_right)
+    markings = Markings()
+    _add_crossings_and_stop_lines(stretches, junctions, rec, markings, drive_right)
+    connectors = _connect_lanes(lanes, junctions, drive_right, rec)
+    outer, walkway, ground, kerb = _add_sidewalks_and_ground(road, road_filled, canvas, style, rec, rng)
+    for st in stretches:
+        _paint_stretch(st, style, markings)
+    _add_patches(stretches, style, markings, rng)
+    net = RoadNetwork(
+        location=location, seed=seed, canvas=canvas, drive_right=drive_right, style=style, stretches=stretches,
+        junctions=junctions, lanes=lanes, connectors=connectors, records=rec, road=road, road_filled=road_filled,
+        islands=islands, walkway=walkway, ground=ground, kerb=kerb, markings=markings, props=[],
+    )
+    net.props = _place_props(net, outer, rng)
+    return net
+
+
+def _draw_style(rng: np.random.Generator) -> MapStyle:
+    """The map's paint and sidewalk dimensions."""
+    return MapStyle(
         dash=float(rng.choice([2.0, 3.0, 3.0, 4.0])), gap=float(rng.uniform(4.0, 6.5)),
         line_width=float(rng.uniform(0.12, 0.18)), double_gap=float(rng.uniform(0.1, 0.2)),
         sidewalk=float(rng.uniform(2.0, 4.0)), kerb=float(rng.uniform(0.2, 0.3)),
         island_ground=str(rng.choice(["grass", "paved"])),
     )
-    junctions = _junctions(chains, pos, arms, rng)
-    rec = MapRecords(namespace=f"{seed}/{location}")
 
+
+def _build_stretches(chains, pos, junctions, canvas, rng: np.random.Generator) -> list[Stretch]:
+    """One stretch of road per chain: its path between the junctions (or to the canvas edge), rows."""
     stretches: list[Stretch] = []
     for ch in chains:
         path, start, end = _chain_path(ch, pos, junctions, canvas, rng)
@@ -543,10 +576,13 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
         st.end = None if ch.stub else (ch.nodes[-1], (ch.dirs[-1] + 2) % 4)
         st.tone = float(rng.uniform(-8.0, 8.0))
         stretches.append(st)
-    if not any(st.island is not None for st in stretches):
-        return None
+    return stretches
 
-    # --- road segments: stretches (with island holes) and junctions ---------------------------
+
+def _add_road_surface(stretches: list[Stretch], junctions: dict, rec: MapRecords, rng: np.random.Generator):
+    """Road segments (stretches with island holes, junctions with filleted corners) and the drivable
+    area; returns ``(road, road_filled, islands)``, or None when the road is not one valid polygon that
+    keeps every island as a hole."""
     drivable = Ref("drivable_area", 0)
     arm_ids: dict = {}
     for st in stretches:
@@ -589,8 +625,12 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
     if len(road.interiors) < len(islands):
         return None
     rec.add("drivable_area", polygon_tokens=[rec.add_shapely(p, "drivable_area") for p in as_polygons(road)])
+    return road, road_filled, islands
 
-    # --- lanes, road blocks, dividers --------------------------------------------------------
+
+def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_right: bool) -> list[Lane]:
+    """Road blocks (one per travel direction), lanes with their divider segments, lane and road
+    dividers of every stretch; returns the lanes."""
     lanes: list[Lane] = []
     for si, st in enumerate(stretches):
         ch = st.chain
@@ -639,9 +679,12 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
         row = st.ids[centre]
         for part in _runs(row):
             rec.add("road_divider", line_token=rec.add_line(part), road_segment_token=st.segment)
+    return lanes
 
-    # --- crossings and stop lines -------------------------------------------------------------
-    markings = Markings()
+
+def _add_crossings_and_stop_lines(stretches: list[Stretch], junctions: dict, rec: MapRecords, markings: Markings,
+                                  drive_right: bool) -> None:
+    """Each junction arm's zebra crossing (where it has one) and stop line, as records and paint."""
     chain_of_arm = {}
     for st in stretches:
         chain_of_arm[st.start] = st.chain
@@ -676,10 +719,11 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
                     ped_crossing_tokens=[crossing_ref] if crossing_ref is not None else [],
                     traffic_light_tokens=[], road_block_token="")
 
-    # --- lane connectors ----------------------------------------------------------------------
-    connectors = _connect_lanes(lanes, junctions, drive_right, rec)
 
-    # --- sidewalks, ground, kerbs -------------------------------------------------------------
+def _add_sidewalks_and_ground(road, road_filled, canvas, style: MapStyle, rec: MapRecords,
+                              rng: np.random.Generator):
+    """Walkway records (the sidewalk band, in 50 m tiles), the ground outside it and the kerb; returns
+    ``(outer, walkway, ground, kerb)`` (outer: the road with its sidewalks)."""
     canvas_box = box(0.0, 0.0, canvas[0], canvas[1])
     outer = road_filled.buffer(style.sidewalk, quad_segs=4)
     walkway = unary_union(as_polygons(outer.difference(road_filled).intersection(canvas_box)))
@@ -693,18 +737,7 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
     for piece in as_polygons(canvas_box.difference(outer)):
         ground.append((piece, str(rng.choice(["grass", "grass", "dirt", "paved"]))))
     kerb = road.boundary.buffer(style.kerb / 2, quad_segs=2)
-
-    for st in stretches:
-        _paint_stretch(st, style, markings)
-    _add_patches(stretches, style, markings, rng)
-
-    net = RoadNetwork(
-        location=location, seed=seed, canvas=canvas, drive_right=drive_right, style=style, stretches=stretches,
-        junctions=junctions, lanes=lanes, connectors=connectors, records=rec, road=road, road_filled=road_filled,
-        islands=islands, walkway=walkway, ground=ground, kerb=kerb, markings=markings, props=[],
-    )
-    net.props = _place_props(net, outer, rng)
-    return net
+    return outer, walkway, ground, kerb
 
 
 def _segment_type(st: Stretch, j: int) -> str:

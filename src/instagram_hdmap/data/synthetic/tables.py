@@ -14,8 +14,8 @@ from pathlib import Path as FsPath
 import numpy as np
 from pyquaternion import Quaternion
 
+from ..rig import CAMERAS, Sensor
 from .map_writer import make_token
-from .rig import CAMERAS, Sensor
 
 TABLE_NAMES = ("attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map", "sample",
                "sample_annotation", "sample_data", "scene", "sensor", "visibility")

@@ -1,4 +1,10 @@
-"""The sensor rig of a real nuScenes log (n015, Singapore; the v1.0-mini calibrated_sensor records).
+"""Camera rigs: the nuScenes camera names in the model's order, the sensor rig of a real nuScenes
+log (n015, Singapore; the v1.0-mini calibrated_sensor records), and that rig as the calibration
+tensors of a batch.
+
+    CAMERAS                                   # the order of a nuScenes sample's camera tensors
+    sensors = rig((800, 450))                 # Sensor per channel, intrinsics scaled to 800 x 450 images
+    calib = nuscenes_like_rig((128, 352))     # intrinsics, cam_to_ego_rot / trans, post_rot / post_tran [V, ...]
 
 Six cameras (1600 x 900) and LIDAR_TOP: sensor -> ego translation (m), rotation (w, x, y, z) and
 camera intrinsics, exactly as published. Intrinsics are scaled when images of another size are
@@ -11,15 +17,22 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from pyquaternion import Quaternion
 
-from ...config import UserError
+from ..config import UserError
+from .transforms import image_affine
 
 NUSCENES_IMAGE_SIZE = (1600, 900)  # (width, height)
-CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
+# The order of the camera tensors of a nuScenes sample (data/nuscenes.py): the front row left to
+# right, then the back row left to right, as the pictures draw them. A trained model depends on it
+# (the MLP view transform has one layer per camera).
+CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 LIDAR = "LIDAR_TOP"
 
-# channel: (translation, rotation wxyz, (fx, cx, cy)) -- fx == fy on every nuScenes camera
+# channel: (translation, rotation wxyz, (fx, cx, cy)) -- fx == fy on every nuScenes camera. In the
+# order of the log's calibrated_sensor records, which ``rig`` keeps: the synthetic world draws its
+# per-camera randomness in this order.
 _RIG = {
     "CAM_FRONT": ((1.70079118954, 0.0159456324149, 1.51095763913),
                   (0.4998015430569128, -0.5030316162024876, 0.4997798114386805, -0.49737083824542755),
@@ -80,13 +93,33 @@ def parse_image_size(text: str | tuple[int, int] | list[int]) -> tuple[int, int]
 
 
 def rig(image_size: tuple[int, int] = NUSCENES_IMAGE_SIZE) -> dict[str, Sensor]:
-    """The six cameras (intrinsics scaled to `image_size` = (w, h)) and LIDAR_TOP, by channel."""
+    """The six cameras (intrinsics scaled to `image_size` = (w, h)) and LIDAR_TOP, by channel, in the
+    order of the calibration records."""
     sx = image_size[0] / NUSCENES_IMAGE_SIZE[0]
     sy = image_size[1] / NUSCENES_IMAGE_SIZE[1]
     out = {}
-    for ch in CAMERAS:
-        t, q, (f, cx, cy) = _RIG[ch]
+    for ch, (t, q, (f, cx, cy)) in _RIG.items():
         k = np.array([[f * sx, 0.0, cx * sx], [0.0, f * sy, cy * sy], [0.0, 0.0, 1.0]])
         out[ch] = Sensor(ch, "camera", t, q, k)
     out[LIDAR] = Sensor(LIDAR, "lidar", *_LIDAR_TOP, None)
     return out
+
+
+def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
+    """Calibration of one sample [V = 6, ...] in ``CAMERAS`` order: the published calibration of the
+    real nuScenes log (``rig``: 1600 x 900 images) and the ``post_rot`` / ``post_tran`` of the dataset's
+    resize-and-crop to ``image_size`` (h, w) (``data.transforms.image_affine``)."""
+    sensors = rig(NUSCENES_IMAGE_SIZE)
+    A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
+    post_rot = torch.eye(3)
+    post_rot[:2, :2] = A[:2, :2]
+    post_tran = torch.zeros(3)
+    post_tran[:2] = A[:2, 2]
+    V = len(CAMERAS)
+    return {
+        "intrinsics": torch.stack([torch.from_numpy(sensors[c].intrinsic).float() for c in CAMERAS]),
+        "cam_to_ego_rot": torch.stack([torch.from_numpy(sensors[c].rot).float() for c in CAMERAS]),
+        "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
+        "post_rot": post_rot.expand(V, 3, 3).clone(),
+        "post_tran": post_tran.expand(V, 3).clone(),
+    }

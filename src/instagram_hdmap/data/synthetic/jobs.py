@@ -1,0 +1,277 @@
+"""The scene-job pool both world writers share (world.py: nuScenes layout, av2_writer.py: Argoverse 2).
+
+    jobs = [SceneJob(index, name, split, location, samples, seed, size, root, render_fn) ...]
+    manifest = write_world(out, force, lambda tmp: ... render_scenes(jobs, workers, nets, tick) ...)
+
+A ``SceneJob`` is all a process needs to render one scene from scratch, including the writer's
+render function (``render(job, net, painter, on_sample)``, a module-level function, so that a job
+pickles into a spawned worker by reference). ``render_scenes`` renders the jobs in this process
+(``workers`` = 1) or in that many spawned processes, each taking the next scene when it is free;
+scenes are independent (each draws from its own generator), so the output is byte-identical for
+any number of workers. The first failure (an exception in a scene, a worker that dies or hangs)
+stops every worker and is raised as a ``SceneGenerationError`` naming the scene.
+
+``write_world`` writes a world next to ``out`` under a temporary name (``files.atomic_path``) and
+renames it at the end; on any failure or Ctrl-C the temporary folder is removed, so nothing
+half-written is left behind.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import numbers
+import os
+import queue
+import shutil
+import signal
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path as FsPath
+
+import cv2
+
+from ...config import UserError
+from ...files import atomic_path
+from .render import MapPainter
+from .roads import build_network
+
+MANIFEST = "world.json"
+BASE_TIMESTAMP_US = 1532402927647951  # 2018-07-24 03:28:47 UTC, the first mini scene; no wall clock
+SCENE_SPACING_US = 3600 * 1_000_000
+MP_START_METHOD = "spawn"  # workers start clean: no copied locks or threads (torch, OpenCV) from the caller
+POLL_S = 0.5  # how often the main process checks that its workers are alive while it waits
+STALL_S = 600.0  # a worker that sends nothing for this long (a sample takes seconds) is declared hung
+TMP_TAG = "synth-tmp"  # a world is written at .NAME.synth-tmp-PID (demo.py removes those of dead processes)
+
+
+class SceneGenerationError(RuntimeError):
+    """Rendering one scene of a synthetic world failed; the message names the scene."""
+
+
+class _WorkerTraceback(Exception):
+    """The traceback of an error in a worker process, chained as the cause of SceneGenerationError."""
+
+    def __str__(self) -> str:
+        return f'\n"""\n{self.args[0]}"""'
+
+
+@dataclass(frozen=True)
+class SceneJob:
+    """One scene to render: all a worker process needs to redo it from scratch."""
+
+    index: int
+    name: str
+    split: str
+    location: str
+    samples: int
+    seed: int
+    size: tuple[int, int]
+    root: FsPath
+    # render(job, net, painter, on_sample) -> what the writer's tables need; module-level (it pickles by name)
+    render: Callable
+
+    def describe(self) -> str:
+        return f"synthetic scene {self.name} ({self.split} scene #{self.index}, map {self.location})"
+
+
+# --- arguments ------------------------------------------------------------------------------------
+
+
+def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int) -> None:
+    if scenes_train < 0 or scenes_val < 0:
+        raise UserError(f"--scenes-train {scenes_train} / --scenes-val {scenes_val}: counts cannot be negative")
+    if scenes_train + scenes_val == 0:
+        raise UserError("zero scenes requested: give --scenes-train and/or --scenes-val of at least 1")
+    if samples_per_scene < 1:
+        raise UserError(f"--samples-per-scene {samples_per_scene}: a scene needs at least 1 sample")
+
+
+def available_cpus() -> int:
+    """CPU cores this process may run on (its affinity where the OS reports one)."""
+    if hasattr(os, "process_cpu_count"):  # Python >= 3.13
+        return os.process_cpu_count() or 1
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0)) or 1
+    return os.cpu_count() or 1
+
+
+def check_workers(workers) -> int:
+    """--workers as a process count: 0 means one per available CPU core."""
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 0:
+        raise UserError(f"--workers {workers}: expected a whole number >= 0 (1: render in this process, "
+                        "N: N worker processes, 0: one per CPU core)")
+    return int(workers) or available_cpus()
+
+
+# --- the output folder ------------------------------------------------------------------------------
+
+
+def _check_out(out: FsPath, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out}: exists and is not a folder; choose another path")
+    if out.is_dir() and any(out.iterdir()):
+        if not force:
+            raise UserError(f"--out {out}: folder is not empty; choose an empty folder or pass --force to replace it")
+        if not (out / MANIFEST).is_file():
+            raise UserError(f"--out {out}: folder is not empty and holds no synthetic world ({MANIFEST}); "
+                            "--force only replaces a world written by 'instagram-hdmap synth'")
+
+
+def _unwritable(out: FsPath, e: OSError) -> UserError:
+    return UserError(f"--out {out}: cannot write there ({e.strerror or e}); choose a writable folder")
+
+
+def _make_writable(tmp: FsPath, out: FsPath) -> None:
+    """Creates the temporary folder ``tmp`` and checks that a file can be written in it."""
+    try:
+        if tmp.exists():  # left by an earlier run of this very process id
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        probe = tmp / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise _unwritable(out, e) from e
+
+
+def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> dict:
+    """``write(tmp)`` into a temporary sibling folder of ``out``, then rename it to ``out`` (replacing a
+    world there with ``force``): a world is whole or absent, never half-written. Returns what ``write``
+    returns (the manifest)."""
+    out = FsPath(out)
+    _check_out(out, force)
+    target = out.resolve()
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise _unwritable(out, e) from e
+    with atomic_path(target, TMP_TAG) as tmp:
+        _make_writable(tmp, out)
+        return write(tmp)
+
+
+# --- rendering ---------------------------------------------------------------------------------------
+
+
+def render_scenes(jobs: list[SceneJob], workers: int, on_sample: Callable[[], None],
+                  nets: dict | None = None) -> dict[int, object]:
+    """Every job's result by job index: in this process (``workers`` <= 1; ``nets``: the road networks
+    by location, built here where absent) or in ``min(workers, len(jobs))`` spawned processes."""
+    workers = min(workers, len(jobs))
+    if workers > 1:
+        return _render_parallel(jobs, workers, on_sample)
+    nets = dict(nets or {})
+    for job in jobs:
+        if job.location not in nets:
+            nets[job.location] = build_network(job.location, job.seed)
+    return _render_serial(jobs, nets, on_sample)
+
+
+def _render_serial(jobs: list[SceneJob], nets: dict, on_sample) -> dict[int, object]:
+    """All scenes in this process, one after the other."""
+    painters: dict[str, MapPainter] = {}
+    results = {}
+    for job in jobs:
+        net = nets[job.location]
+        if job.location not in painters:
+            painters[job.location] = MapPainter(net, job.seed)
+        try:
+            results[job.index] = job.render(job, net, painters[job.location], on_sample)
+        except Exception as e:  # KeyboardInterrupt passes through untouched
+            raise SceneGenerationError(f"{job.describe()} failed: {type(e).__name__}: {e}") from e
+    return results
+
+
+def _worker_main(tasks, events, cv_threads: int) -> None:
+    """A worker process: renders scenes from `tasks` until None; reports on `events` as
+    (kind, pid, scene index, payload) with kind 'start', 'sample', 'done' (payload: the job's result)
+    or 'error' (payload: (message, traceback text))."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle: it terminates us
+    cv2.setNumThreads(cv_threads)
+    pid = os.getpid()
+    nets, painters = {}, {}
+    while (job := tasks.get()) is not None:
+        events.put(("start", pid, job.index, None))
+        try:
+            if job.location not in nets:
+                nets[job.location] = build_network(job.location, job.seed)
+                painters[job.location] = MapPainter(nets[job.location], job.seed)
+            result = job.render(job, nets[job.location], painters[job.location],
+                                lambda: events.put(("sample", pid, job.index, None)))
+        except BaseException as e:  # anything, so that the main process never waits for a lost scene
+            events.put(("error", pid, job.index, (f"{type(e).__name__}: {e}", traceback.format_exc())))
+            return
+        events.put(("done", pid, job.index, result))
+
+
+def _render_parallel(jobs: list[SceneJob], workers: int, on_sample) -> dict[int, object]:
+    """Scenes in `workers` spawned processes, each taking the next scene when it is free. The
+    first failure (an exception in a scene, a worker that dies) stops all workers and is raised."""
+    ctx = multiprocessing.get_context(MP_START_METHOD)
+    tasks, events = ctx.Queue(), ctx.Queue()
+    for job in jobs:
+        tasks.put(job)
+    for _ in range(workers):
+        tasks.put(None)
+    cv_threads = max(1, available_cpus() // workers)  # OpenCV's own threads share the cores
+    procs = [ctx.Process(target=_worker_main, args=(tasks, events, cv_threads), name=f"synth-worker-{i}", daemon=True)
+             for i in range(workers)]
+    by_index = {job.index: job for job in jobs}
+    results: dict[int, object] = {}
+    running: dict[int, int] = {}  # worker pid -> index of the scene it renders
+    finished = False
+    try:
+        for p in procs:
+            p.start()
+        last_event = time.monotonic()
+        while len(results) < len(jobs):
+            try:
+                kind, pid, index, payload = events.get(timeout=POLL_S)
+            except queue.Empty:
+                _check_workers_alive(procs, running, by_index, results)
+                if time.monotonic() - last_event > STALL_S:
+                    busy = [by_index[i].describe() for i in running.values()] or ["no scene yet"]
+                    raise SceneGenerationError(f"no progress from the worker processes for {STALL_S:.0f} s "
+                                               f"(rendering: {', '.join(busy)}); they look hung: stopped them. "
+                                               "Try --workers 1") from None
+                continue
+            last_event = time.monotonic()
+            if kind == "start":
+                running[pid] = index
+            elif kind == "sample":
+                on_sample()
+            elif kind == "done":
+                results[index] = payload
+                running.pop(pid, None)
+            else:
+                message, tb = payload
+                error = SceneGenerationError(f"{by_index[index].describe()} failed in a worker process: {message}")
+                raise error from _WorkerTraceback(tb)
+        finished = True
+    finally:
+        if not finished:  # error or Ctrl-C: stop now, before the caller removes the folder they write to
+            for p in procs:
+                if p.is_alive():
+                    p.terminate()
+            tasks.cancel_join_thread()  # scenes nobody will take must not block this process's exit
+        for p in procs:
+            if p.pid is not None:
+                p.join()
+        tasks.close()
+        events.close()
+    return results
+
+
+def _check_workers_alive(procs, running: dict[int, int], by_index: dict[int, SceneJob], results) -> None:
+    for p in procs:
+        if p.exitcode not in (None, 0):
+            index = running.get(p.pid)
+            what = by_index[index].describe() if index is not None else "a synthetic scene"
+            how = f"was killed by signal {-p.exitcode}" if p.exitcode < 0 else f"exited with code {p.exitcode}"
+            raise SceneGenerationError(f"a worker process {how} while rendering {what} (out of memory?); "
+                                       "try fewer --workers")
+    if all(p.exitcode == 0 for p in procs):  # every worker is done, yet scenes are missing
+        missing = [by_index[i].name for i in sorted(set(by_index) - set(results))]
+        raise SceneGenerationError(f"worker processes exited without rendering scenes {missing}")
