@@ -38,6 +38,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
+
+from instagram_hdmap.models.bev_heads import BasicBlock
 
 # The official train.py's defaults (LSS, 60 m x 30 m at 0.15 m, S = 8, N = 400, 7 GNN layers)
 DATA_CONF = {
@@ -74,10 +77,6 @@ def standin_resnet18(pretrained: bool = False, zero_init_residual: bool = False)
     ``layer1..layer3``: BasicBlocks 64-64, 64-128/2, 128-256/2, the same layers and work), for a
     machine without torchvision; built from our own BasicBlock (models/bev_heads.py), whose
     ``zero_init_residual`` is always on, as the official encoder asks."""
-    from torch import nn
-
-    from instagram_hdmap.models.bev_heads import BasicBlock
-
     if pretrained:
         raise OfficialCodeError("no pretrained ResNet-18 without torchvision")
     trunk = nn.Module()

@@ -207,6 +207,7 @@ def row_best_survives_a_resume(env):
     state = load_checkpoint(run / "last.pt")
     state["best"] = {"score": float("-inf")}
     state["epoch"], state["step"], state["step_in_epoch"] = 2, 4, 0
+    state["clock"] = {**state["clock"], "progress": 4 / 6}  # 3 epochs of 2 steps
     save_checkpoint(state, run / "last.pt")
     _toy_run(env, [0.5], "train.epochs=3", resume=str(run / "last.pt"))
     assert load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.6
@@ -515,7 +516,7 @@ def row_resume_from_weights_only(env):
 @row("11", "evaluate --out that is a file: refused before the evaluation runs")
 def row_evaluate_out_is_a_file(env):
     (env.tmp / "taken").write_text("x")
-    forbid(env, "instagram_hdmap.engine.evaluate", "the evaluation")
+    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
     env.error(r"taken", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "taken")
 
 
@@ -529,7 +530,7 @@ def row_train_out_dir_is_a_file(env):
 @row("11", "predict --out below a file: refused before the model runs")
 def row_predict_out_not_writable(env):
     (env.tmp / "taken").write_text("x")
-    forbid(env, "instagram_hdmap.visualize.save_figure", "drawing")
+    forbid(env, "instagram_hdmap.predict.save_figure", "drawing")
     env.error(r"taken", "predict", env.yaml, "--checkpoint", env.ckpt, "--index", "0", "--out",
               env.tmp / "taken" / "pics")
 
@@ -537,7 +538,7 @@ def row_predict_out_not_writable(env):
 @row("11", "export-gt --out below a file: refused before the export")
 def row_export_gt_out_not_writable(env):
     (env.tmp / "taken").write_text("x")
-    forbid(env, "instagram_hdmap.data.nuscenes.gt_submission", "the export")
+    forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
     env.error(r"taken", "export-gt", env.yaml, "--out", env.tmp / "taken" / "gt.json")
 
 
@@ -553,7 +554,7 @@ def row_evaluate_json_out_not_writable(env):
 @row("S", "export-gt --out that is a folder: refused before the export (was an IsADirectoryError after it)")
 def row_export_gt_out_is_a_folder(env):
     (env.tmp / "folder").mkdir()
-    forbid(env, "instagram_hdmap.data.base.gt_submission", "the export")
+    forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
     env.error(r"--out .*folder.*is a folder", "export-gt", env.yaml, "--out", env.tmp / "folder")
 
 
@@ -615,6 +616,28 @@ def row_full_disk(env):
     assert re.search(r"USER .*last\.pt.*(disk|space|too large)", p.stdout), p.stdout
     assert torch.equal(load_checkpoint(old)["model"]["w"], torch.ones(3))
     assert sorted(x.name for x in env.tmp.iterdir()) == ["last.pt"]
+
+
+@row("12", "a full disk while writing a JSON result is named (and the old file kept)")
+def row_full_disk_json(env):
+    old = env.tmp / "metrics.json"
+    old.write_text('{"old": 1}')
+    code = (
+        "import resource, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))\n"
+        "from instagram_hdmap.files import write_json\n"
+        "from instagram_hdmap.config import UserError\n"
+        "try:\n"
+        f"    write_json({{'x': 'a' * 200_000}}, {str(old)!r})\n"
+        "except UserError as e:\n"
+        "    print('USER', e); sys.exit(2)\n"
+    )
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env_vars, timeout=120)
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert re.search(r"USER cannot write .*metrics\.json: File too large \(the disk is full", p.stdout), p.stdout
+    assert old.read_text() == '{"old": 1}' and sorted(x.name for x in env.tmp.iterdir()) == ["metrics.json"]
 
 
 @row("12", "data.dt_clip=0 is named (not a NaN loss blamed on the learning rate)")

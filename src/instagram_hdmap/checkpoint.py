@@ -13,6 +13,7 @@ seed and the epoch; see distributed.ResumableSampler).
 
 from __future__ import annotations
 
+import contextlib
 import pickle
 import random
 import re
@@ -33,10 +34,11 @@ class CheckpointError(UserError):
 
 def save_checkpoint(state: dict, path: str | Path) -> Path:
     """Write ``state`` to ``path`` atomically (``files.atomic_path``: a temporary file in the same
-    folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one."""
+    folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one;
+    a full disk is a one-line ``files.OutputError`` naming the file, the old one intact."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(state, f)  # through Python's file object: a failed write (full disk) keeps its OSError
     return path
 
 
@@ -147,6 +149,17 @@ def rng_state() -> dict[str, Any]:
         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
     }
     return state
+
+
+@contextlib.contextmanager
+def rng_preserved():
+    """Every RNG as it was before the block (validation inside a training: the training's random
+    streams, which a checkpoint saves for an exact resume, are not drawn from)."""
+    state = rng_state()
+    try:
+        yield
+    finally:
+        set_rng_state(state)
 
 
 def set_rng_state(state: dict[str, Any]) -> None:

@@ -7,6 +7,7 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .evaluation import evaluate_files, format_table
-from .files import write_json
+from .files import check_output_dir, check_output_file, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_sample, run_evaluation
@@ -59,6 +60,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_synth_preview(args: argparse.Namespace) -> int:
+    check_output_file(args.out, "--out")
     write_preview(args.dataroot, args.out, index=args.index)
     print(f"wrote {args.out}")
     return 0
@@ -79,6 +81,7 @@ def _load_data_cfg(args: argparse.Namespace):
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
+    check_output_file(args.out, "--out")
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
     write_json(sub, args.out)
@@ -89,6 +92,7 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
 
 def _cmd_show_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
+    check_output_dir(args.out, "--out")
     dataset = build_dataset(cfg, args.split, augment=args.augment)
     if not -len(dataset) <= args.index < len(dataset):
         raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
@@ -122,6 +126,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_json(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.resolution) and args.resolution > 0):
+        raise UserError(f"--resolution {args.resolution}: metres per pixel of the raster canvas must be > 0")
+    for flag, (lo, hi) in (("--xbound", args.xbound), ("--ybound", args.ybound)):
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise UserError(f"{flag} {lo:g} {hi:g}: two finite bounds in metres, the lower first")
+    if args.out:
+        check_output_file(args.out, "--out")
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
     grid.check()
     metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,

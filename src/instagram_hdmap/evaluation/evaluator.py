@@ -280,6 +280,11 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
     """
     gt = read_submission(gt_path, "gt")
     pred = read_submission(pred_path, "pred")
+    if gt.looks_like() == "pred":
+        swapped = (f"; are --pred and --gt swapped? ({pred_path} looks like a GT file)"
+                   if pred.looks_like() == "gt" else "; give the GT file of the split (instagram-hdmap export-gt)")
+        raise SubmissionError(f"{gt_path}: given as the GT but it is a prediction file (meta.ground_truth false or "
+                              f"confidence_level on {gt.confidences} vectors){swapped}")
     if not gt.samples:
         raise SubmissionError(f"{gt_path}: the GT file holds no samples")
     extra = [t for t in pred.samples if t not in gt.samples]
