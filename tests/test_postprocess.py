@@ -528,3 +528,177 @@ def test_the_mutual_decoder_is_the_official_rule_with_whole_instances():
     outputs = chain_outputs(edge_probs(4, edges=[(0, 1), (1, 2), (2, 3), (3, 0)]))
     (inst,) = postprocess_batch(outputs, GRID, decoder="mutual")[0]
     assert inst["closed"] and len(inst["pts"]) == 5
+
+
+# --- the vectorised decoding equals the sequential loops ----------------------------------------------------
+
+
+def _greedy_loop(log_assignment, mask, threshold, class_log_probs=None, same_class=False, vertices=None,
+                 max_edge_px=None) -> torch.Tensor:
+    """The greedy rule as a plain sequential loop (the reference): dense pair weights, every pair above
+    the threshold in order (strongest first, ties row-major), kept while both ends have < 2 edges."""
+    B, N = mask.shape
+    scores = log_assignment[:, :N, :N].float()
+    w = 0.5 * (scores + scores.transpose(1, 2))
+    out = torch.full((B, N, 2), -1, dtype=torch.long)
+    for b in range(B):
+        pairs = []
+        for i in range(N):
+            for j in range(i + 1, N):
+                if not (mask[b, i] and mask[b, j]) or not w[b, i, j] > math.log(threshold):
+                    continue
+                if same_class and class_log_probs[b, i].argmax() != class_log_probs[b, j].argmax():
+                    continue
+                if max_edge_px is not None:
+                    d = vertices[b, i].double() - vertices[b, j].double()
+                    if math.hypot(float(d[0]), float(d[1])) > max_edge_px:
+                        continue
+                pairs.append((-float(w[b, i, j]), i, j))
+        degree = [0] * N
+        for _, i, j in sorted(pairs):  # strongest first; equal weights in row-major order
+            if degree[i] < 2 and degree[j] < 2:
+                out[b, i, degree[i]], out[b, j, degree[j]] = j, i
+                degree[i] += 1
+                degree[j] += 1
+    return out
+
+
+def _trace_loop(nbr0: list[int], nbr1: list[int], min_vertices: int = 2) -> list[tuple[list[int], bool]]:
+    """The walk as a plain loop (the reference): paths from their lower-index end, then cycles from their
+    lowest vertex towards its first neighbour."""
+    n, seen, out = len(nbr0), [False] * len(nbr0), []
+    for s in range(n):
+        if seen[s] or nbr0[s] < 0 or nbr1[s] >= 0:
+            continue
+        path, prev, cur = [s], s, nbr0[s]
+        seen[s] = True
+        while cur >= 0:
+            path.append(cur)
+            seen[cur] = True
+            prev, cur = cur, (nbr1[cur] if nbr0[cur] == prev else nbr0[cur])
+        if len(path) >= min_vertices:
+            out.append((path, False))
+    for s in range(n):
+        if seen[s] or nbr0[s] < 0:
+            continue
+        cycle, prev, cur = [s], s, nbr0[s]
+        seen[s] = True
+        while cur != s:
+            cycle.append(cur)
+            seen[cur] = True
+            prev, cur = cur, (nbr1[cur] if nbr0[cur] == prev else nbr0[cur])
+        if len(cycle) >= max(min_vertices, 3):
+            out.append((cycle, True))
+    return out
+
+
+def _chain_outputs(B: int, N: int, seed: int, noise: float) -> dict:
+    """Model outputs whose assignment follows random chains (some closed) plus noise: the decoding then
+    meets real paths, cycles, spurious candidates and ties of its greedy rule."""
+    gen = torch.Generator().manual_seed(seed)
+    nxt = torch.full((B, N), N, dtype=torch.long)
+    prv = torch.full((B, N), N, dtype=torch.long)
+    for b in range(B):
+        perm = torch.randperm(N, generator=gen).tolist()
+        k = 0
+        while k < N - 1:
+            length = int(torch.randint(2, 9, (1,), generator=gen))
+            chain = perm[k : k + length]
+            for a, c in zip(chain[:-1], chain[1:]):
+                nxt[b, a], prv[b, c] = c, a
+            if len(chain) >= 3 and float(torch.rand(1, generator=gen)) < 0.3:  # close it
+                nxt[b, chain[-1]], prv[b, chain[0]] = chain[0], chain[-1]
+            k += length
+    log_assignment = target_log_assignment(nxt, prv, floor=1e-3)
+    log_assignment = (log_assignment + noise * torch.randn(log_assignment.shape, generator=gen)).log_softmax(-1)
+    mask = torch.rand(B, N, generator=gen) < 0.9
+    return {"pred_log_assignment": log_assignment, "pred_vertex_mask": mask,
+            "pred_vertices_px": torch.randint(0, 60, (B, N, 2), generator=gen).float(),
+            "pred_vertex_scores": torch.rand(B, N, generator=gen) * mask,
+            "pred_class_log_probs": (2 * torch.randn(B, N, K, generator=gen)).log_softmax(-1)}
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_vectorised_greedy_equals_the_sequential_loop(seed):
+    from instagram_hdmap.postprocess import greedy_neighbours, neighbours
+
+    for outputs in (_chain_outputs(3, 40, seed, 0.5), _chain_outputs(2, 25, seed, 3.0)):
+        logA, mask = outputs["pred_log_assignment"], outputs["pred_vertex_mask"]
+        clp, verts = outputs["pred_class_log_probs"], outputs["pred_vertices_px"]
+        for thr, same, max_edge in ((0.1, False, None), (0.02, True, None), (0.02, False, 14.0)):
+            got = greedy_neighbours(logA, mask, thr, clp, same, verts, max_edge)
+            assert torch.equal(got, _greedy_loop(logA, mask, thr, clp, same, verts, max_edge)), (thr, same)
+        # classwise: the greedy rule per class over the vertices with p_k >= class_min_prob
+        graphs = neighbours(outputs, 0.02, decoder="classwise", class_min_prob=0.2, max_edge_px=14.0)
+        for k in range(K):
+            member = mask & (clp[..., k].exp() >= 0.2)
+            assert torch.equal(graphs[:, k], _greedy_loop(logA, member, 0.02, None, False, verts, 14.0)), k
+
+
+def test_ties_are_broken_in_row_major_order_like_the_loop():
+    """Equal pair weights everywhere: the first pairs in row-major order win, as in the sequential loop."""
+    N = 6
+    logA = torch.zeros(1, N + 1, N + 1).log_softmax(-1)
+    mask = torch.ones(1, N, dtype=torch.bool)
+    from instagram_hdmap.postprocess import greedy_neighbours
+
+    got = greedy_neighbours(logA, mask, 0.05)
+    assert torch.equal(got, _greedy_loop(logA, mask, 0.05))
+    assert got[0, 0].tolist() == [1, 2]  # (0, 1) then (0, 2)
+
+
+@pytest.mark.parametrize("min_vertices", [2, 3, 5])
+def test_vectorised_walk_equals_the_loop(min_vertices):
+    from instagram_hdmap.postprocess import greedy_neighbours, trace_graphs
+
+    outputs = _chain_outputs(4, 50, 11, 0.8)
+    nbr = greedy_neighbours(outputs["pred_log_assignment"], outputs["pred_vertex_mask"], 0.05)  # [B, N, 2]
+    vertices, lengths, closed = trace_graphs(nbr.numpy(), min_vertices)
+    expected = [([b * 50 + i for i in walk], shut) for b in range(4)
+                for walk, shut in _trace_loop(nbr[b, :, 0].tolist(), nbr[b, :, 1].tolist(), min_vertices)]
+    bounds = np.concatenate([[0], np.cumsum(lengths)])
+    got = [(vertices[a:z].tolist(), bool(c)) for a, z, c in zip(bounds[:-1], bounds[1:], closed)]
+    assert got == expected and any(c for _, c in expected) and not all(c for _, c in expected)
+    assert trace_instances(nbr[0, :, 0].tolist(), nbr[0, :, 1].tolist(), min_vertices) == \
+        _trace_loop(nbr[0, :, 0].tolist(), nbr[0, :, 1].tolist(), min_vertices)
+
+
+@pytest.mark.parametrize("decoder", ["greedy", "classwise", "mutual", "official"])
+def test_postprocess_batch_equals_its_loop_reference(decoder):
+    """The whole decoding against one built from the loops: same instances, points, labels and scores
+    (exactly), sample by sample."""
+    from test_assignment import GRID as grid
+
+    from instagram_hdmap.postprocess import OFFICIAL_CONFIDENCE, neighbours, official_instances
+
+    outputs = _chain_outputs(3, 40, 5, 0.6)
+    options = {"match_threshold": 0.05, "min_vertices": 3}
+    if decoder in ("greedy", "classwise"):
+        options["max_edge_px"] = 20.0
+    got = postprocess_batch(outputs, grid, decoder=decoder, **options)
+    B, N = outputs["pred_vertex_mask"].shape
+    if decoder == "official":
+        walks = official_instances(outputs, 0.05)
+        traced = [[[(w, False) for w, k in walks[b] if k == g and len(w) >= 3] for g in range(K)] for b in range(B)]
+    else:
+        opts = {k: v for k, v in options.items() if k != "min_vertices"}
+        nbr = neighbours(outputs, decoder=decoder, **opts)
+        traced = [[_trace_loop(nbr[b, g, :, 0].tolist(), nbr[b, g, :, 1].tolist(), 3) for g in range(nbr.shape[1])]
+                  for b in range(B)]
+    pts_m = grid.px_to_m(outputs["pred_vertices_px"].numpy().astype(np.float64))
+    probs = outputs["pred_class_log_probs"].exp().numpy()
+    scores = outputs["pred_vertex_scores"].numpy()
+    for b in range(B):
+        expected = []
+        for g, instances in enumerate(traced[b]):
+            for walk, shut in instances:
+                n = np.array([len(walk)])  # an int array: the means are float64, as in the decoding
+                mean = (np.add.reduceat(probs[b][walk], [0], axis=0) / n[:, None])[0]
+                label = int(mean.argmax()) if len(traced[b]) == 1 else g
+                score = mean[label]
+                if decoder not in OFFICIAL_CONFIDENCE:
+                    score = score * (np.add.reduceat(scores[b][walk], [0]) / n)[0]
+                score = float(score)
+                expected.append((pts_m[b][walk + [walk[0]] if shut else walk].tolist(), label, shut, score))
+        assert [(p["pts"].tolist(), p["label"], p["closed"], p["score"]) for p in got[b]] == expected
+    assert sum(len(s) for s in got) > 0

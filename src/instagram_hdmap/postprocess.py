@@ -43,11 +43,16 @@ dustbin.
    ``model.gnn.max_edge_m`` 2.5 and ``min_vertices`` 4 (configs/synthetic/demo.yaml;
    benchmarks/README.md, "Decoding": +0.08 to +0.19 mAP over the class-agnostic mutual rule of
    before issue 18 on five demo models).
-2. Tracing (``trace_instances``): a linear walk over the neighbour pointers, O(N) per sample. Paths
-   are walked from their lower-index end; what remains are cycles, walked from their lowest-index
-   vertex in the direction of that vertex's first neighbour. Vertices without an edge (none above
-   the threshold, or none accepted) are dropped; instances need ``min_vertices`` (default 2)
-   vertices.
+2. Tracing (``trace_graphs``, every graph of the batch at once): paths are walked from their
+   lower-index end; cycles from their lowest-index vertex in the direction of that vertex's first
+   neighbour. Vertices without an edge (none above the threshold, or none accepted) are dropped;
+   instances need ``min_vertices`` (default 2) vertices.
+
+Speed: no Python loop over pairs, vertices or graphs. The greedy rule reads the sparse candidate
+pairs only (``candidate_pairs``) and is evaluated in vectorised rounds (``greedy_two_matching``);
+the walks are ranked by pointer jumping; only the output dicts are built one by one.
+``benchmarks/graph_speed.py`` times it (benchmarks/README.md, "Decoding speed"); tests/test_postprocess.py
+checks it against the sequential loops.
 3. Instances: a path becomes a polyline (``closed=False``), a cycle a closed polygon whose first
    point is repeated at the end (``closed=True``, >= 4 points). Class and confidence:
    ``label = argmax_k mean_i p_ik`` (mean class probability over the instance's vertices, a soft
