@@ -640,6 +640,20 @@ def row_full_disk_json(env):
     assert old.read_text() == '{"old": 1}' and sorted(x.name for x in env.tmp.iterdir()) == ["metrics.json"]
 
 
+@row("S", "a full disk outside the atomic writes (a training's log line) is one line, not a traceback")
+def row_full_disk_in_a_log_write(env):
+    import errno
+
+    from instagram_hdmap.train import TrainingRun
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.out_dir / "log.jsonl"))
+
+    env.monkeypatch.setattr(TrainingRun, "log", full)
+    env.error(r"No space left on device writing .*log\.jsonl: the disk is full", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}", "train.max_steps=1")
+
+
 @row("12", "data.dt_clip=0 is named (not a NaN loss blamed on the learning rate)")
 def row_dt_clip_0(env):
     env.error(r"data\.dt_clip.*> ?0", "train", env.yaml, "data.dt_clip=0", f"train.out_dir={env.tmp / 'r'}")

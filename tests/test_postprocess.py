@@ -667,9 +667,8 @@ def test_vectorised_walk_equals_the_loop(min_vertices):
 def test_postprocess_batch_equals_its_loop_reference(decoder):
     """The whole decoding against one built from the loops: same instances, points, labels and scores
     (exactly), sample by sample."""
-    from test_assignment import GRID as grid
-
     from instagram_hdmap.postprocess import OFFICIAL_CONFIDENCE, neighbours, official_instances
+    from test_assignment import GRID as grid
 
     outputs = _chain_outputs(3, 40, 5, 0.6)
     options = {"match_threshold": 0.05, "min_vertices": 3}

@@ -21,7 +21,7 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .evaluation import evaluate_files, format_table
-from .files import check_output_dir, check_output_file, write_json
+from .files import NO_ROOM, check_output_dir, check_output_file, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_sample, run_evaluation
@@ -256,7 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a model; torchrun-aware")
     _add_config_args(p)
     p.add_argument("--resume", help="checkpoint to continue from (e.g. OUT/last.pt)")
-    p.add_argument("--force", action="store_true", help="start over in an output folder that holds a run")
+    p.add_argument("--force", action="store_true",
+                   help="start over in an output folder that holds a run (removes that run's checkpoints, log and "
+                   "TensorBoard events, nothing else)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("evaluate-json", help="AP of a submission JSON against a GT JSON (vector or raster protocol)",
@@ -361,6 +363,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"instagram-hdmap {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
+        cause = os_error_in(e)
+        if cause is None or cause.errno not in NO_ROOM:
+            raise
+        where = f" writing {cause.filename}" if cause.filename else ""
+        print(f"instagram-hdmap {args.command}: error: {cause.strerror or cause}{where}: the disk is full or a "
+              "file-size limit is reached; free some space and run again (a training resumes with --resume "
+              "OUT/last.pt)", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
