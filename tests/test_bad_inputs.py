@@ -508,6 +508,13 @@ def row_resume_from_weights_only(env):
               "train", env.yaml, f"train.out_dir={env.tmp / 'r'}", "--resume", path)
 
 
+@row("S", "model.backbone.weights that is not a torch file: one line, not torch's multi-line text")
+def row_backbone_weights_not_a_checkpoint(env):
+    env.error(r"model\.backbone\.weights: cannot read .*tiny_world\.yaml as a torch checkpoint", "train", env.yaml,
+              "model.backbone.name=efficientnet-b0", "data.image_size=[64,160]", f"model.backbone.weights={env.yaml}",
+              f"train.out_dir={env.tmp / 'r'}")
+
+
 # ==================================================================================================
 # Too late or misleading
 # ==================================================================================================

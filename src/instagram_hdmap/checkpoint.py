@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from .config import UserError
+from .errors import one_line
 from .files import atomic_path
 
 
@@ -73,7 +74,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         ) from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, KeyError) as e:
         raise CheckpointError(
-            f"checkpoint {path} is truncated or corrupt and cannot be loaded ({type(e).__name__}: {_one_line(e)})"
+            f"checkpoint {path} is truncated or corrupt and cannot be loaded ({type(e).__name__}: {one_line(e)})"
         ) from None
     if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
         raise CheckpointError(f"checkpoint {path} holds no 'model' state dict; is it an instagram_hdmap checkpoint?")
@@ -105,10 +106,10 @@ def _check_archive(path: Path) -> None:
             bad = z.testzip()
     except (zipfile.BadZipFile, OSError, EOFError) as e:
         raise CheckpointError(f"checkpoint {path} is truncated or corrupt and cannot be loaded "
-                              f"({type(e).__name__}: {_one_line(e)}); was its save interrupted or the copy cut "
+                              f"({type(e).__name__}: {one_line(e)}); was its save interrupted or the copy cut "
                               "short? Use another checkpoint") from None
     except (zipfile.LargeZipFile, NotImplementedError, RuntimeError) as e:  # damaged headers
-        raise CheckpointError(f"checkpoint {path} is damaged ({type(e).__name__}: {_one_line(e)}); use another "
+        raise CheckpointError(f"checkpoint {path} is damaged ({type(e).__name__}: {one_line(e)}); use another "
                               "copy") from None
     if bad is not None:
         raise CheckpointError(f"checkpoint {path} is damaged: its entry {bad} fails the zip's CRC-32 check (bits "
@@ -130,13 +131,7 @@ def _refusal_reason(e: BaseException) -> str:
     object (e.g. ``Unsupported global: GLOBAL posix.system ...``), whole; all of it if none does."""
     lines = [" ".join(ln.split()) for ln in re.sub(r"\x1b\[[0-9;]*m", "", str(e)).splitlines()]
     reason = [ln for ln in lines if "GLOBAL" in ln or "WeightsUnpickler" in ln or "Unsupported" in ln]
-    return " ".join(reason) if reason else _one_line(e)
-
-
-def _one_line(e: BaseException) -> str:
-    """An exception's message on one line, whole (terminal colour codes dropped)."""
-    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e))
-    return " ".join(text.split()) or type(e).__name__
+    return " ".join(reason) if reason else one_line(e)
 
 
 def rng_state() -> dict[str, Any]:

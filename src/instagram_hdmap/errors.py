@@ -35,3 +35,10 @@ def _worker_message(text: str, name: str) -> str:
         if re.match(rf"([\w.]+\.)?{name}: ", lines[i]):
             return "\n".join(lines[i:]).split(": ", 1)[1].strip()
     return text
+
+
+def one_line(e: BaseException) -> str:
+    """An exception's message on one line, whole (terminal colour codes dropped): for a UserError that
+    quotes a library's multi-line explanation."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e))
+    return " ".join(text.split()) or type(e).__name__
