@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from .benchmark import format_benchmark, run_benchmark
-from .config import UserError, load_config
+from .config import UserError, load_config, parse_overrides
 from .data import build_dataset
 from .data.base import gt_submission
 from .data.synthetic import generate_world
@@ -24,7 +24,7 @@ from .evaluation import evaluate_files, format_table
 from .files import NO_ROOM, check_output_dir, check_output_file, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
-from .predict import predict_sample, run_evaluation
+from .predict import predict_images, predict_sample, predict_video, run_evaluation
 from .train import train
 from .visualize import write_sample_pngs
 
@@ -167,12 +167,45 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_predict(args: argparse.Namespace) -> int:
+    if args.scene is not None:
+        if args.video is None:
+            raise UserError("--scene renders a whole scene as a video: add --video OUT.mp4 (or use --index / --token "
+                            "for one sample's pictures)")
+        result = predict_video(_load(args), args.video, args.scene, checkpoint=args.checkpoint, onnx=args.onnx,
+                               gt_as_prediction=args.gt_as_prediction, split=args.split, overrides=args.overrides,
+                               fps=args.fps, progress=sys.stderr.isatty())
+        _print_notes(result["notes"])
+        print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames; "
+              f"wrote {result['video']}")
+        return 0
+    if args.video is not None or args.out is None:
+        raise UserError("--video needs --scene NAME; one sample's pictures need --out DIR")
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
                             split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
                             onnx=args.onnx)
     _print_notes(result["notes"])
     print(f"sample {result['sample_token']} (split '{result['split']}', index {result['index']}): "
           f"{len(result['predictions'])} predicted instances; wrote {', '.join(str(p) for p in result['paths'])}")
+    return 0
+
+
+def _decode_options(items: list[str]) -> dict:
+    """``--decode name=value`` -> {name: value} (values read as YAML, as config overrides are)."""
+    options = {}
+    for item in items:
+        if "=" not in item:
+            raise UserError(f"--decode {item}: expected NAME=VALUE, e.g. match_threshold=0.05")
+        name, _, value = item.partition("=")
+        options[name.strip()] = parse_overrides([f"value={value}"])["value"]
+    return options
+
+
+def _cmd_predict_images(args: argparse.Namespace) -> int:
+    result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
+                            config=args.config, decode=_decode_options(args.decode), device=args.device,
+                            name=args.name)
+    print(f"{result['name']} ({result['source']}): {len(result['elements'])} map elements; wrote "
+          f"{', '.join(str(p) for p in result['paths'])}")
     return 0
 
 
@@ -301,12 +334,32 @@ def build_parser() -> argparse.ArgumentParser:
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--index", type=int, help="sample index in the split (negative counts from the end)")
     which.add_argument("--token", help="nuScenes sample token")
+    which.add_argument("--scene", help="a whole scene (nuScenes scene name, AV2 log id) as a video: with --video")
     p.add_argument("--split", help="split to take the sample from (default: data.val_split)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", help="output folder (one sample's pictures)")
+    p.add_argument("--video", help="MP4 file: with --scene, one frame per sample (BEV prediction and GT, cameras)")
+    p.add_argument("--fps", type=float, default=2.0, help="video frames per second (default 2: nuScenes' key frames)")
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
     p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("predict-images", help="map elements from your own cameras: a rig file and one image per camera",
+                       description="Runs a checkpoint (or an export-onnx file) on one frame of your own cameras, "
+                       "described by a rig file (README, 'Your own cameras': camera names, intrinsics, camera-to-ego "
+                       "rotation and translation, image size), and writes OUT/prediction.json (HDMapNet format) and "
+                       "predict's pictures.")
+    p.add_argument("images", nargs="+", help="one image file per camera of the rig file, in its order")
+    p.add_argument("--rig", required=True, help="rig file (JSON)")
+    p.add_argument("--checkpoint", help="model checkpoint (its saved config describes the model)")
+    p.add_argument("--onnx", help="an export-onnx file instead of a checkpoint ([deploy] extra)")
+    p.add_argument("--config", help="with --onnx: the config it was exported from (default: the one stamped in it)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--name", default="frame", help="the frame's name in prediction.json (default: frame)")
+    p.add_argument("--device", help="cpu, cuda or cuda:i (default: CUDA when available)")
+    p.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
+                   help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
+    p.set_defaults(func=_cmd_predict_images)
 
     p = sub.add_parser("benchmark", help="inference FPS, batch 1, six cameras, with and without post-processing")
     _add_config_args(p)

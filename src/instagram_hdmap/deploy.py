@@ -56,6 +56,7 @@ from .inference import (
     META_CONFIG,
     META_CONFIG_SHA,
     META_FORMAT,
+    META_INFERENCE,
     META_SHAPES,
     META_SOURCE,
     OUTPUT_NAMES,
@@ -64,6 +65,7 @@ from .inference import (
     baked_config,
     config_sha256,
     inference_config,
+    inference_metadata,
     load_weights,
     output_names,
     require_onnx,
@@ -184,6 +186,7 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
     sha = config_sha256(baked)
     meta = {META_FORMAT: str(EXPORT_FORMAT), META_CONFIG: json.dumps(baked), META_CONFIG_SHA: sha,
             META_SHAPES: json.dumps(shapes),
+            META_INFERENCE: json.dumps(inference_metadata(cfg)),
             META_SOURCE: json.dumps({"checkpoint": source, "config_name": cfg.name, "package": package_version(),
                                      "torch": torch.__version__, "onnx": onnx.__version__, "opset": opset})}
     del proto.metadata_props[:]

@@ -107,21 +107,26 @@ def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
     which are gone left behind (``kill -9``, a power cut): the next writer of ``path`` owns them. One
     whose PID is alive (another process writing now) is left alone. Returns the paths removed."""
     path = Path(path)
-    removed = []
-    prefix = f".{path.name}.{tag}-"
+    removed: list[Path] = []
     if not path.parent.is_dir():
         return removed
-    for tmp in path.parent.glob(prefix + "*"):
-        pid = tmp.name[len(prefix):]
-        if pid.isdigit() and int(pid) != os.getpid() and not process_alive(int(pid)):
-            _remove(tmp)
-            removed.append(tmp)
+    # .NAME.TAG-PID, and .STEM.TAG-PID.SUFFIX (keep_suffix)
+    for prefix, suffix in ((f".{path.name}.{tag}-", ""), (f".{path.stem}.{tag}-", path.suffix)):
+        for tmp in path.parent.glob(prefix + "*"):
+            pid = tmp.name[len(prefix):len(tmp.name) - len(suffix)]
+            if (tmp.name.endswith(suffix) and pid.isdigit() and int(pid) != os.getpid()
+                    and not process_alive(int(pid)) and tmp not in removed):
+                _remove(tmp)
+                removed.append(tmp)
     return removed
 
 
-def temporary_sibling(path: str | Path, tag: str = "tmp") -> Path:
-    """``.NAME.TAG-PID`` next to ``path``: where ``atomic_path`` writes before the rename."""
+def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Path:
+    """``.NAME.TAG-PID`` next to ``path``: where ``atomic_path`` writes before the rename
+    (``.STEM.TAG-PID.SUFFIX`` with ``keep_suffix``, for writers that choose a format by the suffix)."""
     path = Path(path)
+    if keep_suffix:
+        return path.with_name(f".{path.stem}.{tag}-{os.getpid()}{path.suffix}")
     return path.with_name(f".{path.name}.{tag}-{os.getpid()}")
 
 
@@ -138,11 +143,12 @@ def _replace(src: Path, dst: Path) -> None:
 
 
 @contextmanager
-def atomic_path(path: str | Path, tag: str = "tmp") -> Iterator[Path]:
-    """Yield a temporary sibling of ``path`` to write a file or a folder at; on success it replaces
-    ``path`` (a file is fsync'ed first), on any exception it is removed (module docstring)."""
+def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
+    success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
+    docstring)."""
     path = Path(path)
-    tmp = temporary_sibling(path, tag)
+    tmp = temporary_sibling(path, tag, keep_suffix)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp

@@ -1,6 +1,10 @@
-"""Pictures and AP of trained models: one sample's pictures (``predict``) and a split's AP (``evaluate``).
+"""Pictures and AP of trained models: one sample's pictures (``predict``), a scene as a video
+(``predict --scene --video``), one frame of your own cameras (``predict-images``) and a split's AP
+(``evaluate``).
 
     predict_sample(cfg, "out/", checkpoint="runs/x/best.pt", index=3)   # PNGs + prediction.json
+    predict_video(cfg, "scene.mp4", "scene-0103", checkpoint="runs/x/best.pt")   # one frame per sample
+    predict_images("rig.json", ["front.jpg", ...], "out/", checkpoint="runs/x/best.pt")
     run_evaluation(cfg, "runs/x/best.pt", protocol="vector", out="eval/")  # submission + metrics JSON
 
 Which config a checkpoint runs with (inference.py): the keys that define the model
@@ -22,25 +26,34 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
+from tqdm import tqdm
 
 from . import distributed as du
 from .config import ExperimentConfig, UserError
 from .data import build_dataset
 from .data.base import collate_fn
+from .data.rig import CameraCalibration, RigError, read_rig_file
 from .data.transforms import load_image
-from .engine import evaluate, move_to
+from .engine import evaluate
 from .evaluation import Evaluator, write_submission
-from .files import check_output_dir, write_json
+from .files import atomic_path, check_output_dir, write_json
 from .geometry import BEVGrid
-from .inference import OnnxModel, gt_outputs, load_model
+from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .visualize import intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
+from .visualize import (
+    figure_rgb,
+    intermediate_figure,
+    prediction_bev_figure,
+    prediction_cameras_figure,
+    save_figure,
+)
 
 
 class PredictError(UserError):
@@ -83,9 +96,13 @@ def find_sample(dataset, index: int | None = None, token: str | None = None) -> 
 
 
 def display_cameras(dataset, index: int, width: int = 480) -> dict[str, torch.Tensor]:
-    """The sample's original camera images, whole, resized to ``width`` for drawing: ``images``
+    """The sample's original camera images, whole, resized to ``width`` for drawing (``display_images``)."""
+    return display_images(dataset.camera_files(index), width)
+
+
+def display_images(files: Sequence[tuple[Path, tuple[int, int]]], width: int = 480) -> dict[str, torch.Tensor]:
+    """Camera images ``[(path, (W, H))]``, whole, resized to ``width`` for drawing: ``images``
     [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
-    files = dataset.camera_files(index)
     # one picture size for all cameras, of the median aspect ratio; cameras of another one fit inside
     # (AV2's portrait front camera)
     aspects = sorted(H / W for _, (W, H) in files)
@@ -129,6 +146,61 @@ def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_thre
     return edges.cpu().numpy(), followed[i, j].cpu().numpy()
 
 
+def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = None, onnx: str | Path | None = None,
+                   gt_as_prediction: bool = False, overrides: Sequence[str] = ()):
+    """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint, an
+    ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
+    ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT)."""
+    if gt_as_prediction and checkpoint is not None:
+        raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
+                           "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
+    if sum(x is not None for x in (checkpoint, onnx)) + gt_as_prediction != 1:
+        raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
+                           "(GT-derived predictions)")
+    if onnx is not None:
+        return OnnxModel(onnx, cfg), cfg, [], f"ONNX {onnx} (onnxruntime)"
+    if checkpoint is not None:
+        model, cfg, notes = load_model(checkpoint, cfg, overrides)
+        return model, cfg, notes, f"checkpoint {checkpoint}"
+    return None, cfg, [], "GT-derived predictions (--gt-as-prediction)"
+
+
+def predict_batch(model, batch: dict, cfg: ExperimentConfig, memory: dict | None = None
+                  ) -> tuple[dict[str, torch.Tensor], list[list[dict]]]:
+    """``(outputs, predictions)`` of ``model`` (``load_predictor``'s; None: ``gt_outputs``) on ``batch``."""
+    grid = BEVGrid.from_config(cfg.grid)
+    if model is None:
+        outputs = gt_outputs(batch, grid, len(cfg.data.classes))
+    else:
+        outputs = run_model(model, batch, memory)
+    return outputs, postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))
+
+
+def prediction_figures(outputs: dict, predictions: list[dict], ground_truth: list[dict] | None, display: dict,
+                       calibration: dict, cfg: ExperimentConfig, heading: str, camera_names: Sequence[str]) -> dict:
+    """``predict``'s three pictures of one sample (batch of one ``outputs``): ``prediction_bev.png``,
+    ``prediction_cameras.png`` (``display`` images, ``calibration``: intrinsics and cam_to_ego_* [V, ...])
+    and ``prediction_intermediate.png``; ``ground_truth`` None: your own images, no GT."""
+    grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
+    decode = decode_options(cfg.model.gnn, grid)
+    threshold = decode["match_threshold"]
+    mask = outputs["pred_vertex_mask"][0]
+    graphs = neighbours(outputs, **graph_options(decode))[0]  # [G, N, 2], batch of one
+    nbr = graphs.permute(1, 0, 2).reshape(graphs.shape[1], -1)  # [N, 2G]: a vertex's neighbours in any graph
+    edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, nbr)
+    return {
+        "prediction_bev.png": prediction_bev_figure(predictions, ground_truth, grid, classes, heading),
+        "prediction_cameras.png": prediction_cameras_figure(
+            **display, **calibration, predictions=predictions, ground_truth=ground_truth or (),
+            camera_names=camera_names, classes=classes),
+        "prediction_intermediate.png": intermediate_figure(
+            outputs["pred_heatmap"][0], outputs["pred_distance"][0] if "pred_distance" in outputs else None,
+            outputs["pred_vertices_px"][0][mask],
+            outputs["pred_class_log_probs"][0][mask].argmax(-1), edges, kept, grid, classes, cfg.data.dt_clip,
+            f"{heading}; match threshold {threshold}"),
+    }
+
+
 def predict_sample(
     cfg: ExperimentConfig,
     out: str | Path,
@@ -157,62 +229,148 @@ def predict_sample(
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
     check_output_dir(out, "--out")  # before the model runs
-    if gt_as_prediction and checkpoint is not None:
-        raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
-                           "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
-    if sum(x is not None for x in (checkpoint, onnx)) + gt_as_prediction != 1:
-        raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
-                           "(GT-derived predictions)")
-    notes: list[str] = []
-    model = None
-    source = "GT-derived predictions (--gt-as-prediction)"  # computed where the dataset puts them
-    if onnx is not None:
-        model, source = OnnxModel(onnx, cfg), f"ONNX {onnx} (onnxruntime)"
-    if checkpoint is not None:
-        model, cfg, notes = load_model(checkpoint, cfg, overrides)
-        source = f"checkpoint {checkpoint}"
-    grid = BEVGrid.from_config(cfg.grid)
+    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
+                                               gt_as_prediction=gt_as_prediction, overrides=overrides)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
     sample = dataset.load_sample(i)
-    batch = collate_fn([sample])
-    classes = cfg.data.classes
-    with torch.no_grad():
-        if model is None:
-            outputs = gt_outputs(batch, grid, len(classes))
-        elif onnx is not None:
-            outputs = model(batch)
-        else:
-            outputs = model(move_to(batch, next(model.parameters()).device))
-    decode = decode_options(cfg.model.gnn, grid)
-    threshold = decode["match_threshold"]
-    preds = postprocess_batch(outputs, grid, **decode)[0]
-    gts = sample["gt_polylines"]
-
-    mask = outputs["pred_vertex_mask"][0]
-    graphs = neighbours(outputs, **graph_options(decode))[0]  # [G, N, 2], batch of one
-    nbr = graphs.permute(1, 0, 2).reshape(graphs.shape[1], -1)  # [N, 2G]: a vertex's neighbours in any graph
-    edges, kept = adjacency_edges(outputs["pred_log_assignment"][0], mask, threshold, nbr)
+    outputs, (preds,) = predict_batch(model, collate_fn([sample]), cfg)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
+    figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
+                                 {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
+                                 heading, dataset.camera_names)
     out = Path(out)
-    figures = {
-        "prediction_bev.png": prediction_bev_figure(preds, gts, grid, classes, heading),
-        "prediction_cameras.png": prediction_cameras_figure(
-            **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
-            cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
-            predictions=preds, ground_truth=gts, camera_names=dataset.camera_names, classes=classes),
-        "prediction_intermediate.png": intermediate_figure(
-            outputs["pred_heatmap"][0], outputs["pred_distance"][0] if "pred_distance" in outputs else None,
-            outputs["pred_vertices_px"][0][mask],
-            outputs["pred_class_log_probs"][0][mask].argmax(-1), edges, kept, grid, classes, cfg.data.dt_clip,
-            f"{heading}; match threshold {threshold}"),
-    }
     paths = [save_figure(fig, out / name) for name, fig in figures.items()]
     write_submission(out / "prediction.json", {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
     paths.append(out / "prediction.json")
     return {"sample_token": sample["sample_token"], "index": i, "split": split, "predictions": preds,
             "paths": paths, "notes": notes}
+
+
+# --- your own images: predict-images ------------------------------------------------------------------
+
+
+def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], rig_file: str | Path,
+              cameras: Sequence[str]) -> Frame:
+    """The ``Frame`` of ``images`` (one file per camera of a rig file, in its order), checked: the rig's
+    cameras against the model's (``cameras``), the number of images, each image's size against the
+    camera's ``image_size``. Errors are one ``RigError`` line naming the camera and the field."""
+    names = [c.name for c in rig]
+    missing, extra = [c for c in cameras if c not in names], [n for n in names if n not in cameras]
+    if missing or extra:
+        parts = ([f"missing {', '.join(missing)}"] if missing else []) + (
+            [f"unknown to the model: {', '.join(extra)}"] if extra else [])
+        raise RigError(f"rig file {rig_file}: its cameras do not match the model's ({', '.join(cameras)}): "
+                       + "; ".join(parts))
+    if len(images) != len(rig):
+        raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
+                       f"({', '.join(names)}): give one image per camera, in the rig file's order")
+    for cam, path in zip(rig, images):
+        size = image_size_of(path, cam.name)
+        if tuple(size) != tuple(cam.image_size):
+            raise RigError(f"rig file {rig_file}: camera {cam.name}: 'image_size' is {cam.image_size[0]}x"
+                           f"{cam.image_size[1]} but its image {path} is {size[0]}x{size[1]}")
+    pose = {c.name: np.vstack([np.c_[c.rotation, c.translation], [0, 0, 0, 1]]) for c in rig}
+    return Frame(images=dict(zip(names, images)), intrinsics={c.name: c.intrinsics for c in rig}, cam_to_ego=pose)
+
+
+def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str | Path, *,
+                   checkpoint: str | Path | None = None, onnx: str | Path | None = None,
+                   config: str | Path | None = None, decode: Mapping | None = None, device: str | None = None,
+                   name: str = "frame", camera_width: int = 480) -> dict:
+    """``predict-images``: the model (a checkpoint, or an ``export-onnx`` file with the ``config`` it was
+    exported from, default: the one stamped in it) on one frame of your own cameras, described by a
+    rig file (``data.rig.read_rig_file``), and ``predict``'s pictures (no GT) and ``prediction.json``
+    (the frame under ``name``) in ``out``. ``decode``: decoding options (``inference.DECODE_OPTIONS``).
+    Returns ``{"name", "elements", "paths", "source"}``."""
+    if (checkpoint is None) == (onnx is None):
+        raise PredictError("pass --checkpoint CKPT or --onnx FILE (one of them)")
+    check_output_dir(out, "--out")  # before the model runs
+    decode = dict(decode or {})
+    mapper = (Mapper.from_checkpoint(checkpoint, device, **decode) if checkpoint is not None
+              else Mapper.from_onnx(onnx, config, **decode))
+    rig = read_rig_file(rig_file)
+    frame = rig_frame(rig, images, rig_file, mapper.cameras)
+    batch = mapper.batch([frame])
+    outputs = mapper.forward(batch)
+    (elements,) = mapper.decode(outputs)
+    preds = [e.as_polyline() for e in elements]
+    size = {c.name: c.image_size for c in rig}
+    display = display_images([(Path(frame.images[c]), size[c]) for c in mapper.cameras], camera_width)  # model order
+    figures = prediction_figures(outputs, preds, None, display,
+                                 {k: batch[k][0] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")},
+                                 mapper.config, f"{name} - {mapper.source}", mapper.cameras)
+    out = Path(out)
+    paths = [save_figure(fig, out / file) for file, fig in figures.items()]
+    meta = {**submission_meta(mapper.config, "", mapper.source), "rig": str(rig_file),
+            "images": [str(p) for p in images]}
+    write_submission(out / "prediction.json", {name: preds}, meta)
+    return {"name": name, "elements": elements, "paths": [*paths, out / "prediction.json"], "source": mapper.source}
+
+
+# --- a scene as a video: predict --scene --video -------------------------------------------------------
+
+
+def _side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Two RGB pictures next to each other, the right one scaled to the left one's height, padded to
+    even sizes (what video encoders want)."""
+    h = left.shape[0]
+    right = cv2.resize(right, (max(1, round(right.shape[1] * h / right.shape[0])), h), interpolation=cv2.INTER_AREA)
+    frame = np.concatenate([left, right], axis=1)
+    return np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), constant_values=255)
+
+
+def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, checkpoint: str | Path | None = None,
+                  onnx: str | Path | None = None, gt_as_prediction: bool = False, split: str | None = None,
+                  overrides: Sequence[str] = (), fps: float = 2.0, camera_width: int = 320,
+                  progress: bool = True) -> dict:
+    """Every sample of ``scene`` (a nuScenes scene name or an AV2 log id) of ``split``, in time order,
+    as one MP4 frame each (OpenCV's ``VideoWriter``, ``mp4v``): the BEV prediction next to the GT on
+    the left, the cameras with the predictions projected on the right. Frames run through the model in
+    order, each with the previous one's ``out["memory"]`` (a temporal model; ``scene_start`` on the
+    first). Written atomically. Returns ``{"video", "frames", "scene", "split", "notes"}``."""
+    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
+                                               gt_as_prediction=gt_as_prediction, overrides=overrides)
+    if not fps > 0:
+        raise PredictError(f"--fps {fps}: frames per second must be > 0")
+    video = Path(video)
+    if video.suffix.lower() != ".mp4":
+        raise PredictError(f"--video {video}: the video is written as MP4; give a file name ending in .mp4")
+    split = split or cfg.data.val_split
+    dataset = build_dataset(cfg, split, augment=False)
+    indices = dataset.scene_indices(scene)
+    grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
+    memory, writer, size = None, None, None
+    with atomic_path(video, keep_suffix=True) as tmp:
+        try:
+            for k, i in enumerate(tqdm(indices, desc=f"video {scene}", unit="frame", disable=not progress)):
+                sample = dataset.load_sample(i)
+                batch = collate_fn([sample])
+                batch["scene_start"] = torch.tensor([k == 0])
+                outputs, (preds,) = predict_batch(model, batch, cfg, memory)
+                memory = outputs.get("memory")
+                heading = f"{scene} {k + 1}/{len(indices)}: {sample['sample_token']} - {source}"
+                bev = figure_rgb(prediction_bev_figure(preds, sample["gt_polylines"], grid, classes, heading))
+                cams = figure_rgb(prediction_cameras_figure(
+                    **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
+                    cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
+                    predictions=preds, ground_truth=sample["gt_polylines"], camera_names=dataset.camera_names,
+                    classes=classes))
+                frame = _side_by_side(bev, cams)
+                if writer is None:
+                    size = (frame.shape[1], frame.shape[0])
+                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+                    if not writer.isOpened():
+                        raise PredictError(f"--video {video}: OpenCV cannot write MP4 (mp4v) here; check the "
+                                           "folder is writable and OpenCV was built with FFmpeg")
+                if (frame.shape[1], frame.shape[0]) != size:
+                    frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
+                writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        finally:
+            if writer is not None:
+                writer.release()
+    return {"video": video, "frames": len(indices), "scene": scene, "split": split, "notes": notes}
 
 
 # --- a split: evaluate ---------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from .data.transforms import denormalize, project_to_image
@@ -37,6 +38,14 @@ def _bev_axes(ax, grid: BEVGrid, title: str) -> None:
 
 def _ego_marker(ax) -> None:
     ax.plot([0], [0], marker=">", color="k", markersize=8)
+
+
+def figure_rgb(fig: Figure, dpi: int = 100) -> np.ndarray:
+    """The figure drawn as an RGB image [H, W, 3] uint8 (for video frames)."""
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
 
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
@@ -258,18 +267,20 @@ def _counts(polylines: Sequence[dict], num_classes: int) -> list[int]:
 @_default_style
 def prediction_bev_figure(
     predictions: Sequence[dict],
-    ground_truth: Sequence[dict],
+    ground_truth: Sequence[dict] | None,
     grid: BEVGrid,
     classes: Sequence[str] = DEFAULT_CLASSES,
     title: str = "",
 ) -> Figure:
     """Predicted polylines (metres, with ``score``) next to the GT on the same upright axes
-    (x forward up, y left). A prediction's line opacity is its confidence."""
+    (x forward up, y left); the prediction alone where ``ground_truth`` is None (your own images). A
+    prediction's line opacity is its confidence."""
     w, h = _upright_panel_size(grid, 7.0)
-    fig = Figure(figsize=(2 * w + 1.2, h + 0.9), layout="constrained")
-    axes = fig.subplots(1, 2, sharex=True, sharey=True)
-    for ax, polys, name, scored in ((axes[0], predictions, "prediction", True),
-                                    (axes[1], ground_truth, "ground truth", False)):
+    panels = [(predictions, "prediction", True)] + ([] if ground_truth is None else [(ground_truth, "ground truth",
+                                                                                       False)])
+    fig = Figure(figsize=(len(panels) * w + 1.2, h + 0.9), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(panels), sharex=True, sharey=True))
+    for ax, (polys, name, scored) in zip(axes, panels):
         _upright_polylines(ax, polys, scored=scored)
         _class_legend(ax, classes, _counts(polys, len(classes)))
         extra = " (opacity = confidence)" if scored else ""

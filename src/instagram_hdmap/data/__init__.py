@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from .av2 import AV2MapDataset
 from .nuscenes import NuScenesMapDataset
+from .rig import CAMERAS
 
 
 def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
@@ -12,3 +13,9 @@ def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     if cfg.data.dataset == "av2":
         return AV2MapDataset(cfg, split, augment=augment)
     return NuScenesMapDataset(cfg, split, nusc=getattr(like, "nusc", None), augment=augment)
+
+
+def rig_cameras(cfg) -> tuple[str, ...]:
+    """The camera names of ``cfg.data.dataset``'s samples, in the order of their camera tensors (the
+    order a model trained on them expects): nuScenes' six, or ``data.av2_cameras``."""
+    return tuple(cfg.data.av2_cameras) if cfg.data.dataset == "av2" else CAMERAS

@@ -272,6 +272,9 @@ class AV2MapDataset(MapDataset):
     def ego_pose(self, index: int) -> torch.Tensor:
         return torch.tensor(self._pose(index).transform_matrix, dtype=torch.float32)
 
+    def scene_of(self, index: int) -> str:
+        return self.samples[index][0]
+
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""
         log, ts = self.samples[index]

@@ -11,7 +11,9 @@ string per sample) and ``camera_names`` (V names, in the order of the camera ten
 * ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
   [V, 3, 3], ``cam_to_ego_trans`` [V, 3], ``post_rot`` [V, 3, 3], ``post_tran`` [V, 3];
 * ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
-* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals).
+* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals);
+* ``scene_of(i)``: the name of the sample's scene (nuScenes) or log (AV2); samples are in time order
+  within a scene.
 
 Bad input raises a ``UserError`` naming the file and sample; with ``data.on_bad_sample=skip`` a bad
 sample is replaced by the next good one (one warning per bad sample, with the running count;
@@ -129,6 +131,20 @@ class MapDataset(Dataset):
 
     def camera_files(self, index: int) -> list:
         raise NotImplementedError
+
+    def scene_of(self, index: int) -> str:
+        """The name of the scene (nuScenes) or log (AV2) that sample ``index`` belongs to."""
+        raise NotImplementedError
+
+    def scene_indices(self, name: str) -> list[int]:
+        """The samples of scene (or log) ``name``, in time order; a ``DatasetError`` naming the split's
+        scenes when it has none."""
+        indices = [i for i in range(len(self)) if self.scene_of(i) == name]
+        if not indices:
+            names = list(dict.fromkeys(self.scene_of(i) for i in range(len(self))))
+            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            raise DatasetError(f"scene '{name}' is not in split '{self.split}' of {self.dataroot}; its scenes: {shown}")
+        return indices
 
     def set_epoch(self, epoch: int) -> None:
         """Select the augmentation draws of ``epoch`` (the training loop calls it before each epoch)."""

@@ -267,6 +267,9 @@ class NuScenesMapDataset(MapDataset):
         pose = self._reference_pose(self.nusc.get("sample", self.sample_tokens[index]))
         return _pose_matrix(pose["rotation"], pose["translation"])
 
+    def scene_of(self, index: int) -> str:
+        return self._scene_of[self.sample_tokens[index]]["name"]
+
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``CAMERAS`` order."""
         sample = self.nusc.get("sample", self.sample_tokens[index])

@@ -13,8 +13,10 @@ rendered. The ego frame: x forward, y left, z up, origin at the rear axle on the
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -123,3 +125,120 @@ def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
         "post_rot": post_rot.expand(V, 3, 3).clone(),
         "post_tran": post_tran.expand(V, 3).clone(),
     }
+
+
+# --- a user's rig: calibration checks and the rig file -----------------------------------------------------
+
+
+class RigError(UserError):
+    """A camera calibration, a rig file or the images given with it that cannot be used; the message
+    names the camera and the field."""
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """One camera of a rig: ``intrinsics`` [3, 3] (in the pixels of its images), the camera -> ego
+    ``rotation`` [3, 3] and ``translation`` [3] (metres; the ego frame: x forward, y left, z up), and
+    the (width, height) of its images where known."""
+
+    name: str
+    intrinsics: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    image_size: tuple[int, int] | None = None
+
+
+def _matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RigError(f"{what} must be a {'x'.join(map(str, shape))} array of numbers, got {value!r}") from None
+    if m.shape != shape:
+        got = "x".join(map(str, m.shape)) or "a single number"
+        raise RigError(f"{what} must be {'x'.join(map(str, shape))}, got {got}")
+    if not np.isfinite(m).all():
+        raise RigError(f"{what} holds a value that is not a finite number")
+    return m
+
+
+def check_calibration(name: str, intrinsics, rotation, translation, source: str = "") -> CameraCalibration:
+    """The calibration of camera ``name`` as float64 arrays, or a ``RigError`` naming ``source`` (a rig
+    file, say), the camera and the field: intrinsics not 3x3 or with a focal length <= 0, a rotation
+    that is not orthonormal with determinant +1, a translation that is not 3 numbers."""
+    where = f"{source}: camera {name}" if source else f"camera {name}"
+    K = _matrix(intrinsics, (3, 3), f"{where}: 'intrinsics'")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise RigError(f"{where}: 'intrinsics' has a focal length <= 0 (fx = {K[0, 0]:g}, fy = {K[1, 1]:g}); "
+                       "give [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
+    R = _matrix(rotation, (3, 3), f"{where}: 'rotation'")
+    off, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
+    if off > 1e-2 or det < 0:  # 1e-2: a matrix written with 3 decimals passes
+        raise RigError(f"{where}: 'rotation' is not a rotation matrix (|R R^T - I| = {off:.3g}, det {det:.3g}); give "
+                       "the camera -> ego rotation (its columns: the camera's x right, y down, z forward in the ego "
+                       "frame)")
+    t = _matrix(translation, (3,), f"{where}: 'translation'")
+    return CameraCalibration(name, K, R, t)
+
+
+def _image_size(value, what: str) -> tuple[int, int]:
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+        raise RigError(f"{what} must be [width, height] in pixels (positive whole numbers), got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+def read_rig_file(path) -> list[CameraCalibration]:
+    """The cameras of a rig file (README, "Your own cameras"), in its order:
+
+        {"image_size": [W, H],                       # every camera's, unless a camera gives its own
+         "cameras": {"CAM_FRONT": {"intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+                                   "rotation": [[...], [...], [...]],   # camera -> ego, 3x3
+                                   "translation": [x, y, z],            # metres, ego frame
+                                   "image_size": [W, H]},               # optional
+                     ...}}
+
+    ``rotation`` may instead be ``"quaternion": [w, x, y, z]`` (nuScenes' convention). Errors are one
+    ``RigError`` line naming the file, the camera and the field."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as e:
+        raise RigError(f"rig file {path} cannot be read ({e.strerror or e})") from None
+    except json.JSONDecodeError as e:
+        raise RigError(f"rig file {path} is not valid JSON ({e})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("cameras"), dict) or not data["cameras"]:
+        raise RigError(f"rig file {path}: expected an object with a non-empty 'cameras' object "
+                       '{"CAMERA_NAME": {"intrinsics", "rotation", "translation"}, ...}')
+    unknown = sorted(set(data) - {"image_size", "cameras"})
+    if unknown:
+        raise RigError(f"rig file {path}: unknown field(s) {', '.join(unknown)}; a rig file has 'image_size' and "
+                       "'cameras'")
+    default = _image_size(data["image_size"], f"rig file {path}: 'image_size'") if "image_size" in data else None
+    cameras = []
+    for name, cam in data["cameras"].items():
+        where = f"rig file {path}: camera {name}"
+        if not isinstance(cam, dict):
+            raise RigError(f"{where}: expected an object with 'intrinsics', 'rotation' and 'translation'")
+        fields = {"intrinsics", "rotation", "quaternion", "translation", "image_size"}
+        if set(cam) - fields:
+            raise RigError(f"{where}: unknown field(s) {', '.join(sorted(set(cam) - fields))}; a camera has "
+                           "'intrinsics', 'rotation' (or 'quaternion'), 'translation' and optionally 'image_size'")
+        missing = [f"'{k}'" for k in ("intrinsics", "translation") if k not in cam]
+        missing += [] if {"rotation", "quaternion"} & set(cam) else ["'rotation' (or 'quaternion')"]
+        if missing:
+            raise RigError(f"{where}: {' and '.join(missing)} missing")
+        if "rotation" in cam and "quaternion" in cam:
+            raise RigError(f"{where}: give 'rotation' or 'quaternion', not both")
+        rotation = cam.get("rotation")
+        if "quaternion" in cam:
+            q = _matrix(cam["quaternion"], (4,), f"{where}: 'quaternion'")
+            if abs(np.linalg.norm(q) - 1) > 1e-2:
+                raise RigError(f"{where}: 'quaternion' is not a unit quaternion [w, x, y, z] (norm "
+                               f"{np.linalg.norm(q):.4g})")
+            rotation = Quaternion(q / np.linalg.norm(q)).rotation_matrix
+        calib = check_calibration(name, cam["intrinsics"], rotation, cam["translation"], f"rig file {path}")
+        size = _image_size(cam["image_size"], f"{where}: 'image_size'") if "image_size" in cam else default
+        if size is None:
+            raise RigError(f"{where}: no 'image_size' (give [width, height] for the rig or for this camera)")
+        cameras.append(CameraCalibration(name, calib.intrinsics, calib.rotation, calib.translation, size))
+    return cameras

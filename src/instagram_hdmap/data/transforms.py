@@ -135,6 +135,11 @@ def read_image(path: str | Path, factor: int = 1) -> np.ndarray:
     return img
 
 
+def _axis_scales(A: np.ndarray) -> tuple[float, float]:
+    """The resize along each original axis (rotation aside): the column norms of A's linear part."""
+    return math.hypot(A[0, 0], A[1, 0]), math.hypot(A[0, 1], A[1, 1])
+
+
 def load_image(
     path: str | Path,
     orig_wh: tuple[int, int],
@@ -151,11 +156,8 @@ def load_image(
     ``post_tran`` [3] float32 mapping original pixels to network pixels.
     """
     W, H = orig_wh
-    h, w = out_hw
     A = image_affine(orig_wh, out_hw, aug, fit)
-    # the resize along each original axis (rotation aside): the columns of A's linear part
-    sx, sy = math.hypot(A[0, 0], A[1, 0]), math.hypot(A[0, 1], A[1, 1])
-    f = decode_factor(max(sx, sy), reduced_decode)
+    f = decode_factor(max(_axis_scales(A)), reduced_decode)
     img = read_image(path, f)
     exp_w, exp_h = math.ceil(W / f), math.ceil(H / f)
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
@@ -163,6 +165,24 @@ def load_image(
             f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected "
             f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather)"
         )
+    return _warp(img, A, f, out_hw, bgr=True)
+
+
+def prepare_image(image: np.ndarray, out_hw: tuple[int, int], aug: ImageAug = ImageAug(),
+                  fit: str = "cover") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``load_image`` for an image already in memory: RGB [H, W, 3], uint8 (or float32 on 0..255).
+    The same warp and normalisation as ``load_image`` of the same pixels decoded at full resolution
+    (``load_image`` decodes a JPEG at a reduced size where the warp shrinks it by 2 or more)."""
+    H, W = image.shape[:2]
+    return _warp(np.ascontiguousarray(image), image_affine((W, H), out_hw, aug, fit), 1, out_hw, bgr=False)
+
+
+def _warp(img: np.ndarray, A: np.ndarray, f: int, out_hw: tuple[int, int], bgr: bool
+          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``img`` decoded at 1/``f`` of the original size -> (network image, post_rot, post_tran) of the
+    warp ``A`` (original pixels -> network pixels)."""
+    h, w = out_hw
+    sx, sy = _axis_scales(A)
     # decoded pixel -> original pixel (the inverse of a resize by s is the resize by 1 / s)
     to_orig = _scale_matrix(f, f)
     rx, ry = sx * f, sy * f
@@ -173,7 +193,8 @@ def load_image(
         to_orig = to_orig @ _scale_matrix(1 / sx, 1 / sy)
     M = (A @ to_orig)[:2]
     out = cv2.warpAffine(img, M, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    rgb = torch.from_numpy(out).permute(2, 0, 1).flip(0)  # BGR [h, w, 3] -> RGB [3, h, w]
+    channels = torch.from_numpy(out).permute(2, 0, 1)  # [3, h, w]
+    rgb = channels.flip(0) if bgr else channels  # OpenCV decodes BGR
     image = torch.addcmul(_NORM_OFFSET, rgb.float(), _NORM_SCALE)  # (x / 255 - mean) / std
     post_rot = torch.eye(3)
     post_rot[:2, :2] = torch.from_numpy(A[:2, :2]).float()

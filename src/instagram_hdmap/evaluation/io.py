@@ -191,8 +191,12 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
     return out
 
 
+def submission(samples: Mapping[str, list[dict]], meta: dict | None = None) -> dict:
+    """Polyline dicts per token -> the submission document ``{"meta", "results": {token: vectors}}``."""
+    return {"meta": {"vector": True, **(meta or {})},
+            "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
+
+
 def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: dict | None = None) -> None:
     """Write polyline dicts per token in the submission format (``results`` as a dict)."""
-    data = {"meta": {"vector": True, **(meta or {})},
-            "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
-    write_json(data, path)
+    write_json(submission(samples, meta), path)
