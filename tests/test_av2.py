@@ -44,14 +44,7 @@ from test_dataset import test_round_trip_on_world_gt as check_round_trip  # noqa
 # the nuScenes rig; in the AV2 images (lower cameras, 400 x 303) points 1.6 m off a line pass 15 in
 # ~12 % of the cases (texture and sensor noise), 20 in ~4 %, while 98 % of the solid-line points pass 20.
 PAINT_CONTRAST = 20.0
-AV2_TINY = {**TINY_WORLD, "image_size": "400x303"}  # the nuScenes tiny world's drives, AV2's 4:3 cameras
-
-
-@pytest.fixture(scope="module")
-def av2_world(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("av2_world") / "av2"
-    generate_av2_world(out=root, force=True, progress=False, **AV2_TINY)
-    return root
+# av2_world (conftest.py): the tiny world's drives in the AV2 layout, shared with test_bad_inputs.py
 
 
 def _cfg(root: Path, *extra: str):

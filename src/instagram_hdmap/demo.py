@@ -40,7 +40,7 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .files import temporary_sibling, write_json
+from .files import remove_stale_temporaries, write_json
 from .predict import predict_sample, run_evaluation
 from .schedule import final_lr_factor
 from .train import train
@@ -121,7 +121,8 @@ def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, wo
             raise DemoError(f"{root} is damaged: {found} of its {world_samples(world)} CAM_FRONT images are there; "
                             "delete the folder and run the demo again to regenerate it")
         return root, True
-    _remove_stale_partial_worlds(root)
+    for stale in remove_stale_temporaries(root, TMP_TAG):  # before the disk check: they hold space
+        print(f"removed {stale}: a world generation that did not finish (its process is gone)", flush=True)
     # twice the estimate: the temporary folder and the margin other writers need
     check_disk(root.parent, 2 * world_samples(world) * WORLD_BYTES_PER_SAMPLE)
     try:
@@ -132,26 +133,6 @@ def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, wo
     kwargs = {"workers": workers} if workers != 1 else {}
     generate_world(out=root, progress=progress, force=True, **world, **kwargs)
     return root, False
-
-
-def _remove_stale_partial_worlds(root: Path) -> None:
-    """Delete the temporary folders of generations of this world that were killed (their process is
-    gone: ``kill -9``, a power cut), so they do not pile up in the cache."""
-    for tmp in root.parent.glob(temporary_sibling(root, TMP_TAG).name.rsplit("-", 1)[0] + "-*"):
-        pid = tmp.name.rsplit("-", 1)[-1]
-        if pid.isdigit() and not _process_alive(int(pid)):
-            print(f"removing {tmp}: a world generation that did not finish (process {pid} is gone)", flush=True)
-            shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def world_overrides(dataroot: Path) -> list[str]:

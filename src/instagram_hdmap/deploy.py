@@ -51,7 +51,7 @@ from torch import nn
 from .checkpoint import load_checkpoint
 from .config import ExperimentConfig, flatten, is_under, parse_overrides
 from .data.rig import nuscenes_like_rig
-from .files import atomic_path
+from .files import atomic_path, check_output_file
 from .inference import (
     EXPORT_FORMAT,
     INPUT_NAMES,
@@ -230,6 +230,7 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     it to ``out`` and, with ``verify``, run the file in onnxruntime on the example input: adds
     ``check`` (``compare_outputs`` of onnxruntime against torch) to ``export_onnx``'s result."""
     require_onnx(export=True)
+    check_output_file(out, "--out")  # before minutes of export
     state = load_checkpoint(checkpoint)
     saved = state.get("config") if isinstance(state.get("config"), dict) else None
     cfg = export_config(cfg, saved, overrides, checkpoint)

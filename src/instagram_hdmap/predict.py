@@ -43,7 +43,7 @@ from .data.rig import CameraCalibration, RigError, read_rig_file
 from .data.transforms import load_image
 from .engine import evaluate
 from .evaluation import Evaluator, write_submission
-from .files import atomic_path, write_json
+from .files import atomic_path, check_output_dir, write_json
 from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
@@ -231,6 +231,7 @@ def predict_sample(
 
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
+    check_output_dir(out, "--out")  # before the model runs
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
     split = split or cfg.data.val_split
@@ -288,6 +289,7 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     Returns ``{"name", "elements", "paths", "source"}``."""
     if (checkpoint is None) == (onnx is None):
         raise PredictError("pass --checkpoint CKPT or --onnx FILE (one of them)")
+    check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
     mapper = (Mapper.from_checkpoint(checkpoint, device, **decode) if checkpoint is not None
               else Mapper.from_onnx(onnx, config, **decode))
@@ -398,6 +400,7 @@ def run_evaluation(
     states are gathered and rank 0 writes the files. Samples are scored with their dataset index as
     ``sample_ids``, so the result does not depend on the batch size or the number of processes.
     """
+    check_output_dir(out, "--out")  # before the work that fills it
     device = du.init_distributed(du.resolve_device(cfg.train.device).type)
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
@@ -420,11 +423,13 @@ def run_evaluation(
             yield batch
 
     def score(tokens: list[str], preds: list[list[dict]]) -> None:
-        gts = [pending_gt.pop(t) for t in tokens]
-        keep = [k for k, t in enumerate(tokens) if index_of[t] % world == rank and t not in results]
+        # a token may come twice (data.on_bad_sample=skip hands the next good sample for a bad one): once
+        gts = {t: pending_gt.pop(t) for t in dict.fromkeys(tokens) if t in pending_gt}
+        keep = [k for k, t in enumerate(tokens)
+                if index_of[t] % world == rank and t not in results and t not in tokens[:k]]
         results.update((tokens[k], preds[k]) for k in keep)
         if keep:
-            evaluator.update([preds[k] for k in keep], [gts[k] for k in keep],
+            evaluator.update([preds[k] for k in keep], [gts[tokens[k]] for k in keep],
                              sample_ids=[index_of[tokens[k]] for k in keep], tokens=[tokens[k] for k in keep])
 
     decode = decode_options(cfg.model.gnn, grid)
@@ -435,6 +440,9 @@ def run_evaluation(
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
+    if len(results) < len(dataset):
+        notes.append(f"{len(dataset) - len(results)} bad sample(s) of {len(dataset)} left out "
+                     "(data.on_bad_sample=skip; the warnings name them)")
     metrics = evaluator.compute()
     samples_per_s = round(val["samples_per_s"] * world, 3)
     metrics["meta"] = {"checkpoint": str(checkpoint), "config_name": cfg.name, "dataroot": cfg.data.dataroot,

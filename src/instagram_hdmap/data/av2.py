@@ -60,7 +60,7 @@ import torch
 from shapely.geometry import LineString, Polygon
 
 from ..config import ExperimentConfig, UserError
-from .base import DatasetError, MapDataset
+from .base import DatasetError, MapDataset, check_intrinsics, check_rotation, check_translation
 from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
 from .transforms import ImageAug, load_image, sample_augmentation
 
@@ -278,21 +278,33 @@ class AV2MapDataset(MapDataset):
             except (KeyError, ValueError, OSError) as e:
                 raise DatasetError(f"log {log}: cannot read its calibration ({intr_path}, {extr_path}): "
                                    f"{type(e).__name__}: {e}") from None
+            for cam, pin in cams.items():
+                check_intrinsics(pin.intrinsics.K, f"log {log}: camera {cam} in {intr_path}")
+                where = f"log {log}: camera {cam} in {extr_path}"
+                check_rotation(pin.ego_SE3_cam.rotation, "its rotation (camera -> ego)", where)
+                check_translation(pin.ego_SE3_cam.translation, "its translation (camera -> ego)", where)
             self._cameras[log] = cams
         return self._cameras[log]
 
     def _pose(self, index: int):
         log, ts = self.samples[index]
         poses = self._log_poses(log)
+        path = self.split_dir / log / "city_SE3_egovehicle.feather"
         if ts not in poses:
-            raise DatasetError(f"log {log}: {self.split_dir / log / 'city_SE3_egovehicle.feather'} has no ego pose "
-                               f"at lidar sweep {ts} (sensors/lidar/{ts}.feather)")
-        return poses[ts]
+            raise DatasetError(f"log {log}: {path} has no ego pose at lidar sweep {ts} (sensors/lidar/{ts}.feather)")
+        pose = poses[ts]
+        where = f"log {log}: the ego pose at lidar sweep {ts} in {path}"
+        check_rotation(pose.rotation, "its rotation", where)
+        check_translation(pose.translation, "its translation", where)
+        return pose
 
     def _image_path(self, log: str, cam: str, ts: int) -> Path:
+        folder = self.split_dir / log / "sensors" / "cameras" / cam
+        if not folder.is_dir():
+            raise DatasetError(f"log {log}: camera folder {folder} does not exist; the log has no {cam} images "
+                               "(an incomplete log, or choose the cameras with data.av2_cameras)")
         path = self.loader.get_closest_img_fpath(log, cam, ts)
         if path is None or not path.is_file():
-            folder = self.split_dir / log / "sensors" / "cameras" / cam
             stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
             nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
             detail = (f"the nearest is {folder / f'{nearest}.jpg'}, {abs(nearest - ts) / 1e6:.1f} ms away"

@@ -89,7 +89,7 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(gh.pe_frequencies >= 0, "model.gnn.pe_frequencies", "must be >= 0")
     _require(gh.heads > 0 and gh.dim % gh.heads == 0, "model.gnn.heads",
              f"the dimension D={gh.dim} must be divisible by the number of heads ({gh.heads})")
-    _require(gh.sinkhorn_iters >= 0, "model.gnn.sinkhorn_iters", "must be >= 0")
+    _require(gh.sinkhorn_iters >= 1, "model.gnn.sinkhorn_iters", "must be >= 1")
 
 
 def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=None) -> InstaGraM:

@@ -173,7 +173,7 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     ``workers`` is; a script calling it with workers > 1 must do so under ``if __name__ == "__main__":``."""
     require_av2("instagram-hdmap synth --format av2")
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene)
+    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
     workers = check_workers(workers)
     return write_world(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
                                                               seed, size, progress, workers))

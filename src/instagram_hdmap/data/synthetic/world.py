@@ -83,7 +83,7 @@ def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_
     With workers > 1 the worker processes are spawned, so they import the caller's main module:
     a script must call this under ``if __name__ == "__main__":``."""
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene)
+    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
     workers = check_workers(workers)
     train_names, val_names = scene_names(scenes_train, scenes_val)
     return write_world(FsPath(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
