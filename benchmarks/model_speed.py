@@ -2,6 +2,7 @@
 
     python benchmarks/model_speed.py                      # CPU, 2 threads, B0 and B4 with LSS, 128x352
     python benchmarks/model_speed.py --runs 9 --threads 2
+    python benchmarks/model_speed.py --official OFFICIAL  # + the official model, timed in the same run
     python benchmarks/model_speed.py --device cuda        # + GPU latency / FPS, fp32 and bf16 autocast
 
 Each component is timed by calling the model's parts in the order of ``InstaGraM.forward`` (backbone,
@@ -9,16 +10,21 @@ view transform, BEV heads, then the graph head's vertex extraction, embedding + 
 matching head + Sinkhorn); "total" times ``model(batch)`` itself. Medians over ``--runs`` after a
 warm-up. Random weights and images, a nuScenes-like six-camera rig; eval mode, no autograd.
 
-Reference (official implementation on the 2-core CPU machine of this project, 2 threads): B0 1.44 s,
-B4 1.62 s per forward; BEV encoder + heads 1.07 s; graph head 0.12 s (vertex extraction 27 ms, GNN
-47 ms, Sinkhorn 41 ms).
+``--official OFFICIAL`` (a local checkout of the official InstaGraM code, benchmarks/official.py)
+builds the official LSS model of each config's backbone and image size (random weights) and times
+its forward on the same batch, interleaved with ours (each round runs our forward, then theirs), in
+the same process with the same torch and thread count: the ratio row is the comparison, and it is
+what this script is for. Absolute times depend on the machine and its load; a ratio of two paths
+timed in turn is load-robust to the extent the load is steady.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
+import time
 from collections.abc import Callable
 
 import torch
@@ -31,7 +37,6 @@ from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
 
 CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
 GPU_CONFIGS = [*CPU_CONFIGS, "configs/paper/table1_b4_lss_256x704.yaml"]
-REFERENCE_MS = {"efficientnet-b0": 1440.0, "efficientnet-b4": 1620.0}
 
 
 def example_batch(image_size: tuple[int, int], device: torch.device, num_cameras: int = 6) -> dict:
@@ -53,6 +58,7 @@ def example_batch(image_size: tuple[int, int], device: torch.device, num_cameras
         "cam_to_ego_trans": torch.stack(trans)[None],
         "post_rot": torch.diag(torch.tensor([scale, scale, 1.0])).expand(1, num_cameras, 3, 3),
         "post_tran": torch.tensor([0.0, h - 900 * scale, 0]).expand(1, num_cameras, 3),
+        "ground_height": torch.zeros(1),
     }
     return {k: v.to(device) for k, v in batch.items()}
 
@@ -91,30 +97,70 @@ def time_components(model, batch: dict, runs: int, sync: Callable[[], None], war
     return {name: _median_ms(fn, runs, sync, warmup) for name, fn in parts.items()}
 
 
-def _table(columns: dict[str, dict[str, float]], reference: dict[str, float] | None = None) -> str:
+def time_interleaved(fns: dict[str, Callable[[], object]], runs: int, warmup: int,
+                     sync: Callable[[], None]) -> dict[str, list[float]]:
+    """Seconds per call of each function, called in turn: ``warmup`` untimed rounds, then ``runs``
+    timed ones (each round calls every function once, in order), so that a change of the machine's
+    load during the run hits every function alike."""
+    with torch.inference_mode():
+        for _ in range(warmup):
+            for fn in fns.values():
+                fn()
+        times: dict[str, list[float]] = {name: [] for name in fns}
+        for _ in range(runs):
+            for name, fn in fns.items():
+                sync()
+                start = time.perf_counter()
+                fn()
+                sync()
+                times[name].append(time.perf_counter() - start)
+    return times
+
+
+def _table(columns: dict[str, dict[str, float]], official: dict[str, dict[str, float]] | None = None) -> str:
     names = list(next(iter(columns.values())))
-    width = max(len(n) for n in names) + 2
+    width = max(len(n) for n in [*names, "official total forward"]) + 2
     lines = [f"{'ms (median)':<{width}}" + "".join(f"{c:>18}" for c in columns)]
     lines += [f"{n:<{width}}" + "".join(f"{col[n]:>18.1f}" for col in columns.values()) for n in names]
-    if reference:
-        lines.append(f"{'official total':<{width}}" + "".join(f"{reference[c]:>18.1f}" for c in columns))
-        ratio = [columns[c]["total forward"] / reference[c] for c in columns]
-        lines.append(f"{'ratio to official':<{width}}" + "".join(f"{r:>18.2f}" for r in ratio))
+    if official:
+        rows = (("ours, interleaved", "ours"), ("official, interleaved", "official"))
+        for label, key in rows:
+            lines.append(f"{label:<{width}}" + "".join(f"{official[c][key]:>18.1f}" for c in columns))
+        lines.append(f"{'ratio ours / official':<{width}}"
+                     + "".join(f"{official[c]['ours'] / official[c]['official']:>18.2f}" for c in columns))
+        lines.append(f"{'official parameters':<{width}}"
+                     + "".join(f"{official[c]['params_m']:>17.2f}M" for c in columns))
     return "\n".join(lines)
 
 
 def run_cpu(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
-    columns, reference = {}, {}
+    code = None
+    if args.official:
+        from official import build_official, load_official, official_inputs, uses_standins
+
+        code = load_official(args.official)
+    columns, official = {}, {}
     for path in args.configs or CPU_CONFIGS:
         cfg = load_config(path)
         model = build_model(cfg).eval()
         name = cfg.model.backbone.name
-        columns[name] = time_components(model, example_batch(cfg.data.image_size, torch.device("cpu")), args.runs,
-                                        lambda: None)
-        reference[name] = REFERENCE_MS.get(name, math.nan)
-    print(f"CPU, {args.threads} threads, batch 1 x 6 cameras, LSS, {args.runs} runs")
-    print(_table(columns, reference))
+        batch = example_batch(cfg.data.image_size, torch.device("cpu"))
+        columns[name] = time_components(model, batch, args.runs, lambda: None)
+        if code is not None:
+            theirs = build_official(code, name, tuple(cfg.data.image_size)).eval()
+            inputs = official_inputs(batch)
+            times = time_interleaved({"ours": lambda m=model, b=batch: m(b),
+                                      "official": lambda m=theirs, x=inputs: m(*x)}, args.runs, 1, lambda: None)
+            official[name] = {k: 1000 * statistics.median(v) for k, v in times.items()}
+            official[name]["params_m"] = sum(p.numel() for p in theirs.parameters()) / 1e6
+    print(f"CPU, {args.threads} threads, batch 1 x 6 cameras, LSS, {args.runs} runs, torch {torch.__version__}, "
+          f"load average {os.getloadavg()[0]:.1f} at the end")
+    if code is not None:
+        standins = uses_standins()
+        print(f"official code: {code.root}" + (f" (stand-ins for {', '.join(standins)}: benchmarks/official.py)"
+                                                if standins else ""))
+    print(_table(columns, official or None))
 
 
 def run_gpu(args: argparse.Namespace) -> None:
@@ -146,8 +192,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="CPU threads (torch.set_num_threads)")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--configs", nargs="*", help="experiment YAMLs (default: the Table I LSS rows)")
+    parser.add_argument("--official", metavar="DIR",
+                        help="a local checkout of the official InstaGraM code: time its model too (CPU only)")
     args = parser.parse_args()
     if args.device.startswith("cuda"):
+        if args.official:
+            parser.error("--official times on the CPU only (the official model's forward is compared on --device cpu)")
         run_gpu(args)
     else:
         run_cpu(args)

@@ -3,6 +3,7 @@
     python benchmarks/train_speed.py                          # CPU: B0 and B4 at 128x352, batch 1 and 2
     python benchmarks/train_speed.py --steps 9 --warmup 3
     python benchmarks/train_speed.py --device cuda            # GPU: samples/s at batch 8, fp32 and bf16
+    python benchmarks/train_speed.py --official OFFICIAL --rounds 3  # + the official code's step, same run
     python benchmarks/train_speed.py --one CONFIG --batch 2   # one variant in this process (what the table runs)
 
 One step is one iteration of ``engine.train_one_epoch`` (called as is, on a loader that yields the
@@ -32,10 +33,14 @@ the allocator's caches), measured over model building, warm-up and timed steps. 
 ``torch.cuda.max_memory_allocated`` over the warm-up and timed steps (tensors only, not the
 caching allocator's reserve). GB = 1e9 bytes.
 
-Reference (issue 6, the official implementation on this project's 2-core CPU machine): 4.72 s per
-step and 2.1 GB for B0, 6.20 s and 3.1 GB for B4, batch 1. Targets: <= 0.7x the time and <= 0.8x
-the memory. There is no official batch-2 figure: batch-2 rows are compared with the batch-1 figure
-(marked ``*``) for information and get no verdict. Torch's default thread count is kept (printed).
+The official implementation (``--official OFFICIAL``, a local checkout of its code; benchmarks/official.py):
+its training step (its train.py's forward, losses, backward, clipping and Adam, on the same batch's
+targets in its formats) runs as one more variant per config and batch, in a fresh process like ours,
+with the same torch and thread count. ``--rounds R`` runs every variant R times in turn (round
+robin), so a change of the machine's load hits every variant alike; the times of a variant are
+pooled over its rounds and its memory is its largest peak. The ratio columns compare each of our
+rows with the official row of the same config and batch *of the same run*. Targets (issue 6): <= 0.7x
+the official time and <= 0.8x its memory at batch 1. Torch's default thread count is kept (printed).
 """
 
 from __future__ import annotations
@@ -71,11 +76,7 @@ from instagram_hdmap.targets import build_targets
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
-OFFICIAL = {  # batch 1, the official implementation on this project's CPU machine (issue 6)
-    "efficientnet-b0": {"step_s": 4.72, "memory_gb": 2.1},
-    "efficientnet-b4": {"step_s": 6.20, "memory_gb": 3.1},
-}
-TIME_TARGET, MEMORY_TARGET = 0.7, 0.8
+TIME_TARGET, MEMORY_TARGET = 0.7, 0.8  # x the official step time and peak memory, batch 1 (issue 6)
 DEFAULTS = {"cpu": {"batch": [1, 2], "amp": ["none"], "ckpt": ["off", "on"], "steps": 5, "warmup": 2},
             "cuda": {"batch": [8], "amp": ["none", "bf16"], "ckpt": ["off"], "steps": 20, "warmup": 5}}
 RESULT_TAG = "RESULT "
@@ -245,23 +246,74 @@ def measure_training(cfg: ExperimentConfig, batch_size: int, *, steps: int, warm
     }
 
 
-def run_variant(config: str, batch: int, args: argparse.Namespace, amp: str, ckpt: str) -> dict:
-    """``measure_training`` in a fresh Python process (so that its peak RSS is this variant's alone)."""
+def measure_official(cfg: ExperimentConfig, batch_size: int, official_dir: str, *, steps: int, warmup: int,
+                     seed: int = 0) -> dict:
+    """Time ``warmup + steps`` steps of the official code's training (benchmarks/official.py) on the batch
+    ``training_batch`` gives ours, CPU; the same keys as ``measure_training``."""
+    from official import OfficialTrainer, build_official, load_official, uses_standins
+
+    if steps < 1 or warmup < 0:
+        raise BenchmarkError(f"--steps must be >= 1 and --warmup >= 0 (got {steps}, {warmup})")
+    code = load_official(official_dir)
+    model = build_official(code, cfg.model.backbone.name, tuple(cfg.data.image_size), seed)
+    batch = training_batch(cfg, batch_size, seed)
+    trainer = OfficialTrainer(code, model, batch, lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
+    times, cpu_times, loss = [], [], math.nan
+    for i in range(warmup + steps):
+        start, cpu_start = time.perf_counter(), time.process_time()
+        loss = trainer.step()
+        if i >= warmup:
+            times.append(time.perf_counter() - start)
+            cpu_times.append(time.process_time() - cpu_start)
+    median = float(np.median(times))
+    return {
+        "impl": "official", "config_name": cfg.name, "backbone": cfg.model.backbone.name,
+        "image_size": list(cfg.data.image_size), "device": device_name(torch.device("cpu")), "amp": "none",
+        "ckpt": "-", "threads": torch.get_num_threads(), "torch": torch.__version__, "batch": batch_size,
+        "steps": steps, "warmup": warmup, "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
+        "gt_vertices": float(batch["gt_vertex_mask"].sum(1).float().mean()), "pred_vertices": math.nan,
+        "losses": {"loss_total": loss}, "step_s": median, "p10_s": float(np.percentile(times, 10)),
+        "p90_s": float(np.percentile(times, 90)), "samples_per_s": batch_size / median,
+        "cpu_s": float(np.median(cpu_times)), "times_s": [round(float(t), 4) for t in times],
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,
+        "peak_allocated_gb": None, "standins": uses_standins(), "official": str(code.root),
+    }
+
+
+def run_variant(config: str, batch: int, args: argparse.Namespace, amp: str, ckpt: str, impl: str = "ours") -> dict:
+    """``measure_training`` (or ``measure_official``) in a fresh Python process (so that its peak RSS is
+    this variant's alone)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--one", str(Path(config).resolve()), "--batch", str(batch),
-           "--amp", amp, "--grad-checkpoint", ckpt, "--device", args.device, "--steps", str(args.steps),
+           "--amp", amp, "--grad-checkpoint", "on" if ckpt == "on" else "off", "--device", args.device,
+           "--steps", str(args.steps),
            "--warmup", str(args.warmup),
-           "--seed", str(args.seed), *(["--threads", str(args.threads)] if args.threads else [])]
+           "--seed", str(args.seed), *(["--threads", str(args.threads)] if args.threads else []),
+           *(["--official", args.official, "--impl", impl] if impl == "official" else [])]
+    what = {"config": config, "batch": batch, "amp": amp, "ckpt": ckpt, "impl": impl}
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=ROOT)
     except subprocess.TimeoutExpired:
-        return {"config": config, "batch": batch, "amp": amp, "ckpt": ckpt,
-                "error": f"timed out after {args.timeout} s"}
+        return {**what, "error": f"timed out after {args.timeout} s"}
     for line in proc.stdout.splitlines():
         if line.startswith(RESULT_TAG):
-            return {"config": config, **json.loads(line[len(RESULT_TAG):])}
+            return {"config": config, "impl": impl, **json.loads(line[len(RESULT_TAG):])}
     tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-    return {"config": config, "batch": batch, "amp": amp, "ckpt": ckpt,
-            "error": f"exit {proc.returncode}: {tail[:200]}"}
+    return {**what, "error": f"exit {proc.returncode}: {tail[:200]}"}
+
+
+def pool_rounds(runs: list[dict]) -> dict:
+    """One variant's results of several rounds as one: times pooled, the largest peak memory."""
+    ok = [r for r in runs if "error" not in r]
+    if len(ok) < len(runs):
+        return next(r for r in runs if "error" in r)
+    times = [t for r in ok for t in r["times_s"]]
+    out = dict(ok[-1])
+    out.update(step_s=float(np.median(times)), p10_s=float(np.percentile(times, 10)),
+               p90_s=float(np.percentile(times, 90)), times_s=times, rounds=len(ok),
+               cpu_s=float(np.median([r["cpu_s"] for r in ok])),
+               samples_per_s=ok[-1]["batch"] / float(np.median(times)),
+               peak_rss_gb=max(r["peak_rss_gb"] for r in ok))
+    return out
 
 
 # --------------------------------------------------------------------------------------------------
@@ -274,36 +326,36 @@ def _verdict(ratio: float, target: float) -> str:
 
 
 def format_cpu_table(rows: list[dict]) -> str:
-    """Step time and peak RSS against the official batch-1 figures (module docstring)."""
-    head = (f"{'config':<30}{'params':>8}{'batch':>6}{'amp':>5}{'ckpt':>5}{'step s':>8}{'p10-p90 s':>12}{'CPU s':>7}"
-            f"{'x offic.':>9}{'<=0.7x':>7}{'peak GB':>9}{'x offic.':>9}{'<=0.8x':>7}{'GT/pred vtx':>13}")
+    """Step time and peak RSS; with an official row of the same config and batch in ``rows`` (the same
+    run), each of our rows as a ratio of it (module docstring)."""
+    official = {(r["config"], r["batch"]): r for r in rows if r.get("impl") == "official" and "error" not in r}
+    head = (f"{'config':<30}{'impl':>9}{'params':>8}{'batch':>6}{'amp':>5}{'ckpt':>5}{'step s':>8}{'p10-p90 s':>12}"
+            f"{'CPU s':>7}{'x offic.':>9}{'<=0.7x':>7}{'peak GB':>9}{'x offic.':>9}{'<=0.8x':>7}{'GT/pred vtx':>13}")
     lines = [head, "-" * len(head)]
-    starred = False
     for r in rows:
-        name = Path(r["config"]).stem
+        name, impl = Path(r["config"]).stem, r.get("impl", "ours")
         if "error" in r:
-            lines.append(f"{name:<30}{'':>8}{r['batch']:>6}{r['amp']:>5}{r['ckpt']:>5}  failed: {r['error']}")
+            lines.append(f"{name:<30}{impl:>9}{'':>8}{r['batch']:>6}{r['amp']:>5}{r['ckpt']:>5}  failed: {r['error']}")
             continue
-        ref = OFFICIAL.get(r["backbone"]) if r["amp"] == "none" else None
-        cells = f"{name:<30}{r['params_m']:>7.2f}M{r['batch']:>6}{r['amp']:>5}{r['ckpt']:>5}{r['step_s']:>8.2f}"
-        cells += f"{r['p10_s']:>6.2f}-{r['p90_s']:<5.2f}{r['cpu_s']:>7.2f}"
+        ref = official.get((r["config"], r["batch"])) if impl == "ours" and r["amp"] == "none" else None
+        cells = (f"{name:<30}{impl:>9}{r['params_m']:>7.2f}M{r['batch']:>6}{r['amp']:>5}{r['ckpt']:>5}"
+                 f"{r['step_s']:>8.2f}{r['p10_s']:>6.2f}-{r['p90_s']:<5.2f}{r['cpu_s']:>7.2f}")
         if ref is None:
             cells += f"{'-':>9}{'':>7}{r['peak_rss_gb']:>9.2f}{'-':>9}{'':>7}"
         else:
-            t, m = r["step_s"] / ref["step_s"], r["peak_rss_gb"] / ref["memory_gb"]
-            star = "*" if r["batch"] != 1 else " "
-            starred |= r["batch"] != 1
+            t, m = r["step_s"] / ref["step_s"], r["peak_rss_gb"] / ref["peak_rss_gb"]
             vt, vm = (_verdict(t, TIME_TARGET), _verdict(m, MEMORY_TARGET)) if r["batch"] == 1 else ("", "")
-            cells += f"{t:>8.2f}{star}{vt:>7}{r['peak_rss_gb']:>9.2f}{m:>8.2f}{star}{vm:>7}"
+            cells += f"{t:>9.2f}{vt:>7}{r['peak_rss_gb']:>9.2f}{m:>9.2f}{vm:>7}"
         cells += f"{r['gt_vertices']:>7.0f}/{r['pred_vertices']:<5.0f}"
         lines.append(cells)
-    lines.append("official (batch 1, 2-core CPU): B0 4.72 s, 2.1 GB; B4 6.20 s, 3.1 GB. step s: wall time (median); "
-                 "CPU s: the process's CPU time per step (median; with 1 thread ~ the wall time of an idle machine, "
-                 "with more it includes OpenMP spinning). peak GB: the process's peak RSS (ru_maxrss), 1 GB = 1e9 B. "
-                 "ckpt: model.backbone.grad_checkpoint (recompute the EfficientNet blocks in backward)")
-    if starred:
-        lines.append("* batch 2 compared with the official batch-1 figure (no official batch-2 figure): information "
-                     "only, no verdict")
+    lines.append("step s: wall time (median over every timed step of every round); CPU s: the process's CPU time per "
+                 "step (median; with 1 thread ~ the wall time of an idle machine, with more it includes OpenMP "
+                 "spinning). peak GB: the process's peak RSS (ru_maxrss), 1 GB = 1e9 B. ckpt: "
+                 "model.backbone.grad_checkpoint (recompute the EfficientNet blocks in backward). x offic.: our row / "
+                 "the official row of the same config and batch in this run (verdicts at batch 1 only)")
+    standins = sorted({s for r in official.values() for s in r.get("standins", [])})
+    if standins:
+        lines.append(f"official code built with stand-ins for {', '.join(standins)} (benchmarks/official.py)")
     return "\n".join(lines)
 
 
@@ -327,6 +379,10 @@ def format_gpu_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def kind_of(device: str) -> str:
+    return "cuda" if device.startswith("cuda") else "cpu"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
@@ -342,8 +398,18 @@ def main() -> int:
     parser.add_argument("--timeout", type=int, default=900, help="seconds per variant")
     parser.add_argument("--threads", type=int, help="torch.set_num_threads in each variant (default: torch's own)")
     parser.add_argument("--one", metavar="CONFIG", help="measure this config in this process, print one RESULT line")
+    parser.add_argument("--official", metavar="DIR",
+                        help="a local checkout of the official InstaGraM code: time its training step too (CPU)")
+    parser.add_argument("--impl", choices=["ours", "official"], default="ours", help="with --one: whose step")
+    parser.add_argument("--rounds", type=int, default=1, help="run every variant this many times in turn")
     args = parser.parse_args()
-    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    if args.official and kind_of(args.device) != "cpu":
+        parser.error("--official times the training step on the CPU only")
+    if args.rounds < 1:
+        parser.error("--rounds must be >= 1")
+    if args.official:
+        args.official = str(Path(args.official).resolve())
+    kind = kind_of(args.device)
     d = DEFAULTS[kind]
     args.batch = args.batch or d["batch"]
     args.amp = args.amp or d["amp"]
@@ -355,8 +421,12 @@ def main() -> int:
         torch.set_num_threads(args.threads)
     if args.one:
         cfg = load_config(args.one, [f"model.backbone.grad_checkpoint={args.grad_checkpoint[0] == 'on'}"])
-        r = measure_training(cfg, args.batch[0], steps=args.steps, warmup=args.warmup, device=args.device,
-                             amp=args.amp[0], seed=args.seed)
+        if args.impl == "official":
+            r = measure_official(cfg, args.batch[0], args.official, steps=args.steps, warmup=args.warmup,
+                                 seed=args.seed)
+        else:
+            r = measure_training(cfg, args.batch[0], steps=args.steps, warmup=args.warmup, device=args.device,
+                                 amp=args.amp[0], seed=args.seed)
         print(RESULT_TAG + json.dumps(r))
         return 0
 
@@ -365,20 +435,26 @@ def main() -> int:
           f"{torch.__version__}, "
           f"torch threads {torch.get_num_threads()} ({'--threads' if args.threads else 'default'}), "
           f"{os.cpu_count()} CPUs, load average {load[0]:.1f} at start")
-    print(f"{args.warmup} warm-up + {args.steps} timed steps per variant, each variant in a fresh process; "
-          "random images, nuScenes-like rig, targets of a plausible junction map (module docstring)")
-    rows = []
-    for config in args.configs:
-        for batch in args.batch:
-            for amp in args.amp:
-                for ckpt in args.grad_checkpoint:
-                    rows.append(run_variant(config, batch, args, amp, ckpt))
-                    r = rows[-1]
-                    what = f"  {config} batch {batch} {amp} grad checkpoint {ckpt}"
-                    if "error" in r:
-                        print(f"{what}: failed ({r['error']})", flush=True)
-                    else:
-                        print(f"{what}: {r['step_s']:.3f} s/step, peak RSS {r['peak_rss_gb']:.2f} GB", flush=True)
+    print(f"{args.warmup} warm-up + {args.steps} timed steps per variant and round, {args.rounds} round(s), each "
+          "variant in a fresh process; random images, nuScenes-like rig, targets of a plausible junction map "
+          "(module docstring)" + (f"; official code: {args.official}" if args.official else ""))
+    variants = [(config, batch, amp, ckpt, "ours") for config in args.configs for batch in args.batch
+                for amp in args.amp for ckpt in args.grad_checkpoint]
+    if args.official:
+        variants += [(config, batch, "none", "-", "official") for config in args.configs for batch in args.batch]
+        variants.sort(key=lambda v: (args.configs.index(v[0]), args.batch.index(v[1])))
+    results: dict[tuple, list[dict]] = {v: [] for v in variants}
+    for round_ in range(args.rounds):
+        for v in variants:
+            config, batch, amp, ckpt, impl = v
+            r = run_variant(config, batch, args, amp, ckpt, impl)
+            results[v].append(r)
+            what = f"  round {round_ + 1}: {config} batch {batch} {impl} {amp} grad checkpoint {ckpt}"
+            if "error" in r:
+                print(f"{what}: failed ({r['error']})", flush=True)
+            else:
+                print(f"{what}: {r['step_s']:.3f} s/step, peak RSS {r['peak_rss_gb']:.2f} GB", flush=True)
+    rows = [pool_rounds(results[v]) for v in variants]
     if rows and "error" not in rows[0]:
         print(f"{rows[0]['device']}; child processes used {rows[0]['threads']} torch threads")
     print(f"load average {os.getloadavg()[0]:.1f} at the end (the machine is shared: CPU times are upper bounds)")

@@ -1,7 +1,8 @@
 """Shared fixtures.
 
 ``tiny_world``: a small synthetic nuScenes dataroot (2 train + 1 val scenes x 3 samples, 400 x 225
-camera images), generated once per test session. ``tiny_world_cfg``: an ``ExperimentConfig`` reading
+camera images), generated once per test session; ``av2_world``: the same drives in the Argoverse 2
+layout (400 x 303 cameras). ``tiny_world_cfg``: an ``ExperimentConfig`` reading
 it (default grid and targets, 128 x 352 network images). Tests that damage a dataroot must work on a
 copy (``copy_world``), never on ``tiny_world`` itself.
 """
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 
 TINY_WORLD = {"scenes_train": 2, "scenes_val": 1, "samples_per_scene": 3, "seed": 0, "image_size": "400x225"}
+AV2_TINY = {**TINY_WORLD, "image_size": "400x303"}  # the nuScenes tiny world's drives, AV2's 4:3 cameras
 
 
 def _world_overrides(dataroot: Path) -> list[str]:
@@ -34,6 +36,18 @@ def tiny_world(tmp_path_factory) -> Path:
 
     root = tmp_path_factory.mktemp("tiny_world") / "nuscenes"
     generate_world(out=str(root), force=True, progress=False, **TINY_WORLD)
+    return root
+
+
+@pytest.fixture(scope="session")
+def av2_world(tmp_path_factory) -> Path:
+    """The tiny world in the Argoverse 2 sensor layout (skips without the optional extra [av2]). Tests
+    that damage it work on a copy."""
+    pytest.importorskip("av2", reason='the Argoverse 2 API is the optional extra: pip install -e ".[av2]"')
+    from instagram_hdmap.data.synthetic.av2_writer import generate_av2_world
+
+    root = tmp_path_factory.mktemp("av2_world") / "av2"
+    generate_av2_world(out=root, force=True, progress=False, **AV2_TINY)
     return root
 
 

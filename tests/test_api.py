@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 import re
 from pathlib import Path
 
@@ -156,6 +157,16 @@ def test_frames_of_every_kind_give_the_same_batch_and_elements(mapper, sample):
     two = mapper([frame, paths])
     assert len(two) == 2 and all(isinstance(e, MapElement) for els in two for e in els)
     assert mapper.cameras == CAMERAS and mapper.batch([frame])["images"].shape == (1, 6, 3, 128, 352)
+
+
+def test_a_frames_ground_height_reaches_the_model(mapper, sample):
+    """Frame.ground_height (default 0: the ego origin on the road) is the batch's ground_height, one per
+    frame (the IPM / MLP ground plane); a non-finite one is a RigError."""
+    on_road = Frame(sample["images"], sample["intrinsics"], sample["cam_to_ego"])
+    raised = Frame(sample["images"], sample["intrinsics"], sample["cam_to_ego"], ground_height=-0.38)
+    assert mapper.batch([on_road, raised])["ground_height"].tolist() == pytest.approx([0.0, -0.38])
+    with pytest.raises(RigError, match="ground_height"):
+        mapper.batch([Frame(sample["images"], sample["intrinsics"], sample["cam_to_ego"], ground_height=math.nan)])
 
 
 def test_stream_carries_the_models_memory_and_resets(mapper, sample):

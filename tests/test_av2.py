@@ -33,26 +33,18 @@ from instagram_hdmap.config import AV2_RING_CAMERAS, load_config  # noqa: E402
 from instagram_hdmap.data.av2 import AV2MapDataset  # noqa: E402
 from instagram_hdmap.data.base import DatasetError  # noqa: E402
 from instagram_hdmap.data.local_map import MapError  # noqa: E402
-from instagram_hdmap.data.synthetic.av2_writer import CAMERA_DELAY_NS, generate_av2_world, log_id  # noqa: E402
+from instagram_hdmap.data.synthetic.av2_writer import CAMERA_DELAY_NS, ego_height, generate_av2_world, log_id  # noqa: E402
 from instagram_hdmap.data.synthetic.roads import build_network  # noqa: E402
 from instagram_hdmap.data.transforms import image_to_ground, project_to_image  # noqa: E402
-from test_dataset import SAMPLE_KEYS, check_scenes  # noqa: E402
+from test_dataset import SAMPLE_KEYS, check_gt_and_targets, check_scenes, with_crossings  # noqa: E402
 from test_dataset import test_collate_equals_one_by_one as check_collate  # noqa: E402
-from test_dataset import test_gt_inside_patch_and_targets_consistent as check_gt_and_targets  # noqa: E402
 from test_dataset import test_round_trip_on_world_gt as check_round_trip  # noqa: E402
 
 # grey levels by which paint outshines the asphalt 0.9 m to its sides. tests/test_synth.py uses 15 for
 # the nuScenes rig; in the AV2 images (lower cameras, 400 x 303) points 1.6 m off a line pass 15 in
 # ~12 % of the cases (texture and sensor noise), 20 in ~4 %, while 98 % of the solid-line points pass 20.
 PAINT_CONTRAST = 20.0
-AV2_TINY = {**TINY_WORLD, "image_size": "400x303"}  # the nuScenes tiny world's drives, AV2's 4:3 cameras
-
-
-@pytest.fixture(scope="module")
-def av2_world(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("av2_world") / "av2"
-    generate_av2_world(out=root, force=True, progress=False, **AV2_TINY)
-    return root
+# av2_world (conftest.py): the tiny world's drives in the AV2 layout, shared with test_bad_inputs.py
 
 
 def _cfg(root: Path, *extra: str):
@@ -103,17 +95,21 @@ def test_world_loads_through_the_av2_api(av2_world, manifest):
                 assert cv2.imread(str(path)).shape == (h, w, 3)
                 assert loader.get_city_SE3_ego(log, ts + CAMERA_DELAY_NS[cam]) is not None
         sweep = Sweep.from_feather(loader.get_lidar_fpath(log, sweeps[0]))
-        assert sweep.xyz.shape[0] > 1000 and abs(float(np.median(sweep.xyz[:, 2]))) < 0.2  # mostly ground, ego z = 0
+        # mostly ground, which lies ego_height below the ego origin (the rear axle, as in real AV2)
+        assert 0.33 <= ego_height(log) <= 0.43
+        assert sweep.xyz.shape[0] > 1000 and abs(float(np.median(sweep.xyz[:, 2])) + ego_height(log)) < 0.02
         assert all(c.category in ("REGULAR_VEHICLE", "BOX_TRUCK", "BUS")
                    for c in CuboidList.from_feather(split / log / "annotations.feather").cuboids)
         avm = ArgoverseStaticMap.from_map_dir(split / log / "map", build_raster=True)  # ground height raster too
         assert avm.get_scenario_lane_segments() and avm.get_scenario_vector_drivable_areas()
         pose = loader.get_city_SE3_ego(log, sweeps[0])
-        assert avm.raster_ground_height_layer.get_ground_height_at_xy(pose.translation[None])[0] == 0.0
+        assert avm.raster_ground_height_layer.get_ground_height_at_xy(pose.translation[None])[0] == 0.0  # the road
+        assert pose.translation[2] == pytest.approx(ego_height(log))  # the ego above it
 
 
 def test_same_drives_as_the_nuscenes_world(av2_world, manifest, tiny_world, tiny_world_cfg):
-    """Scene i of both worlds (same arguments) is the same drive: the same ego poses."""
+    """Scene i of both worlds (same arguments) is the same drive: the same ego poses, AV2's ego origin
+    ego_height above the road where nuScenes' lies on it."""
     from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 
     nus = NuScenesMapDataset(tiny_world_cfg, "train")
@@ -123,8 +119,10 @@ def test_same_drives_as_the_nuscenes_world(av2_world, manifest, tiny_world, tiny
         log = log_id(manifest["seed"], i)
         own = [k for k, (lg, _) in enumerate(av2_set.samples) if lg == log]
         got = torch.stack([av2_set.ego_pose(k) for k in own])
-        want = nus_poses[i * TINY_WORLD["samples_per_scene"]:(i + 1) * TINY_WORLD["samples_per_scene"]]
+        want = nus_poses[i * TINY_WORLD["samples_per_scene"]:(i + 1) * TINY_WORLD["samples_per_scene"]].clone()
+        want[:, 2, 3] += ego_height(log)
         assert torch.allclose(got, want, atol=1e-4)
+        assert [av2_set.ground_height(k) for k in own] == pytest.approx([-ego_height(log)] * len(own), abs=1e-4)
 
 
 # --- the sample dict ------------------------------------------------------------------------------
@@ -166,7 +164,8 @@ def test_sample_dict_has_the_nuscenes_keys_shapes_and_frames(av2_train, tiny_wor
 def test_gt_targets_pass_the_nuscenes_invariants(av2_world):
     cfg = _cfg(av2_world)  # the default 60 m x 30 m grid, as tests/test_dataset.py
     train = AV2MapDataset(cfg, "train")
-    check_gt_and_targets(train)
+    for convention in ("edges", "union", "each"):
+        check_gt_and_targets(AV2MapDataset(with_crossings(cfg, convention), "train"))
     check_round_trip(train)
     check_collate(train)
 

@@ -138,6 +138,65 @@ def test_exponent_floats_on_the_command_line():
         load_config(None, ["train.amp=1e3"])  # a number is still not one of the choices
 
 
+def _numeric_fields(obj, prefix=""):
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _numeric_fields(value, f"{prefix}{f.name}.")
+        elif any(t in (int, float) for t in (hints[f.name], *typing.get_args(hints[f.name]),
+                                              *[a for arg in typing.get_args(hints[f.name])
+                                                for a in typing.get_args(arg)])):
+            yield f"{prefix}{f.name}", f
+
+
+def test_every_numeric_key_declares_its_range():
+    """A numeric key is defined with config.bounded(default, ge=..., gt=..., le=..., lt=...), so that
+    validate_config checks its range: a new key gets the check by declaring it, never by a list."""
+    fields = dict(_numeric_fields(ExperimentConfig()))
+    assert "train.lr" in fields and "grid.xbound" in fields and "model.gnn.max_edge_m" in fields
+    undeclared = [k for k, f in fields.items() if "range" not in f.metadata]
+    assert not undeclared, f"declare the valid range of {undeclared} with config.bounded(...)"
+
+
+@pytest.mark.parametrize("override, message", [
+    ("train.lr=.nan", r"'train\.lr': expected a finite number"),
+    ("train.lr=.inf", r"'train\.lr': expected a finite number"),
+    ("model.gnn.max_edge_m=.nan", r"'model\.gnn\.max_edge_m': expected a finite number"),
+    ("data.aug_scale=[1.0,.nan]", r"'data\.aug_scale\[1\]': expected a finite number"),
+    ("train.lr=0", r"'train\.lr' must be > 0, got 0\.0"),
+    ("train.seed=-1", r"'train\.seed' must be in \[0, 4294967296\)"),
+    ("data.image_size=[0,352]", r"'data\.image_size\[0\]' must be >= 1"),
+    ("model.gnn.conf_threshold=1", r"'model\.gnn\.conf_threshold' must be in \[0, 1\)"),
+    ("data.aug_scale=[1.1,0.9]", r"data\.aug_scale.*low <= high"),
+    ("data.classes=[boundary,ped_crossing,divider]", r"data\.classes.*order"),
+])
+def test_ranges_and_finiteness_name_the_key(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override])
+
+
+def test_a_key_written_twice_in_a_yaml_mapping_is_an_error(tmp_path):
+    (tmp_path / "twice.yaml").write_text("train:\n  lr: 0.1\n  epochs: 3\n  lr: 0.2\n")
+    with pytest.raises(ConfigError, match=r"twice\.yaml: key 'lr' is written twice .*lines 2 and 4"):
+        load_config(tmp_path / "twice.yaml")
+    (tmp_path / "merge.yaml").write_text("a: &a {lr: 0.1}\ntrain:\n  <<: *a\n  lr: 0.2\n")  # a merge key may repeat
+    with pytest.raises(ConfigError, match=r"unknown config key 'a'"):  # (and then 'a' is unknown)
+        load_config(tmp_path / "merge.yaml")
+
+
+def test_yaml_reads_exponent_floats_and_base_must_be_a_path(tmp_path):
+    (tmp_path / "e.yaml").write_text("train:\n  lr: 1e-3\n  weight_decay: 1E-7\n")
+    cfg = load_config(tmp_path / "e.yaml")
+    assert (cfg.train.lr, cfg.train.weight_decay) == (1e-3, 1e-7)  # YAML 1.1 would read strings
+    (tmp_path / "b.yaml").write_text("_base_: [e.yaml]\n")
+    with pytest.raises(ConfigError, match=r"'_base_' must name one YAML file"):
+        load_config(tmp_path / "b.yaml")
+
+
 PAPER = sorted((REPO / "configs" / "paper").glob("*.yaml"))
 
 

@@ -108,7 +108,7 @@ def _by_class(polys, k):
 
 
 def test_local_map_protocol(map_root):
-    polys = LocalMapBuilder(map_root, GRID, sample_dist=1.5)("singapore-onenorth", 0.0, 0.0, 0.0)
+    polys = LocalMapBuilder(map_root, GRID, sample_dist=1.5, ped_crossing="union")("singapore-onenorth", 0.0, 0.0, 0.0)
     dividers, peds, bounds = (_by_class(polys, k) for k in (DIVIDER, PED_CROSSING, BOUNDARY))
     assert len(dividers) == 3  # the road divider and the two pieces of the lane divider
     assert len(peds) == 2 and all(p["closed"] for p in peds)
@@ -292,8 +292,8 @@ def test_official_and_custom_splits(tmp_path):
 
 SAMPLE_KEYS = {
     "images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran", "ego_pose",
-    "sample_token", "gt_polylines", "gt_vertex_cells", "gt_distance", "gt_vertices_px", "gt_vertex_mask",
-    "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order", "gt_vertex_next", "gt_vertex_prev",
+    "ground_height", "sample_token", "gt_polylines", "gt_vertex_cells", "gt_distance", "gt_vertices_px",
+    "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order", "gt_vertex_next", "gt_vertex_prev",
     "scene", "frame_index", "scene_start", "timestamp_us",
 }
 
@@ -334,7 +334,8 @@ def test_sample_keys_shapes_dtypes(train_set, tiny_world_cfg):
         "images": ((V, 3, h, w), torch.float32), "intrinsics": ((V, 3, 3), torch.float32),
         "cam_to_ego_rot": ((V, 3, 3), torch.float32), "cam_to_ego_trans": ((V, 3), torch.float32),
         "post_rot": ((V, 3, 3), torch.float32), "post_tran": ((V, 3), torch.float32),
-        "ego_pose": ((4, 4), torch.float32), "gt_vertex_cells": ((g.Hc, g.Wc), torch.int64),
+        "ego_pose": ((4, 4), torch.float32), "ground_height": ((), torch.float32),
+        "gt_vertex_cells": ((g.Hc, g.Wc), torch.int64),
         "gt_distance": ((3, g.H, g.W), torch.float32), "gt_vertices_px": ((M, 2), torch.float32),
         "gt_vertex_mask": ((M,), torch.bool),
         **{f"gt_vertex_{k}": ((M,), torch.int64) for k in ("labels", "instance", "order", "next", "prev")},
@@ -361,44 +362,66 @@ def test_scenes_frames_and_poses(train_set, tiny_world):
     assert 0.5 < float(step[0, 3]) < 10 and abs(float(step[1, 3])) < 1.0
 
 
-def test_gt_inside_patch_and_targets_consistent(train_set):
+def with_crossings(cfg, convention: str):
+    """``cfg`` with ``data.ped_crossing = convention``."""
+    import dataclasses
+
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, ped_crossing=convention))
+
+
+@pytest.mark.parametrize("convention", ["edges", "union", "each"])
+def test_gt_inside_patch_and_targets_consistent(train_set, convention):
+    """Every crossing convention (data.ped_crossing) gives GT inside the patch whose targets round-trip:
+    closed crossings (union, each) are cycles of the vertex graph, open ones (edges) paths."""
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset
+
+    check_gt_and_targets(NuScenesMapDataset(with_crossings(train_set.cfg, convention), "train", nusc=train_set.nusc))
+
+
+def check_gt_and_targets(ds) -> None:
+    """The GT of every sample of ``ds`` lies inside the patch, its targets round-trip, and each crossing
+    is one cycle (closed conventions) or one path (``edges``) of the vertex graph."""
     from instagram_hdmap.targets import build_targets, cells_to_vertices_px
 
-    g, S = train_set.grid, train_set.grid.cell_size
-    n_closed_peds = 0
-    for i in range(len(train_set)):
-        polys = train_set.gt_polylines(i)
+    convention = ds.data_cfg.ped_crossing
+    g, S = ds.grid, ds.grid.cell_size
+    n_peds = 0
+    for i in range(len(ds)):
+        polys = ds.gt_polylines(i)
         for p in polys:
             assert g.inside_m(p["pts"]).all()  # points outside the patch never appear
             assert p["label"] in (0, 1, 2) and p["pts"].shape[0] >= 2
             if p["closed"]:
                 assert np.array_equal(p["pts"][0], p["pts"][-1]) and len(p["pts"]) >= 4
-            n_closed_peds += p["label"] == 1 and p["closed"]
-    assert n_closed_peds > 0  # the world has crossings
-    s = train_set[1]
+            if p["label"] == 1:
+                assert p["closed"] == (convention != "edges")
+                n_peds += 1
+    assert n_peds > 0  # the world has crossings
+    s = ds[1]
     t = build_targets(s["gt_polylines"], g)
     for k, v in t.items():
         assert torch.equal(v, s[k]), k
     assert ((s["gt_vertex_cells"] >= 0) & (s["gt_vertex_cells"] <= S * S)).all()
     assert len(cells_to_vertices_px(s["gt_vertex_cells"], S)) == len(s["gt_vertices_px"])
     assert s["gt_distance"].min() == 0 and s["gt_distance"].max() <= 10.0
-    # every closed crossing of the world's GT is a cycle in the vertex graph
-    n_cycles = 0
-    for i in range(len(train_set)):
-        polys = train_set.gt_polylines(i)
+    # every crossing of the world's GT is one cycle (closed) or one path (open) of the vertex graph
+    n_walks = 0
+    for i in range(len(ds)):
+        polys = ds.gt_polylines(i)
         graph = build_targets(polys, g)
-        nxt, inst = graph["gt_vertex_next"].tolist(), graph["gt_vertex_instance"]
+        nxt, prv, inst = graph["gt_vertex_next"].tolist(), graph["gt_vertex_prev"].tolist(), graph["gt_vertex_instance"]
         for k, p in enumerate(polys):
             idx = torch.nonzero(inst == k).flatten().tolist()
-            if not (p["closed"] and p["label"] == 1 and len(idx) >= 3):
+            if not (p["label"] == 1 and len(idx) >= 3):
                 continue
-            j, seen = idx[0], []
+            j = idx[0] if p["closed"] else next(v for v in idx if prv[v] == -1)
+            seen = []
             for _ in idx:
                 seen.append(j)
                 j = nxt[j]
-            assert j == idx[0] and sorted(seen) == idx
-            n_cycles += 1
-    assert n_cycles > 0
+            assert sorted(seen) == idx and (j == idx[0] if p["closed"] else j == -1)
+            n_walks += 1
+    assert n_walks > 0
 
 
 def test_projection_round_trip_with_augmentation(tiny_world_cfg):

@@ -278,6 +278,12 @@ def test_onnxruntime_equals_torch_and_decodes_the_same_polylines(tiny_export, ov
     decoded = 0
     for seed in (1, 2):  # not the export's example input
         batch = batch_for(cfg, seed)
+        if seed == 2:  # an AV2-like ground 0.38 m below the ego origin: the graph reads it, IPM / MLP use it
+            batch["ground_height"] = torch.tensor([-0.38])
+            with torch.no_grad():
+                flat = model(dict(batch, ground_height=torch.zeros(1)))["pred_vertex_logits"]
+                moved = not torch.equal(model(batch)["pred_vertex_logits"], flat)
+            assert moved == (cfg.model.view_transform.kind != "lss")
         with torch.no_grad():
             expected = model(batch)
         got = onnx_model(batch)
@@ -419,7 +425,7 @@ def test_bad_exports_are_one_line_errors(ort, world, checkpoint, exported, tmp_p
             prop.value = "0"
     onnx.save(proto, str(tmp_path / "old.onnx"))
     assert main([*predict, "--onnx", str(tmp_path / "old.onnx")]) == 2
-    assert "is an export of format 0; this version reads format 1" in _error_line(capsys)
+    assert f"is an export of format 0; this version reads format {deploy.EXPORT_FORMAT}" in _error_line(capsys)
     del proto.metadata_props[:]
     onnx.save(proto, str(tmp_path / "foreign.onnx"))
     assert main([*predict, "--onnx", str(tmp_path / "foreign.onnx")]) == 2

@@ -169,7 +169,7 @@ def test_readme_map_names_every_module_and_only_those():
     assert all(named[f] for f in files), "each module in README's Layout says what it holds"
 
 
-@pytest.mark.parametrize("module", ["config", "files", "geometry"])
+@pytest.mark.parametrize("module", ["config", "files", "geometry", "errors"])
 def test_the_lowest_floor_imports_nothing_above_itself(module):
     floors = floors_from_readme()
     assert all(floor_of(t, floors) == 0 for t in GRAPH[f"{NAME}.{module}"])

@@ -60,6 +60,7 @@ def rig(batch_size: int, image_size: tuple[int, int], yaws_deg=(55, 0, -55, 110,
         "cam_to_ego_trans": torch.stack(trans).expand(batch_size, V, 3),
         "post_rot": torch.diag(torch.tensor([s, s, 1.0])).expand(batch_size, V, 3, 3),
         "post_tran": torch.tensor([0.0, h - 900 * s, 0]).expand(batch_size, V, 3),
+        "ground_height": torch.zeros(batch_size),
     }
 
 
@@ -548,6 +549,28 @@ def test_ground_point_lands_where_ipm_and_lss_put_its_feature():
         lss.depth_net.weight[lss.num_depths:, :, 0, 0] = torch.eye(2)  # context = input features
         bev = lss(features, calib)[0, 0]
     assert abs(float(bev[v, u]) - 1.0) < 1e-4 and abs(float(bev.sum()) - 1.0) < 1e-4
+
+
+def test_ipm_plane_follows_each_samples_ground_height():
+    """Two samples of one batch: the rig of _ground_point_setup, and the same cameras over the same road
+    seen from an ego origin 0.38 m above it (AV2's rear axle: ground_height = -0.38, the cameras 0.38 m
+    lower in the ego frame). IPM puts the feature at the point's cell in both; a plane at z = 0 would
+    put the second sample's feature short of it."""
+    calib, (row, col), point, image_size = _ground_point_setup()
+    grid = BEVGrid(-30, 30, -15, 15, 0.3, 1)
+    u, v = grid.px_index(grid.m_to_px(point[:2])).tolist()
+    batch = {k: torch.cat([t, t]) for k, t in calib.items()}
+    batch["cam_to_ego_trans"][1, :, 2] -= 0.38  # the ego origin 0.38 m above the road ...
+    batch["ground_height"] = torch.tensor([0.0, -0.38])  # ... which lies at z = -0.38
+    features = torch.zeros(2, 1, 2, 8, 22)
+    features[:, 0, 0, row, col] = 1.0
+    bev = IPMViewTransform(grid, image_size, channels=2)(features, batch)[:, 0]
+    for b in range(2):
+        peak_v, peak_u = divmod(int(bev[b].argmax()), grid.W)
+        assert abs(peak_v - v) <= 1 and abs(peak_u - u) <= 1, b
+    flat = dict(batch, ground_height=torch.zeros(2))
+    peak_u = int(IPMViewTransform(grid, image_size, channels=2)(features, flat)[1, 0].argmax()) % grid.W
+    assert grid.px_to_m(torch.tensor([peak_u, v], dtype=torch.float32))[0] < point[0] - 1.0  # compressed
 
 
 def test_mlp_placement_puts_the_camera_map_in_front_of_the_camera():

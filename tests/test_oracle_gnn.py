@@ -33,9 +33,10 @@ def samples(cfg):
 @pytest.fixture(scope="module")
 def paper_grid_cfg(tiny_world, world_overrides):
     """The tiny graph head on the paper's grid (60 m x 30 m at 0.15 m, S = 8, N = 400): the tiny world's
-    train maps then hold dividers, boundaries and closed ped crossings."""
+    train maps then hold dividers, boundaries and closed ped crossings (each crossing its own ring)."""
     return load_config(TINY_YAML, [*world_overrides(tiny_world), "grid.xbound=[-30.0,30.0]", "grid.ybound=[-15.0,15.0]",
-                                   "grid.resolution=0.15", "grid.cell_size=8", "model.gnn.num_vertices=400"])
+                                   "grid.resolution=0.15", "grid.cell_size=8", "model.gnn.num_vertices=400",
+                                   "data.ped_crossing=each"])
 
 
 @pytest.fixture(scope="module")

@@ -340,5 +340,5 @@ def test_a_corrupt_checkpoint_is_a_checkpoint_error(tmp_path):
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+    with pytest.raises(CheckpointError, match="not a PyTorch checkpoint: it is a text file"):
         load_model(bad, load_config(TINY_YAML))

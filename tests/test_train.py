@@ -60,6 +60,7 @@ class ToyMaps(Dataset):
                 "cam_to_ego_rot": torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]).expand(6, 3, 3).clone(),
                 "cam_to_ego_trans": torch.tensor([0.0, 0, 1.5]).expand(6, 3).clone(),
                 "post_rot": eye, "post_tran": torch.zeros(6, 3), "ego_pose": torch.eye(4),
+                "ground_height": torch.tensor(0.0),
                 "sample_token": f"toy{i}", "gt_polylines": polys,
                 **build_targets(polys, self.grid, 3, cfg.data.dt_clip),
             })

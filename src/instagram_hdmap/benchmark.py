@@ -55,6 +55,7 @@ def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
             rig = nuscenes_like_rig(cfg.data.image_size)
             return rig, f"nuScenes-like rig built in code (the dataset at {cfg.data.dataroot} failed: {e})"
         cams.pop("images")
+        cams["ground_height"] = torch.tensor(dataset.ground_height(0), dtype=torch.float32)
         return cams, f"rig of sample {dataset.sample_tokens[0]} ({cfg.data.dataroot}, split {dataset.split})"
     return nuscenes_like_rig(cfg.data.image_size), "nuScenes-like rig built in code (no data.dataroot)"
 

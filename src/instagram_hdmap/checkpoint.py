@@ -13,8 +13,10 @@ seed and the epoch; see distributed.ResumableSampler).
 
 from __future__ import annotations
 
+import contextlib
 import pickle
 import random
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,7 @@ import numpy as np
 import torch
 
 from .config import UserError
+from .errors import one_line
 from .files import atomic_path
 
 
@@ -32,28 +35,103 @@ class CheckpointError(UserError):
 
 def save_checkpoint(state: dict, path: str | Path) -> Path:
     """Write ``state`` to ``path`` atomically (``files.atomic_path``: a temporary file in the same
-    folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one."""
+    folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one;
+    a full disk is a one-line ``files.OutputError`` naming the file, the old one intact."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(state, f)  # through Python's file object: a failed write (full disk) keeps its OSError
     return path
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """Load a checkpoint safely; errors name the file and say what is wrong."""
+    """Load a checkpoint safely; errors name the file and say what is wrong.
+
+    Before unpickling, the zip archive's CRC-32 of every entry is checked (``ZipFile.testzip``), so
+    bits flipped on disk or in a transfer are named instead of loading as wild weights; after it,
+    the model weights must be finite (a checkpoint of a diverged run is named with the first
+    non-finite tensor)."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
+        raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if not head:
+        raise CheckpointError(f"checkpoint {path} is empty (0 bytes): its save never wrote (killed, or a full "
+                              "disk); use another checkpoint, e.g. best.pt or an earlier copy")
+    if head == b"PK\x03\x04":  # torch's zip format
+        _check_archive(path)
+    elif head[:1] != b"\x80":  # neither a zip nor a pickle (torch's legacy format)
+        what = "a text file (a config?)" if _is_text(path) else "not a PyTorch file"
+        raise CheckpointError(f"{path} is not a PyTorch checkpoint: it is {what}; give a checkpoint written by "
+                              "instagram-hdmap train (e.g. OUT/best.pt) with --checkpoint")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, ValueError) as e:
+    except pickle.UnpicklingError as e:
         raise CheckpointError(
-            f"checkpoint {path} is truncated or corrupt and cannot be loaded ({type(e).__name__}: "
-            f"{str(e).splitlines()[0][:200]})"
+            f"checkpoint {path} was refused by the safe loader (torch.load with weights_only=True): it holds "
+            f"objects other than tensors and plain containers, which could run code when loaded. torch's reason: "
+            f"{_refusal_reason(e)}"
         ) from None
-    if not isinstance(state, dict) or "model" not in state:
-        raise CheckpointError(f"checkpoint {path} holds no 'model' state; is it an instagram_hdmap checkpoint?")
+    except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, KeyError) as e:
+        raise CheckpointError(
+            f"checkpoint {path} is truncated or corrupt and cannot be loaded ({type(e).__name__}: {one_line(e)})"
+        ) from None
+    if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
+        raise CheckpointError(f"checkpoint {path} holds no 'model' state dict; is it an instagram_hdmap checkpoint?")
+    bad = [k for k, v in state["model"].items()
+           if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""
+        raise CheckpointError(f"checkpoint {path}: the weights {bad[0]}{more} hold NaN or infinite values (a "
+                              "diverged training saved them); use an earlier checkpoint such as best.pt")
     return state
+
+
+# What ``train --resume`` needs besides the weights (train.py writes them all)
+RESUME_KEYS = ("optimizer", "epoch", "step", "step_in_epoch", "rng", "config")
+
+
+def check_resumable(state: dict, path: str | Path) -> None:
+    """A checkpoint to resume a training from holds the full training state, not just weights."""
+    missing = [k for k in RESUME_KEYS if k not in state]
+    if missing or not isinstance(state.get("config"), dict):
+        raise CheckpointError(f"checkpoint {path} cannot be resumed: it holds no {', '.join(missing or ['config'])} "
+                              "(only weights); resume from the last.pt or best.pt that instagram-hdmap train wrote")
+
+
+def _check_archive(path: Path) -> None:
+    """The zip's central directory is readable and every entry matches its CRC-32."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError) as e:
+        raise CheckpointError(f"checkpoint {path} is truncated or corrupt and cannot be loaded "
+                              f"({type(e).__name__}: {one_line(e)}); was its save interrupted or the copy cut "
+                              "short? Use another checkpoint") from None
+    except (zipfile.LargeZipFile, NotImplementedError, RuntimeError) as e:  # damaged headers
+        raise CheckpointError(f"checkpoint {path} is damaged ({type(e).__name__}: {one_line(e)}); use another "
+                              "copy") from None
+    if bad is not None:
+        raise CheckpointError(f"checkpoint {path} is damaged: its entry {bad} fails the zip's CRC-32 check (bits "
+                              "changed on disk or in a transfer); use another copy of the checkpoint")
+
+
+def _is_text(path: Path) -> bool:
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return b"\x00" not in head
+
+
+def _refusal_reason(e: BaseException) -> str:
+    """Why torch's weights_only unpickler refused a file: the lines of its message that name the
+    object (e.g. ``Unsupported global: GLOBAL posix.system ...``), whole; all of it if none does."""
+    lines = [" ".join(ln.split()) for ln in re.sub(r"\x1b\[[0-9;]*m", "", str(e)).splitlines()]
+    reason = [ln for ln in lines if "GLOBAL" in ln or "WeightsUnpickler" in ln or "Unsupported" in ln]
+    return " ".join(reason) if reason else one_line(e)
 
 
 def rng_state() -> dict[str, Any]:
@@ -66,6 +144,17 @@ def rng_state() -> dict[str, Any]:
         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
     }
     return state
+
+
+@contextlib.contextmanager
+def rng_preserved():
+    """Every RNG as it was before the block (validation inside a training: the training's random
+    streams, which a checkpoint saves for an exact resume, are not drawn from)."""
+    state = rng_state()
+    try:
+        yield
+    finally:
+        set_rng_state(state)
 
 
 def set_rng_state(state: dict[str, Any]) -> None:

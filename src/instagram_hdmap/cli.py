@@ -7,6 +7,7 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .evaluation import evaluate_files, format_table
-from .files import write_json
+from .files import NO_ROOM, check_output_dir, check_output_file, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
@@ -60,6 +61,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_synth_preview(args: argparse.Namespace) -> int:
+    check_output_file(args.out, "--out")
     write_preview(args.dataroot, args.out, index=args.index)
     print(f"wrote {args.out}")
     return 0
@@ -80,6 +82,7 @@ def _load_data_cfg(args: argparse.Namespace):
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
+    check_output_file(args.out, "--out")
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
     write_json(sub, args.out)
@@ -90,6 +93,7 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
 
 def _cmd_show_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
+    check_output_dir(args.out, "--out")
     dataset = build_dataset(cfg, args.split, augment=args.augment)
     if not -len(dataset) <= args.index < len(dataset):
         raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
@@ -123,6 +127,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_json(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.resolution) and args.resolution > 0):
+        raise UserError(f"--resolution {args.resolution}: metres per pixel of the raster canvas must be > 0")
+    for flag, (lo, hi) in (("--xbound", args.xbound), ("--ybound", args.ybound)):
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise UserError(f"{flag} {lo:g} {hi:g}: two finite bounds in metres, the lower first")
+    if args.out:
+        check_output_file(args.out, "--out")
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
     grid.check()
     metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
@@ -282,7 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a model; torchrun-aware")
     _add_config_args(p)
     p.add_argument("--resume", help="checkpoint to continue from (e.g. OUT/last.pt)")
-    p.add_argument("--force", action="store_true", help="start over in an output folder that holds a run")
+    p.add_argument("--force", action="store_true",
+                   help="start over in an output folder that holds a run (removes that run's checkpoints, log and "
+                   "TensorBoard events, nothing else)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("evaluate-json", help="AP of a submission JSON against a GT JSON (vector or raster protocol)",
@@ -407,6 +420,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"instagram-hdmap {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
+        cause = os_error_in(e)
+        if cause is None or cause.errno not in NO_ROOM:
+            raise
+        where = f" writing {cause.filename}" if cause.filename else ""
+        print(f"instagram-hdmap {args.command}: error: {cause.strerror or cause}{where}: the disk is full or a "
+              "file-size limit is reached; free some space and run again (a training resumes with --resume "
+              "OUT/last.pt)", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -9,6 +9,10 @@ A YAML file may name another one to start from with ``_base_: relative/path.yaml
 overrides use dotted keys, ``model.gnn.layers=9``, and are parsed as YAML values.
 
 Unknown keys and values of the wrong type are errors that name the key and list what is valid.
+A YAML key written twice in one mapping is an error (PyYAML would keep the last one silently). Every
+float must be finite, and every numeric key declares its range where it is defined
+(``bounded(default, ge=..., gt=..., le=..., lt=...)``): ``validate_config`` checks them all, so a new
+key gets the check by declaring its bounds (tests/test_config.py checks that every numeric key does).
 
     cfg = load_config("configs/paper/table1_b0_lss_128x352.yaml", ["train.batch_size=8"])
     save_config(cfg, "run/config.yaml"); assert load_config("run/config.yaml") == cfg
@@ -18,6 +22,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -26,16 +32,50 @@ from typing import Any, Literal, Union
 
 import yaml
 
+from .errors import UserError
 from .files import write_text
-
-
-class UserError(Exception):
-    """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line
-    and exits with code 2. Library code raises subclasses with messages that say what to fix."""
 
 
 class ConfigError(UserError, ValueError):
     """A configuration key or value the user must fix."""
+
+
+@dataclass(frozen=True)
+class Range:
+    """The valid values of a numeric config key (of each element of a list key): ge / gt / le / lt
+    bounds, any of them None; ``note`` says what the key is, for the error message."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+    note: str = ""
+
+    def __contains__(self, v: float) -> bool:
+        return ((self.ge is None or v >= self.ge) and (self.gt is None or v > self.gt)
+                and (self.le is None or v <= self.le) and (self.lt is None or v < self.lt))
+
+    def describe(self) -> str:
+        def num(x: float) -> str:
+            return str(x) if isinstance(x, int) else f"{x:g}"
+
+        lo = f"[{num(self.ge)}" if self.ge is not None else f"({num(self.gt)}" if self.gt is not None else None
+        hi = f"{num(self.le)}]" if self.le is not None else f"{num(self.lt)})" if self.lt is not None else None
+        if lo and hi:
+            return f"in {lo}, {hi}"
+        if lo:
+            return f"{'>=' if lo[0] == '[' else '>'} {lo[1:]}"
+        return f"{'<=' if hi[-1] == ']' else '<'} {hi[:-1]}" if hi else "any number"
+
+
+def bounded(default: Any, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
+            lt: float | None = None, note: str = "") -> Any:
+    """A dataclass field of a numeric key with its declared ``Range`` (checked by ``validate_config``)."""
+    return field(default=default, metadata={"range": Range(ge, gt, le, lt, note)})
+
+
+# The map classes of the local map builders (data/local_map.py, data/av2.py), in label order
+MAP_CLASSES = ("divider", "ped_crossing", "boundary")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -47,10 +87,10 @@ class ConfigError(UserError, ValueError):
 class GridConfig:
     """The BEV grid (see geometry.BEVGrid). x points forward, y to the left, metres, ego frame."""
 
-    xbound: tuple[float, float] = (-30.0, 30.0)  # along the driving direction
-    ybound: tuple[float, float] = (-15.0, 15.0)  # lateral
-    resolution: float = 0.15  # metres per BEV pixel
-    cell_size: int = 8  # S: one vertex per SxS cell
+    xbound: tuple[float, float] = bounded((-30.0, 30.0), ge=-1000, le=1000)  # along the driving direction
+    ybound: tuple[float, float] = bounded((-15.0, 15.0), ge=-1000, le=1000)  # lateral
+    resolution: float = bounded(0.15, gt=0)  # metres per BEV pixel
+    cell_size: int = bounded(8, ge=1)  # S: one vertex per SxS cell
 
 
 # The seven ring cameras of the Argoverse 2 sensor dataset, clockwise from the front left (data/av2.py)
@@ -71,24 +111,31 @@ class DataConfig:
     splits_file: str | None = None
     train_split: str = "train"
     val_split: str = "val"
-    image_size: tuple[int, int] = (128, 352)  # (h, w) fed to the backbone
+    image_size: tuple[int, int] = bounded((128, 352), ge=1)  # (h, w) fed to the backbone
     # cover: resize to cover (h, w), crop (lift-splat-shoot); contain: resize to fit inside, pad with
     # black (for cameras of different aspect ratios, e.g. AV2's portrait ring_front_center); stretch:
     # resize the whole image to (h, w), each axis on its own (the official InstaGraM / HDMapNet
     # loader: 1600 x 900 -> 352 x 128, no crop; configs/paper)
     image_fit: Literal["cover", "contain", "stretch"] = "cover"
     av2_cameras: tuple[str, ...] = AV2_RING_CAMERAS  # av2: the ring cameras fed to the model, in this order
-    av2_frame_step: int = 5  # av2: one lidar sweep in N is a sample (AV2's sweeps come at 10 Hz)
-    sample_dist: float = 1.5  # metres between resampled map vertices
+    av2_frame_step: int = bounded(5, ge=1)  # av2: one lidar sweep in N is a sample (AV2's sweeps come at 10 Hz)
+    sample_dist: float = bounded(1.5, gt=0)  # metres between resampled map vertices
+    # ped-crossing ground truth (data/local_map.py, docs/conventions.md): "edges", each crossing's two
+    # longest edges as open polylines (HDMapNet's and the official InstaGraM code's, the paper's);
+    # "union", the rings (exterior and interior) of the crossings' union (MapTR); "each", each
+    # crossing's own ring (StreamMapNet, the field's AV2 setting)
+    ped_crossing: Literal["edges", "union", "each"] = "edges"
     classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
-    dt_clip: float = 10.0  # distance transform clipped to [0, dt_clip] BEV pixels
+    # distance transform clipped to [0, dt_clip] BEV pixels
+    dt_clip: float = bounded(10.0, gt=0, note="BEV pixels; the distance-transform targets are divided by it")
     augment: bool = False  # train-time image augmentation (scale, crop, rotate)
-    aug_scale: tuple[float, float] = (0.95, 1.05)  # uniform factor on the resize
-    aug_rotate_deg: float = 5.4  # uniform in [-aug_rotate_deg, aug_rotate_deg], about the image centre
-    aug_crop_jitter: float = 0.05  # crop window shift, uniform in +-fraction of the image size
+    aug_scale: tuple[float, float] = bounded((0.95, 1.05), gt=0)  # uniform factor on the resize
+    # uniform in [-aug_rotate_deg, aug_rotate_deg], about the image centre
+    aug_rotate_deg: float = bounded(5.4, ge=0, le=180)
+    aug_crop_jitter: float = bounded(0.05, ge=0, le=1)  # crop window shift, uniform in +-fraction of the image size
     # raise: a UserError naming the file and sample; skip: warn once per bad sample, use the next good one
     on_bad_sample: Literal["raise", "skip"] = "raise"
-    num_workers: int = 4
+    num_workers: int = bounded(4, ge=0, note="data-loader processes; 0 loads in the main process")
 
 
 @dataclass
@@ -103,37 +150,39 @@ class BackboneConfig:
     from_scratch: bool = False
     # C of the per-camera features handed to the view transform (reduction 4 + 5 fused by an up-block).
     # The official code uses 256 with LSS and 64 with IPM / MLP (configs/paper/table5_*.yaml).
-    out_channels: int = 256
+    out_channels: int = bounded(256, ge=1)
     # Activation checkpointing of the EfficientNet's MBConv blocks (training only): keep each block's
     # input for backward and recompute the block there, with the same drop-connect masks and without
     # updating BatchNorm statistics twice, so gradients and buffers are bit-identical to the plain run.
     # CPU, 128x352, batch 1 (benchmarks/train_speed.py): peak memory B0 2.04 -> 1.54 GB, B4 3.40 ->
-    # 1.97 GB, for +6 % / +22 % step time. Set false when memory is plentiful (a large GPU).
+    # 1.97 GB, for +6 % / +22 % step time (under load). Set false when memory is plentiful (a large GPU).
     grad_checkpoint: bool = True
     # name=tiny only: channels of its five stride-2 conv stages (the CPU demo's image encoder)
-    tiny_widths: tuple[int, ...] = (8, 16, 24, 32, 48)
+    tiny_widths: tuple[int, ...] = bounded((8, 16, 24, 32, 48), ge=1)
 
 
 @dataclass
 class ViewTransformConfig:
     kind: Literal["lss", "ipm", "mlp"] = "lss"
-    depth_bound: tuple[float, float, float] = (4.0, 45.0, 1.0)  # LSS depth bins: start, stop, step (m)
+    depth_bound: tuple[float, float, float] = bounded((4.0, 45.0, 1.0), gt=0)  # LSS depth bins: start, stop, step (m)
     # The view transform writes a BEV grid `bev_downsample` times coarser than the output grid: 2 (our
     # default) splats straight onto the half-resolution grid of F_bev (W/2 x H/2); 1 splats at full
     # resolution and the BEV encoder's stem convolution strides by 2 (the official layout, slower).
-    bev_downsample: int = 2
-    zbound: tuple[float, float] = (-10.0, 10.0)  # LSS vertical extent of the voxel pillar
-    ipm_height: float = 0.0  # IPM ground-plane height in the ego frame (m)
-    mlp_bev_downsample: int = 5  # HDMapNet MLP: per-camera BEV of (H/5) x (W/5)
-    num_cameras: int = 6  # MLP only: one fully connected view transform per camera
+    bev_downsample: int = bounded(2, ge=1, le=2)
+    zbound: tuple[float, float] = bounded((-10.0, 10.0), ge=-1000, le=1000)  # LSS vertical extent of the voxel pillar
+    # IPM / MLP ground plane: z = the sample's ground height (batch key ground_height: nuScenes 0,
+    # AV2 the road below the rear axle, ~-0.35 m) + this offset (m)
+    ipm_height: float = bounded(0.0, ge=-100, le=100)
+    mlp_bev_downsample: int = bounded(5, ge=1)  # HDMapNet MLP: per-camera BEV of (H/5) x (W/5)
+    num_cameras: int = bounded(6, ge=1)  # MLP only: one fully connected view transform per camera
 
 
 @dataclass
 class BEVHeadsConfig:
-    channels: int = 256  # F_bev channels
+    channels: int = bounded(256, ge=1)  # F_bev channels
     # "3 residual blocks": ResNet-18 stages layer1..3, two BasicBlocks each, strides 1, 2, 2
-    stage_channels: tuple[int, ...] = (64, 128, 256)
-    head_channels: int = 128  # hidden width of the vertex and distance-transform heads
+    stage_channels: tuple[int, ...] = bounded((64, 128, 256), ge=1)
+    head_channels: int = bounded(128, ge=1)  # hidden width of the vertex and distance-transform heads
     # the distance-transform (edge map) head and its loss; false: no head, no pred_distance, no
     # loss_distance (the official visual-descriptor variant of Fig. 7, which needs embedding pe+vd)
     distance_head: bool = True
@@ -141,11 +190,11 @@ class BEVHeadsConfig:
 
 @dataclass
 class GraphHeadConfig:
-    num_vertices: int = 400  # N, top-N vertices fed to the GNN
-    conf_threshold: float = 0.01
+    num_vertices: int = bounded(400, ge=1)  # N, top-N vertices fed to the GNN
+    conf_threshold: float = bounded(0.01, ge=0, lt=1)
     # BEV pixels: a cell's vertex within this distance of a stronger one in a neighbouring cell is
     # dropped (0: one vertex per cell only, the paper's text; models/vertices.py)
-    nms_radius: float = 0.0
+    nms_radius: float = bounded(0.0, ge=0)
     # how nms_radius suppresses: "cells" (ours: Euclidean distance to a stronger winner of one of the
     # 8 neighbouring cells, one pass) or "superpoint" (SuperPoint's simple_nms on the map of cell
     # winners: (2r+1)^2 max-pool window, two rescue passes; the official code, radius S/2 px)
@@ -154,16 +203,17 @@ class GraphHeadConfig:
     # pe+vd: where the visual descriptor is read from F_bev: "vertex" (bilinear at the vertex) or
     # "cell" (F_bev resized to the cell grid, the vertex's cell: the official code)
     vd_sampling: Literal["vertex", "cell"] = "vertex"
-    dim: int = 256  # D
-    pe_frequencies: int = 10  # sinusoidal positional encoding bands per coordinate
-    layers: int = 7  # L attentional message-passing layers (0-11 in the paper)
-    heads: int = 4
-    sinkhorn_iters: int = 100
+    dim: int = bounded(256, ge=1)  # D
+    pe_frequencies: int = bounded(10, ge=0)  # sinusoidal positional encoding bands per coordinate
+    layers: int = bounded(7, ge=0)  # L attentional message-passing layers (0-11 in the paper)
+    heads: int = bounded(4, ge=1)
+    sinkhorn_iters: int = bounded(100, ge=1, note="0 iterations leave the score matrix unnormalised")
     # gradient through the Sinkhorn: "implicit" (fixed-point differentiation: one small solve per
     # sample, ~none of the memory) or "unrolled" (through every iteration, as SuperGlue); the
     # forward is the same (models/matching.py)
     sinkhorn_grad: Literal["implicit", "unrolled"] = "implicit"
-    match_threshold: float = 0.1  # adjacency probability to follow an edge at inference
+    # adjacency probability to follow an edge at inference
+    match_threshold: float = bounded(0.1, gt=0, lt=1, note="an adjacency probability")
     # inference decoder of the adjacency (postprocess.py): "greedy" (strongest pairs first, degree
     # <= 2, one class-agnostic graph), "classwise" (the same per class, over the vertices whose class
     # probability is >= class_min_prob), "mutual" (the official rule: each end ranks the other among
@@ -171,11 +221,14 @@ class GraphHeadConfig:
     # "official" (the official export's walk over that rule, quirks included: it drops the last
     # vertex of every walk)
     decoder: Literal["classwise", "greedy", "mutual", "official"] = "greedy"
-    class_min_prob: float = 0.05  # classwise: a vertex takes part in class k's graph if p_k >= this
+    # classwise: a vertex takes part in class k's graph if p_k >= this
+    class_min_prob: float = bounded(0.05, ge=0, lt=1, note="a class probability")
     # greedy: an edge needs both vertices' argmax class to agree (mutual and official always do)
     same_class_edges: bool = False
-    max_edge_m: float | None = None  # greedy / classwise: no edge longer than this (metres)
-    min_vertices: int = 2  # a decoded instance needs at least this many vertices
+    # greedy / classwise: no edge longer than this (metres)
+    max_edge_m: float | None = bounded(None, gt=0, note="metres, or null: no limit")
+    # a decoded instance needs at least this many vertices
+    min_vertices: int = bounded(2, ge=2, note="an instance is at least one edge")
 
 
 @dataclass
@@ -188,12 +241,13 @@ class TemporalConfig:
     # gated: x + sigmoid(g) * d from a conv of [x, warped memory, validity], d zero-initialised (the
     # model starts as the single-frame one); gru: StreamMapNet's ConvGRU (gates, LayerNorm)
     fusion: Literal["gated", "gru"] = "gated"
-    kernel: int = 1  # the fusion convolutions' kernel (1 as StreamMapNet's ConvGRU; 3 sees +-1 cell)
+    # the fusion convolutions' kernel (1 as StreamMapNet's ConvGRU; 3 sees +-1 cell)
+    kernel: int = bounded(1, ge=1, le=7, note="odd")
     # training: each sample's memory is dropped with this probability at each step (the model keeps
     # working on a scene's first frame, StreamMapNet's random drop)
-    drop_prob: float = 0.1
+    drop_prob: float = bounded(0.1, ge=0, lt=1)
     # a jump of the ego position larger than this between consecutive frames resets the memory
-    max_jump_m: float = 10.0
+    max_jump_m: float = bounded(10.0, gt=0)
 
 
 @dataclass
@@ -207,11 +261,12 @@ class ModelConfig:
 
 @dataclass
 class LossConfig:
-    vertex_weight: float = 1.0  # lambda_1, vertex cross-entropy over S^2 + 1
-    distance_weight: float = 1.0  # lambda_2, distance-transform L2
-    adjacency_weight: float = 5e-3  # lambda_3, bidirectional adjacency NLL
-    class_weight: float = 1e-2  # lambda_4, vertex class NLL
-    match_dist: float = 1.5  # D_0, metres: a predicted vertex farther from every GT vertex is unmatched
+    vertex_weight: float = bounded(1.0, ge=0)  # lambda_1, vertex cross-entropy over S^2 + 1
+    distance_weight: float = bounded(1.0, ge=0)  # lambda_2, distance-transform L2
+    adjacency_weight: float = bounded(5e-3, ge=0)  # lambda_3, bidirectional adjacency NLL
+    class_weight: float = bounded(1e-2, ge=0)  # lambda_4, vertex class NLL
+    # D_0, metres: a predicted vertex farther from every GT vertex is unmatched
+    match_dist: float = bounded(1.5, gt=0)
     # the space of Eq. 5's distance (assignment.py): "metres" (a circle of radius D_0) or "patch" (the
     # official GraphLoss: offsets divided by the patch extent and compared with D_0 divided the same
     # way, an ellipse of 3.35 m x 1.68 m on the 60 m x 30 m patch; the nearest GT vertex too)
@@ -226,50 +281,51 @@ class LossConfig:
 @dataclass
 class TrainConfig:
     out_dir: str = "runs/instagram"
-    epochs: int = 30
-    batch_size: int = 32  # in total, over all processes
-    lr: float = 1e-3
-    weight_decay: float = 1e-7
+    epochs: int = bounded(30, ge=1)
+    batch_size: int = bounded(32, ge=1)  # in total, over all processes
+    lr: float = bounded(1e-3, gt=0)
+    weight_decay: float = bounded(1e-7, ge=0)
     # LR schedule as a function of progress = max(steps / total steps, elapsed / time budget)
     # (schedule.py): "step" decays x lr_gamma every lr_step epochs' worth of progress (the paper's
     # StepLR), "cosine" to lr * min_lr_factor; both after a linear warm-up over `warmup` progress
     schedule: Literal["step", "cosine"] = "step"
-    lr_step: int = 10  # epochs between decays
-    lr_gamma: float = 0.1
-    warmup: float = 0.0  # fraction of progress
-    min_lr_factor: float = 0.0  # cosine only
-    grad_clip: float = 5.0
+    lr_step: int = bounded(10, ge=1, note="epochs between decays")
+    lr_gamma: float = bounded(0.1, gt=0)
+    warmup: float = bounded(0.0, ge=0, lt=1, note="a fraction of training")  # fraction of progress
+    min_lr_factor: float = bounded(0.0, ge=0, le=1)  # cosine only
+    grad_clip: float = bounded(5.0, ge=0, note="0: no clipping")
     amp: Literal["none", "bf16", "fp16"] = "none"
-    seed: int = 0
+    seed: int = bounded(0, ge=0, lt=2**32)
     on_nonfinite: Literal["stop", "skip"] = "stop"
-    log_every: int = 10
-    val_every: int = 1  # epochs
-    max_steps: int | None = None  # stop after this many steps (tests); does not shorten the schedule
+    log_every: int = bounded(10, ge=1)
+    val_every: int = bounded(1, ge=1)  # epochs
+    # stop after this many steps (tests); does not shorten the schedule
+    max_steps: int | None = bounded(None, ge=1, note="or null")
     # wall-time budget of the training loop: the schedule completes within it (fewer steps on a
     # slower machine) and training stops when it is spent
-    time_budget_min: float | None = None
-    checkpoint_every: int = 500  # steps between mid-epoch saves of last.pt (0: epoch ends only)
+    time_budget_min: float | None = bounded(None, gt=0, note="or null for none")
+    checkpoint_every: int = bounded(500, ge=0)  # steps between mid-epoch saves of last.pt (0: epoch ends only)
     deterministic: bool = False  # torch.use_deterministic_algorithms (exact resume on CPU)
     device: Literal["auto", "cpu", "cuda"] = "auto"
     # torch intra-op threads of a CPU training run; null = the cores this process may use minus the
     # data workers (>= 1), unless OMP_NUM_THREADS is set. Two cores shared by two torch threads and
     # a data worker ran the demo 12 % slower than one thread (benchmarks/torch_builds.py)
-    cpu_threads: int | None = None
+    cpu_threads: int | None = bounded(None, ge=1, note="or null: automatic")
     # temporal models (model.temporal): training streams walk scenes in pieces of at most this many
     # frames, each piece a new start of the memory (0: whole scenes). Shorter pieces make consecutive
     # batches less alike (data/streaming.py; StreamMapNet's seq_split_num)
-    stream_frames: int = 0
+    stream_frames: int = bounded(0, ge=0, note="0: whole scenes")
     # temporal models: the first epochs on shuffled single frames (the memory always empty) before the
     # streams, as a fraction of train.epochs (StreamMapNet trains 1/6 of its epochs so); consecutive
     # frames in a batch stream are alike, which slows the early learning of the single-frame parts
-    stream_warmup: float = 0.0
+    stream_warmup: float = bounded(0.0, ge=0, lt=1, note="a fraction of train.epochs")
 
 
 @dataclass
 class EvalConfig:
     protocol: Literal["vector", "raster"] = "vector"
-    thresholds: tuple[float, ...] = (0.5, 1.0, 1.5)
-    batch_size: int = 4
+    thresholds: tuple[float, ...] = bounded((0.5, 1.0, 1.5), gt=0)
+    batch_size: int = bounded(4, ge=1)
     # raster protocol only: "ascending" reproduces the reference's PR curve order (a bug the
     # InstaGraM paper's numbers carry), "descending" fixes it
     rank_by: Literal["ascending", "descending"] = "ascending"
@@ -278,7 +334,7 @@ class EvalConfig:
     # rate, per class the share of GT elements seen in two consecutive frames whose detected / missed
     # status (a prediction within flicker_threshold_m, Chamfer) flips
     flicker: bool = True
-    flicker_threshold_m: float = 1.0
+    flicker_threshold_m: float = bounded(1.0, gt=0)
     # protocols computed as well, on the same predictions, reported under metrics["also"][protocol]
     also_protocols: tuple[Literal["vector", "raster"], ...] = ()
 
@@ -315,6 +371,10 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+class _NotFinite(ConfigError):
+    """A number of the right type that is NaN or infinite."""
+
+
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Check ``value`` against the annotation ``tp``; return it in canonical form (tuples)."""
     origin = typing.get_origin(tp)
@@ -327,6 +387,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         for arg in typing.get_args(tp):
             try:
                 return _coerce(value, arg, key)
+            except _NotFinite:
+                raise
             except ConfigError:
                 continue
         raise bad
@@ -354,7 +416,13 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise bad
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an int too large for a float
+            number = math.inf
+        if not math.isfinite(number):
+            raise _NotFinite(f"config key '{key}': expected a finite number, got {value!r}")
+        return number
     if tp is str:
         if not isinstance(value, str):
             raise bad
@@ -383,20 +451,74 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
     return dataclasses.replace(obj, **changes)
 
 
+class _DuplicateKey(yaml.YAMLError):
+    pass
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, except that a key written twice in one mapping is an error (PyYAML
+    keeps the last one, so a section written twice silently loses the first one's keys)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            lines: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base`: its keys may be overridden
+                    continue
+                key = self.construct_object(key_node, deep=deep)
+                try:
+                    if key in lines:
+                        raise _DuplicateKey(f"key {key!r} is written twice in one mapping (lines {lines[key]} and "
+                                            f"{key_node.start_mark.line + 1}); YAML keeps only the last, so merge them")
+                    lines[key] = key_node.start_mark.line + 1
+                except TypeError:  # an unhashable key: construct_mapping names it
+                    pass
+        return super().construct_mapping(node, deep)
+
+
+# YAML 1.2 floats: PyYAML (YAML 1.1) reads "1e-3" (no dot, no exponent sign) as a string
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                  |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                  |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                  |[-+]?\.(?:inf|Inf|INF)
+                  |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(text: str):
+    """YAML text -> Python values (safe types only; a key repeated in a mapping is an error)."""
+    return yaml.load(text, Loader=_StrictLoader)
+
+
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise ConfigError(f"config file not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
     if path.resolve() in seen:
         raise ConfigError(f"config file {path} includes itself through _base_")
+    raw = path.read_bytes()
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        what = "a zip archive such as a PyTorch checkpoint" if raw[:4] == b"PK\x03\x04" else "a binary file"
+        raise ConfigError(f"config file {path} is not YAML text but {what}; the first argument is the experiment "
+                          "YAML (a checkpoint goes with --checkpoint)") from None
+    try:
+        data = load_yaml(text) or {}
+    except _DuplicateKey as e:
+        raise ConfigError(f"config file {path}: {e}") from None
     except yaml.YAMLError as e:
-        raise ConfigError(f"config file {path} is not valid YAML: {e}") from None
+        raise ConfigError(f"config file {path} is not valid YAML: {' '.join(str(e).split())}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must hold a mapping at the top level")
     base = data.pop("_base_", None)
     if base is None:
         return data
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"config file {path}: '_base_' must name one YAML file (a path relative to {path.parent}), "
+                          f"got {base!r}")
     merged = _read_yaml(path.parent / base, (*seen, path.resolve()))
     deep_update(merged, data)
     return merged
@@ -419,7 +541,9 @@ def parse_overrides(overrides: list[str]) -> dict:
             raise ConfigError(f"override '{item}' must look like key.sub=value")
         key, raw = item.split("=", 1)
         try:
-            value = yaml.safe_load(raw) if raw != "" else ""
+            value = load_yaml(raw) if raw != "" else ""
+        except _DuplicateKey as e:
+            raise ConfigError(f"override '{item}': {e}") from None
         except yaml.YAMLError:
             value = raw
         if isinstance(value, str):  # YAML 1.1 reads "3e-3" as a string; a number is meant
@@ -448,69 +572,52 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     return cfg
 
 
+def check_ranges(obj: Any, prefix: str = "") -> None:
+    """Every key of the (nested) config dataclass ``obj`` declared with ``bounded`` is in its range."""
+    for f in dataclasses.fields(obj):
+        key, value = prefix + f.name, getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            check_ranges(value, key + ".")
+            continue
+        rng = f.metadata.get("range")
+        if rng is None or value is None:
+            continue
+        for i, v in enumerate(value) if isinstance(value, tuple) else [(None, value)]:
+            if v not in rng:
+                where = key if i is None else f"{key}[{i}]"
+                note = f" ({rng.note})" if rng.note else ""
+                raise ConfigError(f"config key '{where}' must be {rng.describe()}{note}, got {v!r}")
+
+
 def validate_config(cfg: ExperimentConfig) -> None:
-    """Cross-field checks that a single type annotation cannot express."""
+    """Each key in its declared range (``check_ranges``), then the checks across keys."""
+    check_ranges(cfg)
     g = cfg.grid
     for name in ("xbound", "ybound"):
         lo, hi = getattr(g, name)
         if not hi > lo:
             raise ConfigError(f"config key 'grid.{name}': upper bound must exceed lower, got {(lo, hi)}")
-    if g.resolution <= 0:
-        raise ConfigError(f"config key 'grid.resolution' must be > 0, got {g.resolution}")
-    if g.cell_size < 1:
-        raise ConfigError(f"config key 'grid.cell_size' must be >= 1, got {g.cell_size}")
-    if cfg.model.gnn.num_vertices <= 0:
-        raise ConfigError(f"config key 'model.gnn.num_vertices' must be > 0, got {cfg.model.gnn.num_vertices}")
-    if not 0 <= cfg.model.gnn.layers:
-        raise ConfigError(f"config key 'model.gnn.layers' must be >= 0, got {cfg.model.gnn.layers}")
     gnn = cfg.model.gnn
-    if not 0 < gnn.match_threshold < 1:
-        raise ConfigError(f"config key 'model.gnn.match_threshold' is an adjacency probability: it must be in (0, 1), "
-                          f"got {gnn.match_threshold}")
-    if gnn.max_edge_m is not None and not gnn.max_edge_m > 0:
-        raise ConfigError(f"config key 'model.gnn.max_edge_m' must be > 0 metres (or null: no limit), "
-                          f"got {gnn.max_edge_m}")
     if gnn.max_edge_m is not None and gnn.decoder in ("mutual", "official"):
         raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy and classwise decoders; "
                           "set model.gnn.decoder=greedy (or classwise), or max_edge_m=null")
-    if gnn.min_vertices < 2:
-        raise ConfigError(f"config key 'model.gnn.min_vertices' must be >= 2 (an instance is at least one edge), "
-                          f"got {gnn.min_vertices}")
-    if not 0 <= gnn.class_min_prob < 1:
-        raise ConfigError(f"config key 'model.gnn.class_min_prob' is a class probability: it must be in [0, 1), "
-                          f"got {gnn.class_min_prob}")
-    h, w = cfg.data.image_size
-    if h <= 0 or w <= 0:
-        raise ConfigError(f"config key 'data.image_size' must be positive, got {(h, w)}")
     d = cfg.data
-    if d.av2_frame_step < 1:
-        raise ConfigError(f"config key 'data.av2_frame_step' must be >= 1, got {d.av2_frame_step}")
+    if tuple(d.classes) != MAP_CLASSES:
+        raise ConfigError(f"config key 'data.classes' must be {list(MAP_CLASSES)}: the local map's classes, in the "
+                          f"order of their labels 0, 1, 2 (the names are not free); got {list(d.classes)}")
+    lo, hi = d.aug_scale
+    if lo > hi:
+        raise ConfigError(f"config key 'data.aug_scale': (low, high) with low <= high, got {(lo, hi)}")
     bad = [c for c in d.av2_cameras if c not in AV2_RING_CAMERAS]
     if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
         raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "
                           f"{', '.join(AV2_RING_CAMERAS)}; got {list(d.av2_cameras)}")
-    t = cfg.train
-    if t.time_budget_min is not None and not t.time_budget_min > 0:
-        raise ConfigError(f"config key 'train.time_budget_min' must be > 0 (or null for none), got {t.time_budget_min}")
-    if t.max_steps is not None and t.max_steps <= 0:
-        raise ConfigError(f"config key 'train.max_steps' must be > 0 (or null), got {t.max_steps}")
-    if not 0 <= t.stream_warmup < 1:
-        raise ConfigError(f"config key 'train.stream_warmup' is a fraction of train.epochs in [0, 1), got "
-                          f"{t.stream_warmup}")
-    if t.stream_frames < 0:
-        raise ConfigError(f"config key 'train.stream_frames' must be >= 0 (0: whole scenes), got {t.stream_frames}")
-    if t.cpu_threads is not None and t.cpu_threads < 1:
-        raise ConfigError(f"config key 'train.cpu_threads' must be >= 1 (or null: automatic), got {t.cpu_threads}")
-    if not 0 <= t.warmup < 1:
-        raise ConfigError(f"config key 'train.warmup' must be in [0, 1) (a fraction of training), got {t.warmup}")
-    if t.lr_step < 1:
-        raise ConfigError(f"config key 'train.lr_step' must be >= 1 (epochs between decays), got {t.lr_step}")
     also = cfg.eval.also_protocols
     if cfg.eval.protocol in also or len(set(also)) != len(also):
         raise ConfigError(f"config key 'eval.also_protocols' lists protocols besides eval.protocol="
                           f"{cfg.eval.protocol!r}, each once; got {list(also)}")
-    if any(t <= 0 for t in cfg.eval.thresholds):
-        raise ConfigError(f"config key 'eval.thresholds' must be > 0, got {cfg.eval.thresholds}")
+    if not cfg.eval.thresholds:
+        raise ConfigError("config key 'eval.thresholds' needs at least one Chamfer threshold in metres")
 
 
 def config_to_dict(cfg: Any) -> dict:

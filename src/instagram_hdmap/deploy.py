@@ -12,7 +12,9 @@ Hc x Wc = H/S x W/S, K classes, N vertex slots.
 The exported graph (``inference.INPUT_NAMES`` -> ``inference.OUTPUT_NAMES``, every shape static, float32
 but the bool mask):
   inputs  ``images`` [1, V, 3, h, w] (normalised), ``intrinsics`` [1, V, 3, 3], ``cam_to_ego_rot``
-          [1, V, 3, 3], ``cam_to_ego_trans`` [1, V, 3], ``post_rot`` [1, V, 3, 3], ``post_tran`` [1, V, 3]
+          [1, V, 3, 3], ``cam_to_ego_trans`` [1, V, 3], ``post_rot`` [1, V, 3, 3], ``post_tran`` [1, V, 3],
+          ``ground_height`` [1] (the IPM / MLP ground plane; a graph whose view transform does not read it,
+          LSS, still takes it, so that every export has the same inputs)
   outputs the model's output dict (docs/conventions.md) in this order: ``pred_vertex_logits``
           [1, S*S+1, Hc, Wc], ``pred_heatmap`` [1, H, W], ``pred_distance`` [1, K, H, W],
           ``pred_vertices_px`` [1, N, 2], ``pred_vertex_mask`` [1, N] bool, ``pred_vertex_scores`` [1, N],
@@ -49,7 +51,7 @@ from torch import nn
 from .checkpoint import load_checkpoint
 from .config import ExperimentConfig, flatten, is_under, parse_overrides
 from .data.rig import nuscenes_like_rig
-from .files import atomic_path
+from .files import atomic_path, check_output_file
 from .inference import (
     EXPORT_FORMAT,
     INPUT_NAMES,
@@ -260,6 +262,7 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     it to ``out`` and, with ``verify``, run the file in onnxruntime on the example input: adds
     ``check`` (``compare_outputs`` of onnxruntime against torch) to ``export_onnx``'s result."""
     require_onnx(export=True)
+    check_output_file(out, "--out")  # before minutes of export
     state = load_checkpoint(checkpoint)
     saved = state.get("config") if isinstance(state.get("config"), dict) else None
     cfg = export_config(cfg, saved, overrides, checkpoint)

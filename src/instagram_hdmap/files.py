@@ -9,7 +9,9 @@ the rename cannot cross file systems). When the block finishes, a file is flushe
 temporary is renamed over the target (a folder at the target is removed first); when the block
 raises (an error, Ctrl-C), the temporary is removed and the target is as it was. A crash leaves
 either the old target or the new one, and at worst a ``.NAME.TAG-PID`` file or folder that names
-the process that left it.
+the process that left it, which the next writer of that target removes (``remove_stale_temporaries``)
+once that process is gone. A full disk or an unwritable place is an ``OutputError`` naming the file;
+``check_output_file`` / ``check_output_dir`` check an output path before the work that fills it.
 
 It sits on the lowest floor (with config.py, which saves configs through it), so every module that
 writes a result file uses it: configs, checkpoints, submissions and metrics, ONNX exports, synthetic
@@ -18,12 +20,105 @@ worlds.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from .errors import UserError
+
+# errnos that mean "no room": the disk (or the user's quota) is full, or a file-size limit is reached
+NO_ROOM = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+
+
+class OutputError(UserError):
+    """An output path that cannot be written: a folder where a file goes (or the reverse), no write
+    permission, a full disk. The message names the path and the cause."""
+
+
+def os_error_in(e: BaseException) -> OSError | None:
+    """The OSError that caused ``e``: ``e`` itself or one in its chain (torch.save reports a failed
+    write as a RuntimeError raised while handling the OSError of Python's file object)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, OSError):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def _first_existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _check_parent(path: Path, flag: str) -> None:
+    base = _first_existing(path.parent)
+    if not base.is_dir():
+        raise OutputError(f"{flag} {path}: {base} is a file, so nothing can be written below it; choose another path")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise OutputError(f"{flag} {path}: no permission to write in {base}; choose a writable folder")
+
+
+def check_output_file(path: str | Path, flag: str = "output file") -> Path:
+    """Before the work: ``path`` can be written as a file (it is not a folder, and it or the first
+    existing folder above it is writable). ``flag`` names the option in the message (``--out``)."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{flag} {path}: is a folder; give a file name (e.g. {path / 'out.json'})")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OutputError(f"{flag} {path}: the file is not writable; choose another path")
+    _check_parent(path, flag)
+    return path
+
+
+def check_output_dir(path: str | Path, flag: str = "output folder") -> Path:
+    """Before the work: ``path`` can be an output folder (it is not a file, and it or the first
+    existing folder above it is writable)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{flag} {path}: is a file, not a folder; choose another path")
+    if path.is_dir():
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise OutputError(f"{flag} {path}: no permission to write in it; choose a writable folder")
+    else:
+        _check_parent(path, flag)
+    return path
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (one of another user counts as alive)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
+    """Remove the ``.NAME.TAG-PID`` siblings of ``path`` (``atomic_path``'s temporaries) that processes
+    which are gone left behind (``kill -9``, a power cut): the next writer of ``path`` owns them. One
+    whose PID is alive (another process writing now) is left alone. Returns the paths removed."""
+    path = Path(path)
+    removed: list[Path] = []
+    if not path.parent.is_dir():
+        return removed
+    # .NAME.TAG-PID, and .STEM.TAG-PID.SUFFIX (keep_suffix)
+    for prefix, suffix in ((f".{path.name}.{tag}-", ""), (f".{path.stem}.{tag}-", path.suffix)):
+        for tmp in path.parent.glob(prefix + "*"):
+            pid = tmp.name[len(prefix):len(tmp.name) - len(suffix)]
+            if (tmp.name.endswith(suffix) and pid.isdigit() and int(pid) != os.getpid()
+                    and not process_alive(int(pid)) and tmp not in removed):
+                _remove(tmp)
+                removed.append(tmp)
+    return removed
 
 
 def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Path:
@@ -53,16 +148,29 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
     success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
     docstring)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_sibling(path, tag, keep_suffix)
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         if tmp.is_file():
+            if path.is_dir() and not path.is_symlink():
+                raise OutputError(f"{path}: is a folder, so a file cannot be written there; choose another path")
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
         elif tmp.is_dir() and path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)  # os.replace renames a folder only over an empty one
         _replace(tmp, path)
+    except Exception as e:  # a full disk or an unwritable place, named (Ctrl-C passes through)
+        cause = os_error_in(e)
+        if cause is None or isinstance(e, UserError):
+            raise
+        if cause.errno in NO_ROOM:
+            raise OutputError(f"cannot write {path}: {cause.strerror or cause} (the disk is full or a file-size "
+                              f"limit is reached); {path.name} is as it was before; free some space and run "
+                              "again") from e
+        if cause.errno in (errno.EACCES, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EPERM):
+            raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose a writable path") from e
+        raise
     finally:
         _remove(tmp)
 

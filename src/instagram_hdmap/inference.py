@@ -23,6 +23,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,7 +80,7 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
 TEMPORAL_INPUTS = ("ego_pose", "scene_start", "frame_index")
 MEMORY_NAMES = tuple(f"memory_{k}" for k in MEMORY_KEYS)
 NEXT_MEMORY_NAMES = tuple(f"next_memory_{k}" for k in MEMORY_KEYS)
-EXPORT_FORMAT = 1  # bump when the graph's inputs, outputs or their meaning change
+EXPORT_FORMAT = 2  # bump when the graph's inputs, outputs or their meaning change (2: ground_height)
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
 META_CONFIG_SHA = "instagram_hdmap.config_sha256"
@@ -461,13 +462,16 @@ class Frame:
     ``images``: RGB ``numpy`` arrays [H, W, 3] (uint8, or float on 0..1), PIL images, tensors [3, H, W]
     (uint8, or float on 0..1), or image file paths, of any size; ``intrinsics``: [3, 3] in the pixels
     of that image; ``cam_to_ego``: [4, 4] (or [3, 4]) camera -> ego transform (rotation | translation in
-    metres; the ego frame: x forward, y left, z up, origin on the ground); ``ego_pose``: [4, 4] ego ->
-    world (any fixed world frame, metres) at this frame, which a temporal model's ``MapStream`` needs to
-    move its memory with the ego (a single frame needs none)."""
+    metres; the ego frame: x forward, y left, z up, origin on the ground). ``ground_height``: the road's
+    height in that ego frame (metres along its z; 0 when its origin lies on the road, about -0.35 for
+    AV2's rear axle): the ground plane of the IPM / MLP view transforms (docs/conventions.md).
+    ``ego_pose``: [4, 4] ego -> world (any fixed world frame, metres) at this frame, which a temporal
+    model's ``MapStream`` needs to move its memory with the ego (a single frame needs none)."""
 
     images: Mapping | Sequence
     intrinsics: Mapping | Sequence
     cam_to_ego: Mapping | Sequence
+    ground_height: float = 0.0
     ego_pose: np.ndarray | torch.Tensor | None = None
 
 
@@ -629,7 +633,8 @@ class Mapper:
         try:
             return Frame(**fields)
         except TypeError:
-            raise TypeError(f"a frame has the fields images, intrinsics and cam_to_ego; got {sorted(fields)}") from None
+            raise TypeError(f"a frame has the fields images, intrinsics, cam_to_ego (and ground_height); got "
+                            f"{sorted(fields)}") from None
 
     def batch(self, frames: Sequence[Frame]) -> dict[str, torch.Tensor]:
         """The model's input batch (docs/conventions.md keys, CPU) of ``frames``: each image resized and
@@ -664,9 +669,11 @@ class Mapper:
                     per[key].append(torch.as_tensor(value).float())
             for key in keys:
                 out[key].append(torch.stack(per[key]))
-        batch = {k: torch.stack(v) for k, v in out.items()}
-        batch["ego_pose"] = torch.stack([_ego_pose(frame.ego_pose) for frame in frames])
-        return batch
+        heights = [float(frame.ground_height) for frame in frames]
+        if not all(math.isfinite(h) for h in heights):
+            raise RigError(f"a frame's ground_height must be a finite height in metres, got {heights}")
+        return {**{k: torch.stack(v) for k, v in out.items()}, "ground_height": torch.tensor(heights),
+                "ego_pose": torch.stack([_ego_pose(frame.ego_pose) for frame in frames])}
 
     def forward(self, batch: dict, memory: dict | None = None) -> dict[str, torch.Tensor]:
         """The model's outputs for ``batch`` (``run_model``)."""

@@ -43,7 +43,7 @@ from .data.streaming import StreamingBatchSampler
 from .data.transforms import load_image
 from .engine import evaluate, is_temporal
 from .evaluation import Evaluator, write_submission
-from .files import atomic_path, write_json
+from .files import atomic_path, check_output_dir, write_json
 from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
@@ -178,9 +178,11 @@ def predict_batch(model, batch: dict, cfg: ExperimentConfig, memory: dict | None
 
 
 def prediction_figures(outputs: dict, predictions: list[dict], ground_truth: list[dict] | None, display: dict,
-                       calibration: dict, cfg: ExperimentConfig, heading: str, camera_names: Sequence[str]) -> dict:
+                       calibration: dict, cfg: ExperimentConfig, heading: str, camera_names: Sequence[str],
+                       ground_z: float = 0.0) -> dict:
     """``predict``'s three pictures of one sample (batch of one ``outputs``): ``prediction_bev.png``,
-    ``prediction_cameras.png`` (``display`` images, ``calibration``: intrinsics and cam_to_ego_* [V, ...])
+    ``prediction_cameras.png`` (``display`` images, ``calibration``: intrinsics and cam_to_ego_* [V, ...];
+    the map drawn on the ground plane z = ``ground_z`` of the ego frame, the sample's ``ground_height``)
     and ``prediction_intermediate.png``; ``ground_truth`` None: your own images, no GT."""
     grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
     decode = decode_options(cfg.model.gnn, grid)
@@ -193,7 +195,7 @@ def prediction_figures(outputs: dict, predictions: list[dict], ground_truth: lis
         "prediction_bev.png": prediction_bev_figure(predictions, ground_truth, grid, classes, heading),
         "prediction_cameras.png": prediction_cameras_figure(
             **display, **calibration, predictions=predictions, ground_truth=ground_truth or (),
-            camera_names=camera_names, classes=classes),
+            camera_names=camera_names, classes=classes, ground_z=ground_z),
         "prediction_intermediate.png": intermediate_figure(
             outputs["pred_heatmap"][0], outputs["pred_distance"][0] if "pred_distance" in outputs else None,
             outputs["pred_vertices_px"][0][mask],
@@ -219,7 +221,8 @@ def predict_sample(
 
     * ``prediction_bev.png``: predicted polylines next to the GT (x forward up, y left, metres);
     * ``prediction_cameras.png``: the six original camera images with the predictions (and, dashed,
-      the GT) projected from the ground plane z = 0 of the ego frame;
+      the GT) projected from the sample's ground plane (``ground_height``: z = 0 of the ego frame on
+      nuScenes, the road below AV2's rear axle);
     * ``prediction_intermediate.png``: the paper's Fig. 6 (vertex heatmap, distance transform per
       class, vertices by GNN class, adjacency edges);
     * ``prediction.json``: the sample's predictions in the submission format.
@@ -229,6 +232,7 @@ def predict_sample(
 
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
+    check_output_dir(out, "--out")  # before the model runs
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
     split = split or cfg.data.val_split
@@ -240,7 +244,7 @@ def predict_sample(
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
     figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
                                  {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
-                                 heading, dataset.camera_names)
+                                 heading, dataset.camera_names, float(sample["ground_height"]))
     out = Path(out)
     paths = [save_figure(fig, out / name) for name, fig in figures.items()]
     write_submission(out / "prediction.json", {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
@@ -297,6 +301,7 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     Returns ``{"name", "elements", "paths", "source"}``."""
     if (checkpoint is None) == (onnx is None):
         raise PredictError("pass --checkpoint CKPT or --onnx FILE (one of them)")
+    check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
     mapper = (Mapper.from_checkpoint(checkpoint, device, **decode) if checkpoint is not None
               else Mapper.from_onnx(onnx, config, **decode))
@@ -366,7 +371,7 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
                     **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
                     cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
                     predictions=preds, ground_truth=sample["gt_polylines"], camera_names=dataset.camera_names,
-                    classes=classes))
+                    classes=classes, ground_z=float(sample["ground_height"])))
                 frame = _side_by_side(bev, cams)
                 if writer is None:
                     size = (frame.shape[1], frame.shape[0])
@@ -413,6 +418,7 @@ def run_evaluation(
     evaluation/consistency.py) and, for a temporal model, ``metrics["memory"]`` the samples per memory
     status (fused, no memory, pose jump, missing frame).
     """
+    check_output_dir(out, "--out")  # before the work that fills it
     device = du.init_distributed(du.resolve_device(cfg.train.device).type)
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
@@ -443,6 +449,8 @@ def run_evaluation(
             yield batch
 
     def score(tokens: list[str], preds: list[list[dict]]) -> None:
+        # a token may come twice (data.on_bad_sample=skip hands the next good sample for a bad one, streaming
+        # padding repeats samples): scored once
         gts = [pending_gt.get(t) for t in tokens]
         for t in tokens:
             pending_gt.pop(t, None)
@@ -471,6 +479,9 @@ def run_evaluation(
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
+    if len(results) < len(dataset):
+        notes.append(f"{len(dataset) - len(results)} bad sample(s) of {len(dataset)} left out "
+                     "(data.on_bad_sample=skip; the warnings name them)")
     metrics = evaluator.compute()
     if flicker is not None:
         metrics["consistency"] = flicker.compute()

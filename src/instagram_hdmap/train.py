@@ -26,6 +26,7 @@ import json
 import math
 import os
 import random
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,15 @@ import torch
 from torch.utils.data import DataLoader
 
 from . import distributed as du
-from .checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .checkpoint import (
+    CheckpointError,
+    check_resumable,
+    load_checkpoint,
+    rng_preserved,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, get_key, is_under, save_config
 from .data import build_dataset
 from .data.base import collate_fn
@@ -41,6 +50,7 @@ from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .evaluation.consistency import FlickerMeter
+from .files import check_output_dir, remove_stale_temporaries
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, saved_config
 from .losses import Criterion
@@ -68,15 +78,43 @@ def _worker_init(worker_id: int) -> None:
     random.seed(seed)
 
 
+# What a run writes in its output folder (``--force`` removes these and nothing else)
+RUN_FILES = ("config.yaml", "log.jsonl", "tb", "last.pt", "best.pt")
+CHECKPOINTS = ("last.pt", "best.pt")
+
+
 def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
-    """Refuse to write into a folder that already holds a run unless resuming or forced."""
+    """The output folder, checked before anything is built: a folder (not a file) that can be written;
+    one that holds a run (a checkpoint) only with ``--resume`` or ``--force`` (which removes that run's
+    files, ``RUN_FILES``, and nothing else); one whose run stopped before its first checkpoint (only
+    config.yaml, log.jsonl, tb/) is started over. Partial files of killed saves of this folder's run
+    are removed when their process is gone."""
+    if force and resume:
+        raise UserError("--force starts a run over and --resume continues one; pass one of them, not both")
+    check_output_dir(out_dir, "train.out_dir")
     if not du.is_main_process():
         return
-    if out_dir.exists() and any(out_dir.iterdir()) and not (resume or force):
-        raise UserError(
-            f"output folder {out_dir} already holds a run; pass --resume {out_dir / 'last.pt'} to continue it, "
-            "--force to start over in it, or choose another train.out_dir"
-        )
+    if out_dir.is_dir():
+        for name in RUN_FILES:
+            remove_stale_temporaries(out_dir / name)
+        content = [p.name for p in out_dir.iterdir()]
+        has_checkpoint = any(name in content for name in CHECKPOINTS)
+        only_run_files = all(name in RUN_FILES for name in content)
+        if content and not (resume or force):
+            if has_checkpoint or not only_run_files:
+                what = ("already holds a run" if has_checkpoint else
+                        f"holds files that are not a run's ({', '.join(sorted(content)[:5])})")
+                raise UserError(f"output folder {out_dir} {what}; pass --resume {out_dir / 'last.pt'} to continue it, "
+                                "--force to start over in it, or choose another train.out_dir")
+            du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
+            force = True
+        if force:
+            for name in RUN_FILES:
+                target = out_dir / name
+                if target.is_dir() and not target.is_symlink():
+                    shutil.rmtree(target)
+                elif target.exists() or target.is_symlink():
+                    target.unlink()
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
@@ -252,6 +290,7 @@ class TrainingRun:
         run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None)
         if state is not None:
             run.restore(state)
+            run.check_not_finished(state, Path(resume))
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
                           f"({run.position.step_in_epoch} into the epoch)")
         if run.world > 1:
@@ -269,7 +308,22 @@ class TrainingRun:
         self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
         self.best = state.get("best", self.best)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
+        on_disk = best_score_in(self.out_dir)  # saved after the checkpoint resumed from (a kill in between)
+        if on_disk > self.best.get("score", -math.inf):
+            self.best = {**self.best, "score": on_disk}
         set_rng_state(state["rng"])
+
+    def check_not_finished(self, state: dict, path: Path) -> None:
+        """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
+        an error (the schedule's progress cannot be extended), resuming it as it was a note."""
+        if self.clock.last < 1.0:
+            return
+        old_epochs = (state.get("config", {}).get("train") or {}).get("epochs")
+        if old_epochs is not None and old_epochs != self.cfg.train.epochs:
+            raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
+                            f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
+                            "schedule: start a new run (another train.out_dir)")
+        du.print_main(f"checkpoint {path} completed its schedule: nothing left to train")
 
     @contextlib.contextmanager
     def threads(self):
@@ -350,8 +404,8 @@ class TrainingRun:
                 if self.validating and self.val_loader is not None and (
                         finished or self.position.epoch % self.cfg.train.val_every == 0):
                     self.validate()
-                if not stopped:
-                    self.save("last.pt", self.summary.get("val", {}).get("metrics"))
+                # after the validation, so that it carries the best score (a stop part-way too)
+                self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
                 self.log()
         except KeyboardInterrupt:
             self.save("last.pt", gather=False)
@@ -360,8 +414,9 @@ class TrainingRun:
             raise
 
     def train_epoch(self) -> bool:
-        """The rest of the epoch in progress; returns whether it stopped part-way (then ``last.pt`` is
-        saved at that step and a resume continues the epoch), else the position moves to the next epoch."""
+        """The rest of the epoch in progress; returns whether it stopped part-way (then ``fit`` saves
+        ``last.pt`` at that step, after the final validation, and a resume continues the epoch), else the
+        position moves to the next epoch."""
         p = self.position
         self.sampler.set_epoch(p.epoch, start=p.step_in_epoch * self.batch_size)
         if hasattr(self.train_loader.dataset, "set_epoch"):
@@ -378,9 +433,7 @@ class TrainingRun:
         self.summary = {**self.summary, "epoch": p.epoch, "step": result["global_step"], "train": result["stats"],
                         "train_seconds": round(result["seconds"], 2),
                         "samples_per_s": round(result["samples_per_s"], 2), **self.schedule_summary()}
-        if result["stopped"]:
-            self.save("last.pt")
-        else:
+        if not result["stopped"]:  # else the position stays part-way and a resume continues the epoch
             self.position = Position(p.epoch + 1, result["global_step"], 0)
         return result["stopped"]
 
@@ -394,10 +447,11 @@ class TrainingRun:
 
     def validate(self) -> None:
         """Validation losses and AP; ``best.pt`` when the score (mAP, else -loss) improves."""
-        val = evaluate(self.net, self.criterion, self.val_loader, self.device,
-                       postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
-                       evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp,
-                       flicker=make_flicker_meter(self.cfg))
+        with rng_preserved():  # validation draws nothing from the training's random streams
+            val = evaluate(self.net, self.criterion, self.val_loader, self.device,
+                           postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
+                           evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp,
+                           flicker=make_flicker_meter(self.cfg))
         self.summary["val"] = val
         score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
         step = self.position.step
@@ -440,6 +494,25 @@ def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
     """The checkpoint to resume (None: a fresh run), checked against ``cfg`` (``RESUME_KEYS``)."""
     if resume is None:
         return None
-    state = load_checkpoint(resume)
-    check_resume_config(state["config"], cfg, Path(resume))
+    path = Path(resume)
+    if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in CHECKPOINTS):
+        raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before its first "
+                              "checkpoint, so there is nothing to resume: run the same command without --resume")
+    state = load_checkpoint(path)
+    check_resumable(state, path)
+    check_resume_config(state["config"], cfg, path)
     return state
+
+
+def best_score_in(out_dir: Path) -> float:
+    """The validation score of the ``best.pt`` in ``out_dir`` (-inf without a readable one): a resume
+    must not replace it with a worse model, whatever the checkpoint it resumes from remembers."""
+    path = out_dir / "best.pt"
+    if not path.is_file():
+        return -math.inf
+    try:
+        best = load_checkpoint(path).get("best") or {}
+    except CheckpointError:
+        return -math.inf  # an unreadable best.pt is no model to keep
+    score = best.get("score", -math.inf)
+    return float(score) if isinstance(score, (int, float)) and not math.isnan(score) else -math.inf

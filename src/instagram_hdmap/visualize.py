@@ -181,7 +181,8 @@ def write_sample_pngs(
     camera_names: Sequence[str] = (),
 ) -> list[Path]:
     """The GT of one (uncollated) sample as PNGs in ``out_dir``: BEV polylines, vertex cells with the
-    vertex graph, the distance transform per class, and the camera images with the GT projected."""
+    vertex graph, the distance transform per class, and the camera images with the GT projected from the
+    sample's ground plane (``ground_height``)."""
     out = Path(out_dir)
     token = sample.get("sample_token", "")
     figs = {
@@ -191,7 +192,7 @@ def write_sample_pngs(
         "distance.png": distance_figure(sample["gt_distance"], grid, classes),
         "cameras.png": cameras_figure(sample["images"], sample["intrinsics"], sample["cam_to_ego_rot"],
                                       sample["cam_to_ego_trans"], sample["post_rot"], sample["post_tran"],
-                                      sample["gt_polylines"], camera_names),
+                                      sample["gt_polylines"], camera_names, float(sample["ground_height"])),
     }
     return [save_figure(fig, out / name) for name, fig in figs.items()]
 

@@ -24,15 +24,26 @@ local map (data/local_map.py: the same patch, edge margin and ``sample_dist``):
 
 * **divider**: lane-segment boundaries that are painted, i.e. whose mark type is not ``NONE`` or
   ``UNKNOWN`` (``LaneSegment.left/right_lane_marking.mark_type``); a boundary shared by two lane
-  segments (each lists it) is kept once (equal points to 1 cm, either direction); a painted boundary
-  lying along the drivable-area edge (more than half its length within ``BOUNDARY_OVERLAP_M``) is left
-  to the boundary class; consecutive pieces are merged end to end (``line_merge``).
-* **ped_crossing**: each crossing's polygon (``PedestrianCrossing.polygon``: its two edges).
+  segments (each lists it) is kept once (equal points to 1 cm, either direction); each boundary is
+  clipped to the patch and a clipped piece lying along the drivable-area edge (more than half its
+  length within ``BOUNDARY_OVERLAP_M``) is left to the boundary class (the rule judges the clipped
+  pieces, as StreamMapNet's ``remove_boundary_dividers`` in ``plugin/datasets/map_utils/utils.py``,
+  applied after clipping in ``av2map_extractor.py``: a boundary that runs along a kerb elsewhere is
+  still a divider where it is paint in the middle of the road); the kept pieces are merged end to end
+  (``line_merge``).
+* **ped_crossing**: each crossing's polygon (``PedestrianCrossing.polygon``) or, under ``edges``, its
+  two principal edges (``edge1``, ``edge2``), in the convention of ``data.ped_crossing``
+  (docs/conventions.md; configs/av2 use ``each``, the field's AV2 convention).
 * **boundary**: the edges of the union of the drivable areas (``get_scenario_vector_drivable_areas``),
   exterior and interior rings.
 
-Bad input (a dataroot without the split folder of logs, a log without a map archive, poses or
-calibration, a missing calibration row or camera image, a camera whose images do not match the
+Ground height (``ground_height``): AV2's ego origin is the rear axle, 0.33-0.43 m above the road; the
+sample's ``ground_height`` is the road's height below it in the ego frame, from the log's ground-height
+raster (``GroundHeightLayer``, ``map/*_ground_height_surface____*.npy``) around the ego, mapped through
+the full SE(3) of the pose (``ego_ground_height``).
+
+Bad input (a dataroot without the split folder of logs, a log without a map archive, ground-height
+raster, poses or calibration, a missing calibration row or camera image, a camera whose images do not match the
 sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file; with
 ``data.on_bad_sample=skip`` the sample is skipped and counted instead (data/base.py).
 """
@@ -46,16 +57,18 @@ from pathlib import Path
 import numpy as np
 import shapely
 import torch
-from shapely.geometry import LineString, MultiLineString, Polygon
+from shapely.geometry import LineString, Polygon
 
 from ..config import ExperimentConfig, UserError
-from .base import DatasetError, MapDataset
-from .local_map import LocalMapBuilder, MapError, _LocationMap
+from .base import DatasetError, MapDataset, check_intrinsics, check_rotation, check_translation
+from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
 from .transforms import ImageAug, load_image, sample_augmentation
 
 AV2_EXTRA = 'pip install -e ".[av2]"'
 BOUNDARY_OVERLAP_M = 0.3  # a painted lane boundary this close to a drivable-area edge is that edge
 DEDUP_DECIMALS = 2  # shared lane boundaries are equal to 1 cm
+GROUND_DISC_M = 1.5  # the ground height at the ego: the median of the raster within this radius ...
+GROUND_RES_M = 0.3  # ... sampled at the raster's resolution (AV2: 30 cm)
 CAMERA_WINDOW_MS = 25  # av2's SynchronizationDB: a ring image within half a 20 Hz frame of the sweep
 
 
@@ -78,8 +91,10 @@ def _line_key(xy: np.ndarray) -> tuple:
     return min(a, b)
 
 
-def painted_dividers(avm, area_edges) -> list[LineString]:
-    """Painted lane boundaries of an ``ArgoverseStaticMap`` (module docstring), city frame."""
+def painted_dividers(avm) -> list[LineString]:
+    """Painted lane boundaries of an ``ArgoverseStaticMap`` (module docstring), city frame, each shared
+    boundary once; not merged (the divider-on-kerb rule judges each clipped piece, then the builder
+    merges the kept ones)."""
     from av2.map.lane_segment import LaneMarkType
 
     unpainted = (LaneMarkType.NONE, LaneMarkType.UNKNOWN)
@@ -94,13 +109,19 @@ def painted_dividers(avm, area_edges) -> list[LineString]:
             if key not in seen:
                 seen.add(key)
                 lines.append(LineString(xy))
-    if lines and not area_edges.is_empty:
-        near_edge = area_edges.buffer(BOUNDARY_OVERLAP_M)
-        lines = [ln for ln in lines if ln.intersection(near_edge).length <= 0.5 * ln.length]
-    if not lines:
-        return []
-    merged = shapely.line_merge(MultiLineString(lines))
-    return [g for g in shapely.get_parts(merged) if g.length > 0]
+    return [ln for ln in lines if ln.length > 0]
+
+
+def _crossings(avm):
+    """``(id, ring, edges)`` of the map's crossings for ``collect_crossings``: the ring is
+    ``PedestrianCrossing.polygon``'s (edge1, then edge2 backwards), built here so that an edge of other
+    than two points does not raise; the edges run as the ring does (edge1, edge2 backwards). AV2 stores
+    both edges pointing the same way: left so, the official join of collinear edges (``connect_lines``,
+    ``data.local_map.join_collinear_edges``), made for a ring's antiparallel edges, would join a narrow
+    crossing's two edges into one chord between their far ends (it does on the real log)."""
+    for pc in avm.get_scenario_ped_crossings():
+        e1, e2 = (np.asarray(e.xyz, dtype=np.float64)[:, :2] for e in (pc.edge1, pc.edge2))
+        yield pc.id, np.concatenate([e1, e2[::-1]]), (e1, e2[::-1])
 
 
 def load_log_map(log_dir: Path) -> _LocationMap:
@@ -120,11 +141,42 @@ def load_log_map(log_dir: Path) -> _LocationMap:
     areas = [Polygon(np.asarray(da.xyz)[:, :2]) for da in avm.get_scenario_vector_drivable_areas()]
     areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
     edges = shapely.union_all(areas).boundary if len(areas) else LineString()
-    peds = [Polygon(np.asarray(pc.polygon)[:, :2]) for pc in avm.get_scenario_ped_crossings()]
-    peds = np.array([p for p in peds if p.is_valid and not p.is_empty], dtype=object)
-    dividers = np.array(painted_dividers(avm, edges), dtype=object)
-    return _LocationMap(dividers, shapely.STRtree(dividers), peds, shapely.STRtree(peds), areas,
-                        shapely.STRtree(areas))
+    peds, ped_edges, report = collect_crossings(_crossings(avm), str(files[0]))
+    dividers = np.array(painted_dividers(avm), dtype=object)
+    return _LocationMap(dividers, peds, ped_edges, areas,
+                        divider_exclusion=edges.buffer(BOUNDARY_OVERLAP_M) if not edges.is_empty else None,
+                        merge_dividers=True, crossing_report=report)
+
+
+def load_ground_height(log_dir: Path):
+    """The log's ground-height raster (``GroundHeightLayer.from_file``: ``map/*_ground_height_surface____*.npy``
+    and ``map/*___img_Sim2_city.json``), or a ``MapError`` naming the folder."""
+    from av2.map.map_api import GroundHeightLayer
+
+    map_dir = log_dir / "map"
+    try:
+        return GroundHeightLayer.from_file(map_dir)
+    except (RuntimeError, KeyError, ValueError, OSError, json.JSONDecodeError) as e:
+        raise MapError(f"log {log_dir.name}: cannot read the ground-height raster in {map_dir} "
+                       f"(*_ground_height_surface____*.npy and *___img_Sim2_city.json): {type(e).__name__}: {e}; "
+                       "the log folder is incomplete (re-extract it from the AV2 sensor dataset)") from None
+
+
+def ego_ground_height(layer, city_SE3_ego) -> float:
+    """The height of the road below the ego origin in the ego frame (metres along its z; about -0.3 to
+    -0.4 on AV2, whose ego origin is the rear axle): the raster's city-frame ground points within
+    ``GROUND_DISC_M`` of the ego's (x, y), mapped into the ego frame by the full SE(3), their median z
+    (robust to a missing or noisy raster cell). NaN where the raster has no value there."""
+    xy = np.asarray(city_SE3_ego.translation, dtype=np.float64)[:2]
+    step = GROUND_RES_M
+    offsets = np.stack(np.meshgrid(*[np.arange(-GROUND_DISC_M, GROUND_DISC_M + 1e-9, step)] * 2), -1).reshape(-1, 2)
+    offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) <= GROUND_DISC_M]
+    points = np.c_[xy + offsets, np.zeros(len(offsets))]
+    points[:, 2] = layer.get_ground_height_at_xy(points)
+    points = points[np.isfinite(points[:, 2])]
+    if not len(points):
+        return math.nan
+    return float(np.median(city_SE3_ego.inverse().transform_point_cloud(points)[:, 2]))
 
 
 class AV2LocalMapBuilder(LocalMapBuilder):
@@ -166,9 +218,10 @@ class AV2MapDataset(MapDataset):
                                    "(AV2 samples are the sweeps); the log folder is incomplete")
             self.samples += [(log, int(ts)) for ts in sweeps[:: d.av2_frame_step]]
         self.sample_tokens = [f"{log}/{ts}" for log, ts in self.samples]
+        self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist, d.ped_crossing)
         self.set_scenes([log for log, _ in self.samples], [ts // 1000 for _, ts in self.samples])  # ns -> us
-        self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist)
         self._poses: dict[str, dict] = {}
+        self._grounds: dict[str, object] = {}
         self._cameras: dict[str, dict] = {}
 
     def _check_root(self) -> None:
@@ -226,21 +279,33 @@ class AV2MapDataset(MapDataset):
             except (KeyError, ValueError, OSError) as e:
                 raise DatasetError(f"log {log}: cannot read its calibration ({intr_path}, {extr_path}): "
                                    f"{type(e).__name__}: {e}") from None
+            for cam, pin in cams.items():
+                check_intrinsics(pin.intrinsics.K, f"log {log}: camera {cam} in {intr_path}")
+                where = f"log {log}: camera {cam} in {extr_path}"
+                check_rotation(pin.ego_SE3_cam.rotation, "its rotation (camera -> ego)", where)
+                check_translation(pin.ego_SE3_cam.translation, "its translation (camera -> ego)", where)
             self._cameras[log] = cams
         return self._cameras[log]
 
     def _pose(self, index: int):
         log, ts = self.samples[index]
         poses = self._log_poses(log)
+        path = self.split_dir / log / "city_SE3_egovehicle.feather"
         if ts not in poses:
-            raise DatasetError(f"log {log}: {self.split_dir / log / 'city_SE3_egovehicle.feather'} has no ego pose "
-                               f"at lidar sweep {ts} (sensors/lidar/{ts}.feather)")
-        return poses[ts]
+            raise DatasetError(f"log {log}: {path} has no ego pose at lidar sweep {ts} (sensors/lidar/{ts}.feather)")
+        pose = poses[ts]
+        where = f"log {log}: the ego pose at lidar sweep {ts} in {path}"
+        check_rotation(pose.rotation, "its rotation", where)
+        check_translation(pose.translation, "its translation", where)
+        return pose
 
     def _image_path(self, log: str, cam: str, ts: int) -> Path:
+        folder = self.split_dir / log / "sensors" / "cameras" / cam
+        if not folder.is_dir():
+            raise DatasetError(f"log {log}: camera folder {folder} does not exist; the log has no {cam} images "
+                               "(an incomplete log, or choose the cameras with data.av2_cameras)")
         path = self.loader.get_closest_img_fpath(log, cam, ts)
         if path is None or not path.is_file():
-            folder = self.split_dir / log / "sensors" / "cameras" / cam
             stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
             nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
             detail = (f"the nearest is {folder / f'{nearest}.jpg'}, {abs(nearest - ts) / 1e6:.1f} ms away"
@@ -260,6 +325,17 @@ class AV2MapDataset(MapDataset):
 
     def ego_pose(self, index: int) -> torch.Tensor:
         return torch.tensor(self._pose(index).transform_matrix, dtype=torch.float32)
+
+    def ground_height(self, index: int) -> float:
+        """The road's height below the ego origin at the sample's pose (``ego_ground_height``)."""
+        log, ts = self.samples[index]
+        if log not in self._grounds:
+            self._grounds[log] = load_ground_height(self.split_dir / log)
+        z = ego_ground_height(self._grounds[log], self._pose(index))
+        if not math.isfinite(z):
+            raise DatasetError(f"log {log}: the ground-height raster in {self.split_dir / log / 'map'} has no value "
+                               f"at the ego position of lidar sweep {ts}")
+        return z
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""

@@ -13,6 +13,8 @@ contiguous and in time order, see ``SceneIndex``), and implements
 * ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
   [V, 3, 3], ``cam_to_ego_trans`` [V, 3], ``post_rot`` [V, 3, 3], ``post_tran`` [V, 3];
 * ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
+* ``ground_height(i)``: the height of the road below the ego origin, metres along the ego frame's z
+  (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster);
 * ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals).
 
 Bad input raises a ``UserError`` naming the file and sample; with ``data.on_bad_sample=skip`` a bad
@@ -85,6 +87,50 @@ class SceneIndex:
         return len(self.scene)
 
 
+ORTHONORMAL_TOL = 1e-3  # |R^T R - I| of a calibrated rotation (stored to ~1e-8 in nuScenes and AV2)
+MAX_TRANSLATION_M = 1e7  # a translation beyond this (in metres) is corrupt, not a place on Earth
+
+
+def _finite(values, what: str, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: {what} is not numeric: {values!r}") from None
+    if not np.isfinite(a).all():
+        raise DatasetError(f"{where}: {what} holds NaN or infinite values ({np.array2string(a.ravel(), 120)}); "
+                           "the calibration / pose record is corrupt")
+    return a
+
+
+def check_rotation(rotation, what: str, where: str) -> None:
+    """A finite 3x3 rotation: orthonormal to ``ORTHONORMAL_TOL`` with determinant +1."""
+    R = _finite(rotation, what, where)
+    if R.shape != (3, 3):
+        raise DatasetError(f"{where}: {what} must be a 3x3 rotation, got shape {R.shape}")
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > ORTHONORMAL_TOL or np.linalg.det(R) < 0:
+        raise DatasetError(f"{where}: {what} is not a rotation (not orthonormal: |R^T R - I| = {err:.3g}, det "
+                           f"{np.linalg.det(R):.3g}); the calibration / pose record is corrupt")
+
+
+def check_translation(translation, what: str, where: str) -> None:
+    t = _finite(translation, what, where)
+    if t.shape != (3,) or np.abs(t).max() > MAX_TRANSLATION_M:
+        raise DatasetError(f"{where}: {what} must be 3 finite coordinates in metres, got {t.tolist()}")
+
+
+def check_intrinsics(intrinsics, where: str) -> None:
+    """A pinhole camera matrix: finite 3x3, positive focal lengths, last row (0, 0, 1)."""
+    K = _finite(intrinsics, "the camera intrinsics", where)
+    if K.shape != (3, 3):
+        raise DatasetError(f"{where}: the camera intrinsics must be a 3x3 matrix, got shape {K.shape}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise DatasetError(f"{where}: the camera intrinsics have focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g}; "
+                           "both must be > 0 (pixels)")
+    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
+        raise DatasetError(f"{where}: the camera intrinsics' last row must be (0, 0, 1), got {K[2].tolist()}")
+
+
 class MapDataset(Dataset):
     """Samples of one split as dicts (docs/conventions.md, per sample: no batch dimension)."""
 
@@ -128,6 +174,9 @@ class MapDataset(Dataset):
     def camera_files(self, index: int) -> list:
         raise NotImplementedError
 
+    def ground_height(self, index: int) -> float:
+        raise NotImplementedError
+
     def scene_of(self, index: int) -> str:
         """The name of the scene (nuScenes) or log (AV2) that sample ``index`` belongs to."""
         return self.scenes.scene[index]
@@ -158,6 +207,7 @@ class MapDataset(Dataset):
             polylines = self.gt_polylines(index)
             cams = self.load_cameras(index)
             ego_pose = self.ego_pose(index)
+            ground_height = torch.tensor(self.ground_height(index), dtype=torch.float32)
         except UserError as e:
             msg = str(e) if token in str(e) else f"sample {token}: {e}"
             raise type(e)(msg) from None
@@ -167,6 +217,7 @@ class MapDataset(Dataset):
         return {
             **cams,
             "ego_pose": ego_pose,
+            "ground_height": ground_height,
             "sample_token": token,
             "scene": self.scenes.scene[index],
             "frame_index": torch.tensor(frame, dtype=torch.long),

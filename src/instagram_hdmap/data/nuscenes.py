@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from ..config import ExperimentConfig
-from .base import DatasetError, MapDataset
+from .base import DatasetError, MapDataset, check_intrinsics, check_translation
 from .local_map import LocalMapBuilder, MapError
 from .rig import CAMERAS
 from .transforms import ImageAug, load_image, sample_augmentation
@@ -112,6 +112,31 @@ def quaternion_yaw(q_wxyz) -> float:
     return math.atan2(v[1], v[0])
 
 
+QUATERNION_NORM_TOL = 1e-3  # nuScenes stores unit quaternions to ~1e-8; pyquaternion would normalise any
+
+
+def _field(record: dict, key: str, table: str):
+    """``record[key]`` of a nuScenes table record, or a DatasetError naming the table and the field."""
+    try:
+        return record[key]
+    except KeyError:
+        raise DatasetError(f"{table} record {record.get('token', '?')} has no '{key}' field: the {table}.json table "
+                           "is incomplete or not in the nuScenes format") from None
+
+
+def check_pose_record(record: dict, table: str, where: str) -> None:
+    """A calibrated_sensor or ego_pose record: finite translation, finite unit quaternion (w, x, y, z)."""
+    check_translation(_field(record, "translation", table), "its translation", where)
+    q = np.asarray(_field(record, "rotation", table), dtype=np.float64)
+    if q.shape != (4,) or not np.isfinite(q).all():
+        raise DatasetError(f"{where}: its rotation must be 4 finite numbers (a quaternion w, x, y, z), got "
+                           f"{q.tolist()} (NaN or infinite values: the record is corrupt)")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1) > QUATERNION_NORM_TOL:
+        raise DatasetError(f"{where}: its rotation {q.tolist()} is not a unit quaternion (norm {norm:.6g}); the "
+                           "record is corrupt")
+
+
 def _pose_matrix(rotation_wxyz, translation) -> torch.Tensor:
     from pyquaternion import Quaternion
 
@@ -148,9 +173,9 @@ class NuScenesMapDataset(MapDataset):
                 token = self.nusc.get("sample", token)["next"]
         if not self.sample_tokens:
             raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
+        self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist, d.ped_crossing)
         self.set_scenes([self._scene_of[t]["name"] for t in self.sample_tokens],
                         [self.nusc.get("sample", t)["timestamp"] for t in self.sample_tokens])
-        self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist)
         self._map_errors: dict[str, MapError] = {}
         for loc in sorted({self._location(t) for t in self.sample_tokens}):
             try:
@@ -164,10 +189,26 @@ class NuScenesMapDataset(MapDataset):
     def _location(self, token: str) -> str:
         return self.nusc.get("log", self._scene_of[token]["log_token"])["location"]
 
+    def _get(self, table: str, token: str) -> dict:
+        """``nusc.get(table, token)``, or a DatasetError naming the table and the missing token."""
+        try:
+            return self.nusc.get(table, token)
+        except KeyError:
+            raise DatasetError(f"{table}.json in {self.dataroot / self.data_cfg.version} has no record {token}, "
+                               "which another table refers to: the tables are inconsistent") from None
+
     def _reference_pose(self, sample: dict) -> dict:
-        channel = "LIDAR_TOP" if "LIDAR_TOP" in sample["data"] else "CAM_FRONT"
-        sd = self.nusc.get("sample_data", sample["data"][channel])
-        return self.nusc.get("ego_pose", sd["ego_pose_token"])
+        """The ego pose of the sample's LIDAR_TOP record (CAM_FRONT without lidar), checked."""
+        data = _field(sample, "data", "sample")
+        channel = "LIDAR_TOP" if "LIDAR_TOP" in data else "CAM_FRONT"
+        if channel not in data:
+            raise DatasetError(f"sample {sample['token']} has neither a LIDAR_TOP nor a CAM_FRONT record in "
+                               f"{self.dataroot}")
+        sd = self._get("sample_data", data[channel])
+        pose = self._get("ego_pose", _field(sd, "ego_pose_token", "sample_data"))
+        check_pose_record(pose, "ego_pose", f"ego_pose {pose.get('token')} of {channel} in "
+                                            f"{self.dataroot / self.data_cfg.version}/ego_pose.json")
+        return pose
 
     # --- pieces -----------------------------------------------------------------------------------
     def gt_polylines(self, index: int) -> list[dict]:
@@ -189,10 +230,7 @@ class NuScenesMapDataset(MapDataset):
         if self.augment and rng is None:
             rng = self.augmentation_rng(index)
         for cam in CAMERAS:
-            if cam not in sample["data"]:
-                raise DatasetError(f"sample {sample['token']} has no {cam} image in {self.dataroot}")
-            sd = self.nusc.get("sample_data", sample["data"][cam])
-            cs = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+            sd, cs = self._camera_records(sample, cam)
             aug = ImageAug()
             if self.augment:
                 aug = sample_augmentation(self.data_cfg, rng)  # one draw per camera
@@ -209,16 +247,38 @@ class NuScenesMapDataset(MapDataset):
             out["post_tran"].append(post_tran)
         return {k: torch.stack(v) for k, v in out.items()}
 
+    def _camera_records(self, sample: dict, cam: str) -> tuple[dict, dict]:
+        """(sample_data, calibrated_sensor) of camera ``cam`` of ``sample``, their fields checked: a
+        file name and size, a finite translation, a unit quaternion (so an orthonormal rotation) and a
+        pinhole matrix with positive focal lengths."""
+        data = _field(sample, "data", "sample")
+        if cam not in data:
+            raise DatasetError(f"sample {sample['token']} has no {cam} image in {self.dataroot}")
+        sd = self._get("sample_data", data[cam])
+        for key in ("filename", "width", "height"):
+            _field(sd, key, "sample_data")
+        cs = self._get("calibrated_sensor", _field(sd, "calibrated_sensor_token", "sample_data"))
+        where = (f"camera {cam}: calibrated_sensor {cs.get('token')} in "
+                 f"{self.dataroot / self.data_cfg.version}/calibrated_sensor.json")
+        check_pose_record(cs, "calibrated_sensor", where)
+        check_intrinsics(_field(cs, "camera_intrinsic", "calibrated_sensor"), where)
+        return sd, cs
+
     def ego_pose(self, index: int) -> torch.Tensor:
         """[4, 4] ego -> global of the sample's reference pose (LIDAR_TOP, else CAM_FRONT)."""
         pose = self._reference_pose(self.nusc.get("sample", self.sample_tokens[index]))
         return _pose_matrix(pose["rotation"], pose["translation"])
+
+    def ground_height(self, index: int) -> float:
+        """0: nuScenes' ego frame lies on the ground (its ego poses have z = 0, the sensors' heights are
+        above the road)."""
+        return 0.0
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
         """``[(image path, (W, H))]`` of the sample's cameras, in ``CAMERAS`` order."""
         sample = self.nusc.get("sample", self.sample_tokens[index])
         out = []
         for cam in CAMERAS:
-            sd = self.nusc.get("sample_data", sample["data"][cam])
+            sd, _ = self._camera_records(sample, cam)
             out.append((self.dataroot / sd["filename"], (sd["width"], sd["height"])))
         return out

@@ -110,7 +110,8 @@ def rig(image_size: tuple[int, int] = NUSCENES_IMAGE_SIZE) -> dict[str, Sensor]:
 def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
     """Calibration of one sample [V = 6, ...] in ``CAMERAS`` order: the published calibration of the
     real nuScenes log (``rig``: 1600 x 900 images) and the ``post_rot`` / ``post_tran`` of the dataset's
-    resize-and-crop to ``image_size`` (h, w) (``data.transforms.image_affine``)."""
+    resize-and-crop to ``image_size`` (h, w) (``data.transforms.image_affine``), and nuScenes'
+    ``ground_height`` 0 (a 0-d tensor: its ego frame lies on the road)."""
     sensors = rig(NUSCENES_IMAGE_SIZE)
     A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
     post_rot = torch.eye(3)
@@ -124,6 +125,7 @@ def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
         "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
         "post_rot": post_rot.expand(V, 3, 3).clone(),
         "post_tran": post_tran.expand(V, 3).clone(),
+        "ground_height": torch.tensor(0.0),
     }
 
 

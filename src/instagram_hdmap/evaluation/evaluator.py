@@ -98,6 +98,8 @@ class Evaluator:
         }
         self.protocol = protocol
         self.thresholds = check_thresholds(thresholds)
+        self._seen: set[str] = set()  # tokens scored so far (update)
+        self.repeated = 0  # samples handed again and not scored twice
         self.classes = tuple(classes)
         if protocol == "vector":
             self.impl: VectorAP | RasterAP = VectorAP(self.thresholds, len(self.classes), num_sample_points,
@@ -125,13 +127,28 @@ class Evaluator:
         tokens: Sequence[str] | None = None,
     ) -> None:
         """Add B samples: ``preds[b]`` polyline dicts with "pts" [P, 2] metres, "label", "score";
-        ``gts[b]`` the same without "score". Errors name the token (or sample id) and index."""
+        ``gts[b]`` the same without "score". Errors name the token (or sample id) and index.
+
+        A token seen before (in this process) is not scored again: with ``data.on_bad_sample=skip`` a
+        loader hands the next good sample in place of a bad one, which must not count twice; the
+        repeats are counted (``counters["repeated_samples"]``, a note)."""
+        if tokens is not None:
+            keep = [b for b, t in enumerate(tokens) if t not in self._seen and t not in tokens[:b]]
+            self.repeated += len(tokens) - len(keep)
+            if len(keep) < len(tokens):
+                ids = None if sample_ids is None else list(sample_ids)
+                preds, gts, tokens = [preds[b] for b in keep], [gts[b] for b in keep], [tokens[b] for b in keep]
+                sample_ids = None if ids is None else [ids[b] for b in keep]
+            self._seen.update(tokens)
+            if not tokens:
+                return
         self.impl.update(preds, gts, sample_ids=sample_ids, tokens=tokens)
         for ev in self.also.values():
             ev.update(preds, gts, sample_ids=sample_ids, tokens=tokens)
 
     def reset(self) -> None:
         self.impl.reset()
+        self._seen, self.repeated = set(), 0
         for ev in self.also.values():
             ev.reset()
 
@@ -177,7 +194,7 @@ class Evaluator:
         else:
             ap_class = ap.mean(1)  # evaluate_json.py:85
             m_ap = float(ap.mean())  # :86, NaN if any class is NaN
-        counters = dict(self.impl.counters)
+        counters = {**self.impl.counters, "repeated_samples": self.repeated}
         out = {
             "protocol": self.protocol,
             "protocol_description": DESCRIPTIONS[self.protocol],
@@ -205,6 +222,9 @@ class Evaluator:
 
     def _notes(self, res: dict, counters: dict) -> list[str]:
         notes = [f"{counters['samples']} samples evaluated"]
+        if counters.get("repeated_samples"):
+            notes.append(f"{counters['repeated_samples']} samples handed again (data.on_bad_sample=skip puts the next "
+                         "good sample in place of a bad one) were scored once")
         if counters["samples_without_predictions"]:
             notes.append(f"{counters['samples_without_predictions']} samples have no predictions (scored as such)")
         if counters["dropped_short_predictions"]:
@@ -260,6 +280,11 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
     """
     gt = read_submission(gt_path, "gt")
     pred = read_submission(pred_path, "pred")
+    if gt.looks_like() == "pred":
+        swapped = (f"; are --pred and --gt swapped? ({pred_path} looks like a GT file)"
+                   if pred.looks_like() == "gt" else "; give the GT file of the split (instagram-hdmap export-gt)")
+        raise SubmissionError(f"{gt_path}: given as the GT but it is a prediction file (meta.ground_truth false or "
+                              f"confidence_level on {gt.confidences} vectors){swapped}")
     if not gt.samples:
         raise SubmissionError(f"{gt_path}: the GT file holds no samples")
     extra = [t for t in pred.samples if t not in gt.samples]

@@ -17,8 +17,9 @@ and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_
 * A prediction without ``confidence_level`` gets 1.0 (the HDMapNet reference's default) and a
   note says how many.
 * Malformed JSON, a missing ``results``, a repeated sample token, coordinates that are not
-  finite numbers of shape [P, 2], a non-integer or unknown ``type``: :class:`SubmissionError`
-  naming the file, the token and the vector index.
+  finite numbers of shape [P, 2] within ``MAX_COORD_M`` of the ego vehicle, a non-integer or
+  unknown ``type``, a ``confidence_level`` outside [0, 1]: :class:`SubmissionError` naming the
+  file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
 
 Python's ``json`` reads and writes ``NaN`` (not strict JSON): metrics files use it for the raster
@@ -39,6 +40,10 @@ import numpy as np
 from ..config import UserError
 from ..files import write_json
 
+# Points are metres in the ego frame; a map patch spans tens of metres. Beyond this, the file is in
+# another frame (global coordinates) or in other units, or broken (1e308 overflows the distances).
+MAX_COORD_M = 1e4
+
 
 class SubmissionError(UserError, ValueError):
     """A submission / GT JSON file that cannot be read; the message names the file, token and index."""
@@ -50,6 +55,17 @@ class Submission:
     meta: dict
     samples: dict[str, list[dict]]  # token -> polyline dicts {"pts" [P, 2], "label"[, "score"]}, file order
     notes: list[str] = field(default_factory=list)
+    confidences: int = 0  # vectors that carry a confidence_level (a GT file has none)
+
+    def looks_like(self) -> Literal["pred", "gt"] | None:
+        """What the file itself says it is: its ``meta.ground_truth`` flag, else whether its vectors
+        carry confidences; None when it holds no vectors and no flag."""
+        flag = self.meta.get("ground_truth")
+        if isinstance(flag, bool):
+            return "gt" if flag else "pred"
+        if any(self.samples.values()):
+            return "pred" if self.confidences else "gt"
+        return None
 
 
 def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: int = 3) -> Submission:
@@ -85,7 +101,7 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: '{key}' must be a dict token -> vectors or a list of "
                               f"{{'sample_token', 'vectors'}}, got {type(results).__name__}")
     samples: dict[str, list[dict]] = {}
-    counts = {"defaulted_confidence": 0, "truncated": 0}
+    counts = {"defaulted_confidence": 0, "truncated": 0, "confidences": 0}
     for token, vectors in items:
         if not isinstance(token, str):
             raise SubmissionError(f"{path}: sample token {token!r} is not a string")
@@ -102,14 +118,14 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         notes.append(
             f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
         )
-    return Submission(str(path), meta, samples, notes)
+    return Submission(str(path), meta, samples, notes, counts["confidences"])
 
 
 def vectors_to_polylines(
     vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str, counts: dict | None = None
 ) -> list[dict]:
     """One sample's submission vectors -> polyline dicts, checked (see the module docstring)."""
-    counts = counts if counts is not None else {"defaulted_confidence": 0, "truncated": 0}
+    counts = counts if counts is not None else {"defaulted_confidence": 0, "truncated": 0, "confidences": 0}
     if not isinstance(vectors, list):
         raise SubmissionError(f"{where}: expected a list of vectors, got {type(vectors).__name__}")
     out = []
@@ -129,6 +145,7 @@ def vectors_to_polylines(
             raise SubmissionError(f"{what}: 'type' must be a class id 0..{num_classes - 1} "
                                   f"(0 divider, 1 ped_crossing, 2 boundary), got {k!r}")
         poly = {"pts": pts, "label": k}
+        counts["confidences"] = counts.get("confidences", 0) + ("confidence_level" in v)
         if role == "pred":
             s = v.get("confidence_level")
             if s is None:
@@ -136,6 +153,9 @@ def vectors_to_polylines(
                 s = 1.0
             if isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s):
                 raise SubmissionError(f"{what}: 'confidence_level' must be a finite number, got {s!r}")
+            if not -1e-6 <= s <= 1 + 1e-6:  # a probability (to float32 rounding)
+                raise SubmissionError(f"{what}: 'confidence_level' must be a probability in [0, 1], got {s!r} "
+                                      "(rescale the scores, e.g. with a sigmoid, before writing them)")
             poly["score"] = float(s)
         out.append(poly)
     return out
@@ -152,6 +172,10 @@ def _points(raw: object, what: str) -> np.ndarray:
         raise SubmissionError(f"{what}: 'pts' must be a list of [x, y] pairs, got shape {pts.shape}")
     if not np.isfinite(pts).all():
         raise SubmissionError(f"{what}: 'pts' contains NaN or infinite coordinates")
+    if np.abs(pts).max() > MAX_COORD_M:
+        raise SubmissionError(f"{what}: 'pts' has a coordinate of {np.abs(pts).max():.6g}; points are metres in the "
+                              f"ego frame (|x|, |y| <= {MAX_COORD_M:g}): is the file in global coordinates or "
+                              "another unit?")
     return pts
 
 

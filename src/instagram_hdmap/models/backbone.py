@@ -32,6 +32,7 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint
 
 from ..config import UserError
+from ..errors import one_line
 
 # The network input must be divisible by this: both backbones reach stride 32.
 IMAGE_DIVISOR = 32
@@ -143,7 +144,7 @@ class EfficientNetBackbone(nn.Module):
         try:
             state = torch.load(path, map_location=device, weights_only=True)
         except Exception as e:  # any unreadable file is a user error
-            raise UserError(f"{key}: cannot read {path} as a torch checkpoint: {e}") from None
+            raise UserError(f"{key}: cannot read {path} as a torch checkpoint: {one_line(e)}") from None
         self.load_imagenet_state(state, str(path))
 
     def load_imagenet_state(self, state: object, source: str) -> None:

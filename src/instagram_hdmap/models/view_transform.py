@@ -5,18 +5,21 @@ Hb x Wb the BEV grid of the view transform (the output grid / ``bev_downsample``
 half-resolution grid of F_bev, W/2 x H/2), P points.
 
 Every transform maps ``features [B, V, C, fh, fw]`` and the calibration dict
-(``intrinsics``, ``cam_to_ego_rot``, ``cam_to_ego_trans``, ``post_rot``, ``post_tran``; see
-docs/conventions.md) to ``bev [B, C, Hb, Wb]`` (rows along y, columns along x).
+(``intrinsics``, ``cam_to_ego_rot``, ``cam_to_ego_trans``, ``post_rot``, ``post_tran``, ``ground_height``
+[B]; see docs/conventions.md) to ``bev [B, C, Hb, Wb]`` (rows along y, columns along x).
 
 * :class:`IPMViewTransform` - inverse perspective mapping: every BEV cell centre on the ground plane
-  ``z = ipm_height`` is projected into every camera with the calibration and the image features are
-  bilinearly sampled there; cameras that see the cell are averaged. No learned parameters.
+  ``z = ground_height + ipm_height`` (the sample's road height in the ego frame: 0 on nuScenes, about
+  -0.35 m on AV2, whose ego origin is the rear axle) is projected into every camera with the
+  calibration and the image features are bilinearly sampled there; cameras that see the cell are
+  averaged. No learned parameters.
 * :class:`LSSViewTransform` - Lift-Splat-Shoot: a 1x1 conv predicts a categorical depth distribution
   (bins ``depth_bound``) and a context vector per feature pixel; their outer product is lifted to the
   frustum points and sum-pooled into the BEV cells (``sum_pool``, one batched ``index_add``).
 * :class:`MLPViewTransform` - HDMapNet: one two-layer fully connected transform per camera maps the
   flattened feature map (fh*fw) to a camera-aligned top-down map (H/5 x W/5), which is then placed
-  into the ego frame with the camera's extrinsics and averaged over the cameras that cover a cell.
+  into the ego frame with the camera's extrinsics (on the same ground plane as IPM) and averaged over
+  the cameras that cover a cell.
 
 Geometry runs in float32 with autocast disabled: bf16 would misplace a point at 30 m by ~10 cm.
 Pixel convention: integer network-input pixel coordinates are pixel centres; feature pixel ``j``
@@ -33,7 +36,7 @@ from torch import nn
 
 from ..geometry import BEVGrid, pair_like
 
-CALIBRATION_KEYS = ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
+CALIBRATION_KEYS = ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran", "ground_height")
 _MIN_DEPTH = 1e-3  # metres in front of the camera for a projection to count
 
 
@@ -110,6 +113,14 @@ def _bev_cell_centres_m(grid: BEVGrid, height: float) -> torch.Tensor:
     return torch.cat([xy, torch.full_like(xy[:, :1], height)], 1)
 
 
+def _on_ground(cell_centres_m: torch.Tensor, ground_height: torch.Tensor, V: int) -> torch.Tensor:
+    """cell_centres_m [P, 3] (z: the plane's offset), ground_height [B] -> [B, V, P, 3] with z raised by
+    each sample's ground height."""
+    z = ground_height.to(cell_centres_m.dtype).reshape(-1, 1, 1, 1)
+    lift = torch.cat([torch.zeros_like(z), torch.zeros_like(z), z], -1)  # [B, 1, 1, 3]
+    return (cell_centres_m[None, None] + lift).expand(-1, V, -1, -1)
+
+
 def _average_cameras(sampled: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """sampled [B, V, C, Hb, Wb], valid [B, V, Hb, Wb] bool -> [B, C, Hb, Wb], the mean over the
     cameras that see each cell (zero where none does)."""
@@ -124,7 +135,8 @@ def _average_cameras(sampled: torch.Tensor, valid: torch.Tensor) -> torch.Tensor
 
 
 class IPMViewTransform(nn.Module):
-    """Inverse perspective mapping onto the ground plane ``z = height`` (no learned parameters)."""
+    """Inverse perspective mapping onto the ground plane ``z = ground_height + height`` (no learned
+    parameters; ``height``: config ``ipm_height``, the plane's offset above the sample's road)."""
 
     def __init__(self, bev_grid: BEVGrid, image_size: tuple[int, int], channels: int, height: float = 0.0):
         super().__init__()
@@ -135,7 +147,7 @@ class IPMViewTransform(nn.Module):
         """features [B, V, C, fh, fw] -> bev [B, C, Hb, Wb]."""
         B, V, C, fh, fw = features.shape
         Hb, Wb = self.bev_grid.H, self.bev_grid.W
-        points = self.cell_centres_m.expand(B, V, -1, -1)
+        points = _on_ground(self.cell_centres_m, calib["ground_height"], V)
         uv, depth = ego_to_input_pixels(points, calib)  # [B, V, Hb*Wb, 2], [B, V, Hb*Wb]
         grid = pixel_to_sample_grid(uv, self.image_size)
         valid = (depth > _MIN_DEPTH) & (grid.abs() <= 1).all(-1)
@@ -266,7 +278,7 @@ class MLPViewTransform(nn.Module):
         Hb, Wb = self.bev_grid.H, self.bev_grid.W
         with torch.autocast(maps.device.type, enabled=False):
             rot, trans = calib["cam_to_ego_rot"].float(), calib["cam_to_ego_trans"].float()
-            points = self.cell_centres_m.expand(B, V, -1, -1) - trans[:, :, None]
+            points = _on_ground(self.cell_centres_m, calib["ground_height"].float(), V) - trans[:, :, None]
             cam = torch.einsum("bvji,bvpj->bvpi", rot, points)  # R^T (p - t): x right, z forward
             lateral, forward = cam[..., 0], cam[..., 2]
             # grid_sample coordinates: x (columns) <- forward in [0, R], y (rows) <- lateral in [-R, R]

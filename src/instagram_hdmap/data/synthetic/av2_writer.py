@@ -44,7 +44,13 @@ Map records (``map_archive``), from the generator's own geometry:
   generator's road surface.
 
 Elements are written whole when they come within ``MAP_MARGIN_M`` of the log's drive (AV2's log maps
-are local too). The world is flat: every z is 0 and the ground height raster is 0.
+are local too). The road is flat at city z = 0 (map z and the ground height raster are 0), and, as in
+real AV2 logs, the ego origin (the rear axle) rides above it: ``ego_height(log)``, 0.33-0.43 m (real
+lidar and ground-height rasters put the road 0.33-0.43 m below AV2's ego origin). So the ego poses have
+``tz_m`` = that height, the rig (``av2_rig``, AV2's ego-frame calibration: cameras 1.40 m above the
+ego origin) is rendered that much higher above the road, and lidar points and cuboids are in the ego
+frame: the road lies at z = -ego_height there, which the dataset reads back from the raster
+(``data.av2.ego_ground_height``).
 
 Scenes are rendered by the scene-job pool (jobs.py: one process or ``workers`` spawned ones, byte-identical
 output), written next to DIR under a temporary name and renamed at the end; a failure or Ctrl-C
@@ -53,6 +59,7 @@ leaves nothing behind.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -86,7 +93,7 @@ from .roads import LOCATIONS, RoadNetwork
 from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the ego origin above the road (ego_height)
 AV2_IMAGE_SIZE = (2048, 1550)  # (w, h) of the landscape ring cameras; ring_front_center is 1550 x 2048
 PORTRAIT = "ring_front_center"
 LIDAR = "up_lidar"
@@ -97,11 +104,13 @@ CAMERA_DELAY_NS = {cam: 2_000_000 * (i + 1) for i, cam in enumerate(AV2_RING_CAM
 SEGMENT_LENGTH_M = 30.0  # lane segments are cut to about this length along the road
 MAP_MARGIN_M = 100.0  # map elements within this distance of the drive's bounding box are written
 GROUND_HEIGHT_RES_M = 1.0  # metres per pixel of the (flat) ground height raster
+EGO_HEIGHT_M = (0.33, 0.43)  # the ego origin above the road (real AV2), one value per log (ego_height)
 ID_LANE, ID_CONNECTOR, ID_CROSSING, ID_AREA = 1_000_000, 5_000_000, 7_000_000, 8_000_000
 CUBOID_CATEGORY = {"vehicle.car": "REGULAR_VEHICLE", "vehicle.truck": "BOX_TRUCK", "vehicle.bus.rigid": "BUS"}
 CENTRE_MARK = {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SOLID_YELLOW", "single_white": "SOLID_WHITE"}
 
-# ring camera: (yaw (deg, left of forward), position in the ego frame (m), focal length (px) at full
+# ring camera: (yaw (deg, left of forward), position in the ego frame (m; the road is ego_height below
+# its origin), focal length (px) at full
 # size). AV2-like (the published rig: roof-mounted, about 1.4 m up, 2048 x 1550 images, the front
 # centre camera turned portrait), not one log's calibration. Optical axes level.
 _RING = {
@@ -144,6 +153,14 @@ def log_id(seed: int, index: int) -> str:
     return str(uuid.UUID(hashlib.md5(f"instagram-hdmap/av2/{seed}/{index}".encode()).hexdigest()))
 
 
+def ego_height(log: str) -> float:
+    """The height of log ``log``'s ego origin above the road, in ``EGO_HEIGHT_M`` (a function of the log id,
+    so that the renderer's random draws, shared with the nuScenes-format world, are untouched)."""
+    u = int(hashlib.md5(f"ego-height/{log}".encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
+    lo, hi = EGO_HEIGHT_M
+    return round(lo + (hi - lo) * u, 3)
+
+
 def city_map_name(location: str) -> str:
     return f"{CITY[location]}_city_{70000 + LOCATIONS.index(location)}"
 
@@ -160,7 +177,7 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     ``occluders``: as ``generate_world``'s (the same vehicles in the same scenes)."""
     require_av2("instagram-hdmap synth --format av2")
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene)
+    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
     workers = check_workers(workers)
     occluders = check_occluders(occluders)
     return write_world(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
@@ -195,10 +212,10 @@ def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress
 # --- one log -----------------------------------------------------------------------------------
 
 
-def _pose_rows(timestamp: int, pose: np.ndarray) -> dict:
+def _pose_rows(timestamp: int, pose: np.ndarray, height: float) -> dict:
     q = Quaternion(axis=[0.0, 0.0, 1.0], angle=float(pose[2])).elements
     return {"timestamp_ns": timestamp, "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
-            "tx_m": float(pose[0]), "ty_m": float(pose[1]), "tz_m": 0.0}
+            "tx_m": float(pose[0]), "ty_m": float(pose[1]), "tz_m": height}
 
 
 def _write_feather(rows: list[dict] | dict, path: FsPath, types: dict | None = None) -> None:
@@ -222,9 +239,12 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
     drive = plan_drive(net, job.samples, rng)
     vehicles = place_vehicles(net, drive, rng)
     vehicles += scene_occluders(job, net, drive, vehicles)
-    sensors = av2_rig(job.size)
+    sensors = av2_rig(job.size)  # ego frame
     look = scene_look(rng, sensors)
-    renderer = SceneRenderer(painter, look, sensors, (max(job.size), max(job.size)), rng)
+    ego_z = ego_height(job.name)  # the renderer's frame lies on the road, AV2's ego origin this much above it
+    on_road = {k: dataclasses.replace(s, translation=(*s.translation[:2], s.translation[2] + ego_z))
+               for k, s in sensors.items()}
+    renderer = SceneRenderer(painter, look, on_road, (max(job.size), max(job.size)), rng)
     log_dir = job.root / job.split / job.name
     for cam in AV2_RING_CAMERAS:
         (log_dir / "sensors" / "cameras" / cam).mkdir(parents=True)
@@ -237,11 +257,11 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
         t = k * KEYFRAME_INTERVAL_S
         timestamp = t0 + int(round(t * 1e9))
         images, points, counts = renderer.render(pose, [v.box(t) for v in vehicles])
-        pose_rows.append(_pose_rows(timestamp, pose))
+        pose_rows.append(_pose_rows(timestamp, pose, ego_z))
         for cam in AV2_RING_CAMERAS:
             ts_cam = timestamp + CAMERA_DELAY_NS[cam]
             (log_dir / "sensors" / "cameras" / cam / f"{ts_cam}.jpg").write_bytes(images[cam])
-            pose_rows.append(_pose_rows(ts_cam, pose))  # rendered at the sweep's pose
+            pose_rows.append(_pose_rows(ts_cam, pose, ego_z))  # rendered at the sweep's pose
         xyz = points[:, :3].astype(np.float64) @ lidar.rot.T + lidar.trans  # lidar -> ego frame
         _write_feather({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                         "intensity": np.clip(points[:, 3], 0, 255).astype(np.uint8),
@@ -261,7 +281,8 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
                             "category": CUBOID_CATEGORY.get(v.category, "REGULAR_VEHICLE"),
                             "length_m": length, "width_m": width, "height_m": height,
                             "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
-                            "tx_m": c * d[0] + s * d[1], "ty_m": -s * d[0] + c * d[1], "tz_m": float(centre[2]),
+                            "tx_m": c * d[0] + s * d[1], "ty_m": -s * d[0] + c * d[1],
+                            "tz_m": float(centre[2]) - ego_z,
                             "num_interior_pts": int(counts[i])})
         on_sample()
     pose_rows.sort(key=lambda r: r["timestamp_ns"])

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from ...config import UserError
-from ...files import atomic_path
+from ...files import atomic_path, remove_stale_temporaries
 from .render import MapPainter
 from .roads import build_network
 from .traffic import place_occluders
@@ -45,7 +45,7 @@ SCENE_SPACING_US = 3600 * 1_000_000
 MP_START_METHOD = "spawn"  # workers start clean: no copied locks or threads (torch, OpenCV) from the caller
 POLL_S = 0.5  # how often the main process checks that its workers are alive while it waits
 STALL_S = 600.0  # a worker that sends nothing for this long (a sample takes seconds) is declared hung
-TMP_TAG = "synth-tmp"  # a world is written at .NAME.synth-tmp-PID (demo.py removes those of dead processes)
+TMP_TAG = "synth-tmp"  # a world is written at .NAME.synth-tmp-PID (the next generation removes those of dead processes)
 
 
 class SceneGenerationError(RuntimeError):
@@ -82,7 +82,10 @@ class SceneJob:
 # --- arguments ------------------------------------------------------------------------------------
 
 
-def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int) -> None:
+def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int, seed: int = 0) -> None:
+    """The arguments of a world: scene and sample counts, and the seed (numpy's generators take 0 .. 2**63)."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2**63:
+        raise UserError(f"--seed {seed}: a world's seed is a whole number >= 0")
     if scenes_train < 0 or scenes_val < 0:
         raise UserError(f"--scenes-train {scenes_train} / --scenes-val {scenes_val}: counts cannot be negative")
     if scenes_train + scenes_val == 0:
@@ -166,6 +169,8 @@ def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> di
         target.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise _unwritable(out, e) from e
+    for stale in remove_stale_temporaries(target, TMP_TAG):
+        print(f"removed {stale}: a generation of this world that did not finish (its process is gone)", flush=True)
     with atomic_path(target, TMP_TAG) as tmp:
         _make_writable(tmp, out)
         return write(tmp)

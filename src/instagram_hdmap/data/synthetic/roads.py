@@ -144,6 +144,9 @@ class Junction:
     wr: dict[int, float]
     crossing: dict[int, bool]
     fillet: dict[int, float]  # kerb radius of the corner between arm a and arm a + 1
+    # corner a (between arms a and a + 1) whose two crossings overlap: (depth along arm a, depth along
+    # arm a + 1) of the overlap, metres (_overlapping_corners)
+    overlap: dict[int, tuple[float, float]] = field(default_factory=dict)
     shape: Polygon | None = None
     segment: Ref | None = None
     tone: float = 0.0
@@ -356,6 +359,7 @@ def _junctions(chains, pos, arms, rng) -> dict:
         crossing = {a: bool(rng.random() < 0.75) for a in codes}
         if not any(crossing.values()):
             crossing[codes[int(rng.integers(len(codes)))]] = True
+        overlap = _overlapping_corners(codes, crossing, fillet, rng)
         D = {}
         for a in codes:
             ext = 2.0
@@ -363,10 +367,77 @@ def _junctions(chains, pos, arms, rng) -> dict:
                 ext = max(ext, wr[(n, (a + 1) % 4)] + fillet[a])
             if (a - 1) % 4 in arms[n]:
                 ext = max(ext, wl[(n, (a - 1) % 4)] + fillet[(a - 1) % 4])
-            D[a] = ext + (1.0 + 4.0 + 0.8 + STOP_LINE_WIDTH + 0.3 if crossing[a] else 1.0 + STOP_LINE_WIDTH + 0.3)
+            gap = OVERLAP_GAP_M if a in overlap or (a - 1) % 4 in overlap else 1.0  # kerb corner -> crossing
+            D[a] = ext + (gap + 4.0 + 0.8 + STOP_LINE_WIDTH + 0.3 if crossing[a] else 1.0 + STOP_LINE_WIDTH + 0.3)
         out[n] = Junction(node=n, centre=pos[n], arms=codes, D=D, wl={a: wl[(n, a)] for a in codes},
-                          wr={a: wr[(n, a)] for a in codes}, crossing=crossing, fillet=fillet)
+                          wr={a: wr[(n, a)] for a in codes}, crossing=crossing, fillet=fillet, overlap=overlap)
+        _drop_far_overlaps(out[n])
     return out
+
+
+# Real crossings overlap where two of them meet at a junction corner: in the real AV2 log of
+# ../shared/av2_real, all 9 pairs of crossings on adjacent arms of a junction overlap, by 1.1-4.7 m^2
+# (median 2.9 m^2; 10 of its 11 crossings overlap a neighbour); issue 18 quotes 1-12 m^2 over more logs.
+OVERLAP_FILLET_M = (0.5, 1.5)  # kerb radii of a junction whose crossings overlap (a tight city corner)
+OVERLAP_GAP_M = 0.3  # there, the crossings start this far past the kerb corner (elsewhere 1 m)
+OVERLAP_DEPTH_M = (1.0, 2.2)  # how far each crossing reaches into the other's band: 1.0-4.8 m^2
+# ... but a crossing is stretched at most this far past the kerb: where the roads' widths differ a lot,
+# the other crossing lies too far out and the corner's crossings stay apart
+OVERLAP_MAX_REACH_M = 8.0
+CITY_JUNCTION_P = 0.5  # a 4-way junction has a crossing on every arm with this probability (else 0.75 each)
+
+
+def _overlapping_corners(codes: list[int], crossing: dict[int, bool], fillet: dict[int, float],
+                         rng: np.random.Generator) -> dict[int, tuple[float, float]]:
+    """The junction corners whose two arms (a, a + 1) both have a crossing (every arm of a 4-way junction
+    has one with probability ``CITY_JUNCTION_P``, where the four crossings ring the junction as in the
+    real log) get crossings that overlap there, as real ones do (the rate above): the overlap's depths
+    along the two arms (``_crossing_corners`` stretches both crossings past the kerb that far into each
+    other's band), and the junction tight kerb radii (``fillet`` set in place) so that the crossings lie
+    near the corner.
+    Returns {corner a: (depth along a, depth along a + 1)}; ``_drop_far_overlaps`` keeps the reachable."""
+    if len(codes) == 4 and rng.random() < CITY_JUNCTION_P:  # a crossing on every arm (``crossing`` in place)
+        crossing.update({a: True for a in codes})
+    out = {}
+    for a in codes:
+        b = (a + 1) % 4
+        if b in codes and crossing[a] and crossing[b]:
+            out[a] = (float(rng.uniform(*OVERLAP_DEPTH_M)), float(rng.uniform(*OVERLAP_DEPTH_M)))
+    if out:
+        fillet.update({a: float(rng.uniform(*OVERLAP_FILLET_M)) for a in codes})
+    return out
+
+
+def _drop_far_overlaps(jn: Junction) -> None:
+    """Keep the overlapping corners of ``jn`` whose two crossings reach each other within
+    ``OVERLAP_MAX_REACH_M`` past the kerb."""
+    def reach(a: int) -> float:
+        b = (a + 1) % 4
+        depth_a, depth_b = jn.overlap[a]
+        return max(_crossing_band(jn, b)[0] + depth_b - jn.wl[a], _crossing_band(jn, a)[0] + depth_a - jn.wr[b])
+
+    jn.overlap = {a: d for a, d in jn.overlap.items() if reach(a) <= OVERLAP_MAX_REACH_M}
+
+
+def _crossing_band(jn: Junction, a: int) -> tuple[float, float]:
+    """(t0, t1): distances from the junction centre along arm a between which its crossing lies (4 m
+    wide, 0.8 m before the stop line)."""
+    t1 = jn.D[a] - 0.3 - STOP_LINE_WIDTH - 0.8
+    return t1 - 4.0, t1
+
+
+def _crossing_corners(jn: Junction, a: int) -> list[tuple[float, float]]:
+    """The crossing polygon of arm a as (t along the arm, lateral offset to its left) corners: across the
+    road (-wr to wl), and, at a corner whose crossings overlap, past the kerb into the neighbouring
+    crossing's band (``Junction.overlap``; the zebra paint stays on the road)."""
+    t0, t1 = _crossing_band(jn, a)
+    left, right = jn.wl[a], -jn.wr[a]
+    if a in jn.overlap:  # corner (a, a + 1): arm a + 1 runs along the left of arm a
+        left = _crossing_band(jn, (a + 1) % 4)[0] + jn.overlap[a][1]
+    prev = (a - 1) % 4
+    if prev in jn.overlap:  # corner (a - 1, a): arm a - 1 runs along the right of arm a
+        right = -(_crossing_band(jn, prev)[0] + jn.overlap[prev][0])
+    return [(t0, right), (t1, right), (t1, left), (t0, left)]
 
 
 def _straight_with_bend(t: Turtle, length: float, half_width: float, rng) -> None:
@@ -698,10 +769,8 @@ def _add_crossings_and_stop_lines(stretches: list[Stretch], junctions: dict, rec
             t_stop = jn.D[a] - 0.3 - STOP_LINE_WIDTH
             crossing_ref = None
             if jn.crossing[a]:
-                t1 = t_stop - 0.8
-                t0 = t1 - 4.0
-                corners = [(t0, -wr), (t1, -wr), (t1, wl), (t0, wl)]
-                xy = np.array([jn.centre + t * u + lat * n for t, lat in corners])
+                t0, t1 = _crossing_band(jn, a)
+                xy = np.array([jn.centre + t * u + lat * n for t, lat in _crossing_corners(jn, a)])
                 poly = rec.add_polygon(rec.add_nodes(xy), (), "ped_crossing")
                 crossing_ref = rec.add("ped_crossing", polygon_token=poly, road_segment_token=jn.segment)
                 markings.white.extend(_zebra(jn.centre, u, n, t0, t1, -wr, wl))

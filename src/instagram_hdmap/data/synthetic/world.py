@@ -61,7 +61,7 @@ from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, pl
 
 VERSION = "v1.0-trainval"
 FORMAT = "instagram-hdmap synthetic nuScenes world"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: crossings overlap at junction corners (roads._overlapping_corners)
 
 
 def scene_names(n_train: int, n_val: int) -> tuple[list[str], list[str]]:
@@ -88,7 +88,7 @@ def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_
     With workers > 1 the worker processes are spawned, so they import the caller's main module:
     a script must call this under ``if __name__ == "__main__":``."""
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene)
+    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
     workers = check_workers(workers)
     occluders = check_occluders(occluders)
     train_names, val_names = scene_names(scenes_train, scenes_val)

@@ -1,0 +1,44 @@
+"""``UserError``: the one exception class for errors in what the user gave.
+
+A ``UserError`` (or a subclass: ``ConfigError``, ``CheckpointError``, ``DatasetError``, ...) is a wrong
+path, file, key, argument or sample: ``instagram-hdmap`` prints its message on one line and exits
+with code 2 (cli.py). Its message names the file / key / sample and says what to do. It sits on the
+lowest floor so that every module, files.py included, can raise one; config.py re-exports it.
+"""
+
+from __future__ import annotations
+
+import re
+
+
+class UserError(Exception):
+    """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line
+    and exits with code 2. Library code raises subclasses with messages that say what to fix.
+
+    Raised in a DataLoader worker process, it reaches the main process re-created by torch from one
+    string (``Caught ImageError in DataLoader worker process 0.`` + the worker's whole traceback);
+    the constructor takes that apart again, so the error reads the same with workers as without."""
+
+    def __init__(self, *args: object) -> None:
+        if len(args) == 1 and isinstance(args[0], str) and args[0].startswith("Caught "):
+            args = (_worker_message(args[0], type(self).__name__),)
+        super().__init__(*args)
+
+
+def _worker_message(text: str, name: str) -> str:
+    """The original message inside torch's DataLoader worker wrapping (see ``UserError``), or ``text``."""
+    head, _, rest = text.partition("\n")
+    if not re.fullmatch(rf"Caught {name} in DataLoader worker process \d+\.", head):
+        return text
+    lines = rest.splitlines()
+    for i in range(len(lines) - 1, -1, -1):  # the traceback's last "module.Name: message" line
+        if re.match(rf"([\w.]+\.)?{name}: ", lines[i]):
+            return "\n".join(lines[i:]).split(": ", 1)[1].strip()
+    return text
+
+
+def one_line(e: BaseException) -> str:
+    """An exception's message on one line, whole (terminal colour codes dropped): for a UserError that
+    quotes a library's multi-line explanation."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e))
+    return " ".join(text.split()) or type(e).__name__

@@ -1,0 +1,738 @@
+"""Bad inputs and faults, one row per case (issue 21 and the sweep after it).
+
+Each row is a small function that does the bad thing a hostile but realistic user would do and
+checks the promise: a wrong input is named on one line (``UserError``, exit code 2, no traceback),
+nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
+the case in issue 21 (``S`` marks a case found by the second sweep). Everything runs on the tiny
+synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+
+from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from instagram_hdmap.cli import main
+from instagram_hdmap.config import UserError, config_to_dict, load_config
+
+REPO = Path(__file__).resolve().parents[1]
+TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
+
+
+# --- the table ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Row:
+    id: str
+    case: str  # issue 21's case number, or "S" (second sweep)
+    what: str
+    run: Callable
+
+
+ROWS: list[Row] = []
+
+
+def row(case: str, what: str):
+    def register(fn):
+        ROWS.append(Row(fn.__name__.removeprefix("row_"), case, what, fn))
+        return fn
+
+    return register
+
+
+# --- shared fixtures: a config file for the tiny world, a random checkpoint ------------------------
+
+
+@dataclass
+class Env:
+    world: Path  # the session's tiny synthetic nuScenes world: never damaged
+    yaml: Path  # configs/synthetic/tiny.yaml pointed at `world` (num_workers 0, eval batch 2)
+    ckpt: Path  # a random tiny model saved with its config
+    tmp: Path  # this row's own folder
+    capsys: pytest.CaptureFixture
+    monkeypatch: pytest.MonkeyPatch
+    request: pytest.FixtureRequest  # for the fixtures only some rows need (av2_world)
+
+    def cli(self, *argv) -> tuple[int, str, str]:
+        self.capsys.readouterr()
+        rc = main([str(a) for a in argv])
+        out, err = self.capsys.readouterr()
+        return rc, out, err
+
+    def error(self, pattern: str, *argv) -> str:
+        """Run the CLI; it must exit 2 with one line on stderr that matches ``pattern``."""
+        rc, out, err = self.cli(*argv)
+        lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith(("epoch", "eval", "\r"))]
+        assert rc == 2, f"exit {rc}, stderr:\n{err[-3000:]}"
+        assert len(lines) == 1, f"not one line:\n{err[-3000:]}"
+        assert "Traceback" not in err
+        assert re.search(pattern, lines[0]), lines[0]
+        return lines[0]
+
+    def shadow_world(self, edit_tables: Callable[[dict], None] | None = None, copy_samples: bool = False) -> Path:
+        """A world that shares `world`'s maps (and images, unless ``copy_samples``) through symlinks,
+        with its own copy of the tables, edited by ``edit_tables({table name: records})``."""
+        root = self.tmp / "world"
+        root.mkdir()
+        for name in ("world.json", "splits.json"):
+            shutil.copy(self.world / name, root / name)
+        (root / "maps").symlink_to(self.world / "maps")
+        if copy_samples:
+            shutil.copytree(self.world / "samples", root / "samples")
+        else:
+            (root / "samples").symlink_to(self.world / "samples")
+        version = root / "v1.0-trainval"
+        shutil.copytree(self.world / "v1.0-trainval", version)
+        if edit_tables is not None:
+            tables = {p.stem: json.loads(p.read_text()) for p in version.glob("*.json")}
+            edit_tables(tables)
+            for name, records in tables.items():
+                (version / f"{name}.json").write_text(json.dumps(records))
+        return root
+
+    def cfg(self, *overrides):
+        return load_config(self.yaml, [f"train.out_dir={self.tmp / 'run'}", *overrides])
+
+
+@pytest.fixture(scope="module")
+def shared(tiny_world, world_overrides, tmp_path_factory):
+    from instagram_hdmap.models import build_model
+
+    root = tmp_path_factory.mktemp("bad_inputs")
+    yaml = root / "tiny_world.yaml"
+    data = dict(o.split("=", 1) for o in world_overrides(tiny_world))
+    yaml.write_text(
+        f"_base_: {TINY_YAML}\n"
+        f"data:\n  dataroot: {data['data.dataroot']}\n  version: {data['data.version']}\n"
+        f"  splits_file: {data['data.splits_file']}\n  num_workers: 0\n"
+        "train:\n  device: cpu\n  epochs: 1\n  batch_size: 2\n  checkpoint_every: 0\n  log_every: 1\n"
+        "eval:\n  batch_size: 2\n"
+    )
+    torch.manual_seed(0)
+    cfg = load_config(yaml)
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)}, root / "random.pt")
+    return tiny_world, yaml, ckpt
+
+
+# --- helpers --------------------------------------------------------------------------------------
+
+
+def dead_pid() -> int:
+    """The id of a process that has exited (and been reaped)."""
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def first(records: list[dict], **match) -> dict:
+    return next(r for r in records if all(r[k] == v for k, v in match.items()))
+
+
+def camera_record(tables: dict, channel: str, sample_index: int = 0) -> tuple[dict, dict]:
+    """(sample_data, calibrated_sensor) of camera ``channel`` of the val scene's ``sample_index``-th sample."""
+    token = tables["scene"][-1]["first_sample_token"]  # the tiny world's one val scene comes last
+    for _ in range(sample_index):
+        token = first(tables["sample"], token=token)["next"]
+    sensor = first(tables["sensor"], channel=channel)["token"]
+    for sd in tables["sample_data"]:
+        if sd["sample_token"] == token and sd["is_key_frame"]:
+            cs = first(tables["calibrated_sensor"], token=sd["calibrated_sensor_token"])
+            if cs["sensor_token"] == sensor:
+                return sd, cs
+    raise AssertionError(f"no {channel} record for sample {token}")
+
+
+def val_dataset(cfg):
+    from instagram_hdmap.data import build_dataset
+
+    return build_dataset(cfg, cfg.data.val_split, augment=False)
+
+
+def forbid(env: Env, target: str, what: str) -> None:
+    """Make ``target`` (a dotted name) fail the test if it is called: the error must come first."""
+
+    def called(*args, **kwargs):
+        raise AssertionError(f"{what} ran before the error")
+
+    env.monkeypatch.setattr(target, called)
+
+
+# ==================================================================================================
+# Data lost or results silently wrong
+# ==================================================================================================
+
+
+def _toy_run(env: Env, scores: list[float], *overrides, resume: str | None = None, force: bool = False):
+    """A tiny training on in-memory samples whose validations score ``scores`` in turn."""
+    from instagram_hdmap import train as train_module
+    from test_train import TINY, _loaders
+
+    queue = list(scores)
+
+    def fake_evaluate(*args, **kwargs):
+        return {"losses": {"loss_total": 1.0}, "metrics": {"mAP": queue.pop(0)}}
+
+    env.monkeypatch.setattr(train_module, "evaluate", fake_evaluate)
+    cfg = load_config(None, [*TINY, f"train.out_dir={env.tmp / 'run'}", *overrides])
+    train_loader, sampler, _ = _loaders(cfg)
+    summary = train_module.train(cfg, loaders=(train_loader, sampler, [None]), validate=True, resume=resume,
+                                 force=force)
+    assert not queue, "fewer validations than scores"
+    return summary
+
+
+@row("1", "best.pt is only replaced by a better validated model, across resumes")
+def row_best_survives_a_resume(env):
+    run = env.tmp / "run"
+    # 4 samples, batch 2: 2 steps per epoch; max_steps=1 stops mid-epoch 0, then validates (0.6)
+    _toy_run(env, [0.6], "train.epochs=3", "train.max_steps=1")
+    assert load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.6
+    assert load_checkpoint(run / "last.pt")["best"]["score"] == 0.6  # last.pt saved after that validation
+    _toy_run(env, [0.3, 0.4, 0.2], "train.epochs=3", resume=str(run / "last.pt"))
+    assert load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.6
+    # a last.pt older than best.pt (killed between the two saves) does not lose best.pt either
+    state = load_checkpoint(run / "last.pt")
+    state["best"] = {"score": float("-inf")}
+    state["epoch"], state["step"], state["step_in_epoch"] = 2, 4, 0
+    state["clock"] = {**state["clock"], "progress": 4 / 6}  # 3 epochs of 2 steps
+    save_checkpoint(state, run / "last.pt")
+    _toy_run(env, [0.5], "train.epochs=3", resume=str(run / "last.pt"))
+    assert load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.6
+
+
+def _calibration_row(channel: str, edit: Callable[[dict], None], pattern: str):
+    def run(env):
+        def damage(tables):
+            sd, cs = camera_record(tables, channel)
+            edit(cs)
+
+        root = env.shadow_world(damage)
+        env.error(pattern, "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt,
+                  "--out", env.tmp / "eval")
+
+    return run
+
+
+for _name, _channel, _edit, _pattern in (
+    ("nan_camera_translation", "CAM_FRONT", lambda cs: cs["translation"].__setitem__(0, float("nan")),
+     r"CAM_FRONT.*translation.*(NaN|finite)"),
+    ("nan_camera_rotation", "CAM_BACK", lambda cs: cs["rotation"].__setitem__(1, float("nan")),
+     r"CAM_BACK.*rotation.*(NaN|finite)"),
+    ("camera_rotation_not_unit", "CAM_BACK_LEFT",
+     lambda cs: cs.__setitem__("rotation", [2 * q for q in cs["rotation"]]),
+     r"CAM_BACK_LEFT.*rotation.*(unit|orthonormal)"),
+    ("negative_focal_length", "CAM_FRONT_LEFT", lambda cs: cs["camera_intrinsic"][0].__setitem__(0, -500.0),
+     r"CAM_FRONT_LEFT.*intrinsic.*focal"),
+    ("nan_intrinsics", "CAM_FRONT_RIGHT", lambda cs: cs["camera_intrinsic"][1].__setitem__(2, float("nan")),
+     r"CAM_FRONT_RIGHT.*intrinsic.*(NaN|finite)"),
+):
+    row("2", f"calibration: {_name}")(_calibration_row(_channel, _edit, _pattern))
+    ROWS[-1] = Row(_name, "2", ROWS[-1].what, ROWS[-1].run)
+
+
+@row("2", "an ego pose with NaN is named, not a GEOS exception")
+def row_nan_ego_pose(env):
+    def damage(tables):
+        sd, _ = camera_record(tables, "CAM_FRONT")
+        lidar = first(tables["sample_data"], sample_token=sd["sample_token"], fileformat="pcd")
+        first(tables["ego_pose"], token=lidar["ego_pose_token"])["translation"][0] = float("nan")
+
+    root = env.shadow_world(damage)
+    env.error(r"ego.?pose.*(NaN|finite)", "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt,
+              "--out", env.tmp / "eval")
+
+
+def _av2_copy(env: Env) -> tuple[Path, Path]:
+    """A private copy of the tiny AV2 world and the folder of its first train log."""
+    root = env.tmp / "av2"
+    shutil.copytree(env.request.getfixturevalue("av2_world"), root)
+    return root, sorted((root / "train").iterdir())[0]
+
+
+def _av2_error(env: Env, root: Path, pattern: str) -> str:
+    return env.error(pattern, "show-gt", env.yaml, "data.dataset=av2", "data.av2_frame_step=1",
+                     "data.image_fit=contain", f"data.dataroot={root}", "--split", "train", "--index", "0",
+                     "--out", env.tmp / "show")
+
+
+def _edit_feather(path: Path, column: str, row: int, value: float) -> None:
+    import pyarrow as pa
+    from pyarrow import feather
+
+    table = feather.read_table(str(path))
+    values = table.column(column).to_pylist()
+    values[row] = value
+    feather.write_feather(table.set_column(table.column_names.index(column), column, pa.array(values)), str(path))
+
+
+@row("2", "AV2: a camera calibration with NaN is named")
+def row_av2_nan_calibration(env):
+    root, log = _av2_copy(env)
+    _edit_feather(log / "calibration" / "egovehicle_SE3_sensor.feather", "tx_m", 0, float("nan"))
+    _av2_error(env, root, rf"log {log.name}: .*egovehicle_SE3_sensor\.feather.*(NaN|finite)")
+
+
+@row("2", "AV2: an intrinsics row with a negative focal length is named")
+def row_av2_negative_focal_length(env):
+    root, log = _av2_copy(env)
+    _edit_feather(log / "calibration" / "intrinsics.feather", "fx_px", 2, -100.0)
+    _av2_error(env, root, rf"log {log.name}: camera \w+ in .*intrinsics\.feather.*focal")
+
+
+@row("2", "AV2: an ego pose with NaN is named")
+def row_av2_nan_ego_pose(env):
+    root, log = _av2_copy(env)
+    _edit_feather(log / "city_SE3_egovehicle.feather", "ty_m", 0, float("nan"))
+    _av2_error(env, root, rf"log {log.name}: the ego pose .*city_SE3_egovehicle\.feather.*(NaN|finite)")
+
+
+@row("10", "AV2: a missing camera folder is named as such, not blamed on timestamps")
+def row_av2_missing_camera_folder(env):
+    root, log = _av2_copy(env)
+    shutil.rmtree(log / "sensors" / "cameras" / "ring_side_left")
+    line = _av2_error(env, root, r"camera folder .*ring_side_left does not exist")
+    assert "timestamps" not in line
+
+
+def _flip_bits(path: Path, entry: str) -> None:
+    """Flip the exponent bits of the first float stored in ``entry`` of a zip checkpoint."""
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo(entry)
+    data = bytearray(path.read_bytes())
+    name_len, extra_len = int.from_bytes(data[info.header_offset + 26:info.header_offset + 28], "little"), \
+        int.from_bytes(data[info.header_offset + 28:info.header_offset + 30], "little")
+    start = info.header_offset + 30 + name_len + extra_len
+    data[start + 3] ^= 0x7F  # float32 little-endian: the byte with the sign and most of the exponent
+    path.write_bytes(bytes(data))
+
+
+@row("3", "a checkpoint with flipped bits is named by the zip CRC")
+def row_flipped_bits(env):
+    path = env.tmp / "flipped.pt"
+    shutil.copy(env.ckpt, path)
+    with zipfile.ZipFile(path) as z:
+        entry = next(n for n in z.namelist() if "/data/" in n and z.getinfo(n).file_size >= 64)
+    _flip_bits(path, entry)
+    with pytest.raises(CheckpointError, match=rf"flipped\.pt.*{re.escape(entry.split('/', 1)[1])}.*(CRC|damaged)"):
+        load_checkpoint(path)
+    env.error(r"flipped\.pt.*(CRC|damaged)", "evaluate", env.yaml, "--checkpoint", path, "--out", env.tmp / "e")
+
+
+@row("3", "a checkpoint with non-finite weights is named with the tensor")
+def row_nonfinite_weights(env):
+    state = load_checkpoint(env.ckpt)
+    key = next(k for k, v in state["model"].items() if v.is_floating_point() and v.numel() > 4)
+    state["model"][key][3] = float("nan")
+    path = save_checkpoint(state, env.tmp / "nan.pt")
+    env.error(rf"nan\.pt.*{re.escape(key)}.*(NaN|non-finite)", "evaluate", env.yaml, "--checkpoint", path,
+              "--out", env.tmp / "e")
+
+
+for _name, _override, _key in (
+    ("sinkhorn_iters_0", "model.gnn.sinkhorn_iters=0", "model.gnn.sinkhorn_iters"),
+    ("batch_size_0", "train.batch_size=0", "train.batch_size"),
+    ("checkpoint_every_negative", "train.checkpoint_every=-5", "train.checkpoint_every"),
+):
+    def _run(env, override=_override, key=_key):
+        forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+        env.error(rf"'{re.escape(key)}'.*>= ?[01]", "train", env.yaml, override, f"train.out_dir={env.tmp / 'r'}")
+
+    ROWS.append(Row(_name, "4", f"config: {_override}", _run))
+
+
+@row("4", "a YAML section written twice is an error, not silently merged")
+def row_duplicate_yaml_section(env):
+    path = env.tmp / "twice.yaml"
+    path.write_text(f"_base_: {env.yaml}\nmodel:\n  gnn:\n    layers: 3\ntrain:\n  lr: 0.01\nmodel:\n  gnn:\n"
+                    "    dim: 64\n")
+    env.error(r"twice\.yaml.*'model'.*(twice|duplicate)", "model-summary", path)
+
+
+@row("4", "data.classes with unknown names")
+def row_unknown_class_names(env):
+    env.error(r"data\.classes.*divider.*ped_crossing.*boundary", "model-summary", env.yaml,
+              "data.classes=[lane,crossing,kerb]")
+
+
+@row("5", "--force starts over: the old run's log.jsonl lines and TensorBoard events go")
+def row_force_clears_the_old_log(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2, 0.3], "train.epochs=2")
+    old_events = sorted((run / "tb").rglob("events.*"))
+    assert len(old_events) == 1 and len((run / "log.jsonl").read_text().splitlines()) == 2
+    _toy_run(env, [0.1], "train.epochs=1", force=True)
+    lines = (run / "log.jsonl").read_text().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["val"]["metrics"]["mAP"] == 0.1
+    events = sorted((run / "tb").rglob("events.*"))
+    assert len(events) == 1 and events != old_events
+    assert load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.1  # not the old run's 0.3
+
+
+# ==================================================================================================
+# Crashes instead of a message
+# ==================================================================================================
+
+
+def _break_image(root: Path, tables_root: Path, sample_index: int, channel: str, how: str) -> Path:
+    tables = {p.stem: json.loads(p.read_text()) for p in (tables_root / "v1.0-trainval").glob("*.json")}
+    sd, _ = camera_record(tables, channel, sample_index)
+    path = root / sd["filename"]
+    if how == "missing":
+        path.unlink()
+    elif how == "truncated":
+        path.write_bytes(path.read_bytes()[:500])
+    else:
+        path.write_bytes(b"\xff\xd8 this is not a JPEG " * 40 + b"\xff\xd9")
+    return path
+
+
+@row("6", "data.on_bad_sample=skip with eval batch > 1: each good sample scored once, exit 0")
+def row_skip_mode_batch(env):
+    root = env.shadow_world(copy_samples=True)
+    _break_image(root, root, 0, "CAM_FRONT", "missing")
+    rc, out, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip",
+                           "eval.batch_size=3", "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-3000:]
+    metrics = json.loads((env.tmp / "eval" / "metrics.json").read_text())
+    assert metrics["counters"]["samples"] == 2  # the bad one is left out, its replacement not scored twice
+    assert "2 samples evaluated" in out and re.search(r"1 bad sample", out)
+    submission = json.loads((env.tmp / "eval" / "submission.json").read_text())
+    assert len(submission["results"]) == 2
+
+
+@row("7", "a 0-byte .pt is named as empty")
+def row_empty_checkpoint(env):
+    path = env.tmp / "empty.pt"
+    path.write_bytes(b"")
+    env.error(r"empty\.pt.*empty", "evaluate", env.yaml, "--checkpoint", path, "--out", env.tmp / "e")
+
+
+@row("8", "a sample_data record without 'filename' is named")
+def row_sample_data_without_filename(env):
+    def damage(tables):
+        sd, _ = camera_record(tables, "CAM_BACK")
+        del sd["filename"]
+
+    root = env.shadow_world(damage)
+    env.error(r"sample_data.*'filename'", "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt,
+              "--out", env.tmp / "e")
+
+
+@row("8", "a binary file given as the config (checkpoint and config swapped)")
+def row_config_and_checkpoint_swapped(env):
+    env.error(r"random\.pt.*(binary|not a text|checkpoint)", "evaluate", env.ckpt, "--checkpoint", env.yaml,
+              "--out", env.tmp / "e")
+
+
+@row("8", "a YAML config given as the checkpoint")
+def row_yaml_as_checkpoint(env):
+    env.error(r"tiny_world\.yaml.*not a (PyTorch )?checkpoint", "evaluate", env.yaml, "--checkpoint", env.yaml,
+              "--out", env.tmp / "e")
+
+
+@row("8", "grid.resolution=.nan")
+def row_nan_resolution(env):
+    env.error(r"grid\.resolution.*(finite|NaN)", "model-summary", env.yaml, "grid.resolution=.nan")
+
+
+@row("8", "evaluate-json --resolution 0")
+def row_evaluate_json_resolution_0(env):
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"results": {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}}))
+    pred = env.tmp / "pred.json"
+    pred.write_text(json.dumps({"results": {"a": [{"pts": [[0, 0], [1, 1]], "type": 0, "confidence_level": 0.5}]}}))
+    env.error(r"--resolution.*> ?0", "evaluate-json", "--pred", pred, "--gt", gt, "--protocol", "raster",
+              "--resolution", "0")
+
+
+@row("8", "synth --seed -1")
+def row_synth_negative_seed(env):
+    env.error(r"--seed -1", "synth", "--out", env.tmp / "w", "--seed", "-1", "--scenes-train", "1",
+              "--scenes-val", "0", "--samples-per-scene", "1", "--image-size", "160x90")
+    assert not (env.tmp / "w").exists()
+
+
+for _override, _key in (("train.lr=.nan", "train.lr"), ("train.lr=-1", "train.lr"),
+                        ("train.epochs=0", "train.epochs"), ("train.epochs=-2", "train.epochs"),
+                        ("data.num_workers=-1", "data.num_workers"), ("eval.batch_size=0", "eval.batch_size")):
+    def _run(env, override=_override, key=_key):
+        forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+        env.error(rf"'{re.escape(key)}'", "train", env.yaml, override, f"train.out_dir={env.tmp / 'r'}")
+
+    ROWS.append(Row(_override.replace(".", "_").replace("=", "_"), "9", f"config: {_override}", _run))
+
+
+def _worker_image_row(how: str):
+    def run(env):
+        root = env.shadow_world(copy_samples=True)
+        path = _break_image(root, root, 1, "CAM_BACK_RIGHT", how)
+        line = env.error(rf"{re.escape(path.name)}", "evaluate", env.yaml, f"data.dataroot={root}",
+                         "data.num_workers=1", "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+        assert "worker" not in line.lower()
+
+    return run
+
+
+for _how in ("missing", "truncated", "undecodable"):
+    ROWS.append(Row(f"{_how}_image_with_a_worker", "10", f"a {_how} image with data.num_workers=1: one line",
+                    _worker_image_row(_how)))
+
+
+@row("S", "a checkpoint whose 'model' is not a state dict is named (was a TypeError)")
+def row_model_not_a_state_dict(env):
+    path = env.tmp / "list.pt"
+    torch.save({"model": [1, 2], "config": {}}, path)
+    env.error(r"list\.pt holds no 'model' state dict", "evaluate", env.yaml, "--checkpoint", path,
+              "--out", env.tmp / "e")
+
+
+@row("S", "--resume from a weights-only checkpoint is named (was a KeyError)")
+def row_resume_from_weights_only(env):
+    path = env.tmp / "weights.pt"
+    save_checkpoint({"model": load_checkpoint(env.ckpt)["model"]}, path)
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"weights\.pt cannot be resumed: it holds no optimizer, epoch, step, step_in_epoch, rng, config",
+              "train", env.yaml, f"train.out_dir={env.tmp / 'r'}", "--resume", path)
+
+
+@row("S", "model.backbone.weights that is not a torch file: one line, not torch's multi-line text")
+def row_backbone_weights_not_a_checkpoint(env):
+    env.error(r"model\.backbone\.weights: cannot read .*tiny_world\.yaml as a torch checkpoint", "train", env.yaml,
+              "model.backbone.name=efficientnet-b0", "data.image_size=[64,160]", f"model.backbone.weights={env.yaml}",
+              f"train.out_dir={env.tmp / 'r'}")
+
+
+# ==================================================================================================
+# Too late or misleading
+# ==================================================================================================
+
+
+@row("11", "evaluate --out that is a file: refused before the evaluation runs")
+def row_evaluate_out_is_a_file(env):
+    (env.tmp / "taken").write_text("x")
+    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
+    env.error(r"taken", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "taken")
+
+
+@row("11", "train.out_dir that is a file: refused before training")
+def row_train_out_dir_is_a_file(env):
+    (env.tmp / "taken").write_text("x")
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"taken", "train", env.yaml, f"train.out_dir={env.tmp / 'taken'}")
+
+
+@row("11", "predict --out below a file: refused before the model runs")
+def row_predict_out_not_writable(env):
+    (env.tmp / "taken").write_text("x")
+    forbid(env, "instagram_hdmap.predict.save_figure", "drawing")
+    env.error(r"taken", "predict", env.yaml, "--checkpoint", env.ckpt, "--index", "0", "--out",
+              env.tmp / "taken" / "pics")
+
+
+@row("11", "export-gt --out below a file: refused before the export")
+def row_export_gt_out_not_writable(env):
+    (env.tmp / "taken").write_text("x")
+    forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
+    env.error(r"taken", "export-gt", env.yaml, "--out", env.tmp / "taken" / "gt.json")
+
+
+@row("11", "evaluate-json --out below a file: refused before the evaluation")
+def row_evaluate_json_out_not_writable(env):
+    (env.tmp / "taken").write_text("x")
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"results": {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}}))
+    forbid(env, "instagram_hdmap.evaluation.Evaluator.compute", "the evaluation")
+    env.error(r"taken", "evaluate-json", "--pred", gt, "--gt", gt, "--out", env.tmp / "taken" / "m.json")
+
+
+@row("S", "export-gt --out that is a folder: refused before the export (was an IsADirectoryError after it)")
+def row_export_gt_out_is_a_folder(env):
+    (env.tmp / "folder").mkdir()
+    forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
+    env.error(r"--out .*folder.*is a folder", "export-gt", env.yaml, "--out", env.tmp / "folder")
+
+
+@row("S", "evaluate-json --out that is a folder: refused before the evaluation (was an IsADirectoryError)")
+def row_evaluate_json_out_is_a_folder(env):
+    (env.tmp / "folder").mkdir()
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    forbid(env, "instagram_hdmap.evaluation.Evaluator.compute", "the evaluation")
+    env.error(r"--out .*folder.*is a folder", "evaluate-json", "--pred", gt, "--gt", gt, "--out", env.tmp / "folder")
+
+
+@row("S", "train --force --resume: refused, the checkpoint to resume is not deleted")
+def row_force_and_resume(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    before = (run / "last.pt").read_bytes()
+    env.error(r"--force.*--resume", "train", env.yaml, f"train.out_dir={run}", "--force", "--resume", run / "last.pt")
+    assert (run / "last.pt").read_bytes() == before
+
+
+@row("S", "--resume of a finished run with more train.epochs is named, not a silent exit 0")
+def row_resume_a_finished_schedule(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=1")
+    with pytest.raises(UserError, match=r"last\.pt .*completed its schedule.*train\.epochs"):
+        _toy_run(env, [], "train.epochs=3", resume=str(run / "last.pt"))
+
+
+@row("12", "a run killed before its first checkpoint can be run again")
+def row_rerun_before_first_checkpoint(env):
+    run = env.tmp / "run"
+    (run / "tb").mkdir(parents=True)
+    (run / "config.yaml").write_text("name: killed\n")
+    (run / "log.jsonl").write_text("")
+    (run / "tb" / "events.out.tfevents.1.host.1.0").write_bytes(b"old")
+    env.error(r"last\.pt.*(no checkpoint|before its first checkpoint).*without --resume", "train", env.yaml,
+              f"train.out_dir={run}", "--resume", run / "last.pt")
+    _toy_run(env, [0.2], "train.epochs=1")
+    assert (run / "last.pt").is_file() and not (run / "tb" / "events.out.tfevents.1.host.1.0").exists()
+
+
+@row("12", "a full disk during a checkpoint save is named (and the old checkpoint kept)")
+def row_full_disk(env):
+    old = save_checkpoint({"model": {"w": torch.ones(3)}}, env.tmp / "last.pt")
+    code = (
+        "import resource, signal, torch, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))\n"
+        "from instagram_hdmap.checkpoint import save_checkpoint\n"
+        "from instagram_hdmap.config import UserError\n"
+        "try:\n"
+        f"    save_checkpoint({{'model': {{'w': torch.zeros(200_000)}}}}, {str(old)!r})\n"
+        "except UserError as e:\n"
+        "    print('USER', e); sys.exit(2)\n"
+    )
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env_vars, timeout=120)
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert re.search(r"USER .*last\.pt.*(disk|space|too large)", p.stdout), p.stdout
+    assert torch.equal(load_checkpoint(old)["model"]["w"], torch.ones(3))
+    assert sorted(x.name for x in env.tmp.iterdir()) == ["last.pt"]
+
+
+@row("12", "a full disk while writing a JSON result is named (and the old file kept)")
+def row_full_disk_json(env):
+    old = env.tmp / "metrics.json"
+    old.write_text('{"old": 1}')
+    code = (
+        "import resource, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))\n"
+        "from instagram_hdmap.files import write_json\n"
+        "from instagram_hdmap.config import UserError\n"
+        "try:\n"
+        f"    write_json({{'x': 'a' * 200_000}}, {str(old)!r})\n"
+        "except UserError as e:\n"
+        "    print('USER', e); sys.exit(2)\n"
+    )
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env_vars, timeout=120)
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert re.search(r"USER cannot write .*metrics\.json: File too large \(the disk is full", p.stdout), p.stdout
+    assert old.read_text() == '{"old": 1}' and sorted(x.name for x in env.tmp.iterdir()) == ["metrics.json"]
+
+
+@row("S", "a full disk outside the atomic writes (a training's log line) is one line, not a traceback")
+def row_full_disk_in_a_log_write(env):
+    import errno
+
+    from instagram_hdmap.train import TrainingRun
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.out_dir / "log.jsonl"))
+
+    env.monkeypatch.setattr(TrainingRun, "log", full)
+    env.error(r"No space left on device writing .*log\.jsonl: the disk is full", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}", "train.max_steps=1")
+
+
+@row("12", "data.dt_clip=0 is named (not a NaN loss blamed on the learning rate)")
+def row_dt_clip_0(env):
+    env.error(r"data\.dt_clip.*> ?0", "train", env.yaml, "data.dt_clip=0", f"train.out_dir={env.tmp / 'r'}")
+
+
+@row("13", "partial checkpoints of killed saves are removed by the next run in that folder")
+def row_stale_checkpoint_temporaries(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    dead, alive = dead_pid(), os.getppid()
+    for name in (f".last.pt.tmp-{dead}", f".best.pt.tmp-{dead}", f".last.pt.tmp-{alive}"):
+        (run / name).write_bytes(b"partial")
+    _toy_run(env, [0.1, 0.1], "train.epochs=2", resume=str(run / "last.pt"))
+    left = sorted(p.name for p in run.iterdir() if p.name.startswith("."))
+    assert left == [f".last.pt.tmp-{alive}"]  # another live process's file is not ours to remove
+
+
+@row("13", "temporary folders of killed world generations are removed by the next one")
+def row_stale_synth_temporaries(env):
+    from instagram_hdmap.data.synthetic import generate_world
+
+    dead, alive = dead_pid(), os.getppid()
+    for pid in (dead, alive):
+        (env.tmp / f".w.synth-tmp-{pid}" / "samples").mkdir(parents=True)
+    generate_world(env.tmp / "w", scenes_train=1, scenes_val=0, samples_per_scene=1, image_size="160x90",
+                   progress=False)
+    left = sorted(p.name for p in env.tmp.iterdir() if p.name.startswith("."))
+    assert left == [f".w.synth-tmp-{alive}"]
+
+
+def _submission(path: Path, vectors: dict, gt: bool) -> Path:
+    path.write_text(json.dumps({"meta": {"ground_truth": gt}, "results": vectors}))
+    return path
+
+
+@row("14", "evaluate-json: a confidence outside [0, 1] is named")
+def row_confidence_out_of_range(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0, "confidence_level": 3.5}]},
+                       False)
+    env.error(r"p\.json.*'a'.*vector 0.*confidence_level.*\[0, 1\]", "evaluate-json", "--pred", pred, "--gt", gt)
+
+
+@row("14", "evaluate-json: coordinates of 1e308 are named")
+def row_huge_coordinates(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": [[0, 0], [1e308, 1]], "type": 0, "confidence_level": 0.5}]},
+                       False)
+    env.error(r"p\.json.*'a'.*vector 0.*pts.*(metres|ego)", "evaluate-json", "--pred", pred, "--gt", gt)
+
+
+@row("14", "evaluate-json: prediction and GT files swapped")
+def row_swapped_submission_files(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0, "confidence_level": 0.5}]},
+                       False)
+    env.error(r"swapped", "evaluate-json", "--pred", gt, "--gt", pred)
+
+
+@row("15", "a malicious checkpoint: torch's reason for refusing it is kept whole")
+def row_malicious_checkpoint(env):
+    path = env.tmp / "evil.pt"
+    torch.save({"model": {}, "payload": print}, path)  # any callable global: refused by weights_only
+    line = env.error(r"evil\.pt.*weights_only", "evaluate", env.yaml, "--checkpoint", path, "--out", env.tmp / "e")
+    assert re.search(r"reason: .*Unsupported global: GLOBAL (builtins\.)?print was not an allowed global", line), line
+
+
+# --- the test: every row of the table ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("row", ROWS, ids=[f"{r.case}-{r.id}" for r in ROWS])
+def test_bad_input(row: Row, shared, tmp_path, capsys, monkeypatch, request):
+    world, yaml, ckpt = shared
+    monkeypatch.chdir(tmp_path)
+    row.run(Env(world, yaml, ckpt, tmp_path, capsys, monkeypatch, request))
