@@ -162,6 +162,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"evaluated {result['num_samples']} samples of split '{metrics['meta']['split']}' "
           f"({result['samples_per_s']:.2f} samples/s) with protocol '{metrics['protocol']}'")
     print(format_table(metrics))
+    if "consistency" in metrics:  # evaluation/consistency.py
+        c = metrics["consistency"]
+        print("flicker (GT elements seen in consecutive frames whose detected/missed status flips): "
+              + ", ".join(f"{k} {v:.3f}" for k, v in c["flicker"].items()) + f"; mean {c['flicker_mean']:.3f}")
+    if "memory" in metrics:  # a temporal model: what each frame did with its memory
+        print("memory: " + ", ".join(f"{k.removeprefix('memory_')} {v}" for k, v in metrics["memory"].items()))
     _print_notes([*result["notes"], *metrics.get("notes", [])])
     print(f"wrote {', '.join(str(p) for p in result['paths'])}")
     return 0
