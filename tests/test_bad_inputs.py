@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -726,6 +727,322 @@ def row_malicious_checkpoint(env):
     torch.save({"model": {}, "payload": print}, path)  # any callable global: refused by weights_only
     line = env.error(r"evil\.pt.*weights_only", "evaluate", env.yaml, "--checkpoint", path, "--out", env.tmp / "e")
     assert re.search(r"reason: .*Unsupported global: GLOBAL (builtins\.)?print was not an allowed global", line), line
+
+
+# ==================================================================================================
+# The second sweep (S2): cases found by a sweep of the same kind after the fixes above
+# ==================================================================================================
+
+
+@row("S2", "an override quoted as a string stays a string (name=\"2024\" was read as the float 2024.0)")
+def row_quoted_override_is_a_string(env):
+    assert load_config(env.yaml, ['name="2024"']).name == "2024"
+    assert load_config(env.yaml, ["train.lr=1e-3"]).train.lr == 0.001  # unquoted: still a number
+
+
+@row("S2", "an empty value (train.out_dir=$UNSET) is named, not a training into the working directory")
+def row_empty_string_value(env):
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"'train\.out_dir' is empty", "train", env.yaml, "train.out_dir=")
+    assert sorted(p.name for p in env.tmp.iterdir()) == []
+
+
+@row("S2", "out of memory (torch's CPU allocator, CUDA, numpy) is one line naming the sizes to lower")
+def row_out_of_memory(env):
+    for error in (RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
+                               "memory: you tried to allocate 4096000064 bytes. Error code 12"),
+                  torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB.\nSee documentation"),
+                  MemoryError("Unable to allocate 49.1 TiB for an array with shape (3, 3000000, 6000000)")):
+        def boom(*args, error=error, **kwargs):
+            raise error
+
+        env.monkeypatch.setattr("instagram_hdmap.cli.summarize_parameters", boom)
+        env.error(r"out of memory .*train\.batch_size", "model-summary", env.yaml)
+
+
+def _table_row(edit: Callable[[dict], None], pattern: str):
+    def run(env):
+        root = env.shadow_world(edit)
+        env.error(pattern, "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt,
+                  "--out", env.tmp / "e")
+
+    return run
+
+
+for _name, _edit, _pattern in (
+    ("table_not_a_list", lambda t: t.__setitem__("sample", {"a": 1}), r"sample\.json holds a JSON dict"),
+    ("table_records_not_objects", lambda t: t.__setitem__("calibrated_sensor", [[1, 2]]),
+     r"calibrated_sensor\.json: record 0 is not an object"),
+    ("empty_map_table", lambda t: t.__setitem__("map", []), r"map\.json holds no records"),
+    ("dangling_first_sample_token", lambda t: t["scene"][-1].__setitem__("first_sample_token", "deadbeef"),
+     r"sample\.json .* has no record deadbeef"),
+    ("looping_sample_chain",  # was walked forever
+     lambda t: first(t["sample"], token=t["scene"][-1]["last_sample_token"]).__setitem__(
+         "next", t["scene"][-1]["first_sample_token"]),
+     r"scene .*'next' links loop back"),
+):
+    ROWS.append(Row(_name, "S2", f"nuScenes tables: {_name} (was a raw crash or a hang)", _table_row(_edit, _pattern)))
+
+
+@row("S2", "synth-preview of an AV2-layout world is named (was a KeyError)")
+def row_synth_preview_av2_world(env):
+    world = env.request.getfixturevalue("av2_world")
+    env.error(r"Argoverse 2 layout.*show-gt", "synth-preview", world, "--out", env.tmp / "p.png")
+    assert not (env.tmp / "p.png").exists()
+
+
+@row("S2", "an output path that is one of the job's inputs is refused before the work (was overwritten)")
+def row_output_is_an_input(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0, "confidence_level": 0.5}]},
+                       False)
+    before = gt.read_bytes()
+    env.error(r"--out .*gt\.json is the --gt file", "evaluate-json", "--pred", pred, "--gt", gt, "--out", gt)
+    assert gt.read_bytes() == before
+    config = env.tmp / "cfg.yaml"
+    shutil.copy(env.yaml, config)
+    env.error(r"--out .*cfg\.yaml is the CONFIG file", "export-gt", config, "--out", config)
+    ckpt = env.tmp / "model.pt"
+    shutil.copy(env.ckpt, ckpt)
+    forbid(env, "instagram_hdmap.deploy.export_onnx", "the export")
+    env.error(r"--out .*model\.pt is the --checkpoint file", "export-onnx", env.yaml, "--checkpoint", ckpt,
+              "--out", ckpt)
+    assert ckpt.read_bytes() == env.ckpt.read_bytes()
+
+
+def _mapper_frame(env, image_size=(400, 225), intrinsics_size=None):
+    """A Mapper of the random tiny checkpoint and one frame of the published nuScenes rig: uint8 images of
+    ``image_size`` (w, h), intrinsics for images of ``intrinsics_size`` (default: the same)."""
+    from instagram_hdmap import Mapper
+    from instagram_hdmap.data.rig import rig
+
+    mapper = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    sensors = rig(intrinsics_size or image_size)
+    rng = np.random.default_rng(0)
+    images = {c: rng.integers(0, 256, (image_size[1], image_size[0], 3), dtype=np.uint8) for c in mapper.cameras}
+    poses = {c: np.vstack([np.c_[sensors[c].rot, sensors[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras}
+    return mapper, images, {c: sensors[c].intrinsic for c in mapper.cameras}, poses
+
+
+@row("S2", "Mapper: a float image on 0..255, with NaN, or normalised already is named (was silently wrong)")
+def row_mapper_float_images(env):
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    mapper(images={c: v.astype(np.float32) / 255 for c, v in images.items()}, intrinsics=K, cam_to_ego=poses)  # fine
+    for image in (images["CAM_FRONT"].astype(np.float32),  # 0..255
+                  np.full(images["CAM_FRONT"].shape, np.nan, np.float32),
+                  (images["CAM_FRONT"] / 255.0 - 0.45) / 0.225,  # normalised already
+                  torch.from_numpy(images["CAM_FRONT"]).permute(2, 0, 1).float()):  # a tensor on 0..255
+        with pytest.raises(RigError, match=r"camera CAM_FRONT: .*(0\.\.1|NaN)"):
+            mapper(images={**images, "CAM_FRONT": image}, intrinsics=K, cam_to_ego=poses)
+
+
+@row("S2", "Mapper: intrinsics of another image size, transposed, or a camera 1700 m away is named (was silent)")
+def row_mapper_calibration_mistakes(env):
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env, intrinsics_size=(1600, 900))  # K of the full-size images
+    with pytest.raises(RigError, match=r"camera CAM_FRONT_LEFT: 'intrinsics' put the principal point .* outside its "
+                                       r"400x225 image"):
+        mapper(images=images, intrinsics=K, cam_to_ego=poses)
+    mapper, images, K, poses = _mapper_frame(env)
+    with pytest.raises(RigError, match=r"camera CAM_FRONT: 'intrinsics' is not a pinhole matrix .*transposed"):
+        mapper(images=images, intrinsics={**K, "CAM_FRONT": K["CAM_FRONT"].T}, cam_to_ego=poses)
+    mm = poses["CAM_BACK"].copy()
+    mm[:3, 3] *= 1000
+    with pytest.raises(RigError, match=r"camera CAM_BACK: 'translation' .* m from the ego origin"):
+        mapper(images=images, intrinsics=K, cam_to_ego={**poses, "CAM_BACK": mm})
+
+
+def _rig_files(env, edit: Callable[[dict], None] | None = None) -> tuple[Path, list[Path]]:
+    """A rig file of the published nuScenes rig (400 x 225 images) and one JPEG per camera, ``edit``ed."""
+    from PIL import Image
+
+    from instagram_hdmap.data.rig import CAMERAS, rig
+
+    sensors = rig((400, 225))
+    cameras = {c: {"intrinsics": sensors[c].intrinsic.tolist(), "quaternion": list(sensors[c].rotation),
+                   "translation": list(sensors[c].translation)} for c in CAMERAS}
+    data = {"image_size": [400, 225], "cameras": cameras}
+    if edit is not None:
+        edit(data)
+    path = env.tmp / "rig.json"
+    path.write_text(json.dumps(data))
+    images = []
+    for k, c in enumerate(CAMERAS):
+        images.append(env.tmp / f"{c}.jpg")
+        Image.fromarray(np.full((225, 400, 3), 40 * k, np.uint8)).save(images[-1])
+    return path, images
+
+
+def _rig_row(edit, pattern: str, *extra):
+    def run(env):
+        path, images = _rig_files(env, edit)
+        forbid(env, "instagram_hdmap.predict.save_figure", "drawing")
+        env.error(pattern, "predict-images", "--checkpoint", env.ckpt, "--rig", path, "--out", env.tmp / "out",
+                  "--device", "cpu", *extra, *images)
+
+    return run
+
+
+def _full_size_intrinsics(data: dict) -> None:
+    """Every camera's intrinsics for 1600 x 900 images (4x), the images staying 400 x 225."""
+    for cam in data["cameras"].values():
+        cam["intrinsics"] = (np.array(cam["intrinsics"]) * [[4], [4], [1]]).tolist()
+
+
+for _name, _edit, _pattern in (
+    ("rig_intrinsics_last_row", lambda d: d["cameras"]["CAM_FRONT"]["intrinsics"].__setitem__(2, [5, 5, 5]),
+     r"rig\.json: camera CAM_FRONT: 'intrinsics' is not a pinhole matrix"),
+    ("rig_translation_in_millimetres",
+     lambda d: d["cameras"]["CAM_BACK"].__setitem__("translation", [28.3, 3.5, 1579.1]),
+     r"rig\.json: camera CAM_BACK: 'translation' .* m from the ego origin"),
+    ("rig_intrinsics_of_the_full_size_images", _full_size_intrinsics,
+     r"'intrinsics' put the principal point .* outside its 400x225 image"),
+):
+    ROWS.append(Row(_name, "S2", f"predict-images: {_name} (was silently wrong)", _rig_row(_edit, _pattern)))
+
+
+@row("S2", "predict-images: a binary file given as --rig is named (was a UnicodeDecodeError)")
+def row_rig_file_binary(env):
+    path, images = _rig_files(env)
+    env.error(r"rig file .*CAM_FRONT\.jpg is not a JSON text file", "predict-images", "--checkpoint", env.ckpt,
+              "--rig", images[1], "--out", env.tmp / "out", "--device", "cpu", *images)
+
+
+@row("S2", "predict-images: --config with --checkpoint is refused (was silently ignored)")
+def row_predict_images_config_with_checkpoint(env):
+    path, images = _rig_files(env)
+    env.error(r"--config goes with --onnx", "predict-images", "--checkpoint", env.ckpt, "--config", env.yaml,
+              "--rig", path, "--out", env.tmp / "out", *images)
+
+
+@row("S2", "predict-images: the same image for two cameras is named")
+def row_same_image_for_two_cameras(env):
+    path, images = _rig_files(env)
+    images[4] = images[1]
+    env.error(r"cameras CAM_FRONT and CAM_BACK are given the same image", "predict-images", "--checkpoint",
+              env.ckpt, "--rig", path, "--out", env.tmp / "out", "--device", "cpu", *images)
+
+
+def _val_scene(env) -> str:
+    return json.loads((env.world / "v1.0-trainval" / "scene.json").read_text())[-1]["name"]
+
+
+@row("S2", "predict --video below a file, or --fps 1e9, is refused before the model runs (was a raw error after)")
+def row_video_out_checked_first(env):
+    (env.tmp / "taken").write_text("x")
+    forbid(env, "instagram_hdmap.predict.load_predictor", "the model")
+    env.error(r"--video .*taken.* is a file", "predict", env.yaml, "--checkpoint", env.ckpt, "--scene",
+              _val_scene(env), "--video", env.tmp / "taken" / "v.mp4")
+    env.error(r"--fps 1e\+09: .*at most", "predict", env.yaml, "--checkpoint", env.ckpt, "--scene", _val_scene(env),
+              "--video", env.tmp / "v.mp4", "--fps", "1e9")
+
+
+@row("S2", "predict --video on a full disk: named, no broken MP4 (OpenCV's writer reports nothing; was exit 0)")
+def row_video_on_a_full_disk(env):
+    import cv2
+
+    real = cv2.VideoWriter
+
+    class FullDisk:  # writes as OpenCV does, then loses the file's end as a full disk would
+        def __init__(self, path, *args):
+            self.path, self.writer = path, real(path, *args)
+
+        def __getattr__(self, name):
+            return getattr(self.writer, name)
+
+        def release(self):
+            self.writer.release()
+            data = Path(self.path).read_bytes()
+            Path(self.path).write_bytes(data[:len(data) // 2])
+
+    env.monkeypatch.setattr("instagram_hdmap.predict.cv2.VideoWriter", FullDisk)
+    video = env.tmp / "scene.mp4"
+    env.error(r"cannot write --video .*scene\.mp4: the MP4 file OpenCV wrote is incomplete", "predict", env.yaml,
+              "--checkpoint", env.ckpt, "--scene", _val_scene(env), "--video", video)
+    assert sorted(p.name for p in env.tmp.iterdir()) == []
+
+
+@row("S2", "a full disk while drawing PNGs names the file and leaves no empty PNG (show-gt, predict)")
+def row_png_on_a_full_disk(env):
+    import errno
+
+    from matplotlib.figure import Figure
+
+    def full(self, path, *args, **kwargs):
+        Path(path).write_bytes(b"")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    env.monkeypatch.setattr(Figure, "savefig", full)
+    env.error(r"cannot write .*bev_polylines\.png: No space left on device", "show-gt", env.yaml, "--out",
+              env.tmp / "gt")
+    assert list((env.tmp / "gt").iterdir()) == []
+
+
+@row("S2", "benchmark --device tpu is named (was a raw RuntimeError)")
+def row_benchmark_unknown_device(env):
+    env.error(r"--device tpu: choose cpu or cuda", "benchmark", env.yaml, "--device", "tpu")
+
+
+@row("S2", "demo: a missing --config or a wrong key is named before the worlds are generated (minutes)")
+def row_demo_config_checked_first(env):
+    forbid(env, "instagram_hdmap.demo.ensure_world", "world generation")
+    env.error(r"config file not found: .*nothere\.yaml", "demo", "--out", env.tmp / "demo", "--cache",
+              env.tmp / "cache", "--config", env.tmp / "nothere.yaml")
+    env.error(r"unknown config key 'train\.nope'", "demo", "--out", env.tmp / "demo", "--cache", env.tmp / "cache",
+              "train.nope=1")
+
+
+@row("S2", "a second training in the folder of a running one is refused (it deleted the first one's log)")
+def row_second_training_in_a_running_folder(env):
+    from instagram_hdmap.train import LOCK_FILE
+
+    run = env.tmp / "run"
+    (run / "tb").mkdir(parents=True)
+    (run / "log.jsonl").write_text('{"step": 1}\n')  # the first run, before its first checkpoint
+    holder = subprocess.Popen(  # the first run's lock, as lock_out_dir takes it
+        [sys.executable, "-c", "import fcntl, os, sys, time\n"
+         f"f = open({str(run / LOCK_FILE)!r}, 'a+'); fcntl.flock(f, fcntl.LOCK_EX); f.write(str(os.getpid()))\n"
+         "f.flush(); print('locked', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+        env.error(rf"another training is running in .*run \(process {holder.pid}\)", "train", env.yaml,
+                  f"train.out_dir={run}")
+        env.error(r"another training is running", "train", env.yaml, f"train.out_dir={run}", "--force")
+        assert (run / "log.jsonl").read_text() == '{"step": 1}\n' and (run / "tb").is_dir()
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@row("S2", "a run whose last.pt save failed after best.pt (a full disk) points at best.pt, which resumes")
+def row_resume_from_best_after_a_failed_save(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    (run / "last.pt").unlink()  # best.pt is saved first; the disk filled up before last.pt
+    env.error(rf"already holds a run; pass --resume {re.escape(str(run / 'best.pt'))}", "train", env.yaml,
+              f"train.out_dir={run}")
+    env.error(rf"stopped before it saved it .*--resume {re.escape(str(run / 'best.pt'))}", "train", env.yaml,
+              f"train.out_dir={run}", "--resume", run / "last.pt")
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", resume=str(run / "best.pt"))
+    assert summary["step"] == 4 and load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.3
+
+
+@row("S2", "a custom splits file with a scene in both splits: training warns that validation is not unseen")
+def row_train_val_overlap_warning(env):
+    from instagram_hdmap.train import build_loaders
+
+    splits = json.loads((env.world / "splits.json").read_text())
+    splits["train"] = [*splits["train"], *splits["val"]]
+    path = env.tmp / "splits.json"
+    path.write_text(json.dumps(splits))
+    env.capsys.readouterr()
+    build_loaders(env.cfg(f"data.splits_file={path}"), 1)
+    out = env.capsys.readouterr().out
+    assert re.search(r"warning: 3 of the 3 samples of split 'val' are also in the training split", out), out
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -117,7 +117,10 @@ def run_benchmark(
     """
     if device is None:
         device = str(resolve_device(cfg.train.device))
-    dev = torch.device(device)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):  # "tpu", "gpu": not a torch device string
+        raise BenchmarkError(f"--device {device}: choose cpu or cuda (cuda:INDEX)") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise BenchmarkError("--device cuda but no CUDA device is available; use --device cpu")
     if dev.type not in DEFAULT_RUNS:

@@ -82,7 +82,7 @@ def _load_data_cfg(args: argparse.Namespace):
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
-    check_output_file(args.out, "--out")
+    check_output_file(args.out, "--out", [(args.config, "CONFIG")])
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
     write_json(sub, args.out)
@@ -133,7 +133,7 @@ def _cmd_evaluate_json(args: argparse.Namespace) -> int:
         if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
             raise UserError(f"{flag} {lo:g} {hi:g}: two finite bounds in metres, the lower first")
     if args.out:
-        check_output_file(args.out, "--out")
+        check_output_file(args.out, "--out", [(args.pred, "--pred"), (args.gt, "--gt")])
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)
     grid.check()
     metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
@@ -247,6 +247,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
               f"{Path(args.out) / 'run' / 'last.pt'}: run the same command again", file=sys.stderr)
         return 130
     return 0
+
+
+def out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says that memory ran out: Python's (numpy's) ``MemoryError``, torch's CUDA
+    ``OutOfMemoryError``, or the RuntimeError of torch's CPU allocator."""
+    if isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError":
+        return True
+    return isinstance(e, RuntimeError) and ("can't allocate memory" in str(e) or "out of memory" in str(e).lower())
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -428,6 +436,13 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
         cause = os_error_in(e)
+        if cause is None and out_of_memory(e):
+            first = " ".join(str(e).split())[:300]
+            print(f"instagram-hdmap {args.command}: error: out of memory ({type(e).__name__}: {first}); make the job "
+                  "smaller (train.batch_size / eval.batch_size, data.image_size, the grid's size and resolution, "
+                  "model.gnn.num_vertices, evaluate-json's --resolution) or run it where there is more memory (a "
+                  "training resumes with --resume OUT/last.pt)", file=sys.stderr)
+            return 2
         if cause is None or cause.errno not in NO_ROOM:
             raise
         where = f" writing {cause.filename}" if cause.filename else ""

@@ -426,6 +426,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is str:
         if not isinstance(value, str):
             raise bad
+        if not value.strip():  # `train.out_dir=$OUT` with OUT unset: "" would mean the working directory
+            raise ConfigError(f"config key '{key}' is empty; give a value (an unset shell variable?)")
         return value
     raise ConfigError(f"config key '{key}': unsupported annotation {tp!r}")
 
@@ -546,7 +548,8 @@ def parse_overrides(overrides: list[str]) -> dict:
             raise ConfigError(f"override '{item}': {e}") from None
         except yaml.YAMLError:
             value = raw
-        if isinstance(value, str):  # YAML 1.1 reads "3e-3" as a string; a number is meant
+        quoted = raw.strip()[:1] in ("'", '"')  # name="2024": a string is meant
+        if isinstance(value, str) and not quoted:  # YAML 1.1 reads "3e-3" as a string; a number is meant
             try:
                 value = float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "+inf") else value
             except ValueError:

@@ -195,6 +195,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     config = Path(config) if config is not None else default_config_path()
     _check_out(out)
+    load_config(config, list(overrides))  # a wrong config file or key is named before minutes of world generation
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
     print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "

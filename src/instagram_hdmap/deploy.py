@@ -262,7 +262,7 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     it to ``out`` and, with ``verify``, run the file in onnxruntime on the example input: adds
     ``check`` (``compare_outputs`` of onnxruntime against torch) to ``export_onnx``'s result."""
     require_onnx(export=True)
-    check_output_file(out, "--out")  # before minutes of export
+    check_output_file(out, "--out", [(checkpoint, "--checkpoint")])  # before minutes of export
     state = load_checkpoint(checkpoint)
     saved = state.get("config") if isinstance(state.get("config"), dict) else None
     cfg = export_config(cfg, saved, overrides, checkpoint)

@@ -24,7 +24,7 @@ import errno
 import json
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -65,10 +65,23 @@ def _check_parent(path: Path, flag: str) -> None:
         raise OutputError(f"{flag} {path}: no permission to write in {base}; choose a writable folder")
 
 
-def check_output_file(path: str | Path, flag: str = "output file") -> Path:
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output_file(path: str | Path, flag: str = "output file",
+                      inputs: Iterable[tuple[str | Path | None, str]] = ()) -> Path:
     """Before the work: ``path`` can be written as a file (it is not a folder, and it or the first
-    existing folder above it is writable). ``flag`` names the option in the message (``--out``)."""
+    existing folder above it is writable). ``flag`` names the option in the message (``--out``).
+    ``inputs``: (path, option) pairs of the job's input files, which the output must not replace."""
     path = Path(path)
+    for source, option in inputs:
+        if source is not None and _same_file(path, Path(source)):
+            raise OutputError(f"{flag} {path} is the {option} file the job reads; writing the result there would "
+                              "destroy it: choose another output path")
     if path.is_dir():
         raise OutputError(f"{flag} {path}: is a folder; give a file name (e.g. {path / 'out.json'})")
     if path.exists() and not os.access(path, os.W_OK):

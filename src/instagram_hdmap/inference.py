@@ -512,7 +512,16 @@ def _rgb_array(image, camera: str) -> np.ndarray:
         return image
     if not np.issubdtype(image.dtype, np.floating):
         raise RigError(f"camera {camera}: image values must be uint8 (0..255) or floats (0..1), got {image.dtype}")
+    if not np.isfinite(image).all():
+        raise RigError(f"camera {camera}: the image holds NaN or infinite values")
+    lo, hi = float(image.min()), float(image.max())
+    if lo < -FLOAT_IMAGE_SLACK or hi > 1 + FLOAT_IMAGE_SLACK:  # 0..255 floats, or an image normalised already
+        raise RigError(f"camera {camera}: a float image holds values on 0..1 (raw RGB), this one spans {lo:.3g}.."
+                       f"{hi:.3g}; divide 0..255 values by 255 (or pass uint8), and do not normalise it yourself")
     return image.astype(np.float32) * 255
+
+
+FLOAT_IMAGE_SLACK = 0.25  # a resampled 0..1 image may overshoot a little; 0..255 or mean/std-normalised ones do not
 
 
 def _ego_pose(pose) -> torch.Tensor:
@@ -654,16 +663,17 @@ class Mapper:
                 if T.shape not in ((4, 4), (3, 4)):
                     raise RigError(f"camera {name}: 'cam_to_ego' must be a 4x4 (or 3x4) transform, got shape "
                                    f"{list(T.shape)}")
-                calib = check_calibration(name, K, T[:3, :3], T[:3, 3])
                 if isinstance(image, (str, Path)):
+                    size = image_size_of(image, name)
+                    calib = check_calibration(name, K, T[:3, :3], T[:3, 3], image_size=size)
                     try:
-                        pixels, post_rot, post_tran = load_image(image, image_size_of(image, name), d.image_size,
-                                                                 fit=d.image_fit)
+                        pixels, post_rot, post_tran = load_image(image, size, d.image_size, fit=d.image_fit)
                     except ImageError as e:
                         raise RigError(f"camera {name}: {e}") from None
                 else:
-                    pixels, post_rot, post_tran = prepare_image(_rgb_array(image, name), d.image_size,
-                                                                fit=d.image_fit)
+                    rgb = _rgb_array(image, name)
+                    calib = check_calibration(name, K, T[:3, :3], T[:3, 3], image_size=(rgb.shape[1], rgb.shape[0]))
+                    pixels, post_rot, post_tran = prepare_image(rgb, d.image_size, fit=d.image_fit)
                 for key, value in zip(keys, (pixels, calib.intrinsics, calib.rotation, calib.translation, post_rot,
                                              post_tran)):
                     per[key].append(torch.as_tensor(value).float())

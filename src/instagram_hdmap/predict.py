@@ -25,6 +25,7 @@ frame, x forward, y left; a closed shape repeats its first point).
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -43,7 +44,7 @@ from .data.streaming import StreamingBatchSampler
 from .data.transforms import load_image
 from .engine import evaluate, is_temporal
 from .evaluation import Evaluator, write_submission
-from .files import atomic_path, check_output_dir, write_json
+from .files import OutputError, atomic_path, check_output_dir, check_output_file, write_json
 from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
@@ -281,7 +282,12 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
     if len(images) != len(rig):
         raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
                        f"({', '.join(names)}): give one image per camera, in the rig file's order")
+    seen: dict[str, str] = {}
     for cam, path in zip(rig, images):
+        other = seen.setdefault(os.path.realpath(path), cam.name)
+        if other != cam.name:
+            raise RigError(f"cameras {other} and {cam.name} are given the same image {path}; give each camera its "
+                           "own image, in the rig file's order")
         size = image_size_of(path, cam.name)
         if tuple(size) != tuple(cam.image_size):
             raise RigError(f"rig file {rig_file}: camera {cam.name}: 'image_size' is {cam.image_size[0]}x"
@@ -301,6 +307,9 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     Returns ``{"name", "elements", "paths", "source"}``."""
     if (checkpoint is None) == (onnx is None):
         raise PredictError("pass --checkpoint CKPT or --onnx FILE (one of them)")
+    if checkpoint is not None and config is not None:
+        raise PredictError("--config goes with --onnx (the config an export was made from); a checkpoint carries "
+                           "its own config: drop --config")
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
     mapper = (Mapper.from_checkpoint(checkpoint, device, **decode) if checkpoint is not None
@@ -336,6 +345,28 @@ def _side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     return np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), constant_values=255)
 
 
+MAX_VIDEO_FPS = 1000.0
+
+
+def _check_video(tmp: Path, video: Path) -> None:
+    """OpenCV's writer reports no failed write (a full disk): check that the finished file is whole
+    (its top-level MP4 boxes fill it exactly and include the index, ``moov``) before it replaces
+    ``video``."""
+    data = tmp.read_bytes() if tmp.is_file() else b""
+    pos, boxes = 0, set()
+    while pos + 8 <= len(data):
+        size, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
+        if size == 1 and pos + 16 <= len(data):  # a 64-bit size follows the type
+            size = int.from_bytes(data[pos + 8:pos + 16], "big")
+        if size < 8:
+            break
+        boxes.add(kind)
+        pos += size
+    if pos != len(data) or b"moov" not in boxes or not data:
+        raise OutputError(f"cannot write --video {video}: the MP4 file OpenCV wrote is incomplete (the disk is full "
+                          f"or a file-size limit is reached?); {video.name} is as it was before")
+
+
 def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, checkpoint: str | Path | None = None,
                   onnx: str | Path | None = None, gt_as_prediction: bool = False, split: str | None = None,
                   overrides: Sequence[str] = (), fps: float = 2.0, camera_width: int = 320,
@@ -345,13 +376,15 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     the left, the cameras with the predictions projected on the right. Frames run through the model in
     order, each with the previous one's ``out["memory"]`` (a temporal model; ``scene_start`` on the
     first). Written atomically. Returns ``{"video", "frames", "scene", "split", "notes"}``."""
-    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
-                                               gt_as_prediction=gt_as_prediction, overrides=overrides)
-    if not fps > 0:
-        raise PredictError(f"--fps {fps}: frames per second must be > 0")
+    if not 0 < fps <= MAX_VIDEO_FPS:
+        raise PredictError(f"--fps {fps:g}: frames per second must be > 0 and at most {MAX_VIDEO_FPS:g} (MP4's time "
+                           "base)")
     video = Path(video)
     if video.suffix.lower() != ".mp4":
         raise PredictError(f"--video {video}: the video is written as MP4; give a file name ending in .mp4")
+    check_output_file(video, "--video", [(checkpoint, "--checkpoint"), (onnx, "--onnx")])  # before the frames
+    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
+                                               gt_as_prediction=gt_as_prediction, overrides=overrides)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
@@ -382,6 +415,9 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
                 if (frame.shape[1], frame.shape[0]) != size:
                     frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
                 writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+            writer.release()
+            writer = None
+            _check_video(tmp, video)
         finally:
             if writer is not None:
                 writer.release()

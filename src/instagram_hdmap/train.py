@@ -94,17 +94,21 @@ def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
     check_output_dir(out_dir, "train.out_dir")
     if not du.is_main_process():
         return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lock_out_dir(out_dir)  # before anything in it is removed
     if out_dir.is_dir():
         for name in RUN_FILES:
             remove_stale_temporaries(out_dir / name)
-        content = [p.name for p in out_dir.iterdir()]
+        content = [p.name for p in out_dir.iterdir() if p.name != LOCK_FILE]
         has_checkpoint = any(name in content for name in CHECKPOINTS)
         only_run_files = all(name in RUN_FILES for name in content)
         if content and not (resume or force):
             if has_checkpoint or not only_run_files:
                 what = ("already holds a run" if has_checkpoint else
                         f"holds files that are not a run's ({', '.join(sorted(content)[:5])})")
-                raise UserError(f"output folder {out_dir} {what}; pass --resume {out_dir / 'last.pt'} to continue it, "
+                # a save that failed after best.pt (a full disk) leaves no last.pt; best.pt resumes as well
+                ckpt = out_dir / ("last.pt" if "last.pt" in content or not has_checkpoint else "best.pt")
+                raise UserError(f"output folder {out_dir} {what}; pass --resume {ckpt} to continue it, "
                                 "--force to start over in it, or choose another train.out_dir")
             du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
             force = True
@@ -115,7 +119,46 @@ def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
                     shutil.rmtree(target)
                 elif target.exists() or target.is_symlink():
                     target.unlink()
-    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process training in the folder
+_LOCKS: dict[str, object] = {}  # resolved folder -> the open lock file this process holds
+
+
+def lock_out_dir(out_dir: Path) -> None:
+    """Hold an exclusive lock on ``OUT/.instagram_hdmap.lock`` while this process trains in ``out_dir``:
+    a second training started there (the same command run twice) is refused before it removes or
+    overwrites anything of the first one's. The OS drops the lock when the process ends, however it
+    ends (``kill -9`` too): the file a killed run leaves locks nothing. No lock where ``fcntl`` is missing."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return
+    key = str(out_dir.resolve())
+    if key in _LOCKS:
+        return
+    handle = os.fdopen(os.open(out_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        owner = handle.read().strip()
+        handle.close()
+        raise UserError(f"another training is running in {out_dir} (process {owner or '?'}); wait for it to end "
+                        "(or stop it), or choose another train.out_dir") from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    _LOCKS[key] = handle
+
+
+def unlock_out_dir(out_dir: Path) -> None:
+    """Give up ``lock_out_dir``'s lock on ``out_dir`` (the end of ``train``); nothing if not held."""
+    handle = _LOCKS.pop(str(out_dir.resolve()), None)
+    if handle is not None:
+        with contextlib.suppress(OSError):
+            (out_dir / LOCK_FILE).unlink()  # while still held: the folder is left as the run wrote it
+        handle.close()
 
 
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
@@ -153,6 +196,11 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     val_loader = None
     if with_val:
         val_set = build_dataset(cfg, cfg.data.val_split, augment=False, like=train_set)
+        shared = set(train_set.sample_tokens) & set(val_set.sample_tokens)
+        if shared:  # a custom splits file listing a scene in both: the validation score is not on unseen data
+            du.print_main(f"warning: {len(shared)} of the {len(val_set)} samples of split '{cfg.data.val_split}' are "
+                          f"also in the training split '{cfg.data.train_split}'; the validation score is not measured "
+                          "on unseen data (check data.splits_file)")
         if streaming:
             val_sampler = StreamingBatchSampler(val_set.scenes.runs, cfg.eval.batch_size, shuffle=False,
                                                 rank=du.get_rank(), world_size=world_size)
@@ -225,11 +273,14 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
     (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
-    run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
-    with run.threads(), run.outputs():
-        run.announce()
-        run.fit()
-    return run.final_summary()
+    try:
+        run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
+        with run.threads(), run.outputs():
+            run.announce()
+            run.fit()
+        return run.final_summary()
+    finally:
+        unlock_out_dir(Path(cfg.train.out_dir))
 
 
 class TrainingRun:
@@ -498,6 +549,10 @@ def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
     if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in CHECKPOINTS):
         raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before its first "
                               "checkpoint, so there is nothing to resume: run the same command without --resume")
+    if not path.exists() and path.name == "last.pt" and (path.parent / "best.pt").is_file():
+        raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before it saved it "
+                              f"(a full disk?), after best.pt: resume from that one, "
+                              f"--resume {path.parent / 'best.pt'}")
     state = load_checkpoint(path)
     check_resumable(state, path)
     check_resume_config(state["config"], cfg, path)

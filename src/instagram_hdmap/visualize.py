@@ -17,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from .data.transforms import denormalize, project_to_image
+from .files import atomic_path
 from .geometry import BEVGrid
 
 CLASS_COLORS = ("tab:orange", "tab:blue", "tab:green")  # divider, ped_crossing, boundary
@@ -49,9 +50,11 @@ def figure_rgb(fig: Figure, dpi: int = 100) -> np.ndarray:
 
 
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
+    """Write ``fig`` to ``path`` (its format from the suffix) atomically: a full disk names the file
+    and leaves no half-written picture."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    with atomic_path(path, keep_suffix=True) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
     return path
 
 

@@ -58,6 +58,27 @@ def open_nuscenes(dataroot: str | Path, version: str):
         return NuScenes(version=version, dataroot=str(root), verbose=False)
     except (AssertionError, KeyError, ValueError, OSError, json.JSONDecodeError) as e:
         raise DatasetError(f"cannot load nuScenes tables from {table_root}: {type(e).__name__}: {e}") from None
+    except Exception as e:  # the devkit indexes records without checking them (TypeError, IndexError, ...)
+        raise DatasetError(f"cannot load nuScenes tables from {table_root}: "
+                           f"{_malformed_table(table_root) or f'{type(e).__name__}: {e}'}") from None
+
+
+def _malformed_table(table_root: Path) -> str | None:
+    """The first table file of ``table_root`` that is not a non-empty JSON list of records with a
+    'token' (what the devkit assumes without checking), said in words; None if all are."""
+    for path in sorted(table_root.glob("*.json")):
+        try:
+            records = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue  # the devkit's own error names these
+        if not isinstance(records, list):
+            return f"{path.name} holds a JSON {type(records).__name__}, not a list of records"
+        if not records and path.stem in ("map", "sensor", "log", "scene", "sample"):
+            return f"{path.name} holds no records"
+        bad = next((i for i, r in enumerate(records) if not isinstance(r, dict) or "token" not in r), None)
+        if bad is not None:
+            return f"{path.name}: record {bad} is not an object with a 'token' ({records[bad]!r:.80})"
+    return None
 
 
 def split_scene_names(nusc, version: str, split: str, splits_file: str | None = None) -> list[str]:
@@ -166,11 +187,15 @@ class NuScenesMapDataset(MapDataset):
         for scene in self.nusc.scene:
             if scene["name"] not in names:
                 continue
-            token = scene["first_sample_token"]
+            token, seen = scene["first_sample_token"], set()
             while token:
+                if token in seen:  # a corrupt chain would be walked forever
+                    raise DatasetError(f"scene {scene['name']}: its samples' 'next' links loop back to sample {token} "
+                                       f"in {self.dataroot / d.version}/sample.json; the table is corrupt")
+                seen.add(token)
                 self.sample_tokens.append(token)
                 self._scene_of[token] = scene
-                token = self.nusc.get("sample", token)["next"]
+                token = _field(self._get("sample", token), "next", "sample")
         if not self.sample_tokens:
             raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
         self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist, d.ped_crossing)

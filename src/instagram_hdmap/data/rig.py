@@ -163,15 +163,31 @@ def _matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
     return m
 
 
-def check_calibration(name: str, intrinsics, rotation, translation, source: str = "") -> CameraCalibration:
+MAX_CAMERA_OFFSET_M = 100.0  # a camera farther than this from the ego origin is not on the vehicle (mm for m?)
+
+
+def check_calibration(name: str, intrinsics, rotation, translation, source: str = "",
+                      image_size: tuple[int, int] | None = None) -> CameraCalibration:
     """The calibration of camera ``name`` as float64 arrays, or a ``RigError`` naming ``source`` (a rig
-    file, say), the camera and the field: intrinsics not 3x3 or with a focal length <= 0, a rotation
-    that is not orthonormal with determinant +1, a translation that is not 3 numbers."""
+    file, say), the camera and the field: intrinsics not 3x3, with a focal length <= 0, a last row
+    other than (0, 0, 1) or (given the camera's ``image_size`` (width, height)) a principal point
+    outside the image (intrinsics in the pixels of another image size); a rotation that is not
+    orthonormal with determinant +1; a translation that is not 3 numbers in metres within
+    ``MAX_CAMERA_OFFSET_M`` of the ego origin."""
     where = f"{source}: camera {name}" if source else f"camera {name}"
     K = _matrix(intrinsics, (3, 3), f"{where}: 'intrinsics'")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise RigError(f"{where}: 'intrinsics' has a focal length <= 0 (fx = {K[0, 0]:g}, fy = {K[1, 1]:g}); "
                        "give [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
+    if not np.allclose(K[2], (0.0, 0.0, 1.0), atol=1e-6):
+        raise RigError(f"{where}: 'intrinsics' is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (rows "
+                       f"{K.round(3).tolist()}); transposed?")
+    if image_size is not None:
+        w, h = image_size
+        if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+            raise RigError(f"{where}: 'intrinsics' put the principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) "
+                           f"outside its {w}x{h} image: intrinsics are in the pixels of the image given (scaled "
+                           "with it when the image is resized)")
     R = _matrix(rotation, (3, 3), f"{where}: 'rotation'")
     off, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
     if off > 1e-2 or det < 0:  # 1e-2: a matrix written with 3 decimals passes
@@ -179,6 +195,10 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
                        "the camera -> ego rotation (its columns: the camera's x right, y down, z forward in the ego "
                        "frame)")
     t = _matrix(translation, (3,), f"{where}: 'translation'")
+    if float(np.linalg.norm(t)) > MAX_CAMERA_OFFSET_M:
+        raise RigError(f"{where}: 'translation' {t.round(3).tolist()} puts the camera {np.linalg.norm(t):.4g} m from "
+                       f"the ego origin (more than {MAX_CAMERA_OFFSET_M:g} m); give the camera's position on the "
+                       "vehicle in metres")
     return CameraCalibration(name, K, R, t)
 
 
@@ -206,6 +226,8 @@ def read_rig_file(path) -> list[CameraCalibration]:
         data = json.loads(path.read_text())
     except OSError as e:
         raise RigError(f"rig file {path} cannot be read ({e.strerror or e})") from None
+    except UnicodeDecodeError:
+        raise RigError(f"rig file {path} is not a JSON text file (binary: an image given as --rig?)") from None
     except json.JSONDecodeError as e:
         raise RigError(f"rig file {path} is not valid JSON ({e})") from None
     if not isinstance(data, dict) or not isinstance(data.get("cameras"), dict) or not data["cameras"]:
@@ -238,9 +260,9 @@ def read_rig_file(path) -> list[CameraCalibration]:
                 raise RigError(f"{where}: 'quaternion' is not a unit quaternion [w, x, y, z] (norm "
                                f"{np.linalg.norm(q):.4g})")
             rotation = Quaternion(q / np.linalg.norm(q)).rotation_matrix
-        calib = check_calibration(name, cam["intrinsics"], rotation, cam["translation"], f"rig file {path}")
         size = _image_size(cam["image_size"], f"{where}: 'image_size'") if "image_size" in cam else default
         if size is None:
             raise RigError(f"{where}: no 'image_size' (give [width, height] for the rig or for this camera)")
+        calib = check_calibration(name, cam["intrinsics"], rotation, cam["translation"], f"rig file {path}", size)
         cameras.append(CameraCalibration(name, calib.intrinsics, calib.rotation, calib.translation, size))
     return cameras

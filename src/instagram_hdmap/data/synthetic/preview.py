@@ -17,6 +17,8 @@ from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon
 from shapely.ops import unary_union
 
 from ...config import UserError
+from ...files import atomic_path
+from ..nuscenes import open_nuscenes
 from ..rig import CAMERAS
 from .jobs import MANIFEST
 from .world import read_manifest
@@ -32,7 +34,16 @@ RADIUS_M = 60.0
 
 def _version_of(dataroot: FsPath) -> str:
     if (dataroot / MANIFEST).is_file():
-        return read_manifest(dataroot)["version"]
+        manifest = read_manifest(dataroot)
+        if not isinstance(manifest, dict):
+            raise UserError(f"{dataroot / MANIFEST}: not a world manifest (a JSON {type(manifest).__name__}); is "
+                            f"{dataroot} a world written by 'instagram-hdmap synth'?")
+        if manifest.get("dataset") == "av2":
+            raise UserError(f"{dataroot} is a synthetic world in the Argoverse 2 layout; synth-preview draws the "
+                            "nuScenes layout: look at an AV2 sample with instagram-hdmap show-gt CONFIG "
+                            f"data.dataset=av2 data.dataroot={dataroot}")
+        if isinstance(manifest.get("version"), str):
+            return manifest["version"]
     for v in ("v1.0-trainval", "v1.0-mini"):
         if (dataroot / v).is_dir():
             return v
@@ -98,13 +109,12 @@ def write_preview(dataroot, out_png, index: int = 0) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.image import imread
-    from nuscenes import NuScenes
     from nuscenes.map_expansion.map_api import NuScenesMap
 
     dataroot = FsPath(dataroot)
     if not dataroot.is_dir():
         raise UserError(f"{dataroot}: no such folder")
-    nusc = NuScenes(version=_version_of(dataroot), dataroot=str(dataroot), verbose=False)
+    nusc = open_nuscenes(dataroot, _version_of(dataroot))
     if not 0 <= index < len(nusc.sample):
         raise UserError(f"--index {index}: {dataroot} has {len(nusc.sample)} samples (0..{len(nusc.sample) - 1})")
     sample = nusc.sample[index]
@@ -158,7 +168,6 @@ def write_preview(dataroot, out_png, index: int = 0) -> None:
     ax.set_ylabel("y left (m)")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(f"{scene['name']} ({location}), sample {index}: map in the ego frame", fontsize=9)
-    out_png = FsPath(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=80, bbox_inches="tight")
+    with atomic_path(out_png, keep_suffix=True) as tmp:  # a full disk leaves no half-written PNG
+        fig.savefig(tmp, dpi=80, bbox_inches="tight")
     plt.close(fig)
