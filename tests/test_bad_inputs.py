@@ -855,6 +855,18 @@ def row_mapper_calibration_mistakes(env):
         mapper(images=images, intrinsics=K, cam_to_ego={**poses, "CAM_BACK": mm})
 
 
+@row("S2", "Mapper: an ego_pose whose rotation is not one is named (a temporal model would warp by it)")
+def row_mapper_ego_pose_not_rigid(env):
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    pose = np.eye(4)
+    pose[:3, :3] *= 2
+    with pytest.raises(RigError, match=r"ego_pose has a rotation part that is not a rotation"):
+        mapper(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=pose))
+
+
 def _rig_files(env, edit: Callable[[dict], None] | None = None) -> tuple[Path, list[Path]]:
     """A rig file of the published nuScenes rig (400 x 225 images) and one JPEG per camera, ``edit``ed."""
     from PIL import Image
@@ -1029,6 +1041,28 @@ def row_resume_from_best_after_a_failed_save(env):
               f"train.out_dir={run}", "--resume", run / "last.pt")
     summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", resume=str(run / "best.pt"))
     assert summary["step"] == 4 and load_checkpoint(run / "best.pt")["metrics"]["mAP"] == 0.3
+
+
+@row("S2", "--resume of one folder's checkpoint into another folder holding a run is refused (it overwrote that "
+          "run's last.pt and log)")
+def row_resume_into_another_run(env):
+    other, run = env.tmp / "other", env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    shutil.move(run, other)
+    _toy_run(env, [0.5], "train.epochs=1")
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(rf"--resume .*other.*last\.pt continues the run of .*other, but train\.out_dir=.*run holds a run of its "
+              "own", "train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "--resume", other / "last.pt")
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+
+
+@row("S2", "evaluate --out whose metrics.json is a folder: refused before the evaluation (was after it, with a new "
+          "submission.json next to the old metrics)")
+def row_evaluate_metrics_path_is_a_folder(env):
+    (env.tmp / "e" / "metrics.json").mkdir(parents=True)
+    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
+    env.error(r"metrics\.json: is a folder", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "e")
 
 
 @row("S2", "a custom splits file with a scene in both splits: training warns that validation is not unseen")

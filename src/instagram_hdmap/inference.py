@@ -532,6 +532,11 @@ def _ego_pose(pose) -> torch.Tensor:
     if T.shape not in ((4, 4), (3, 4)) or not bool(torch.isfinite(T).all()):
         raise RigError(f"the frame's ego_pose must be a finite 4x4 (or 3x4) ego -> world transform, got shape "
                        f"{list(T.shape)}")
+    R = T[:3, :3].double()
+    off, det = float((R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()), float(torch.linalg.det(R))
+    if off > 1e-2 or det < 0:  # a temporal model would warp its memory by a non-rigid motion
+        raise RigError(f"the frame's ego_pose has a rotation part that is not a rotation (|R R^T - I| = {off:.3g}, "
+                       f"det {det:.3g}); give the 4x4 ego -> world transform [R | t]")
     return torch.cat([T[:3], torch.tensor([[0.0, 0.0, 0.0, 1.0]])]) if T.shape == (3, 4) else T
 
 

@@ -455,6 +455,8 @@ def run_evaluation(
     status (fused, no memory, pose jump, missing frame).
     """
     check_output_dir(out, "--out")  # before the work that fills it
+    for name in ("submission.json", "metrics.json"):
+        check_output_file(Path(out) / name, "--out")
     device = du.init_distributed(du.resolve_device(cfg.train.device).type)
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:

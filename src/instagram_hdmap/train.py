@@ -83,7 +83,7 @@ RUN_FILES = ("config.yaml", "log.jsonl", "tb", "last.pt", "best.pt")
 CHECKPOINTS = ("last.pt", "best.pt")
 
 
-def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
+def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> None:
     """The output folder, checked before anything is built: a folder (not a file) that can be written;
     one that holds a run (a checkpoint) only with ``--resume`` or ``--force`` (which removes that run's
     files, ``RUN_FILES``, and nothing else); one whose run stopped before its first checkpoint (only
@@ -112,6 +112,10 @@ def prepare_out_dir(out_dir: Path, resume: bool, force: bool) -> None:
                                 "--force to start over in it, or choose another train.out_dir")
             du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
             force = True
+        if resume and has_checkpoint and Path(resume).resolve().parent != out_dir.resolve():
+            raise UserError(f"--resume {resume} continues the run of {Path(resume).parent}, but train.out_dir={out_dir} "
+                            "holds a run of its own, whose checkpoints and log it would overwrite; set "
+                            f"train.out_dir={Path(resume).parent} (or an empty folder to continue it elsewhere)")
         if force:
             for name in RUN_FILES:
                 target = out_dir / name
@@ -328,7 +332,7 @@ class TrainingRun:
     def start(cls, cfg: ExperimentConfig, *, resume: str | None, force: bool, loaders, validate: bool) -> TrainingRun:
         device = du.init_distributed(du.resolve_device(cfg.train.device).type)
         out_dir = Path(cfg.train.out_dir)
-        prepare_out_dir(out_dir, resume is not None, force)
+        prepare_out_dir(out_dir, resume, force)
         du.barrier()
         state = load_resume_state(resume, cfg)
         seed_everything(cfg.train.seed + du.get_rank())
