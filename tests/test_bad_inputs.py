@@ -1052,7 +1052,7 @@ def row_resume_into_another_run(env):
     _toy_run(env, [0.5], "train.epochs=1")
     before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
     forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
-    env.error(rf"--resume .*other.*last\.pt continues the run of .*other, but train\.out_dir=.*run holds a run of its "
+    env.error(r"--resume .*other.*last\.pt continues the run of .*other, but train\.out_dir=.*run holds a run of its "
               "own", "train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "--resume", other / "last.pt")
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
 

@@ -607,6 +607,7 @@ def test_evaluation_counts_pose_jumps_and_missing_frames():
 
 def test_map_stream_carries_a_temporal_models_memory():
     from instagram_hdmap.data.rig import RigError, nuscenes_like_rig
+    from instagram_hdmap.data.rig import rig as scaled_rig
     from instagram_hdmap.inference import Frame, Mapper, run_model
 
     cfg = load_config("configs/synthetic/tiny.yaml", ["model.temporal.memory=bev"])
@@ -617,13 +618,14 @@ def test_map_stream_carries_a_temporal_models_memory():
     mapper = Mapper(model, cfg, source="tiny temporal")
     rig = nuscenes_like_rig(tuple(cfg.data.image_size))
     h, w = cfg.data.image_size
+    intrinsics = [scaled_rig((w, h))[c].intrinsic for c in mapper.cameras]  # in the pixels of the w x h images
     rng = np.random.default_rng(0)
     cam_to_ego = [np.block([[r.numpy(), t.numpy()[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
                   for r, t in zip(rig["cam_to_ego_rot"], rig["cam_to_ego_trans"])]
 
     def frame(x: float) -> Frame:
         images = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for _ in mapper.cameras]
-        return Frame(images, list(rig["intrinsics"].numpy()), cam_to_ego, ego_pose=pose(x, 0.0, 0.0).numpy())
+        return Frame(images, intrinsics, cam_to_ego, ego_pose=pose(x, 0.0, 0.0).numpy())
 
     frames = [frame(x) for x in (0.0, 1.5, 3.0, 30.0)]  # the last one jumps 27 m
     stream = mapper.stream()

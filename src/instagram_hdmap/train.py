@@ -112,10 +112,11 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                                 "--force to start over in it, or choose another train.out_dir")
             du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
             force = True
-        if resume and has_checkpoint and Path(resume).resolve().parent != out_dir.resolve():
-            raise UserError(f"--resume {resume} continues the run of {Path(resume).parent}, but train.out_dir={out_dir} "
-                            "holds a run of its own, whose checkpoints and log it would overwrite; set "
-                            f"train.out_dir={Path(resume).parent} (or an empty folder to continue it elsewhere)")
+        source = Path(resume).parent if resume and Path(resume).is_file() else None
+        if source is not None and has_checkpoint and source.resolve() != out_dir.resolve():
+            raise UserError(f"--resume {resume} continues the run of {source}, but train.out_dir={out_dir} holds a "
+                            "run of its own, whose checkpoints and log it would overwrite; set "
+                            f"train.out_dir={source} (or an empty folder to continue it elsewhere)")
         if force:
             for name in RUN_FILES:
                 target = out_dir / name
