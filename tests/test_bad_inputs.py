@@ -3,7 +3,8 @@
 Each row is a small function that does the bad thing a hostile but realistic user would do and
 checks the promise: a wrong input is named on one line (``UserError``, exit code 2, no traceback),
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
-the case in issue 21 (``S`` marks a case found by the second sweep). Everything runs on the tiny
+the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
+second sweep of the same kind after it). Everything runs on the tiny
 synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -38,7 +39,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, or "S" (second sweep)
+    case: str  # issue 21's case number, "S" (the sweep that fixed them) or "S2" (the sweep after it)
     what: str
     run: Callable
 
