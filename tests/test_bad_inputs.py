@@ -1058,6 +1058,14 @@ def row_resume_into_another_run(env):
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
 
 
+@row("S2", "--resume with another train.batch_size is refused (it skipped the rest of the epoch, moved the schedule)")
+def row_resume_with_another_batch_size(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")  # stopped mid-epoch
+    with pytest.raises(CheckpointError, match=r"train\.batch_size: checkpoint 2 vs now 4"):
+        _toy_run(env, [], "train.epochs=2", "train.batch_size=4", resume=str(run / "last.pt"))
+
+
 @row("S2", "evaluate --out whose metrics.json is a folder: refused before the evaluation (was after it, with a new "
           "submission.json next to the old metrics)")
 def row_evaluate_metrics_path_is_a_folder(env):

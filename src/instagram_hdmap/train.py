@@ -61,7 +61,9 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 
 # Config keys that must match for a checkpoint to be resumed: those that define the model and those
 # that define its training targets (training knobs may change).
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist")
+# train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
+# one skipped the rest of the epoch and moved the learning rate along the schedule)
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size")
 
 
 def seed_everything(seed: int) -> None:
