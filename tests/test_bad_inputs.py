@@ -1,10 +1,10 @@
-"""Bad inputs and faults, one row per case (issue 21 and the sweep after it).
+"""Bad inputs and faults, one row per case (issue 21 and the sweeps after it).
 
 Each row is a small function that does the bad thing a hostile but realistic user would do and
 checks the promise: a wrong input is named on one line (``UserError``, exit code 2, no traceback),
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
-second sweep of the same kind after it). Everything runs on the tiny
+second sweep of the same kind after it, ``S3`` one found by a third sweep). Everything runs on the tiny
 synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -39,7 +39,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them) or "S2" (the sweep after it)
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it) or "S3" (a third)
     what: str
     run: Callable
 
@@ -1086,6 +1086,123 @@ def row_train_val_overlap_warning(env):
     build_loaders(env.cfg(f"data.splits_file={path}"), 1)
     out = env.capsys.readouterr().out
     assert re.search(r"warning: 3 of the 3 samples of split 'val' are also in the training split", out), out
+
+
+# ==================================================================================================
+# The third sweep (S3): cases found by a third sweep of the same kind
+# ==================================================================================================
+
+
+@row("S3", "evaluate-json: a sample token twice in a dict 'results' is named (json kept the last, dropping vectors)")
+def row_submission_token_twice(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}],
+                                           "b": [{"pts": [[0, 2], [3, 2]], "type": 2}]}, True)
+    vector = '{"pts": [[0, 0], [1, 1]], "type": 0, "confidence_level": 0.9}'
+    pred = env.tmp / "p.json"  # two prediction shards pasted into one object: "a" twice
+    pred.write_text('{"meta": {"ground_truth": false}, "results": {"a": [' + vector + '], "b": [], "a": []}}')
+    forbid(env, "instagram_hdmap.evaluation.Evaluator.compute", "the evaluation")
+    env.error(r"p\.json: the key 'a' appears twice in one JSON object", "evaluate-json", "--pred", pred, "--gt", gt)
+
+
+@row("S3", "demo: train.out_dir (or another key the demo sets) as an override is refused before the worlds (it "
+          "trained with --force in that folder, deleting the run there, then failed looking for OUT/run/last.pt)")
+def row_demo_refuses_its_own_keys(env):
+    other = env.tmp / "other_run"
+    other.mkdir()
+    (other / "best.pt").write_bytes(b"the user's model")
+    forbid(env, "instagram_hdmap.demo.ensure_world", "world generation")
+    env.error(r"the demo sets train\.out_dir itself; use --out", "demo", "--out", env.tmp / "demo", "--cache",
+              env.tmp / "cache", f"train.out_dir={other}")
+    env.error(r"the demo sets data\.dataroot itself", "demo", "--out", env.tmp / "demo", "--cache", env.tmp / "cache",
+              f"data.dataroot={env.world}")
+    env.error(r"--minutes inf: the budget must be a finite number", "demo", "--out", env.tmp / "demo", "--cache",
+              env.tmp / "cache", "--minutes", "inf")  # was a config error on train.time_budget_min after the worlds
+    assert (other / "best.pt").read_bytes() == b"the user's model"
+
+
+@row("S3", "train CONFIG where CONFIG is OUT/config.yaml (the experiment kept in its run folder): refused (the run "
+          "started over, removing it, and wrote its resolved config there: comments and _base_ lost)")
+def row_config_inside_out_dir(env):
+    exp = env.tmp / "exp"
+    exp.mkdir()
+    config = exp / "config.yaml"
+    text = f"# my experiment\n_base_: {env.yaml}\ntrain:\n  out_dir: {exp}\n"
+    config.write_text(text)
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"CONFIG .*config\.yaml is .*config\.yaml, where the run writes its resolved config", "train", config)
+    assert config.read_text() == text
+
+
+@row("S3", "--resume of a temporal run with another train.stream_frames is refused (it walked other pieces from "
+          "the saved position and moved the schedule)")
+def row_resume_temporal_with_other_stream_frames(env):
+    run = env.tmp / "run"
+    common = [env.yaml, "model.temporal.memory=bev", "train.epochs=2", f"train.out_dir={run}"]
+    rc, _, err = env.cli("train", *common, "train.max_steps=1")  # stopped mid-epoch (3 steps an epoch)
+    assert rc == 0, err[-3000:]
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"train\.stream_frames: checkpoint 0 vs now 2", "train", *common, "train.stream_frames=2",
+              "--resume", run / "last.pt")
+    env.error(r"train\.stream_warmup: checkpoint 0\.0 vs now 0\.5", "train", *common, "train.stream_warmup=0.5",
+              "--resume", run / "last.pt")
+
+
+@row("S3", "MapStream: ego poses in UTM coordinates (millions of metres) warp the memory as poses near the origin "
+          "(float32 moved it by up to 0.5 m)")
+def row_mapstream_utm_poses(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(env.yaml, ["model.temporal.memory=bev", "model.temporal.fusion=gru"])
+    torch.manual_seed(0)
+    path = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    mapper = Mapper.from_checkpoint(path, device="cpu")
+    _, images, K, poses = _mapper_frame(env)
+
+    def pose(x: float, yaw: float, origin) -> np.ndarray:
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        T[:2, 3] = [origin[0] + x, origin[1] + 0.3 * x]
+        return T
+
+    memories = []
+    for origin in ((0.0, 0.0), (512_345.678, 5_412_345.678)):  # UTM easting, northing
+        stream = mapper.stream()
+        for x, yaw in ((0.0, 0.0), (1.3, 0.05)):
+            stream.step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=pose(x, yaw, origin)))
+        assert stream.status == "fused"
+        memories.append(stream.memory["bev"])
+    torch.testing.assert_close(memories[1], memories[0], atol=1e-5, rtol=1e-5)
+
+
+@row("S3", "an ONNX export with flipped bits in its weights is named before it runs (onnxruntime ran it: exit 0)")
+def row_onnx_flipped_bits(env):
+    pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
+    import onnx
+
+    from instagram_hdmap import Mapper
+    from instagram_hdmap.deploy import export_onnx
+    from instagram_hdmap.inference import DeployError
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(TINY_YAML, ["model.gnn.sinkhorn_iters=3"])
+    torch.manual_seed(0)
+    path = env.tmp / "m.onnx"
+    export_onnx(build_model(cfg).eval(), cfg, path)
+    Mapper.from_onnx(path)  # intact: loads
+    weights = max(onnx.load(str(path)).graph.initializer, key=lambda t: len(t.raw_data)).raw_data
+    data = bytearray(path.read_bytes())
+    at = data.find(weights)
+    assert at > 0
+    data[at + 3] ^= 0x7F  # the first float's sign and exponent: a weight of about 1e38
+    damaged = env.tmp / "damaged.onnx"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(DeployError, match=r"damaged\.onnx is damaged: its graph .* does not match the SHA-256"):
+        Mapper.from_onnx(damaged)
+    rig, images = _rig_files(env)
+    env.error(r"damaged\.onnx is damaged", "predict-images", "--onnx", damaged, "--rig", rig, "--out",
+              env.tmp / "out", *images)
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -118,6 +118,11 @@ def _cmd_model_summary(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     cfg = _load(args)
+    written = Path(cfg.train.out_dir) / "config.yaml"  # the run writes its resolved config there
+    if not args.resume and written.is_file() and written.resolve() == Path(args.config).resolve():
+        raise UserError(f"CONFIG {args.config} is {written}, where the run writes its resolved config (starting over "
+                        "removes it first): your file would be lost; keep the experiment YAML outside "
+                        "train.out_dir or under another name")
     summary = train(cfg, resume=args.resume, force=args.force)
     print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
     return 0

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 from .checkpoint import load_checkpoint
-from .config import ExperimentConfig, UserError, load_config
+from .config import ExperimentConfig, UserError, flatten, load_config, parse_overrides
 from .data import build_dataset
 from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
@@ -178,6 +178,21 @@ def _check_out(out: Path) -> None:
         raise DemoError(f"--out {out}: cannot write there ({e.strerror or e}); choose a writable folder") from None
 
 
+# Keys the demo sets itself: its run folder (OUT/run, which it trains with --force when it holds no
+# checkpoint: another folder's run would be deleted), its worlds and its time budget
+DEMO_KEYS = {"train.out_dir": "--out (the run goes to OUT/run)", "train.time_budget_min": "--minutes",
+             "data.dataroot": "--cache", "data.version": "--cache", "data.splits_file": "--cache"}
+
+
+def _check_overrides(overrides) -> None:
+    """Overrides of ``DEMO_KEYS`` are refused: the demo would overrule them or, for ``train.out_dir``,
+    start over in that folder (deleting the run it holds) and then look for its checkpoint in OUT/run."""
+    for key in flatten(parse_overrides(list(overrides))):
+        if key in DEMO_KEYS:
+            raise DemoError(f"the demo sets {key} itself; use {DEMO_KEYS[key]} instead (or run instagram-hdmap train "
+                            "and evaluate with your own settings)")
+
+
 def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | None = None,
              config: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
              world: dict | None = None, val_world: dict | None = None, workers: int = 1, raster: bool = True,
@@ -188,14 +203,16 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     t0 = time.perf_counter()
     world = WORLD if world is None else world
     val_world = VAL_WORLD if val_world is None else val_world
-    if not minutes > EVAL_RESERVE_MIN + MIN_TRAIN_MIN:
-        raise DemoError(f"--minutes {minutes}: the budget must exceed {EVAL_RESERVE_MIN + MIN_TRAIN_MIN:g} min "
+    if not (math.isfinite(minutes) and minutes > EVAL_RESERVE_MIN + MIN_TRAIN_MIN):  # inf: no time_budget_min
+        raise DemoError(f"--minutes {minutes}: the budget must be a finite number of minutes that exceeds "
+                        f"{EVAL_RESERVE_MIN + MIN_TRAIN_MIN:g} min "
                         f"({EVAL_RESERVE_MIN:g} min are kept for evaluation, and training needs some time)")
     out = Path(out)
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     config = Path(config) if config is not None else default_config_path()
     _check_out(out)
     load_config(config, list(overrides))  # a wrong config file or key is named before minutes of world generation
+    _check_overrides(overrides)
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
     print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "

@@ -59,6 +59,7 @@ from .inference import (
     META_CONFIG,
     META_CONFIG_SHA,
     META_FORMAT,
+    META_GRAPH_SHA,
     META_INFERENCE,
     META_SHAPES,
     META_SOURCE,
@@ -69,6 +70,7 @@ from .inference import (
     OnnxModel,
     baked_config,
     config_sha256,
+    graph_sha256,
     inference_config,
     inference_metadata,
     input_names,
@@ -223,6 +225,7 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
             META_INFERENCE: json.dumps(inference_metadata(cfg)),
             META_SOURCE: json.dumps({"checkpoint": source, "config_name": cfg.name, "package": package_version(),
                                      "torch": torch.__version__, "onnx": onnx.__version__, "opset": opset})}
+    meta[META_GRAPH_SHA] = graph_sha256(proto)  # after the graph is final: read_metadata checks it
     del proto.metadata_props[:]
     for key, value in meta.items():
         proto.metadata_props.add(key=key, value=value)

@@ -25,7 +25,7 @@ import hashlib
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +87,9 @@ META_CONFIG_SHA = "instagram_hdmap.config_sha256"
 META_SHAPES = "instagram_hdmap.shapes"
 META_SOURCE = "instagram_hdmap.source"
 META_INFERENCE = "instagram_hdmap.inference"  # what the graph does not bake in: the rig, the image fit, decoding
+# SHA-256 of the serialized graph (its nodes and weights): ONNX files carry no checksum of their own, so bits
+# flipped on disk or in a transfer would otherwise run as wild weights (exports written before it: not checked)
+META_GRAPH_SHA = "instagram_hdmap.graph_sha256"
 DEPLOY_EXTRA = 'pip install -e ".[deploy]"'
 
 
@@ -279,7 +282,8 @@ def config_differences(expected: dict, actual: dict) -> list[str]:
 
 
 def read_metadata(path: str | Path) -> dict[str, str]:
-    """The ``metadata_props`` of an ONNX file (without loading its weights)."""
+    """The ``metadata_props`` of an ONNX file (external weight files are not read); an inline graph is checked
+    against the SHA-256 its export stored (``META_GRAPH_SHA``)."""
     onnx, _ = require_onnx()
     path = Path(path)
     if not path.is_file():
@@ -288,7 +292,17 @@ def read_metadata(path: str | Path) -> dict[str, str]:
         proto = onnx.load(str(path), load_external_data=False)
     except Exception as e:  # any unreadable file is a user error
         raise DeployError(f"{path} is not a readable ONNX file ({type(e).__name__}: {str(e)[:200]})") from None
-    return {p.key: p.value for p in proto.metadata_props}
+    meta = {p.key: p.value for p in proto.metadata_props}
+    if META_GRAPH_SHA in meta and graph_sha256(proto) != meta[META_GRAPH_SHA]:
+        raise DeployError(f"{path} is damaged: its graph (nodes and weights) does not match the SHA-256 stored when it "
+                          "was exported (bits changed on disk or in a transfer, or an edited file); use another copy "
+                          "or export the checkpoint again")
+    return meta
+
+
+def graph_sha256(proto) -> str:
+    """SHA-256 of an ONNX model's graph (nodes and weights; not the metadata that stores it)."""
+    return hashlib.sha256(proto.graph.SerializeToString(deterministic=True)).hexdigest()
 
 
 def read_export(path: str | Path) -> dict:
@@ -723,6 +737,25 @@ class MapStream:
         self.memory: dict | None = None
         self.frame_index = 0
         self.status: str | None = None
+        self.origin: np.ndarray | None = None  # the scene's first ego position (float64), see _local
+
+    def _local(self, frame: Frame) -> Frame:
+        """``frame`` with its ego pose moved by the scene's first ego position (float64): the model reads
+        poses in float32, whose step at world coordinates of millions of metres (UTM northings, ECEF) is
+        0.25-0.5 m, which would misplace the warped memory by that much; relative poses are unchanged."""
+        if frame.ego_pose is None:
+            return frame
+        pose = frame.ego_pose.detach().cpu() if isinstance(frame.ego_pose, torch.Tensor) else frame.ego_pose
+        try:
+            T = np.array(pose, dtype=np.float64)
+        except (TypeError, ValueError):
+            return frame  # Mapper.batch names it
+        if T.shape not in ((4, 4), (3, 4)) or not np.isfinite(T).all():
+            return frame  # Mapper.batch names it
+        if self.origin is None:
+            self.origin = T[:3, 3].copy()
+        T[:3, 3] -= self.origin
+        return replace(frame, ego_pose=T)
 
     def step(self, frame: Frame | None = None, /, **fields) -> list[MapElement]:
         frame = frame if frame is not None else Mapper._frame(fields)
@@ -730,7 +763,7 @@ class MapStream:
         if temporal and frame.ego_pose is None:
             raise RigError("a temporal model moves its memory with the ego: give every frame of a stream its "
                            "ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
-        batch = self.mapper.batch([frame])
+        batch = self.mapper.batch([self._local(frame)])
         batch["scene_start"] = torch.tensor([self.frame_index == 0])
         batch["frame_index"] = torch.tensor([self.frame_index])
         outputs = self.mapper.forward(batch, self.memory)

@@ -64,6 +64,9 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 # train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
 # one skipped the rest of the epoch and moved the learning rate along the schedule)
 RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size")
+# a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
+# new value walked other pieces from the saved position, or none, and moved the learning rate)
+STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
 
 
 def seed_everything(seed: int) -> None:
@@ -170,7 +173,8 @@ def unlock_out_dir(out_dir: Path) -> None:
 
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
     old = saved_config(ckpt_cfg, f"checkpoint {path}")
-    differ = [k for k in diff_configs(old, cfg) if is_under(k, RESUME_KEYS)]
+    keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys)]
     if differ:
         old_d, new_d = config_to_dict(old), config_to_dict(cfg)
         lines = "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)

@@ -16,8 +16,9 @@ and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_
   many; larger is an error.
 * A prediction without ``confidence_level`` gets 1.0 (the HDMapNet reference's default) and a
   note says how many.
-* Malformed JSON, a missing ``results``, a repeated sample token, coordinates that are not
-  finite numbers of shape [P, 2] within ``MAX_COORD_M`` of the ego vehicle, a non-integer or
+* Malformed JSON, a missing ``results``, a repeated sample token (in a dict ``results`` too: a key
+  written twice in any object is an error, where Python's ``json`` keeps the last), coordinates
+  that are not finite numbers of shape [P, 2] within ``MAX_COORD_M`` of the ego vehicle, a non-integer or
   unknown ``type``, a ``confidence_level`` outside [0, 1]: :class:`SubmissionError` naming the
   file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
@@ -49,6 +50,22 @@ class SubmissionError(UserError, ValueError):
     """A submission / GT JSON file that cannot be read; the message names the file, token and index."""
 
 
+class _RepeatedKey(Exception):
+    def __init__(self, key: str):
+        self.key = key
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """``json.load``'s ``object_pairs_hook``: an object with a key written twice (Python's json keeps the
+    last one silently: a sample token twice in a dict ``results`` would lose the first one's vectors)."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise _RepeatedKey(key)
+        out[key] = value
+    return out
+
+
 @dataclass
 class Submission:
     path: str
@@ -73,9 +90,13 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
     path = Path(path)
     try:
         with open(path) as f:
-            data = json.load(f)
+            data = json.load(f, object_pairs_hook=_unique_keys)
     except FileNotFoundError:
         raise SubmissionError(f"{path}: no such file") from None
+    except _RepeatedKey as e:
+        raise SubmissionError(f"{path}: the key '{e.key}' appears twice in one JSON object (a sample token twice in "
+                              "'results', or a field twice in one vector); Python's json would keep only the last one "
+                              "and drop the first silently: merge them") from None
     except json.JSONDecodeError as e:
         raise SubmissionError(f"{path}: not valid JSON ({e}); expected the HDMapNet submission format") from None
     except (OSError, UnicodeDecodeError) as e:
