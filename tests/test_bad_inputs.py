@@ -1176,6 +1176,27 @@ def row_mapstream_utm_poses(env):
     torch.testing.assert_close(memories[1], memories[0], atol=1e-5, rtol=1e-5)
 
 
+@row("S3", "a sample_data record whose width is a string or 0 is named (was a TypeError / ZeroDivisionError)")
+def row_sample_data_bad_width(env):
+    for value in ("400", 0):
+        def damage(tables, value=value):
+            sd, _ = camera_record(tables, "CAM_BACK")
+            sd["width"] = value
+
+        root = env.shadow_world(damage)
+        env.error(rf"sample_data .*\(CAM_BACK\) in .*sample_data\.json: 'width' must be the image's size in pixels, "
+                  rf"a whole number >= 1, got {value!r}", "evaluate", env.yaml, f"data.dataroot={root}",
+                  "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+        shutil.rmtree(root)
+
+
+@row("S3", "evaluate-json --xbound / --resolution that do not tile: the flags are named (was 'config key grid.xbound')")
+def row_evaluate_json_bounds_named(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    env.error(r"--xbound -30 30: its extent 60 m is not a whole number of --resolution 0\.7 m pixels", "evaluate-json",
+              "--pred", gt, "--gt", gt, "--protocol", "raster", "--resolution", "0.7")
+
+
 @row("S3", "an ONNX export with flipped bits in its weights is named before it runs (onnxruntime ran it: exit 0)")
 def row_onnx_flipped_bits(env):
     pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")

@@ -137,6 +137,10 @@ def _cmd_evaluate_json(args: argparse.Namespace) -> int:
     for flag, (lo, hi) in (("--xbound", args.xbound), ("--ybound", args.ybound)):
         if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
             raise UserError(f"{flag} {lo:g} {hi:g}: two finite bounds in metres, the lower first")
+        pixels = (hi - lo) / args.resolution  # named here: BEVGrid.check names the config key grid.*
+        if abs(pixels - round(pixels)) > 1e-6:
+            raise UserError(f"{flag} {lo:g} {hi:g}: its extent {hi - lo:g} m is not a whole number of --resolution "
+                            f"{args.resolution:g} m pixels")
     if args.out:
         check_output_file(args.out, "--out", [(args.pred, "--pred"), (args.gt, "--gt")])
     grid = BEVGrid(*args.xbound, *args.ybound, args.resolution, cell_size=1)

@@ -281,6 +281,9 @@ class AV2MapDataset(MapDataset):
                                    f"{type(e).__name__}: {e}") from None
             for cam, pin in cams.items():
                 check_intrinsics(pin.intrinsics.K, f"log {log}: camera {cam} in {intr_path}")
+                if not (pin.width_px >= 1 and pin.height_px >= 1):  # the image size scales the resize
+                    raise DatasetError(f"log {log}: camera {cam} in {intr_path}: width_px x height_px is "
+                                       f"{pin.width_px} x {pin.height_px}; the image's size in pixels must be >= 1")
                 where = f"log {log}: camera {cam} in {extr_path}"
                 check_rotation(pin.ego_SE3_cam.rotation, "its rotation (camera -> ego)", where)
                 check_translation(pin.ego_SE3_cam.translation, "its translation (camera -> ego)", where)

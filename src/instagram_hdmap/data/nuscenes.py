@@ -282,6 +282,12 @@ class NuScenesMapDataset(MapDataset):
         sd = self._get("sample_data", data[cam])
         for key in ("filename", "width", "height"):
             _field(sd, key, "sample_data")
+        for key in ("width", "height"):  # the image's size: it scales the resize and the intrinsics' use
+            if isinstance(sd[key], bool) or not isinstance(sd[key], int) or sd[key] < 1:
+                table = self.dataroot / self.data_cfg.version / "sample_data.json"
+                raise DatasetError(f"sample_data {sd.get('token', '?')} ({cam}) in {table}:"
+                                   f" '{key}' must be the image's size in pixels, a whole number "
+                                   f">= 1, got {sd[key]!r}")
         cs = self._get("calibrated_sensor", _field(sd, "calibrated_sensor_token", "sample_data"))
         where = (f"camera {cam}: calibrated_sensor {cs.get('token')} in "
                  f"{self.dataroot / self.data_cfg.version}/calibrated_sensor.json")
