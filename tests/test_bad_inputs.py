@@ -1197,6 +1197,28 @@ def row_evaluate_json_bounds_named(env):
               "--pred", gt, "--gt", gt, "--protocol", "raster", "--resolution", "0.7")
 
 
+@row("S3", "Mapper: a ground_height or an ego_pose that is not a number is a RigError (was a raw ValueError)")
+def row_mapper_values_not_numbers(env):
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    with pytest.raises(RigError, match=r"ground_height must be a finite height in metres, got \['abc'\]"):
+        mapper(Frame(images=images, intrinsics=K, cam_to_ego=poses, ground_height="abc"))
+    with pytest.raises(RigError, match=r"ego_pose must be a finite 4x4 .* got 'abc'"):
+        mapper.stream().step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose="abc"))
+
+
+@row("S3", "--resume past train.max_steps says that nothing is left to train (printed 'done: epoch None, step None')")
+def row_resume_past_max_steps(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [], "train.epochs=2", "train.max_steps=1", resume=str(run / "last.pt"))
+    assert (summary["epoch"], summary["step"]) == (0, 1)
+    assert "train.max_steps=1 is reached already" in env.capsys.readouterr().out
+
+
 @row("S3", "an ONNX export with flipped bits in its weights is named before it runs (onnxruntime ran it: exit 0)")
 def row_onnx_flipped_bits(env):
     pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")

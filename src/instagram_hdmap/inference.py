@@ -542,7 +542,11 @@ def _ego_pose(pose) -> torch.Tensor:
     """A frame's ego pose as a [4, 4] float32 tensor (the identity when it has none)."""
     if pose is None:
         return torch.eye(4)
-    T = torch.as_tensor(np.asarray(pose, dtype=np.float64)).float()
+    try:
+        T = torch.as_tensor(np.asarray(pose, dtype=np.float64)).float()
+    except (TypeError, ValueError):
+        raise RigError(f"the frame's ego_pose must be a finite 4x4 (or 3x4) ego -> world transform, got "
+                       f"{pose!r:.80}") from None
     if T.shape not in ((4, 4), (3, 4)) or not bool(torch.isfinite(T).all()):
         raise RigError(f"the frame's ego_pose must be a finite 4x4 (or 3x4) ego -> world transform, got shape "
                        f"{list(T.shape)}")
@@ -698,9 +702,13 @@ class Mapper:
                     per[key].append(torch.as_tensor(value).float())
             for key in keys:
                 out[key].append(torch.stack(per[key]))
-        heights = [float(frame.ground_height) for frame in frames]
+        given = [frame.ground_height for frame in frames]
+        try:
+            heights = [float(h) for h in given]
+        except (TypeError, ValueError):
+            heights = [math.nan]  # named below
         if not all(math.isfinite(h) for h in heights):
-            raise RigError(f"a frame's ground_height must be a finite height in metres, got {heights}")
+            raise RigError(f"a frame's ground_height must be a finite height in metres, got {given}")
         return {**{k: torch.stack(v) for k, v in out.items()}, "ground_height": torch.tensor(heights),
                 "ego_pose": torch.stack([_ego_pose(frame.ego_pose) for frame in frames])}
 

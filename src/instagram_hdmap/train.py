@@ -460,6 +460,10 @@ class TrainingRun:
         weights after the last completed step, which ``position`` names, and the interrupt goes on."""
         try:
             finished = self.should_stop(self.position.step)
+            max_steps = self.cfg.train.max_steps
+            if max_steps is not None and self.position.step >= max_steps:  # a resume past it: say why nothing runs
+                du.print_main(f"train.max_steps={max_steps} is reached already (the checkpoint is at step "
+                              f"{self.position.step}): nothing to train; raise train.max_steps to continue")
             while not finished:
                 stopped = self.train_epoch()
                 finished = stopped or self.should_stop(self.position.step)  # also refreshes the clock saved below
@@ -549,7 +553,8 @@ class TrainingRun:
             self.log_file.flush()
 
     def final_summary(self) -> dict:
-        return {**self.summary, **self.schedule_summary(), "out_dir": str(self.out_dir)}
+        return {"epoch": self.position.epoch, "step": self.position.step,  # a resume that trained nothing
+                **self.summary, **self.schedule_summary(), "out_dir": str(self.out_dir)}
 
 
 def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
