@@ -1190,6 +1190,25 @@ def row_sample_data_bad_width(env):
         shutil.rmtree(root)
 
 
+@row("S3", "numbers written as strings in the tables (an ego pose, intrinsics) are named (numpy read them as numbers, "
+          "then a raw error came from the map or torch)")
+def row_table_numbers_as_strings(env):
+    def pose_strings(tables):
+        for record in tables["ego_pose"]:
+            record["translation"] = [str(x) for x in record["translation"]]
+
+    def intrinsics_strings(tables):
+        _, cs = camera_record(tables, "CAM_FRONT_RIGHT")
+        cs["camera_intrinsic"] = [[str(x) for x in r] for r in cs["camera_intrinsic"]]
+
+    for edit, pattern in ((pose_strings, r"ego_pose .*ego_pose\.json: its translation is not numeric"),
+                          (intrinsics_strings, r"camera CAM_FRONT_RIGHT: .*the camera intrinsics is not numeric")):
+        root = env.shadow_world(edit)
+        env.error(pattern, "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt, "--out",
+                  env.tmp / "e")
+        shutil.rmtree(root)
+
+
 @row("S3", "evaluate-json --xbound / --resolution that do not tile: the flags are named (was 'config key grid.xbound')")
 def row_evaluate_json_bounds_named(env):
     gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)

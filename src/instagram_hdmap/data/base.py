@@ -91,7 +91,16 @@ ORTHONORMAL_TOL = 1e-3  # |R^T R - I| of a calibrated rotation (stored to ~1e-8 
 MAX_TRANSLATION_M = 1e7  # a translation beyond this (in metres) is corrupt, not a place on Earth
 
 
+def reject_text(values, what: str, where: str) -> None:
+    """No string (or bool) among ``values``: numpy reads "1.5" as 1.5, and the record's raw strings would
+    reach the arithmetic later (a raw error there)."""
+    flat = [values] if isinstance(values, (str, bytes)) else np.asarray(values, dtype=object).ravel()
+    if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in flat):
+        raise DatasetError(f"{where}: {what} is not numeric: {values!r:.120} (numbers, not strings)")
+
+
 def _finite(values, what: str, where: str) -> np.ndarray:
+    reject_text(values, what, where)
     try:
         a = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):

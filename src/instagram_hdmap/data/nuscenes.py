@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from ..config import ExperimentConfig
-from .base import DatasetError, MapDataset, check_intrinsics, check_translation
+from .base import DatasetError, MapDataset, check_intrinsics, check_translation, reject_text
 from .local_map import LocalMapBuilder, MapError
 from .rig import CAMERAS
 from .transforms import ImageAug, load_image, sample_augmentation
@@ -148,6 +148,7 @@ def _field(record: dict, key: str, table: str):
 def check_pose_record(record: dict, table: str, where: str) -> None:
     """A calibrated_sensor or ego_pose record: finite translation, finite unit quaternion (w, x, y, z)."""
     check_translation(_field(record, "translation", table), "its translation", where)
+    reject_text(_field(record, "rotation", table), "its rotation", where)
     q = np.asarray(_field(record, "rotation", table), dtype=np.float64)
     if q.shape != (4,) or not np.isfinite(q).all():
         raise DatasetError(f"{where}: its rotation must be 4 finite numbers (a quaternion w, x, y, z), got "
