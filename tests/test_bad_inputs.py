@@ -1209,6 +1209,21 @@ def row_table_numbers_as_strings(env):
         shutil.rmtree(root)
 
 
+@row("S3", "export-gt --out a table of the dataset it reads (v1.0-trainval/sample.json) is refused (it was replaced "
+          "by the GT file: the dataset destroyed, exit 0)")
+def row_export_gt_over_a_table(env):
+    root = env.shadow_world()
+    table = root / "v1.0-trainval" / "sample.json"
+    before = table.read_bytes()
+    for _ in range(2):  # a GT file of its own right in the dataroot is fine, and may be written again
+        rc, _, err = env.cli("export-gt", env.yaml, f"data.dataroot={root}", "--out", root / "gt_val.json")
+        assert rc == 0, err[-2000:]
+    forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
+    env.error(r"--out .*sample\.json is a file of the dataset the export reads", "export-gt", env.yaml,
+              f"data.dataroot={root}", "--out", table)
+    assert table.read_bytes() == before
+
+
 @row("S3", "evaluate-json --xbound / --resolution that do not tile: the flags are named (was 'config key grid.xbound')")
 def row_evaluate_json_bounds_named(env):
     gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)

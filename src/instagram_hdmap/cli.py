@@ -83,6 +83,12 @@ def _load_data_cfg(args: argparse.Namespace):
 def _cmd_export_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
     check_output_file(args.out, "--out", [(args.config, "CONFIG")])
+    out, root = Path(args.out).resolve(), Path(cfg.data.dataroot).resolve()
+    splits = Path(cfg.data.splits_file).resolve() if cfg.data.splits_file else None
+    # a file the export reads: a table, map or log below the dataroot (a GT file right in it may be replaced)
+    if out.is_file() and root in out.parents and (out.parent != root or out.name == "world.json" or out == splits):
+        raise UserError(f"--out {args.out} is a file of the dataset the export reads (data.dataroot="
+                        f"{cfg.data.dataroot}): writing the GT there would replace it; choose another output path")
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
     write_json(sub, args.out)
