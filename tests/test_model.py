@@ -851,6 +851,23 @@ def test_superpoint_nms_equals_a_loop_and_keeps_no_two_untied_vertices_within_th
                         assert scores[b][a] == scores[b][c]
 
 
+def test_running_max_equals_max_pool_with_minus_infinity_padding():
+    """superpoint_nms's window max (two 1-D running maxima built by doubling) against torch's max_pool2d
+    of the (2r+1)^2 window, for odd and even window sizes' powers of two, windows wider than the map,
+    and negative values (which the padding must never beat)."""
+    from instagram_hdmap.models.vertices import _running_max
+
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(2, 7, 19, generator=gen) - 5.0
+    for r in (0, 1, 2, 3, 4, 5, 7, 12):
+        got = _running_max(_running_max(x, r, -1), r, -2)
+        if 2 * r + 1 <= 7:  # max_pool2d's padding must stay within half its window and the map
+            assert torch.equal(got, torch.nn.functional.max_pool2d(x[:, None], 2 * r + 1, stride=1, padding=r)[:, 0])
+        for i, j in ((0, 0), (3, 9), (6, 18)):  # the loop definition, any r (max_pool2d pads at most k/2)
+            window = x[:, max(0, i - r): i + r + 1, max(0, j - r): j + r + 1]
+            assert torch.equal(got[:, i, j], window.amax(dim=(1, 2))), (r, i, j)
+
+
 def _cell_winners(S: int, Hc: int, Wc: int, winners: dict) -> torch.Tensor:
     """Vertex logits whose cell (r, c) has its maximum at pixel offset (dy, dx) with the probability given
     in ``winners[(r, c)] = (dy, dx, p)`` (empty cells ~ 1/(S*S+1) everywhere)."""
