@@ -4,8 +4,9 @@ Each row is a small function that does the bad thing a hostile but realistic use
 checks the promise: a wrong input is named on one line (``UserError``, exit code 2, no traceback),
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
-second sweep of the same kind after it, ``S3`` one found by a third sweep). Everything runs on the tiny
-synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
+second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
+fourth). Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no
+training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it) or "S3" (a third)
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3", "S4" (more)
     what: str
     run: Callable
 
@@ -265,7 +266,8 @@ def _av2_copy(env: Env) -> tuple[Path, Path]:
 
 
 def _av2_error(env: Env, root: Path, pattern: str) -> str:
-    return env.error(pattern, "show-gt", env.yaml, "data.dataset=av2", "data.av2_frame_step=1",
+    return env.error(pattern, "show-gt", env.yaml, "data.dataset=av2", "data.splits_file=null",
+                     "data.av2_frame_step=1",
                      "data.image_fit=contain", f"data.dataroot={root}", "--split", "train", "--index", "0",
                      "--out", env.tmp / "show")
 
@@ -1280,6 +1282,77 @@ def row_onnx_flipped_bits(env):
     rig, images = _rig_files(env)
     env.error(r"damaged\.onnx is damaged", "predict-images", "--onnx", damaged, "--rig", rig, "--out",
               env.tmp / "out", *images)
+
+
+@row("S4", "an MLP view transform with another model.view_transform.num_cameras than the rig's cameras (AV2's seven) "
+          "is named before the model runs (was a raw ValueError in forward)")
+def row_mlp_num_cameras_of_the_rig(env):
+    env.error(r"'model\.view_transform\.num_cameras' is 6, .* the 7 cameras of data\.dataset=av2 .*num_cameras=7",
+              "model-summary", env.yaml, "data.dataset=av2", "data.splits_file=null", "model.view_transform.kind=mlp",
+              "model.view_transform.mlp_bev_downsample=4")
+    env.error(r"num_cameras' is 6, .* the 3 cameras", "model-summary", env.yaml, "data.dataset=av2",
+              "data.splits_file=null", "model.view_transform.kind=mlp", "model.view_transform.mlp_bev_downsample=4",
+              "data.av2_cameras=[ring_front_left,ring_front_center,ring_front_right]")
+    rc, _, err = env.cli("model-summary", env.yaml, "data.dataset=av2", "data.splits_file=null",
+                         "model.view_transform.kind=mlp", "model.view_transform.mlp_bev_downsample=4",
+                         "model.view_transform.num_cameras=7")
+    assert rc == 0, err
+
+
+@row("S4", "data.splits_file with data.dataset=av2 is refused (it was ignored: every log of the split folder ran)")
+def row_av2_splits_file_ignored(env):
+    env.error(r"'data\.splits_file' .* an AV2 split is a folder of logs .*data\.splits_file=null", "show-gt", env.yaml,
+              "data.dataset=av2", "--out", env.tmp / "show")
+
+
+@row("S4", "a splits file whose split lists a list (not scene names) is named (was a raw TypeError)")
+def row_splits_file_nested_list(env):
+    splits = env.tmp / "splits.json"
+    names = json.loads((env.world / "splits.json").read_text())
+    splits.write_text(json.dumps({**names, "val": [names["val"]]}))
+    env.error(r"splits file .*splits\.json: split 'val' must list scene names \(strings\), got \[", "show-gt",
+              env.yaml, f"data.splits_file={splits}", "--out", env.tmp / "show")
+
+
+@row("S4", "evaluate-json: a MapTR-format vector whose cls_name is not its type's class is named (StreamMapNet's "
+          "class ids scored dividers as crossings: exit 0)")
+def row_cls_name_disagrees_with_type(env):
+    line = [[0, 0], [5, 0], [10, 0]]
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"GTs": [{"sample_token": "a", "vectors": [
+        {"pts": line, "pts_num": 3, "cls_name": "divider", "type": 0}]}]}))
+    pred = env.tmp / "p.json"
+    vector = {"pts": line, "pts_num": 3, "cls_name": "divider", "type": 1, "confidence_level": 0.9}
+    pred.write_text(json.dumps({"results": [{"sample_token": "a", "vectors": [vector]}]}))
+    env.error(r"p\.json: sample 'a', vector 0: 'cls_name' 'divider' disagrees with 'type' 1", "evaluate-json", "--pred",
+              pred, "--gt", gt)
+    pred.write_text(json.dumps({"results": [{"sample_token": "a", "vectors": [{**vector, "type": 0}]}]}))
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt)  # MapTR's own file: agreed, scored
+    assert rc == 0 and re.search(r"divider\s+1\.0000", out), err
+
+
+@row("S4", "evaluate-json --protocol raster on a canvas smaller than the GT file's stated patch is named (it cropped "
+          "the map: AP 1 for a missed line outside the default 60 m x 30 m)")
+def row_raster_canvas_crops_the_patch(env):
+    meta = {"xbound": [-50.0, 50.0], "ybound": [-50.0, 50.0]}
+    near, far = [[0, 0], [5, 0], [10, 0]], [[35, 20], [40, 20], [45, 20]]
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"meta": {**meta, "ground_truth": True},
+                              "results": {"a": [{"pts": near, "type": 0}, {"pts": far, "type": 0}]}}))
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": near, "type": 0, "confidence_level": 0.9}]}, False)
+    env.error(r"gt\.json: its meta says the map patch is xbound \[-50, 50\], ybound \[-50, 50\] .*--xbound -50 50 "
+              r"--ybound -50 50", "evaluate-json", "--pred", pred, "--gt", gt, "--protocol", "raster")
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt, "--protocol", "raster", "--xbound", "-50", "50",
+                           "--ybound", "-50", "50", "--resolution", "0.25")
+    assert rc == 0 and re.search(r"divider\s+0\.5000", out), err  # the far line is missed
+
+
+@row("S4", "benchmark of a temporal model (configs/temporal) runs (was a raw KeyError: the batch lacked ego_pose)")
+def row_benchmark_temporal_model(env):
+    rc, out, err = env.cli("benchmark", env.yaml, "model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3",
+                           "--device", "cpu", "--runs", "1", "--warmup", "0")
+    assert rc == 0 and "Traceback" not in err, err[-2000:]
+    assert "a temporal model: timed on a scene's first frame" in out
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -146,6 +146,10 @@ def run_benchmark(
     batch = {k: v[None].to(dev) for k, v in rig.items()}
     V = rig["intrinsics"].shape[0]
     batch["images"] = torch.randn(1, V, 3, h, w, generator=gen).to(dev)
+    if getattr(model, "is_temporal", False):  # a temporal model reads the frame's pose (it was a raw KeyError)
+        batch["ego_pose"] = torch.eye(4)[None].to(dev)
+        notes.append("a temporal model: timed on a scene's first frame (an empty memory); its warp and fusion cost "
+                     "the same on every frame")
     decode = decode_options(cfg.model.gnn, grid)
 
     def sync() -> None:

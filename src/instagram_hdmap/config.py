@@ -74,6 +74,9 @@ def bounded(default: Any, *, ge: float | None = None, gt: float | None = None, l
     return field(default=default, metadata={"range": Range(ge, gt, le, lt, note)})
 
 
+# The nuScenes camera rig's size (data/rig.py CAMERAS: six cameras)
+NUSCENES_CAMERA_COUNT = 6
+
 # The map classes of the local map builders (data/local_map.py, data/av2.py), in label order
 MAP_CLASSES = ("divider", "ped_crossing", "boundary")
 
@@ -615,6 +618,17 @@ def validate_config(cfg: ExperimentConfig) -> None:
     if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
         raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "
                           f"{', '.join(AV2_RING_CAMERAS)}; got {list(d.av2_cameras)}")
+    if d.dataset == "av2" and d.splits_file is not None:  # it was ignored: every log of the split folder ran
+        raise ConfigError(f"config key 'data.splits_file' ({d.splits_file}) chooses nuScenes scenes; an AV2 split is a "
+                          "folder of logs (data.train_split / data.val_split name it), so the file would be ignored: "
+                          "set data.splits_file=null, or move the logs into the split folders")
+    vt = cfg.model.view_transform
+    cameras = len(d.av2_cameras) if d.dataset == "av2" else NUSCENES_CAMERA_COUNT
+    if vt.kind == "mlp" and vt.num_cameras != cameras:  # its per-camera layers would meet another camera count
+        raise ConfigError(f"config key 'model.view_transform.num_cameras' is {vt.num_cameras}, but the MLP view "
+                          f"transform (one layer per camera) gets the {cameras} cameras of data.dataset={d.dataset}"
+                          + (" (data.av2_cameras)" if d.dataset == "av2" else "")
+                          + f": set model.view_transform.num_cameras={cameras}")
     also = cfg.eval.also_protocols
     if cfg.eval.protocol in also or len(set(also)) != len(also):
         raise ConfigError(f"config key 'eval.also_protocols' lists protocols besides eval.protocol="

@@ -99,6 +99,10 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
             raise DatasetError(
                 f"splits file {path} has no list of scene names for split '{split}'; it has: {keys}"
             )
+        odd = [n for n in splits[split] if not isinstance(n, str)]
+        if odd:  # a nested list ({"val": [names]} with names a list already) was a raw TypeError
+            raise DatasetError(f"splits file {path}: split '{split}' must list scene names (strings), got "
+                               f"{odd[0]!r:.80}")
         wanted = set(splits[split])
         missing = sorted(wanted - set(present))
         if missing:

@@ -31,6 +31,8 @@ from .io import SubmissionError, read_submission
 from .raster_ap import RasterAP
 from .vector_ap import VectorAP
 
+DEFAULT_RASTER_GRID = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15)  # the paper's 60 m x 30 m patch at 0.15 m
+
 CLASSES = ("divider", "ped_crossing", "boundary")
 PROTOCOLS = ("vector", "raster")
 DESCRIPTIONS = {
@@ -106,7 +108,7 @@ class Evaluator:
                                                       resample_predictions)
             self.options = {"num_sample_points": num_sample_points, "resample_predictions": resample_predictions}
         else:
-            grid = grid if grid is not None else BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15)
+            grid = grid if grid is not None else DEFAULT_RASTER_GRID
             self.impl = RasterAP(self.thresholds, grid, len(self.classes), rank_by, fix_instance_ids, device=device)
             self.options = {"rank_by": rank_by, "fix_instance_ids": fix_instance_ids, "thickness_px": 5,
                             "grid": {"xbound": [grid.xmin, grid.xmax], "ybound": [grid.ymin, grid.ymax],
@@ -266,6 +268,21 @@ def format_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
+def _check_canvas(gt, grid: BEVGrid) -> None:
+    """The raster canvas covers the map patch the GT file's meta states (export-gt writes ``xbound`` /
+    ``ybound``): a smaller canvas crops the map silently (a 100 m x 100 m GT scored on 60 m x 30 m)."""
+    patch = [gt.meta.get("xbound"), gt.meta.get("ybound")]
+    try:
+        (x0, x1), (y0, y1) = ([float(v) for v in b] for b in patch)
+    except (TypeError, ValueError):
+        return  # no patch stated (a GT file of another tool)
+    if (x0, x1, y0, y1) != (grid.xmin, grid.xmax, grid.ymin, grid.ymax):
+        raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
+                              f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
+                              f"{grid.ymax:g}], which would crop it: pass --xbound {x0:g} {x1:g} --ybound {y0:g} "
+                              f"{y1:g} (to score a crop on purpose, drop xbound/ybound from the GT file's meta)")
+
+
 def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "vector",
                    thresholds: Sequence[float] = (0.5, 1.0, 1.5), *, grid: BEVGrid | None = None,
                    rank_by: str = "ascending", fix_instance_ids: bool = False, device: str = "cpu",
@@ -287,6 +304,8 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
                               f"confidence_level on {gt.confidences} vectors){swapped}")
     if not gt.samples:
         raise SubmissionError(f"{gt_path}: the GT file holds no samples")
+    if protocol == "raster":
+        _check_canvas(gt, grid if grid is not None else DEFAULT_RASTER_GRID)
     extra = [t for t in pred.samples if t not in gt.samples]
     if extra and not ignore_extra_predictions:
         raise SubmissionError(

@@ -19,7 +19,8 @@ and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_
 * Malformed JSON, a missing ``results``, a repeated sample token (in a dict ``results`` too: a key
   written twice in any object is an error, where Python's ``json`` keeps the last), coordinates
   that are not finite numbers of shape [P, 2] within ``MAX_COORD_M`` of the ego vehicle, a non-integer or
-  unknown ``type``, a ``confidence_level`` outside [0, 1]: :class:`SubmissionError` naming the
+  unknown ``type``, a ``cls_name`` (MapTR's files) that is not the ``type``'s class, a ``confidence_level``
+  outside [0, 1]: :class:`SubmissionError` naming the
   file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
 
@@ -38,7 +39,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import UserError
+from ..config import MAP_CLASSES, UserError
 from ..files import write_json
 
 # Points are metres in the ego frame; a map patch spans tens of metres. Beyond this, the file is in
@@ -165,6 +166,11 @@ def vectors_to_polylines(
         if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < num_classes:
             raise SubmissionError(f"{what}: 'type' must be a class id 0..{num_classes - 1} "
                                   f"(0 divider, 1 ped_crossing, 2 boundary), got {k!r}")
+        name = v.get("cls_name")  # MapTR writes the class name beside its id: they must agree
+        if name is not None and (k >= len(MAP_CLASSES) or name != MAP_CLASSES[k]):
+            raise SubmissionError(f"{what}: 'cls_name' {name!r} disagrees with 'type' {k} (the class ids are 0 "
+                                  "divider, 1 ped_crossing, 2 boundary, MapTR's order; StreamMapNet numbers "
+                                  "ped_crossing 0, divider 1): renumber 'type'")
         poly = {"pts": pts, "label": k}
         counts["confidences"] = counts.get("confidences", 0) + ("confidence_level" in v)
         if role == "pred":
