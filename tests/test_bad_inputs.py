@@ -1355,6 +1355,19 @@ def row_benchmark_temporal_model(env):
     assert "a temporal model: timed on a scene's first frame" in out
 
 
+@row("S4", "a checkpoint's AV2 camera order wins over the CONFIG file's, with a note (an MLP model's per-camera layers "
+          "met other cameras: exit 0)")
+def row_checkpoint_av2_camera_order(env):
+    from instagram_hdmap.config import AV2_RING_CAMERAS
+    from instagram_hdmap.inference import inference_config
+
+    order = [AV2_RING_CAMERAS[-1], *AV2_RING_CAMERAS[:-1]]
+    mlp = ["data.dataset=av2", "model.view_transform.kind=mlp", "model.view_transform.num_cameras=7"]
+    trained = load_config(TINY_YAML, [*mlp, f"data.av2_cameras=[{','.join(order)}]"])
+    out, notes = inference_config(load_config(TINY_YAML, mlp), config_to_dict(trained))
+    assert list(out.data.av2_cameras) == order
+    assert any("data.av2_cameras=" in n and "using the checkpoint's" in n for n in notes), notes
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

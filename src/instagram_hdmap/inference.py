@@ -6,7 +6,8 @@ ONNX export, and a perfect model's outputs built from the GT.
     outputs = gt_outputs(batch, grid, num_classes)  # what a perfect model would output
 
 ``MODEL_KEYS`` is the one list of the config keys that define a model: its weights and how its
-outputs are read (the grid, the model, the image size, the classes, the distance-transform clip).
+outputs are read (the grid, the model, the image size, the classes, the distance-transform clip, the
+order of the AV2 cameras).
 ``predict``/``evaluate`` take them from the config saved in the checkpoint (``inference_config``),
 ``export-onnx`` bakes them into the graph (``baked_config``, less the decoding keys the graph does not
 read) and ``train --resume`` refuses a checkpoint that differs on them (train.py, with the keys that
@@ -63,12 +64,14 @@ from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
 
 # Config keys that define a model: its weights and how its outputs are read.
-MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip")
+# data.av2_cameras: the order of the camera tensors (the MLP view transform has one layer per camera)
+MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip", "data.av2_cameras")
 # The decoding options of Mapper.from_checkpoint(path, **decode_overrides): model.gnn.<name>.
 DECODE_OPTIONS = tuple(key.rsplit(".", 1)[1] for key in DECODE_KEYS)
-# Of those, the keys an exported graph does not read (post-processing, training-only settings).
-NOT_BAKED = (*DECODE_KEYS, "model.backbone.weights", "model.backbone.from_scratch", "model.backbone.grad_checkpoint",
-             "model.temporal.drop_prob")
+# Of those, the keys an exported graph does not read (post-processing, training-only settings; the AV2 camera
+# order, which the export records in its inference metadata and check_export compares).
+NOT_BAKED = (*DECODE_KEYS, "data.av2_cameras", "model.backbone.weights", "model.backbone.from_scratch",
+             "model.backbone.grad_checkpoint", "model.temporal.drop_prob")
 
 # The exported graph's interface (docs/deploy.md), in argument order.
 INPUT_NAMES = ("images", *CALIBRATION_KEYS)
@@ -354,6 +357,9 @@ def check_export(path: str | Path, cfg: ExperimentConfig) -> dict:
     ``DeployError`` naming the keys that differ."""
     meta = read_export(path)
     differ = config_differences(baked_config(cfg), meta["config"])
+    cameras = meta["inference"].get("av2_cameras")  # recorded beside the baked keys (the rig, not the graph)
+    if cfg.data.dataset == "av2" and cameras is not None and list(cfg.data.av2_cameras) != list(cameras):
+        differ.append(f"data.av2_cameras={cameras!r} (CONFIG: {list(cfg.data.av2_cameras)!r})")
     if differ:
         more = f" and {len(differ) - 4} more" if len(differ) > 4 else ""
         raise DeployError(f"{path} was exported from another config: {', '.join(differ[:4])}{more}; pass the "

@@ -9,8 +9,8 @@
 
 Which config a checkpoint runs with (inference.py): the keys that define the model
 (``inference.MODEL_KEYS``: the grid, the model, the image size, the classes, the distance-transform
-clip) come from the config saved in the checkpoint; everything else (dataroot, splits, eval settings)
-from the CONFIG file. Command-line ``key=value`` overrides win over both, so
+clip, the AV2 camera order) come from the config saved in the checkpoint; everything else (dataroot, splits,
+eval settings) from the CONFIG file. Command-line ``key=value`` overrides win over both, so
 ``model.gnn.num_vertices=600`` or ``model.gnn.match_threshold=0.2`` change the inference of a
 trained model. Where the CONFIG file disagrees with the checkpoint on a model key, a note says so.
 
