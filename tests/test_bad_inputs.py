@@ -1368,6 +1368,22 @@ def row_checkpoint_av2_camera_order(env):
     assert list(out.data.av2_cameras) == order
     assert any("data.av2_cameras=" in n and "using the checkpoint's" in n for n in notes), notes
 
+@row("S4", "export-onnx (and benchmark without a dataset) of an AV2 model takes its rig's camera count (the graph took "
+          "six cameras: AV2 frames could not run it; an MLP model's export was a raw ValueError)")
+def row_av2_export_takes_seven_cameras(env):
+    pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
+    from instagram_hdmap.deploy import export_onnx
+    from instagram_hdmap.models import build_model
+
+    av2 = ["data.dataset=av2", "data.dataroot=absent", "model.gnn.sinkhorn_iters=3"]
+    rc, out, err = env.cli("benchmark", TINY_YAML, *av2, "model.view_transform.kind=mlp",
+                           "model.view_transform.num_cameras=7", "--device", "cpu", "--runs", "1", "--warmup", "0")
+    assert rc == 0 and "Traceback" not in err, err[-2000:]
+    cfg = load_config(TINY_YAML, av2)
+    torch.manual_seed(0)
+    info = export_onnx(build_model(cfg).eval(), cfg, env.tmp / "av2.onnx")
+    assert info["inputs"]["images"][1] == 7
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

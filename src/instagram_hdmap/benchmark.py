@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from .config import ExperimentConfig, UserError
-from .data import build_dataset
+from .data import build_dataset, rig_cameras
 from .data.rig import nuscenes_like_rig
 from .deploy import fast_forward
 from .distributed import resolve_device
@@ -52,12 +52,13 @@ def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
             dataset = build_dataset(cfg, cfg.data.val_split, augment=False)
             cams = dataset.load_cameras(0)
         except UserError as e:
-            rig = nuscenes_like_rig(cfg.data.image_size)
+            rig = nuscenes_like_rig(cfg.data.image_size, len(rig_cameras(cfg)))
             return rig, f"nuScenes-like rig built in code (the dataset at {cfg.data.dataroot} failed: {e})"
         cams.pop("images")
         cams["ground_height"] = torch.tensor(dataset.ground_height(0), dtype=torch.float32)
         return cams, f"rig of sample {dataset.sample_tokens[0]} ({cfg.data.dataroot}, split {dataset.split})"
-    return nuscenes_like_rig(cfg.data.image_size), "nuScenes-like rig built in code (no data.dataroot)"
+    rig = nuscenes_like_rig(cfg.data.image_size, len(rig_cameras(cfg)))
+    return rig, "nuScenes-like rig built in code (no data.dataroot)"
 
 
 def device_name(device: torch.device) -> str:

@@ -50,6 +50,7 @@ from torch import nn
 
 from .checkpoint import load_checkpoint
 from .config import ExperimentConfig, flatten, is_under, parse_overrides
+from .data import rig_cameras
 from .data.rig import nuscenes_like_rig
 from .files import atomic_path, check_output_file
 from .inference import (
@@ -145,8 +146,9 @@ def example_memory(model: nn.Module, batch: dict[str, torch.Tensor]) -> tuple[di
 
 
 def example_inputs(cfg: ExperimentConfig, seed: int = 0) -> dict[str, torch.Tensor]:
-    """A batch of one: random images and the nuScenes-like rig of ``data.rig.nuscenes_like_rig``."""
-    rig = nuscenes_like_rig(tuple(cfg.data.image_size))
+    """A batch of one: random images and the nuScenes-like rig of ``data.rig.nuscenes_like_rig``, with as
+    many cameras as the config's rig (an AV2 model's export took six: a graph its frames could not run)."""
+    rig = nuscenes_like_rig(tuple(cfg.data.image_size), len(rig_cameras(cfg)))
     h, w = cfg.data.image_size
     gen = torch.Generator().manual_seed(seed)
     batch = {k: v[None].contiguous() for k, v in rig.items()}

@@ -107,22 +107,24 @@ def rig(image_size: tuple[int, int] = NUSCENES_IMAGE_SIZE) -> dict[str, Sensor]:
     return out
 
 
-def nuscenes_like_rig(image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
+def nuscenes_like_rig(image_size: tuple[int, int], cameras: int = len(CAMERAS)) -> dict[str, torch.Tensor]:
     """Calibration of one sample [V = 6, ...] in ``CAMERAS`` order: the published calibration of the
     real nuScenes log (``rig``: 1600 x 900 images) and the ``post_rot`` / ``post_tran`` of the dataset's
     resize-and-crop to ``image_size`` (h, w) (``data.transforms.image_affine``), and nuScenes'
-    ``ground_height`` 0 (a 0-d tensor: its ego frame lies on the road)."""
+    ``ground_height`` 0 (a 0-d tensor: its ego frame lies on the road). ``cameras``: an example rig of
+    another size (V = ``cameras``, the six cycled: the shapes of an AV2 model's seven cameras)."""
     sensors = rig(NUSCENES_IMAGE_SIZE)
     A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
     post_rot = torch.eye(3)
     post_rot[:2, :2] = A[:2, :2]
     post_tran = torch.zeros(3)
     post_tran[:2] = A[:2, 2]
-    V = len(CAMERAS)
+    V = cameras
+    names = [CAMERAS[i % len(CAMERAS)] for i in range(V)]
     return {
-        "intrinsics": torch.stack([torch.from_numpy(sensors[c].intrinsic).float() for c in CAMERAS]),
-        "cam_to_ego_rot": torch.stack([torch.from_numpy(sensors[c].rot).float() for c in CAMERAS]),
-        "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in CAMERAS]),
+        "intrinsics": torch.stack([torch.from_numpy(sensors[c].intrinsic).float() for c in names]),
+        "cam_to_ego_rot": torch.stack([torch.from_numpy(sensors[c].rot).float() for c in names]),
+        "cam_to_ego_trans": torch.stack([torch.from_numpy(sensors[c].trans).float() for c in names]),
         "post_rot": post_rot.expand(V, 3, 3).clone(),
         "post_tran": post_tran.expand(V, 3).clone(),
         "ground_height": torch.tensor(0.0),
