@@ -280,3 +280,12 @@ def test_no_shipped_config_trains_an_efficientnet_from_random_weights_by_acciden
                                                              or cfg.model.backbone.from_scratch), f
     warning = random_init_warning(load_config(PAPER[0], ["model.backbone.weights=null"]))
     assert "RANDOM" in warning and "model.backbone.from_scratch=true" in warning
+
+
+def test_the_configs_nuscenes_camera_count_is_the_rigs():
+    """config.py checks the MLP view transform's camera count without importing the data layer (which sits
+    above it), so it keeps the nuScenes rig's size as a number: it must be data/rig.py's CAMERAS."""
+    from instagram_hdmap.config import NUSCENES_CAMERA_COUNT
+    from instagram_hdmap.data.rig import CAMERAS
+
+    assert NUSCENES_CAMERA_COUNT == len(CAMERAS)
