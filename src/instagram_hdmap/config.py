@@ -635,6 +635,9 @@ def validate_config(cfg: ExperimentConfig) -> None:
                           f"{cfg.eval.protocol!r}, each once; got {list(also)}")
     if not cfg.eval.thresholds:
         raise ConfigError("config key 'eval.thresholds' needs at least one Chamfer threshold in metres")
+    if len(set(cfg.eval.thresholds)) != len(cfg.eval.thresholds):  # mAP averages over them: one would count twice
+        raise ConfigError(f"config key 'eval.thresholds' lists a threshold twice, which mAP (their mean) would count "
+                          f"twice; got {list(cfg.eval.thresholds)}")
 
 
 def config_to_dict(cfg: Any) -> dict:

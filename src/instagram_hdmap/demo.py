@@ -40,7 +40,8 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .files import remove_stale_temporaries, write_json
+from .models import build_model
+from .files import check_no_broken_link, remove_stale_temporaries, write_json
 from .predict import predict_sample, run_evaluation
 from .schedule import final_lr_factor
 from .train import train
@@ -169,6 +170,7 @@ def _budget_left(t0: float, minutes: float) -> float:
 
 
 def _check_out(out: Path) -> None:
+    check_no_broken_link(out, "--out")
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"
@@ -211,8 +213,14 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     config = Path(config) if config is not None else default_config_path()
     _check_out(out)
-    load_config(config, list(overrides))  # a wrong config file or key is named before minutes of world generation
     _check_overrides(overrides)
+    # a wrong config file, key or model setting is named before minutes of world generation
+    cfg = load_config(config, list(overrides))
+    if cfg.data.dataset != "nuscenes":
+        raise DemoError(f"--config {config} sets data.dataset={cfg.data.dataset}, but the demo's synthetic worlds are "
+                        "in the nuScenes layout; give a config of data.dataset=nuscenes (configs/synthetic/, "
+                        "configs/temporal/synthetic.yaml), or train on your own world with instagram-hdmap train")
+    build_model(load_config(config, [*world_overrides(cache_dir / "world"), *overrides]))  # the checks across model keys (data.image_size, grid.cell_size, ...) live there
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
     print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "

@@ -49,7 +49,7 @@ import torch
 from torch import nn
 
 from .checkpoint import load_checkpoint
-from .config import ExperimentConfig, flatten, is_under, parse_overrides
+from .config import ExperimentConfig, config_to_dict, flatten, is_under, parse_overrides
 from .data import rig_cameras
 from .data.rig import nuscenes_like_rig
 from .files import atomic_path, check_output_file
@@ -252,7 +252,12 @@ def export_config(cfg: ExperimentConfig, saved: dict | None, overrides: Sequence
     differ = [k for k in sorted(set(mine) | set(theirs))
               if mine.get(k) != theirs.get(k) and not is_under(k, explicit)]
     if differ:
-        shown = ", ".join(f"{k}={theirs.get(k)!r} (CONFIG: {mine.get(k)!r})" for k in differ[:4])
+        # the CONFIG's own values (a single-frame config bakes no model.temporal key: show its memory='none',
+        # not None), and only the keys whose values differ there
+        full = flatten(json.loads(json.dumps(config_to_dict(cfg))))
+        differ = [k for k in differ if theirs.get(k, "<absent>") != full.get(k, "<absent>")] or differ
+        shown = ", ".join(f"{k}={theirs.get(k, '<absent>')!r} (CONFIG: {full.get(k, '<absent>')!r})"
+                          for k in differ[:4])
         more = f" and {len(differ) - 4} more" if len(differ) > 4 else ""
         raise DeployError(f"checkpoint {checkpoint} is from another config: it was trained with {shown}{more}; "
                           f"pass the config it was trained with (its run folder has config.yaml), or override "

@@ -27,6 +27,8 @@ def resolve_device(choice: str | torch.device | None = "auto", key: str = "train
         device = torch.device(choice)
     except (RuntimeError, TypeError):
         raise UserError(f"{key}={choice!r} is not a device; use auto, cpu, cuda or cuda:INDEX") from None
+    if device.type not in ("cpu", "cuda"):  # torch knows mps, xpu, meta, ...: this package runs on cpu and cuda
+        raise UserError(f"{key}={choice} is not supported; use auto, cpu, cuda or cuda:INDEX")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UserError(f"{key}={choice} but no CUDA device is available; use {key}=cpu")
     return device

@@ -57,7 +57,26 @@ def _first_existing(path: Path) -> Path:
     return path
 
 
+def check_no_broken_link(path: str | Path, flag: str = "output path") -> None:
+    """``path`` and the folders above it up to the first that exists are not symbolic links that lead
+    nowhere (a loop of links, or a link to a disk that is not mounted): creating a folder or a file there
+    would fail with a raw ``FileExistsError`` after the work."""
+    path = Path(path)
+    probe = path
+    while not probe.exists() and probe != probe.parent:
+        if probe.is_symlink():
+            try:
+                target = os.readlink(probe)
+            except OSError:
+                target = "?"
+            raise OutputError(f"{flag} {path}: {probe} is a symbolic link to {target}, which leads nowhere (a loop "
+                              "of links, or a disk that is not mounted); fix or remove the link, or choose another "
+                              "path")
+        probe = probe.parent
+
+
 def _check_parent(path: Path, flag: str) -> None:
+    check_no_broken_link(path, flag)
     base = _first_existing(path.parent)
     if not base.is_dir():
         raise OutputError(f"{flag} {path}: {base} is a file, so nothing can be written below it; choose another path")
@@ -94,6 +113,7 @@ def check_output_dir(path: str | Path, flag: str = "output folder") -> Path:
     """Before the work: ``path`` can be an output folder (it is not a file, and it or the first
     existing folder above it is writable)."""
     path = Path(path)
+    check_no_broken_link(path, flag)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{flag} {path}: is a file, not a folder; choose another path")
     if path.is_dir():
@@ -159,10 +179,14 @@ def _replace(src: Path, dst: Path) -> None:
 def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
     success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
-    docstring)."""
+    docstring). A symbolic link at ``path`` is written through: its target gets the new content (a rename
+    over the link would replace the link and leave the file it points to as it was)."""
     path = Path(path)
+    if path.is_symlink() and path.exists():
+        path = Path(os.path.realpath(path))
     tmp = temporary_sibling(path, tag, keep_suffix)
     try:
+        check_no_broken_link(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         if tmp.is_file():

@@ -396,8 +396,30 @@ class OnnxModel:
         options.log_severity_level = 3  # errors only
         self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
         self.input_shapes = self.meta["shapes"]["inputs"]
+        self.input_types = {i.name: i.type for i in self.session.get_inputs()}  # "tensor(float)", "tensor(bool)", ...
         self.input_names, self.output_names = input_names(cfg), output_names(cfg)
         self.is_temporal = is_temporal_config(cfg)
+
+    def _input(self, name: str, value) -> torch.Tensor:
+        """``value`` as the CPU tensor of the graph's input ``name``: floats as float32, integer indices as
+        int64, flags as bool; another kind (a float mask, a bool index) is a ``DeployError`` (onnxruntime's own
+        error names no input)."""
+        try:
+            tensor = value.detach().cpu() if isinstance(value, torch.Tensor) else torch.as_tensor(np.asarray(value))
+        except (TypeError, ValueError, RuntimeError):
+            raise DeployError(f"{self.path}: input {name} must be a tensor (or an array), got "
+                              f"{type(value).__name__}") from None
+        kind = self.input_types.get(name, "tensor(float)")
+        integer = not tensor.is_floating_point() and not tensor.is_complex() and tensor.dtype != torch.bool
+        if kind == "tensor(float)" and (tensor.is_floating_point() or integer):
+            return tensor.float()
+        if kind == "tensor(int64)" and integer:
+            return tensor.long()
+        if kind == "tensor(bool)" and tensor.dtype == torch.bool:
+            return tensor
+        want = {"tensor(float)": "floats", "tensor(int64)": "integers (int64)", "tensor(bool)": "booleans"}
+        raise DeployError(f"{self.path} takes {name} as {want.get(kind, kind)}; the batch has {tensor.dtype} (pass the "
+                          "previous call's outputs['memory'] as it is, or build the input with that dtype)")
 
     def initial_memory(self) -> dict[str, torch.Tensor]:
         """An empty memory (``valid`` False) of the file's shapes (a temporal export)."""
@@ -415,12 +437,11 @@ class OnnxModel:
         for name in self.input_names:
             if name not in given:
                 raise DeployError(f"{self.path}: the batch lacks '{name}' (inputs: {', '.join(self.input_names)})")
-            tensor = given[name]
+            tensor = self._input(name, given[name])
             if list(tensor.shape) != self.input_shapes[name]:
                 raise DeployError(f"{self.path} takes {name} of shape {self.input_shapes[name]} (static, batch 1); "
                                   f"the batch has {list(tensor.shape)}")
-            tensor = tensor.detach().cpu()  # floats as float32; the bool and int64 inputs as they are
-            feed[name] = (tensor.float() if tensor.is_floating_point() else tensor).contiguous().numpy()
+            feed[name] = tensor.contiguous().numpy()
         results = dict(zip(self.output_names, (torch.from_numpy(v) for v in self.session.run(
             list(self.output_names), feed))))
         if self.is_temporal:
@@ -518,6 +539,10 @@ def _by_camera(values, field: str, cameras: tuple[str, ...]) -> list:
 def _rgb_array(image, camera: str) -> np.ndarray:
     """An in-memory image as RGB [H, W, 3] uint8 (or float32 on 0..255)."""
     if hasattr(image, "convert") and hasattr(image, "size"):  # a PIL image
+        if getattr(image, "mode", "RGB") not in PIL_8BIT_MODES:  # convert("RGB") clips 16-bit and float pixels
+            raise RigError(f"camera {camera}: a PIL image of mode {image.mode!r} (16-bit or float pixels) would be "
+                           "clipped to 8 bits by its conversion to RGB (all white, or all black); give 8-bit RGB "
+                           "(uint8), or a numpy array of floats on 0..1")
         return np.asarray(image.convert("RGB"))
     if isinstance(image, torch.Tensor):
         if image.ndim != 3 or image.shape[0] != 3:
@@ -541,6 +566,9 @@ def _rgb_array(image, camera: str) -> np.ndarray:
     return image.astype(np.float32) * 255
 
 
+# PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
+# truncates 0..1 values to 0
+PIL_8BIT_MODES = ("1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr")
 FLOAT_IMAGE_SLACK = 0.25  # a resampled 0..1 image may overshoot a little; 0..255 or mean/std-normalised ones do not
 
 
@@ -564,6 +592,27 @@ def _ego_pose(pose) -> torch.Tensor:
     return torch.cat([T[:3], torch.tensor([[0.0, 0.0, 0.0, 1.0]])]) if T.shape == (3, 4) else T
 
 
+def _cam_to_ego(T, camera: str) -> np.ndarray:
+    """A camera's ``cam_to_ego`` as a float64 [4, 4] or [3, 4] array, or a ``RigError`` naming the camera:
+    not a matrix of numbers (a ``(R, t)`` pair), another shape, or a 4x4 whose last row is not (0, 0, 0, 1)
+    (a transposed matrix: its rotation part is still a rotation, and the translation would be dropped)."""
+    if isinstance(T, torch.Tensor):
+        T = T.detach().cpu()
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RigError(f"camera {camera}: 'cam_to_ego' must be one 4x4 (or 3x4) matrix [R | t], got a "
+                       f"{type(T).__name__} that is not one array of numbers; stack a (rotation, translation) pair "
+                       "with np.c_[R, t]") from None
+    if T.shape not in ((4, 4), (3, 4)):
+        raise RigError(f"camera {camera}: 'cam_to_ego' must be a 4x4 (or 3x4) transform, got shape "
+                       f"{list(T.shape)}")
+    if T.shape == (4, 4) and np.isfinite(T).all() and not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
+        raise RigError(f"camera {camera}: 'cam_to_ego' has the last row {T[3].round(4).tolist()}, not [0, 0, 0, 1]: "
+                       "transposed (the translation in the last row)? give [[R, t], [0, 0, 0, 1]]")
+    return T
+
+
 def image_size_of(path: str | Path, camera: str) -> tuple[int, int]:
     """(width, height) of an image file from its header; a ``RigError`` naming the camera and the file
     when it is not a readable image."""
@@ -582,6 +631,8 @@ def with_decoding(cfg: ExperimentConfig, options: Mapping, overrides: Sequence[s
     if unknown:
         raise UserError(f"unknown decoding option(s) {', '.join(unknown)}; the decoding options are "
                         f"{', '.join(DECODE_OPTIONS)} (config model.gnn.*)")
+    if isinstance(overrides, str):  # one "key=value", not its characters
+        overrides = [overrides]
     merged = config_to_dict(cfg)
     deep_update(merged, parse_overrides(list(overrides)))
     merged["model"]["gnn"].update(options)
@@ -688,10 +739,7 @@ class Mapper:
             poses = _by_camera(frame.cam_to_ego, "cam_to_ego poses", self.cameras)
             per: dict[str, list] = {k: [] for k in keys}
             for name, image, K, T in zip(self.cameras, images, Ks, poses):
-                T = np.asarray(T, dtype=np.float64)
-                if T.shape not in ((4, 4), (3, 4)):
-                    raise RigError(f"camera {name}: 'cam_to_ego' must be a 4x4 (or 3x4) transform, got shape "
-                                   f"{list(T.shape)}")
+                T = _cam_to_ego(T, name)
                 if isinstance(image, (str, Path)):
                     size = image_size_of(image, name)
                     calib = check_calibration(name, K, T[:3, :3], T[:3, 3], image_size=size)
@@ -773,6 +821,9 @@ class MapStream:
 
     def step(self, frame: Frame | None = None, /, **fields) -> list[MapElement]:
         frame = frame if frame is not None else Mapper._frame(fields)
+        if not isinstance(frame, Frame):  # a list of frames: a stream takes them one step at a time
+            raise TypeError(f"MapStream.step takes one Frame (or the fields images=, intrinsics=, cam_to_ego=, "
+                            f"ego_pose=), got {type(frame).__name__}; call step() once per frame, in order")
         temporal = bool(getattr(self.mapper.model, "is_temporal", False))
         if temporal and frame.ego_pose is None:
             raise RigError("a temporal model moves its memory with the ego: give every frame of a stream its "

@@ -164,7 +164,11 @@ def lock_out_dir(out_dir: Path) -> None:
 
 def unlock_out_dir(out_dir: Path) -> None:
     """Give up ``lock_out_dir``'s lock on ``out_dir`` (the end of ``train``); nothing if not held."""
-    handle = _LOCKS.pop(str(out_dir.resolve()), None)
+    try:
+        key = str(out_dir.resolve())
+    except (OSError, RuntimeError):  # a loop of links (check_output_dir named it): no lock was taken
+        return
+    handle = _LOCKS.pop(key, None)
     if handle is not None:
         with contextlib.suppress(OSError):
             (out_dir / LOCK_FILE).unlink()  # while still held: the folder is left as the run wrote it

@@ -153,6 +153,8 @@ class CameraCalibration:
 
 
 def _matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu()  # numpy refuses a tensor that requires grad
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -165,6 +167,9 @@ def _matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
     return m
 
 
+# fx < W / 50 (or fy < H / 50): a field of view of more than 2 atan(25) = 175 degrees; intrinsics normalised by
+# the image size (fx ~ 1) are far below, every real pinhole camera far above (nuScenes' widest: fx = W / 2)
+MAX_FOV_RATIO = 50.0
 MAX_CAMERA_OFFSET_M = 100.0  # a camera farther than this from the ego origin is not on the vehicle (mm for m?)
 
 
@@ -186,6 +191,10 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
                        f"{K.round(3).tolist()}); transposed?")
     if image_size is not None:
         w, h = image_size
+        if K[0, 0] < w / MAX_FOV_RATIO or K[1, 1] < h / MAX_FOV_RATIO:  # a field of view over 175 degrees
+            raise RigError(f"{where}: 'intrinsics' has a focal length of (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels "
+                           f"for a {w}x{h} image, a field of view over 175 degrees that no pinhole camera has: "
+                           "intrinsics normalised by the image size (or in millimetres)? give them in pixels")
         if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
             raise RigError(f"{where}: 'intrinsics' put the principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) "
                            f"outside its {w}x{h} image: intrinsics are in the pixels of the image given (scaled "

@@ -16,8 +16,8 @@ whole image fills the window, its aspect ratio changed (the official InstaGraM /
 352 x 128, no crop).
 
 Decoding: JPEG images are decoded with OpenCV's reduced-resolution DCT decode
-(``cv2.IMREAD_REDUCED_COLOR_{2,4,8}``) at the largest factor f in {1, 2, 4, 8} with ``r * f <= 1``
-(so the warp never upsamples the decoded image); decoded pixel ``i`` covers original pixels
+(``cv2.IMREAD_REDUCED_COLOR_{2,4,8}``; other formats, PNG, at full resolution) at the largest factor f
+in {1, 2, 4, 8} with ``r * f <= 1`` (so the warp never upsamples the decoded image); decoded pixel ``i`` covers original pixels
 ``[i f, (i + 1) f)``, i.e. ``u_orig = f * u_dec + (f - 1) / 2``. That factor is composed into the warp,
 so post_rot/post_tran always map *original* pixels, whatever the decode. When the remaining scale is
 below 1/2 (full decode of a large image) the image is first shrunk with ``INTER_AREA``; the final
@@ -118,9 +118,11 @@ def decode_factor(scale: float, reduced: bool = True) -> int:
     return f
 
 
-def read_image(path: str | Path, factor: int = 1) -> np.ndarray:
-    """Decode an image at 1/factor resolution (BGR uint8 [h, w, 3]); ``ImageError`` naming the file
-    when it is missing, unreadable or a truncated JPEG."""
+def read_image(path: str | Path, factor: int = 1) -> tuple[np.ndarray, int]:
+    """Decode an image at 1/factor resolution (BGR uint8 [h, w, 3]) and return it with the factor used:
+    ``factor`` for a JPEG (OpenCV's DCT-domain reduced decode, ceil(W / f) pixels), 1 for any other format
+    (OpenCV shrinks those after decoding, to floor(W / f) pixels: a warp by 1 / f would misplace them).
+    ``ImageError`` naming the file when it is missing, unreadable or a truncated JPEG."""
     path = Path(path)
     try:
         buf = np.fromfile(path, dtype=np.uint8)
@@ -129,10 +131,11 @@ def read_image(path: str | Path, factor: int = 1) -> np.ndarray:
     is_jpeg = len(buf) >= 4 and buf[0] == 0xFF and buf[1] == 0xD8
     if is_jpeg and not (buf[-2] == 0xFF and buf[-1] == 0xD9) and b"\xff\xd9" not in buf[-64:].tobytes():
         raise ImageError(f"camera image is truncated (no JPEG end marker): {path}")
+    factor = factor if is_jpeg else 1
     img = cv2.imdecode(buf, _REDUCED_FLAGS[factor]) if len(buf) else None
     if img is None:
         raise ImageError(f"camera image cannot be decoded (corrupt or not an image): {path}")
-    return img
+    return img, factor
 
 
 def _axis_scales(A: np.ndarray) -> tuple[float, float]:
@@ -158,7 +161,7 @@ def load_image(
     W, H = orig_wh
     A = image_affine(orig_wh, out_hw, aug, fit)
     f = decode_factor(max(_axis_scales(A)), reduced_decode)
-    img = read_image(path, f)
+    img, f = read_image(path, f)
     exp_w, exp_h = math.ceil(W / f), math.ceil(H / f)
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
         raise ImageError(

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from ...config import UserError
-from ...files import atomic_path, remove_stale_temporaries
+from ...files import atomic_path, check_no_broken_link, remove_stale_temporaries
 from .render import MapPainter
 from .roads import build_network
 from .traffic import place_occluders
@@ -131,6 +131,7 @@ def check_workers(workers) -> int:
 
 
 def _check_out(out: FsPath, force: bool) -> None:
+    check_no_broken_link(out, "--out")  # out.resolve() below would follow it (or raise on a loop)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out}: exists and is not a folder; choose another path")
     if out.is_dir() and any(out.iterdir()):
