@@ -5,8 +5,8 @@ checks the promise: a wrong input is named on one line (``UserError``, exit code
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
-fourth). Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no
-training longer than a few steps.
+fourth, ``S5`` one found by a fifth). Everything runs on the tiny synthetic world of conftest.py and a
+random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3", "S4" (more)
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3", "S4", "S5"
     what: str
     run: Callable
 
@@ -1383,6 +1383,219 @@ def row_av2_export_takes_seven_cameras(env):
     torch.manual_seed(0)
     info = export_onnx(build_model(cfg).eval(), cfg, env.tmp / "av2.onnx")
     assert info["inputs"]["images"][1] == 7
+
+# ==================================================================================================
+# The fifth sweep (S5): cases found by a fifth sweep of the same kind
+# ==================================================================================================
+
+
+@row("S5", "Mapper: a transposed 4x4 cam_to_ego (its rotation still a rotation, the translation dropped), a (R, t) "
+          "pair and intrinsics that require grad are named or taken (silently wrong / raw ValueError / raw "
+          "RuntimeError)")
+def row_mapper_cam_to_ego_transposed(env):
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    with pytest.raises(RigError, match=r"camera CAM_FRONT: 'cam_to_ego' has the last row \[1\.70.*, 1\.0\], not "
+                                       r"\[0, 0, 0, 1\]: transposed"):
+        mapper(images=images, intrinsics=K, cam_to_ego={**poses, "CAM_FRONT": poses["CAM_FRONT"].T})
+    with pytest.raises(RigError, match=r"camera CAM_FRONT_LEFT: 'cam_to_ego' must be one 4x4 .* np\.c_\[R, t\]"):
+        mapper(images=images, intrinsics=K, cam_to_ego={c: (T[:3, :3], T[:3, 3]) for c, T in poses.items()})
+    grads = {c: torch.tensor(k, requires_grad=True) for c, k in K.items()}
+    assert mapper(images=images, intrinsics=grads, cam_to_ego=poses) == mapper(images=images, intrinsics=K,
+                                                                              cam_to_ego=poses)
+
+
+@row("S5", "Mapper / predict-images: intrinsics normalised by the image size (fx ~ 1) are named (accepted: the "
+          "principal point (0.5, 0.5) lies inside the image)")
+def row_normalised_intrinsics(env):
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    normalised = {c: k / np.array([[400.0], [225.0], [1.0]]) for c, k in K.items()}
+    with pytest.raises(RigError, match=r"camera CAM_FRONT_LEFT: 'intrinsics' has a focal length of .* field of view "
+                                       r"over 175 degrees .* normalised by the image size"):
+        mapper(images=images, intrinsics=normalised, cam_to_ego=poses)
+
+    def normalise(data):
+        for cam in data["cameras"].values():
+            cam["intrinsics"] = (np.array(cam["intrinsics"]) / [[400], [225], [1]]).tolist()
+
+    _rig_row(normalise, r"rig\.json: camera CAM_FRONT_LEFT: 'intrinsics' has a focal length")(env)
+
+
+@row("S5", "Mapper: a PIL image of 16-bit or float pixels is named (convert('RGB') made it all white or all black)")
+def row_mapper_pil_16bit_and_float(env):
+    from PIL import Image
+
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    gray = images["CAM_FRONT"][..., 0]
+    for image in (Image.fromarray(gray.astype(np.uint16) * 256), Image.fromarray(gray.astype(np.float32) / 255)):
+        with pytest.raises(RigError, match=rf"camera CAM_FRONT: a PIL image of mode '{re.escape(image.mode)}' .* "
+                                           r"clipped to 8 bits"):
+            mapper(images={**images, "CAM_FRONT": image}, intrinsics=K, cam_to_ego=poses)
+    mapper(images={**images, "CAM_FRONT": Image.fromarray(gray)}, intrinsics=K, cam_to_ego=poses)  # 8-bit gray: fine
+
+
+@row("S5", "Mapper / predict-images: PNG frames whose size is not a multiple of the decode factor run (refused: "
+          "'decodes to 200x112 at 1/8, expected 200x113': OpenCV shrinks a PNG to floor(W / f), a JPEG to ceil)")
+def row_png_frames(env):
+    from PIL import Image
+
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.rig import rig
+
+    mapper, _, _, poses = _mapper_frame(env)
+    sensors = rig((1600, 900))  # nuScenes' size; the tiny model's 64 x 160 images decode a JPEG at 1/8
+    v, u = np.mgrid[:900, :1600]
+    arrays = {c: np.stack([(u + 40 * k) % 256, v % 256, (u + v) % 256], -1).astype(np.uint8)
+              for k, c in enumerate(mapper.cameras)}
+    paths = {}
+    for c, a in arrays.items():
+        paths[c] = env.tmp / f"{c}.png"
+        Image.fromarray(a).save(paths[c])
+    K = {c: sensors[c].intrinsic for c in mapper.cameras}
+    from_files = mapper.batch([Frame(images=paths, intrinsics=K, cam_to_ego=poses)])
+    in_memory = mapper.batch([Frame(images=arrays, intrinsics=K, cam_to_ego=poses)])
+    for key in ("images", "post_rot", "post_tran"):  # the PNG decoded whole: the same pixels as the arrays
+        torch.testing.assert_close(from_files[key], in_memory[key])
+
+
+@row("S5", "a device torch knows but this package does not run on (mps, xpu, meta) is named (predict-images --device "
+          "mps and Mapper.from_checkpoint(device='mps') were a raw RuntimeError)")
+def row_device_not_supported(env):
+    from instagram_hdmap import Mapper
+
+    with pytest.raises(UserError, match=r"device=mps is not supported; use auto, cpu, cuda"):
+        Mapper.from_checkpoint(env.ckpt, device="mps")
+    rig, images = _rig_files(env)
+    env.error(r"--device=mps is not supported|device=mps is not supported", "predict-images", "--checkpoint", env.ckpt,
+              "--rig", rig, "--out", env.tmp / "out", "--device", "mps", *images)
+
+
+@row("S5", "an ONNX export of a temporal model given a memory as numpy arrays, int32 indices or a float mask: taken, "
+          "or named (raw onnxruntime errors / AttributeError)")
+def row_onnx_memory_dtypes(env):
+    pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.deploy import export_onnx
+    from instagram_hdmap.inference import DeployError
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(TINY_YAML, ["model.gnn.sinkhorn_iters=3", "model.temporal.memory=bev"])
+    torch.manual_seed(0)
+    path = env.tmp / "t.onnx"
+    export_onnx(build_model(cfg).eval(), cfg, path)
+    mapper = Mapper.from_onnx(path)
+    _, images, K, poses = _mapper_frame(env)
+    batch = mapper.batch([Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=np.eye(4))])
+    model = mapper.model
+    memory = model(batch)["memory"]
+    expected = model(batch, memory)["pred_heatmap"]
+    numpy_memory = {k: v.numpy() for k, v in memory.items()}
+    numpy_memory["frame_index"] = numpy_memory["frame_index"].astype(np.int32)
+    torch.testing.assert_close(model(batch, numpy_memory)["pred_heatmap"], expected)
+    with pytest.raises(DeployError, match=r"t\.onnx takes memory_valid as booleans; the batch has torch\.float32"):
+        model(batch, {**memory, "valid": memory["valid"].float()})
+    with pytest.raises(DeployError, match=r"t\.onnx takes scene_start as booleans; the batch has torch\.int64"):
+        model({**batch, "scene_start": torch.ones(1, dtype=torch.long)}, memory)
+
+
+@row("S5", "an output path through a symbolic link that leads nowhere (a loop, an unmounted disk) is named before the "
+          "work (evaluate, train, synth: raw FileExistsError / RuntimeError), and a result written at a symbolic link "
+          "updates the file it points to (the link was replaced, the file left stale)")
+def row_output_path_broken_symlink(env):
+    dangling, loop = env.tmp / "dangling", env.tmp / "loop"
+    dangling.symlink_to(env.tmp / "unmounted" / "runs")
+    loop.symlink_to(env.tmp / "loop2")
+    (env.tmp / "loop2").symlink_to(loop)
+    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
+    env.error(r"--out .*dangling: .*dangling is a symbolic link to .*unmounted/runs, which leads nowhere", "evaluate",
+              env.yaml, "--checkpoint", env.ckpt, "--out", dangling)
+    env.error(r"--out .*loop/e: .*loop is a symbolic link to .*loop2, which leads nowhere", "evaluate", env.yaml,
+              "--checkpoint", env.ckpt, "--out", loop / "e")
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"train\.out_dir .*loop: .*leads nowhere", "train", env.yaml, f"train.out_dir={loop}")
+    env.error(r"--out .*dangling: .*leads nowhere", "synth", "--out", dangling, "--scenes-train", "1", "--scenes-val",
+              "0", "--samples-per-scene", "1", "--image-size", "160x90")
+    assert not (env.tmp / "unmounted").exists()
+    target, link = env.tmp / "shared_metrics.json", env.tmp / "metrics.json"
+    target.write_text('{"old": 1}')
+    link.symlink_to(target)
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    env.monkeypatch.undo()
+    rc, _, err = env.cli("evaluate-json", "--pred", gt, "--gt", gt, "--out", link)
+    assert rc == 0, err[-2000:]
+    assert link.is_symlink() and json.loads(target.read_text())["protocol"] == "vector"
+
+
+@row("S5", "demo: a model setting that cannot be built (data.image_size=[30,30]) or an AV2 config is named before the "
+          "worlds are generated (minutes; the AV2 config then failed on data.splits_file)")
+def row_demo_model_checked_first(env):
+    forbid(env, "instagram_hdmap.demo.ensure_world", "world generation")
+    env.error(r"'data\.image_size': 30x30 .*multiples of 32", "demo", "--out", env.tmp / "demo", "--cache",
+              env.tmp / "cache", "data.image_size=[30,30]")
+    env.error(r"--config .*synthetic_demo\.yaml sets data\.dataset=av2, but the demo's synthetic worlds are in the "
+              r"nuScenes layout", "demo", "--out", env.tmp / "demo", "--cache", env.tmp / "cache", "--config",
+              REPO / "configs" / "av2" / "synthetic_demo.yaml")
+
+
+@row("S5", "nuScenes tables: a record that names a token its table does not hold (annotations of a removed sample) is "
+          "explained (was 'KeyError: <token>')")
+def row_table_dangling_reference(env):
+    def remove_a_sample(tables):
+        sd, _ = camera_record(tables, "CAM_FRONT", 2)  # the val scene's last sample, with its annotations kept
+        token = sd["sample_token"]
+        tables["sample"] = [s for s in tables["sample"] if s["token"] != token]
+        tables["sample_data"] = [s for s in tables["sample_data"] if s["sample_token"] != token]
+        first(tables["sample"], next=token)["next"] = ""
+
+    root = env.shadow_world(remove_a_sample)
+    env.error(r"a record refers to token '\w+' that no record of the table it points into holds", "evaluate", env.yaml,
+              f"data.dataroot={root}", "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+
+
+@row("S5", "MapStream.step given a list of frames is a TypeError that says to step once per frame (was an "
+          "AttributeError on 'ego_pose')")
+def row_stream_step_list(env):
+    from instagram_hdmap import Frame
+
+    mapper, images, K, poses = _mapper_frame(env)
+    with pytest.raises(TypeError, match=r"MapStream\.step takes one Frame .* got list; call step\(\) once per frame"):
+        mapper.stream().step([Frame(images=images, intrinsics=K, cam_to_ego=poses)])
+
+
+@row("S5", "Mapper.from_checkpoint(overrides='key=value'), a string: one override (its characters were read as "
+          "overrides: \"override 'm' must look like key.sub=value\")")
+def row_mapper_overrides_string(env):
+    from instagram_hdmap import Mapper
+
+    assert Mapper.from_checkpoint(env.ckpt, device="cpu", overrides="model.gnn.num_vertices=32").config.model.gnn \
+        .num_vertices == 32
+
+
+@row("S5", "export-onnx of a temporal checkpoint with a single-frame CONFIG names model.temporal.memory='bev' (CONFIG: "
+          "'none') (it listed four keys as 'CONFIG: None')")
+def row_export_onnx_temporal_config_named(env):
+    pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(env.yaml, ["model.temporal.memory=bev"])
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)}, env.tmp / "t.pt")
+    forbid(env, "instagram_hdmap.deploy.export_onnx", "the export")
+    line = env.error(r"t\.pt is from another config: it was trained with model\.temporal\.memory='bev' \(CONFIG: "
+                     r"'none'\); pass the config", "export-onnx", env.yaml, "--checkpoint", ckpt, "--out",
+                     env.tmp / "t.onnx")
+    assert "None" not in line
+
+
+@row("S5", "eval.thresholds with a threshold twice is named (mAP, their mean, counted it twice)")
+def row_eval_thresholds_twice(env):
+    env.error(r"'eval\.thresholds' lists a threshold twice", "model-summary", env.yaml, "eval.thresholds=[0.5,0.5,1.0]")
+
+
 
 # --- the test: every row of the table ---------------------------------------------------------------
 

@@ -40,8 +40,8 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .models import build_model
 from .files import check_no_broken_link, remove_stale_temporaries, write_json
+from .models import build_model
 from .predict import predict_sample, run_evaluation
 from .schedule import final_lr_factor
 from .train import train
@@ -220,7 +220,8 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
         raise DemoError(f"--config {config} sets data.dataset={cfg.data.dataset}, but the demo's synthetic worlds are "
                         "in the nuScenes layout; give a config of data.dataset=nuscenes (configs/synthetic/, "
                         "configs/temporal/synthetic.yaml), or train on your own world with instagram-hdmap train")
-    build_model(load_config(config, [*world_overrides(cache_dir / "world"), *overrides]))  # the checks across model keys (data.image_size, grid.cell_size, ...) live there
+    # the checks across model keys (data.image_size, grid.cell_size, ...) live in build_model
+    build_model(load_config(config, [*world_overrides(cache_dir / "world"), *overrides]))
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
     print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "

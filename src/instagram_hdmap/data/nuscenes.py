@@ -57,9 +57,9 @@ def open_nuscenes(dataroot: str | Path, version: str):
     try:
         return NuScenes(version=version, dataroot=str(root), verbose=False)
     except KeyError as e:  # the devkit's reverse index: a record names a token that its table does not hold
-        raise DatasetError(f"cannot load nuScenes tables from {table_root}: a record refers to token {e} that no record "
-                           "of the table it points into holds (a record removed from one table but still named by "
-                           "another, e.g. a sample_annotation of a removed sample); remove or fix the referring "
+        raise DatasetError(f"cannot load nuScenes tables from {table_root}: a record refers to token {e} that no "
+                           "record of the table it points into holds (a record removed from one table but still named "
+                           "by another, e.g. a sample_annotation of a removed sample); remove or fix the referring "
                            "records") from None
     except (AssertionError, ValueError, OSError, json.JSONDecodeError) as e:
         raise DatasetError(f"cannot load nuScenes tables from {table_root}: {type(e).__name__}: {e}") from None

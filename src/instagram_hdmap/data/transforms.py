@@ -17,11 +17,11 @@ whole image fills the window, its aspect ratio changed (the official InstaGraM /
 
 Decoding: JPEG images are decoded with OpenCV's reduced-resolution DCT decode
 (``cv2.IMREAD_REDUCED_COLOR_{2,4,8}``; other formats, PNG, at full resolution) at the largest factor f
-in {1, 2, 4, 8} with ``r * f <= 1`` (so the warp never upsamples the decoded image); decoded pixel ``i`` covers original pixels
-``[i f, (i + 1) f)``, i.e. ``u_orig = f * u_dec + (f - 1) / 2``. That factor is composed into the warp,
-so post_rot/post_tran always map *original* pixels, whatever the decode. When the remaining scale is
-below 1/2 (full decode of a large image) the image is first shrunk with ``INTER_AREA``; the final
-resample is one bilinear ``cv2.warpAffine``.
+in {1, 2, 4, 8} with ``r * f <= 1`` (so the warp never upsamples the decoded image); decoded pixel ``i``
+covers original pixels ``[i f, (i + 1) f)``, i.e. ``u_orig = f * u_dec + (f - 1) / 2``. That factor is
+composed into the warp, so post_rot/post_tran always map *original* pixels, whatever the decode. When
+the remaining scale is below 1/2 (full decode of a large image) the image is first shrunk with
+``INTER_AREA``; the final resample is one bilinear ``cv2.warpAffine``.
 """
 
 from __future__ import annotations
