@@ -417,6 +417,28 @@ def row_skip_mode_batch(env):
     assert len(submission["results"]) == 2
 
 
+@row("S4", "a temporal model with data.on_bad_sample=skip and a bad frame: the frame counts as a missing one (was: "
+          "its stand-in came twice and the stream stopped with a frame-order error, exit 2)")
+def row_skip_mode_temporal(env):
+    from instagram_hdmap.models import build_model
+
+    root = env.shadow_world(copy_samples=True)
+    _break_image(root, root, 0, "CAM_FRONT", "missing")  # the first frame of the validation scene
+    temporal = ["model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3"]
+    torch.manual_seed(0)
+    cfg = env.cfg(*temporal)
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    rc, out, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", *temporal,
+                           "--checkpoint", ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-3000:]
+    metrics = json.loads((env.tmp / "eval" / "metrics.json").read_text())
+    assert metrics["counters"]["samples"] == 2 and re.search(r"1 bad sample", out)
+    # the bad frame is a missing one; the stand-in is not fused, and the next frame starts a new memory
+    memory = metrics["memory"]
+    assert memory["memory_missing_frame"] == 1 and memory["memory_fused"] == 1, memory
+
+
 @row("7", "a 0-byte .pt is named as empty")
 def row_empty_checkpoint(env):
     path = env.tmp / "empty.pt"
