@@ -159,11 +159,13 @@ def _replace(src: Path, dst: Path) -> None:
 def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
     success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
-    docstring)."""
+    docstring). The temporaries of ``path`` that killed writers left are removed first
+    (``remove_stale_temporaries``): every atomic writer owns its target's leftovers."""
     path = Path(path)
     tmp = temporary_sibling(path, tag, keep_suffix)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path, tag)
         yield tmp
         if tmp.is_file():
             if path.is_dir() and not path.is_symlink():

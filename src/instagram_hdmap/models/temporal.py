@@ -19,7 +19,8 @@ the ego moved more than ``max_jump_m`` since the memory's frame (``POSE_JUMP``),
 follow the memory's frame (``frame_index`` not one more: ``MISSING_FRAME``), or, in training, the
 memory was dropped at random (``DROPPED``). A batch row flagged ``replaced`` (``data.on_bad_sample=skip``
 put another sample in place of a bad frame) is a missing frame: ``MISSING_FRAME``, never fused, and the
-memory it leaves is empty (the next frame starts anew, ``NO_MEMORY``). A sample that does not fuse uses its own features only
+memory it leaves is empty (the next frame starts anew, ``NO_MEMORY``).
+A sample that does not fuse uses its own features only
 (the fusion still runs, with an all-invalid history, so every parameter always gets a gradient) and
 starts a new memory. A frame index at or below the memory's one, without a scene start, is frames out
 of order: ``FrameOrderError`` naming the scene (eager mode; an exported graph or a captured CUDA graph
