@@ -1033,6 +1033,17 @@ for _name, _edit, _pattern in (
     ROWS.append(Row(_name, "S2", f"predict-images: {_name} (was silently wrong)", _rig_row(_edit, _pattern)))
 
 
+def _quaternions_xyzw(data: dict) -> None:
+    """Every camera's quaternion written [x, y, z, w] (scipy's, ROS's order) where [w, x, y, z] is read."""
+    for cam in data["cameras"].values():
+        cam["quaternion"] = [*cam["quaternion"][1:], cam["quaternion"][0]]
+
+
+ROWS.append(Row("rig_quaternion_xyzw", "S4", "predict-images: a rig file's quaternions in [x, y, z, w] order are named "
+                "(four of six cameras looked 55-71 degrees up or down: a map from the sky, exit 0)",
+                _rig_row(_quaternions_xyzw, r"camera CAM_FRONT_LEFT: the camera looks 55 degrees up.*\[x, y, z, w\]")))
+
+
 @row("S2", "predict-images: a binary file given as --rig is named (was a UnicodeDecodeError)")
 def row_rig_file_binary(env):
     path, images = _rig_files(env)
