@@ -21,6 +21,10 @@ Both start from the same weights, so the seed's own spread cancels in the paired
 
     python benchmarks/temporal.py --minutes 12 --seeds 0 1 --configs single --finetune 1200
 
+``--finetune-base DIR`` takes the single-frame checkpoints of an earlier ``--out`` (nothing is trained but
+the fine-tunings; the start is evaluated too, ``single_base``); ``--val-scenes N`` validates on a world of N
+scenes instead of the demo's 4 (the AP of 80 frames moves by a few hundredths between equal models).
+
 Worlds are cached (``--cache``, as the demo's). Run one config at a time on a quiet machine with
 ``OMP_NUM_THREADS`` unset; ``--threads`` sets torch's threads explicitly.
 """
@@ -39,7 +43,9 @@ CONFIGS = {"single": REPO / "configs" / "synthetic" / "demo.yaml",
 
 
 def run_one(name: str, seed: int, args, roots, config: str | None = None, extra: tuple[str, ...] = (),
-            budget: list[str] | None = None) -> dict:
+            budget: list[str] | None = None, checkpoint: Path | None = None) -> dict:
+    """Train ``config`` (``name``'s folder) and evaluate it on the validation world; with ``checkpoint``,
+    evaluate that checkpoint only (no training)."""
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import world_overrides
     from instagram_hdmap.predict import run_evaluation
@@ -57,13 +63,16 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
             f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
     common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
               *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override, *extra]
-    cfg = load_config(CONFIGS[config], [*world_overrides(train_root), *common])
-    t0 = time.perf_counter()
-    summary = train(cfg, force=True, validate=False)
-    train_s = time.perf_counter() - t0
+    summary, train_s = {}, 0.0
+    if checkpoint is None:
+        cfg = load_config(CONFIGS[config], [*world_overrides(train_root), *common])
+        t0 = time.perf_counter()
+        summary = train(cfg, force=True, validate=False)
+        train_s = time.perf_counter() - t0
+        checkpoint = out / "run" / "last.pt"
     val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common])
-    metrics = run_evaluation(val_cfg, out / "run" / "last.pt", "vector", out / "eval")["metrics"]
-    result = {"config": name, "seed": seed, "steps": summary.get("step"), "train_s": round(train_s, 1),
+    metrics = run_evaluation(val_cfg, checkpoint, "vector", out / "eval")["metrics"]
+    result = {"config": name, "seed": seed, "steps": summary.get("step", 0), "train_s": round(train_s, 1),
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
                                                         "flicker_detected_mean", "pairs", "pairs_detected")},
@@ -104,12 +113,13 @@ def table(results: list[dict]) -> str:
 
 def finetune_runs(seed: int, args, roots) -> list[dict]:
     """Both models continued from seed's single-frame checkpoint for ``args.finetune`` steps (module docstring)."""
-    base = Path(args.out) / f"single_seed{seed}" / "run" / "last.pt"
+    base = Path(args.finetune_base or args.out) / f"single_seed{seed}" / "run" / "last.pt"
     epochs = math.ceil(args.finetune / 120)
     budget = [f"train.max_steps={args.finetune}", f"train.epochs={epochs}", f"train.lr_step={epochs}",
               f"train.lr={args.finetune_lr}", f"train.init_from={base}"]
     trainable = [] if args.finetune_trainable == "all" else ["train.trainable=[temporal]"]
-    return [run_one("single_ft", seed, args, roots, "single", (), budget),
+    return [run_one("single_base", seed, args, roots, "single", checkpoint=base),
+            run_one("single_ft", seed, args, roots, "single", (), budget),
             run_one("temporal_ft", seed, args, roots, "temporal", ("train.stream_warmup=0", *trainable), budget)]
 
 
@@ -150,6 +160,10 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=1, help="world generation processes")
     p.add_argument("--finetune", type=int, metavar="STEPS",
                    help="then continue both models from each seed's single-frame checkpoint for STEPS steps")
+    p.add_argument("--finetune-base", metavar="DIR",
+                   help="the single-frame checkpoints to start from: DIR/single_seedS/run/last.pt (default: --out)")
+    p.add_argument("--val-scenes", type=int, default=VAL_WORLD["scenes_val"],
+                   help="scenes of the validation world (more: less noise in the AP and flicker)")
     p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
     p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
                    help="what the temporal fine-tuning trains (the single-frame one trains everything)")
@@ -158,8 +172,10 @@ def main() -> None:
     args = p.parse_args()
     cache = Path(args.cache) if args.cache else default_cache_dir()
     train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
-    val_root, _ = ensure_world(cache, {**VAL_WORLD, "occluders": args.occluders}, workers=args.workers)
-    results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs]
+    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": args.occluders},
+                               workers=args.workers)
+    results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs
+               if not (args.finetune and args.finetune_base)]
     if args.finetune:
         results += [r for seed in args.seeds for r in finetune_runs(seed, args, (train_root, val_root))]
     Path(args.out).mkdir(parents=True, exist_ok=True)
