@@ -54,24 +54,31 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     train_root, val_root = roots
     config = config or name
     out = Path(args.out) / f"{name}_seed{seed}"
-    done = out / "result.json"
+    done = out / result_name(args)
     if done.is_file():
         return json.loads(done.read_text())
+    trained = [p for p in out.glob("result*.json") if p != done]  # evaluated on another validation world
+    steps = 0
+    if checkpoint is None and trained:
+        checkpoint = out / "run" / "last.pt"
+        steps = json.loads(trained[0].read_text()).get("steps", 0)
     if budget is None:
         budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
             f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
             f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
     common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
               *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override, *extra]
-    summary, train_s = {}, 0.0
+    summary, train_s = ({"step": steps} if trained else {}), 0.0
     if checkpoint is None:
         cfg = load_config(CONFIGS[config], [*world_overrides(train_root), *common])
         t0 = time.perf_counter()
         summary = train(cfg, force=True, validate=False)
         train_s = time.perf_counter() - t0
         checkpoint = out / "run" / "last.pt"
+    else:
+        train_s = json.loads(trained[0].read_text()).get("train_s", 0.0) if trained else 0.0
     val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common])
-    metrics = run_evaluation(val_cfg, checkpoint, "vector", out / "eval")["metrics"]
+    metrics = run_evaluation(val_cfg, checkpoint, "vector", out / f"eval{result_name(args)[6:-5]}")["metrics"]
     result = {"config": name, "seed": seed, "steps": summary.get("step", 0), "train_s": round(train_s, 1),
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
@@ -79,6 +86,14 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
               "memory": metrics.get("memory")}
     done.write_text(json.dumps(result, indent=1))
     return result
+
+
+def result_name(args) -> str:
+    """A run's result file: ``result.json`` on the demo's validation world, ``result_valN.json`` on N scenes (a
+    finished run evaluated on another world is evaluated again, not trained again)."""
+    from instagram_hdmap.demo import VAL_WORLD
+
+    return "result.json" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}.json"
 
 
 def table(results: list[dict]) -> str:
@@ -118,8 +133,8 @@ def finetune_runs(seed: int, args, roots) -> list[dict]:
     budget = [f"train.max_steps={args.finetune}", f"train.epochs={epochs}", f"train.lr_step={epochs}",
               f"train.lr={args.finetune_lr}", f"train.init_from={base}"]
     trainable = [] if args.finetune_trainable == "all" else ["train.trainable=[temporal]"]
-    return [run_one("single_base", seed, args, roots, "single", checkpoint=base),
-            run_one("single_ft", seed, args, roots, "single", (), budget),
+    start = [run_one("single_base", seed, args, roots, "single", checkpoint=base)] if args.finetune_base else []
+    return [*start, run_one("single_ft", seed, args, roots, "single", (), budget),
             run_one("temporal_ft", seed, args, roots, "temporal", ("train.stream_warmup=0", *trainable), budget)]
 
 
