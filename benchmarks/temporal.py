@@ -126,6 +126,9 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+FT_NAMES = {"temporal": "temporal_ft", "all": "temporal_ft_all"}  # the fine-tuned temporal runs' names
+
+
 def finetune_runs(seed: int, args, roots) -> list[dict]:
     """Both models continued from seed's single-frame checkpoint for ``args.finetune`` steps (module docstring)."""
     base = Path(args.finetune_base or args.out) / f"single_seed{seed}" / "run" / "last.pt"
@@ -135,20 +138,22 @@ def finetune_runs(seed: int, args, roots) -> list[dict]:
     trainable = [] if args.finetune_trainable == "all" else ["train.trainable=[temporal]"]
     start = [run_one("single_base", seed, args, roots, "single", checkpoint=base)] if args.finetune_base else []
     return [*start, run_one("single_ft", seed, args, roots, "single", (), budget),
-            run_one("temporal_ft", seed, args, roots, "temporal", ("train.stream_warmup=0", *trainable), budget)]
+            run_one(FT_NAMES[args.finetune_trainable], seed, args, roots, "temporal",
+                    ("train.stream_warmup=0", *trainable), budget)]
 
 
 def paired(results: list[dict]) -> str:
     """Per seed: temporal_ft - single_ft (the same start), and their means."""
     by = {(r["config"], r["seed"]): r for r in results}
-    seeds = sorted({s for c, s in by if c == "temporal_ft" and ("single_ft", s) in by})
+    name = next((c for c, _ in by if c in FT_NAMES.values()), None)
+    seeds = sorted({s for c, s in by if c == name and ("single_ft", s) in by})
     if not seeds:
         return ""
     classes = list(results[0]["AP_class"])
-    lines = ["paired (temporal_ft - single_ft, the same single-frame start):"]
+    lines = [f"paired ({name} - single_ft, the same single-frame start):"]
     diffs = []
     for s in seeds:
-        t, b = by[("temporal_ft", s)], by[("single_ft", s)]
+        t, b = by[(name, s)], by[("single_ft", s)]
         d = {c: t["AP_class"][c] - b["AP_class"][c] for c in classes}
         diffs.append((t["mAP"] - b["mAP"], t["flicker_mean"] / max(b["flicker_mean"], 1e-9), d))
         lines.append(f"  seed {s}: mAP {diffs[-1][0]:+.3f}, flicker x{diffs[-1][1]:.2f}; "
