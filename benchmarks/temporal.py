@@ -13,6 +13,18 @@ of another seed, road networks never seen in training), vector protocol, with th
 ratios of mAP and flicker. ``OUT/results.json`` holds everything; a finished run is reused (delete its
 folder to redo it).
 
+With ``--finetune STEPS`` (after the runs above, whose single-frame checkpoints are the start), both models
+continue from each seed's trained single-frame model for STEPS steps at ``--finetune-lr``: the single-frame
+one as it is (``single_ft``), the temporal one (``temporal_ft``) with only ``--finetune-trainable`` (default:
+the memory fusion, ``train.trainable=[temporal]``; ``all``: everything) trained on streams from the start.
+Both start from the same weights, so the seed's own spread cancels in the paired difference:
+
+    python benchmarks/temporal.py --minutes 12 --seeds 0 1 --configs single --finetune 1200
+
+``--finetune-base DIR`` takes the single-frame checkpoints of an earlier ``--out`` (nothing is trained but
+the fine-tunings; the start is evaluated too, ``single_base``); ``--val-scenes N`` validates on a world of N
+scenes instead of the demo's 4 (the AP of 80 frames moves by a few hundredths between equal models).
+
 Worlds are cached (``--cache``, as the demo's). Run one config at a time on a quiet machine with
 ``OMP_NUM_THREADS`` unset; ``--threads`` sets torch's threads explicitly.
 """
@@ -30,35 +42,58 @@ CONFIGS = {"single": REPO / "configs" / "synthetic" / "demo.yaml",
            "temporal": REPO / "configs" / "temporal" / "synthetic.yaml"}
 
 
-def run_one(name: str, seed: int, args, roots) -> dict:
+def run_one(name: str, seed: int, args, roots, config: str | None = None, extra: tuple[str, ...] = (),
+            budget: list[str] | None = None, checkpoint: Path | None = None) -> dict:
+    """Train ``config`` (``name``'s folder) and evaluate it on the validation world; with ``checkpoint``,
+    evaluate that checkpoint only (no training)."""
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import world_overrides
     from instagram_hdmap.predict import run_evaluation
     from instagram_hdmap.train import train
 
     train_root, val_root = roots
+    config = config or name
     out = Path(args.out) / f"{name}_seed{seed}"
-    done = out / "result.json"
+    done = out / result_name(args)
     if done.is_file():
         return json.loads(done.read_text())
-    budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
-        f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
-        f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
+    trained = [p for p in out.glob("result*.json") if p != done]  # evaluated on another validation world
+    steps = 0
+    if checkpoint is None and trained:
+        checkpoint = out / "run" / "last.pt"
+        steps = json.loads(trained[0].read_text()).get("steps", 0)
+    if budget is None:
+        budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
+            f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
+            f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
     common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
-              *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override]
-    cfg = load_config(CONFIGS[name], [*world_overrides(train_root), *common])
-    t0 = time.perf_counter()
-    summary = train(cfg, force=True, validate=False)
-    train_s = time.perf_counter() - t0
-    val_cfg = load_config(CONFIGS[name], [*world_overrides(val_root), *common])
-    metrics = run_evaluation(val_cfg, out / "run" / "last.pt", "vector", out / "eval")["metrics"]
-    result = {"config": name, "seed": seed, "steps": summary.get("step"), "train_s": round(train_s, 1),
+              *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override, *extra]
+    summary, train_s = ({"step": steps} if trained else {}), 0.0
+    if checkpoint is None:
+        cfg = load_config(CONFIGS[config], [*world_overrides(train_root), *common])
+        t0 = time.perf_counter()
+        summary = train(cfg, force=True, validate=False)
+        train_s = time.perf_counter() - t0
+        checkpoint = out / "run" / "last.pt"
+    else:
+        train_s = json.loads(trained[0].read_text()).get("train_s", 0.0) if trained else 0.0
+    val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common])
+    metrics = run_evaluation(val_cfg, checkpoint, "vector", out / f"eval{result_name(args)[6:-5]}")["metrics"]
+    result = {"config": name, "seed": seed, "steps": summary.get("step", 0), "train_s": round(train_s, 1),
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
                                                         "flicker_detected_mean", "pairs", "pairs_detected")},
               "memory": metrics.get("memory")}
     done.write_text(json.dumps(result, indent=1))
     return result
+
+
+def result_name(args) -> str:
+    """A run's result file: ``result.json`` on the demo's validation world, ``result_valN.json`` on N scenes (a
+    finished run evaluated on another world is evaluated again, not trained again)."""
+    from instagram_hdmap.demo import VAL_WORLD
+
+    return "result.json" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}.json"
 
 
 def table(results: list[dict]) -> str:
@@ -91,6 +126,45 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+FT_NAMES = {"temporal": "temporal_ft", "all": "temporal_ft_all"}  # the fine-tuned temporal runs' names
+
+
+def finetune_runs(seed: int, args, roots) -> list[dict]:
+    """Both models continued from seed's single-frame checkpoint for ``args.finetune`` steps (module docstring)."""
+    base = Path(args.finetune_base or args.out) / f"single_seed{seed}" / "run" / "last.pt"
+    epochs = math.ceil(args.finetune / 120)
+    budget = [f"train.max_steps={args.finetune}", f"train.epochs={epochs}", f"train.lr_step={epochs}",
+              f"train.lr={args.finetune_lr}", f"train.init_from={base}"]
+    trainable = [] if args.finetune_trainable == "all" else ["train.trainable=[temporal]"]
+    start = [run_one("single_base", seed, args, roots, "single", checkpoint=base)] if args.finetune_base else []
+    return [*start, run_one("single_ft", seed, args, roots, "single", (), budget),
+            run_one(FT_NAMES[args.finetune_trainable], seed, args, roots, "temporal",
+                    ("train.stream_warmup=0", *trainable), budget)]
+
+
+def paired(results: list[dict]) -> str:
+    """Per seed: temporal_ft - single_ft (the same start), and their means."""
+    by = {(r["config"], r["seed"]): r for r in results}
+    name = next((c for c, _ in by if c in FT_NAMES.values()), None)
+    seeds = sorted({s for c, s in by if c == name and ("single_ft", s) in by})
+    if not seeds:
+        return ""
+    classes = list(results[0]["AP_class"])
+    lines = [f"paired ({name} - single_ft, the same single-frame start):"]
+    diffs = []
+    for s in seeds:
+        t, b = by[(name, s)], by[("single_ft", s)]
+        d = {c: t["AP_class"][c] - b["AP_class"][c] for c in classes}
+        diffs.append((t["mAP"] - b["mAP"], t["flicker_mean"] / max(b["flicker_mean"], 1e-9), d))
+        lines.append(f"  seed {s}: mAP {diffs[-1][0]:+.3f}, flicker x{diffs[-1][1]:.2f}; "
+                     + ", ".join(f"{c} {v:+.3f}" for c, v in d.items()))
+    n = len(diffs)
+    lines.append(f"  mean: mAP {sum(x[0] for x in diffs) / n:+.3f}, flicker x{sum(x[1] for x in diffs) / n:.2f}; "
+                 + ", ".join(f"{c} {sum(x[2][c] for x in diffs) / n:+.3f}" for c in classes)
+                 + " (target: mAP +0.05, flicker x0.5)")
+    return "\n".join(lines)
+
+
 def main() -> None:
     from instagram_hdmap.demo import VAL_WORLD, WORLD, default_cache_dir, ensure_world
 
@@ -104,17 +178,32 @@ def main() -> None:
     p.add_argument("--cache", help="world cache (default: the demo's)")
     p.add_argument("--threads", type=int, help="torch threads (train.cpu_threads)")
     p.add_argument("--workers", type=int, default=1, help="world generation processes")
+    p.add_argument("--finetune", type=int, metavar="STEPS",
+                   help="then continue both models from each seed's single-frame checkpoint for STEPS steps")
+    p.add_argument("--finetune-base", metavar="DIR",
+                   help="the single-frame checkpoints to start from: DIR/single_seedS/run/last.pt (default: --out)")
+    p.add_argument("--val-scenes", type=int, default=VAL_WORLD["scenes_val"],
+                   help="scenes of the validation world (more: less noise in the AP and flicker)")
+    p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
+    p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
+                   help="what the temporal fine-tuning trains (the single-frame one trains everything)")
     p.add_argument("--set", dest="override", nargs="+", default=[], metavar="KEY=VALUE",
                    help="config overrides for both models")
     args = p.parse_args()
     cache = Path(args.cache) if args.cache else default_cache_dir()
     train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
-    val_root, _ = ensure_world(cache, {**VAL_WORLD, "occluders": args.occluders}, workers=args.workers)
-    results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs]
+    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": args.occluders},
+                               workers=args.workers)
+    results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs
+               if not (args.finetune and args.finetune_base)]
+    if args.finetune:
+        results += [r for seed in args.seeds for r in finetune_runs(seed, args, (train_root, val_root))]
     Path(args.out).mkdir(parents=True, exist_ok=True)
     (Path(args.out) / "results.json").write_text(json.dumps({"args": vars(args), "runs": results}, indent=1))
     print(f"worlds: {train_root} (train), {val_root} (validation, unseen roads), occluders {args.occluders}")
     print(table(results))
+    if args.finetune:
+        print(paired(results))
 
 
 if __name__ == "__main__":

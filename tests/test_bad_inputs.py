@@ -417,6 +417,120 @@ def row_skip_mode_batch(env):
     assert len(submission["results"]) == 2
 
 
+@row("S4", "a temporal model with data.on_bad_sample=skip and a bad frame: the frame counts as a missing one (was: "
+          "its stand-in came twice and the stream stopped with a frame-order error, exit 2)")
+def row_skip_mode_temporal(env):
+    from instagram_hdmap.models import build_model
+
+    root = env.shadow_world(copy_samples=True)
+    _break_image(root, root, 0, "CAM_FRONT", "missing")  # the first frame of the validation scene
+    temporal = ["model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3"]
+    torch.manual_seed(0)
+    cfg = env.cfg(*temporal)
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    rc, out, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", *temporal,
+                           "--checkpoint", ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-3000:]
+    metrics = json.loads((env.tmp / "eval" / "metrics.json").read_text())
+    assert metrics["counters"]["samples"] == 2 and re.search(r"1 bad sample", out)
+    # the bad frame is a missing one; the stand-in is not fused, and the next frame starts a new memory
+    memory = metrics["memory"]
+    assert memory["memory_missing_frame"] == 1 and memory["memory_fused"] == 1, memory
+
+
+@row("S4", "the temporary file of an export-onnx killed mid-write (kill -9) is removed by the next export to that path")
+def row_killed_export_leaves_no_temporary(env):
+    pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
+    from instagram_hdmap.deploy import export_onnx
+    from instagram_hdmap.models import build_model
+
+    out = env.tmp / "model.onnx"
+    stale = out.with_name(f".model.onnx.tmp-{dead_pid()}")
+    stale.write_bytes(b"half an ONNX file")
+    cfg = env.cfg("model.gnn.sinkhorn_iters=3")
+    torch.manual_seed(0)
+    export_onnx(build_model(cfg).eval(), cfg, out)
+    assert out.is_file() and not stale.exists()
+    assert [p.name for p in env.tmp.iterdir() if p.name.startswith(".")] == []
+
+
+@row("S4", "Mapper: a ground_height of 50 (millimetres, or a height above sea level) is a RigError (the IPM plane "
+          "was put 50 m under the cameras: exit 0)")
+def row_mapper_ground_height_out_of_range(env):
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    for height in (50.0, -350.0):
+        with pytest.raises(RigError, match=r"ground_height is the road's height in the ego frame, within 5 m"):
+            mapper(Frame(images=images, intrinsics=K, cam_to_ego=poses, ground_height=height))
+    assert isinstance(mapper(Frame(images=images, intrinsics=K, cam_to_ego=poses, ground_height=-0.35)), list)  # AV2
+
+
+@row("S4", "predict/evaluate take data.image_fit from the checkpoint, with a note when the CONFIG differs (images were "
+          "fitted unlike in training without a word)")
+def row_checkpoint_image_fit(env):
+    from instagram_hdmap.inference import inference_config
+
+    trained = load_config(TINY_YAML, ["data.image_fit=contain"])
+    out, notes = inference_config(load_config(TINY_YAML), config_to_dict(trained))
+    assert out.data.image_fit == "contain"
+    assert any("data.image_fit='contain' (CONFIG: 'cover')" in n for n in notes), notes
+    out, notes = inference_config(load_config(TINY_YAML, ["data.image_fit=stretch"]), config_to_dict(trained),
+                                  ["data.image_fit=stretch"])  # the command line wins, and says so
+    assert out.data.image_fit == "stretch" and any("data.image_fit='contain' with 'stretch'" in n for n in notes)
+
+
+@row("S4", "predict --index of a temporal model says where its memory comes from (ran silently)")
+def row_temporal_predict_says_its_memory(env):
+    from instagram_hdmap.models import build_model
+
+    temporal = ["model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3"]
+    torch.manual_seed(0)
+    cfg = env.cfg(*temporal)
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    for index, said in ((1, r"its memory comes from the 1 earlier frame\(s\) of scene"), (0, r"no memory")):
+        rc, out, err = env.cli("predict", env.yaml, *temporal, "--checkpoint", ckpt, "--index", index,
+                               "--out", env.tmp / f"p{index}")
+        assert rc == 0 and re.search(said, out + err), (out + err)[-2000:]
+
+
+@row("S4", "evaluate: a flicker of nan (no element seen in two consecutive frames: one-frame scenes) is explained")
+def row_flicker_nan_explained(env):
+    import instagram_hdmap.cli as cli
+
+    real = cli.run_evaluation
+
+    def one_frame_scenes(*args, **kwargs):  # the real evaluation, as a world of one-frame scenes would end it
+        result = real(*args, **kwargs)
+        nan = float("nan")
+        result["metrics"]["consistency"] = {"flicker": {"divider": 0.25, "ped_crossing": nan, "boundary": nan},
+                                            "flicker_mean": 0.25}
+        return result
+
+    env.monkeypatch.setattr(cli, "run_evaluation", one_frame_scenes)
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+    assert rc == 0, err[-2000:]
+    assert "nan: no element of ped_crossing, boundary was seen in two consecutive frames" in out
+
+
+@row("S4", "a checkpoint whose config is YAML text (older writers) is read as its config (the note said it held none "
+          "and built the model from the CONFIG file)")
+def row_checkpoint_config_as_yaml_text(env):
+    import yaml
+
+    state = load_checkpoint(env.ckpt)
+    text = save_checkpoint({**state, "config": yaml.safe_dump(state["config"])}, env.tmp / "yaml_config.pt")
+    assert load_checkpoint(text)["config"] == state["config"]
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", text, "--out", env.tmp / "e")
+    assert rc == 0 and "holds no config" not in out + err, (out + err)[-2000:]
+    junk = save_checkpoint({**state, "config": "- just\n- a list\n"}, env.tmp / "junk_config.pt")
+    env.error(r"junk_config\.pt: its config is text that is not a YAML mapping", "evaluate", env.yaml,
+              "--checkpoint", junk, "--out", env.tmp / "e2")
+
+
 @row("7", "a 0-byte .pt is named as empty")
 def row_empty_checkpoint(env):
     path = env.tmp / "empty.pt"
@@ -917,6 +1031,17 @@ for _name, _edit, _pattern in (
      r"'intrinsics' put the principal point .* outside its 400x225 image"),
 ):
     ROWS.append(Row(_name, "S2", f"predict-images: {_name} (was silently wrong)", _rig_row(_edit, _pattern)))
+
+
+def _quaternions_xyzw(data: dict) -> None:
+    """Every camera's quaternion written [x, y, z, w] (scipy's, ROS's order) where [w, x, y, z] is read."""
+    for cam in data["cameras"].values():
+        cam["quaternion"] = [*cam["quaternion"][1:], cam["quaternion"][0]]
+
+
+ROWS.append(Row("rig_quaternion_xyzw", "S4", "predict-images: a rig file's quaternions in [x, y, z, w] order are named "
+                "(four of six cameras looked 55-71 degrees up or down: a map from the sky, exit 0)",
+                _rig_row(_quaternions_xyzw, r"camera CAM_FRONT_LEFT: the camera looks 55 degrees up.*\[x, y, z, w\]")))
 
 
 @row("S2", "predict-images: a binary file given as --rig is named (was a UnicodeDecodeError)")

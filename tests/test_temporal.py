@@ -681,3 +681,38 @@ def test_single_frame_epochs_before_the_streams():
     again = list(sampler)
     sampler.set_epoch(0, start=3 * 4)
     assert list(sampler) == again[4:]  # exact resume inside a single-frame epoch
+
+
+def test_fine_tuning_the_fusion_from_a_single_frame_checkpoint(tiny_world, tmp_path):
+    # train.init_from a single-frame checkpoint + train.trainable=[temporal]: every single-frame weight and
+    # BatchNorm statistic stays bit for bit what the checkpoint holds, only the fusion learns
+    from instagram_hdmap.checkpoint import load_checkpoint
+    from instagram_hdmap.config import UserError
+    from instagram_hdmap.train import build_loaders, train
+
+    single_cfg = _drive_cfg(tiny_world, tmp_path / "single", "model.temporal.memory=none", "train.epochs=1")
+    train(single_cfg, loaders=build_loaders(single_cfg, 1, with_val=False), validate=False)
+    base = load_checkpoint(tmp_path / "single" / "last.pt")["model"]
+
+    cfg = _drive_cfg(tiny_world, tmp_path / "ft", f"train.init_from={tmp_path / 'single' / 'last.pt'}",
+                     "train.trainable=[temporal]", "train.epochs=1", "model.temporal.drop_prob=0.0")
+    train(cfg, loaders=build_loaders(cfg, 1, with_val=False), validate=False)
+    tuned = load_checkpoint(tmp_path / "ft" / "last.pt")["model"]
+    assert set(tuned) - set(base) and all(k.startswith("temporal.") for k in set(tuned) - set(base))
+    for k, v in base.items():
+        assert torch.equal(tuned[k], v), k  # weights and running statistics
+    fresh = build_model(cfg).state_dict()
+    assert any(not torch.equal(tuned[k], fresh[k]) for k in tuned if k.startswith("temporal.")
+               and tuned[k].is_floating_point())
+
+    def refused(*extra) -> str:
+        bad = _drive_cfg(tiny_world, tmp_path / "bad", *extra)
+        with pytest.raises(UserError) as e:
+            train(bad, loaders=build_loaders(bad, 1, with_val=False), validate=False, force=True)
+        return str(e.value)
+
+    ckpt = f"train.init_from={tmp_path / 'single' / 'last.pt'}"
+    assert "graph_head." in refused(ckpt, "model.gnn.dim=16")  # another architecture: the weights named
+    assert "grid.resolution" in refused(ckpt, "grid.resolution=0.5", "grid.cell_size=2")
+    msg = refused("train.trainable=[temporl]")
+    assert "temporl" in msg and "temporal" in msg

@@ -78,6 +78,8 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         ) from None
     if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
         raise CheckpointError(f"checkpoint {path} holds no 'model' state dict; is it an instagram_hdmap checkpoint?")
+    if isinstance(state.get("config"), str):  # a config saved as YAML text (older writers): read as the mapping
+        state["config"] = _yaml_config(state["config"], path)
     bad = [k for k, v in state["model"].items()
            if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
@@ -85,6 +87,18 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise CheckpointError(f"checkpoint {path}: the weights {bad[0]}{more} hold NaN or infinite values (a "
                               "diverged training saved them); use an earlier checkpoint such as best.pt")
     return state
+
+
+def _yaml_config(text: str, path: Path) -> dict:
+    import yaml
+
+    try:
+        config = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise CheckpointError(f"checkpoint {path}: its config is text that is not YAML ({one_line(e)})") from None
+    if not isinstance(config, dict):
+        raise CheckpointError(f"checkpoint {path}: its config is text that is not a YAML mapping of config keys")
+    return config
 
 
 # What ``train --resume`` needs besides the weights (train.py writes them all)

@@ -181,6 +181,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         c = metrics["consistency"]
         print("flicker (GT elements seen in consecutive frames whose detected/missed status flips): "
               + ", ".join(f"{k} {v:.3f}" for k, v in c["flicker"].items()) + f"; mean {c['flicker_mean']:.3f}")
+        empty = [k for k, v in c["flicker"].items() if v != v]  # NaN: no pair to count
+        if empty:
+            print(f"  (nan: no element of {', '.join(empty)} was seen in two consecutive frames of a scene, e.g. "
+                  "scenes of one frame, so no flicker to count)")
     if "memory" in metrics:  # a temporal model: what each frame did with its memory
         print("memory: " + ", ".join(f"{k.removeprefix('memory_')} {v}" for k, v in metrics["memory"].items()))
     _print_notes([*result["notes"], *metrics.get("notes", [])])

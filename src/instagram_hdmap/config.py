@@ -322,6 +322,14 @@ class TrainConfig:
     # streams, as a fraction of train.epochs (StreamMapNet trains 1/6 of its epochs so); consecutive
     # frames in a batch stream are alike, which slows the early learning of the single-frame parts
     stream_warmup: float = bounded(0.0, ge=0, lt=1, note="a fraction of train.epochs")
+    # fine-tuning: a fresh run starts from this checkpoint's model weights (not a resume: optimizer,
+    # schedule and position start anew; a resumed run has its own weights). Every weight must match by
+    # name and shape; the only ones the checkpoint may lack are the temporal fusion's (a temporal model
+    # started from a trained single-frame one, docs/temporal.md)
+    init_from: str | None = None
+    # parameter-name prefixes to train, e.g. [temporal] (only the memory fusion) or [temporal,
+    # bev_heads]; empty: all. Frozen BatchNorm layers keep their running statistics (eval mode)
+    trainable: tuple[str, ...] = ()
 
 
 @dataclass

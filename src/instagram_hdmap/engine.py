@@ -277,15 +277,22 @@ def evaluate(
         with autocast_context(device, amp):
             outputs = model(batch, memory=memory) if streaming else model(batch)
         tokens, keep = batch.get("sample_token"), list(range(batch["images"].shape[0]))
+        replaced = batch["replaced"].tolist() if streaming and "replaced" in batch else [False] * len(keep)
         if owned is not None:  # streaming padding: score each owned sample once (even twice in a batch)
             keep = []
             for b, t in enumerate(tokens):
-                if t in owned:
+                if t in owned and not replaced[b]:  # a stand-in for a bad frame: scored in its own place
                     keep.append(b)
                     owned.discard(t)
         if streaming:
             memory = outputs["memory"]
-            for k, v in memory_counts({"memory_status": outputs["memory_status"][keep]}).items():
+            counted = list(keep)
+            for b, r in enumerate(replaced):  # a bad frame counts as a missing one, once (not in padding)
+                if r and (owned is None or batch["stands_for"][b] in owned):
+                    counted.append(b)
+                    if owned is not None:
+                        owned.discard(batch["stands_for"][b])
+            for k, v in memory_counts({"memory_status": outputs["memory_status"][counted]}).items():
                 status_counts[k] += v
         if criterion is not None:
             for k, v in _scalars(criterion(outputs, batch)).items():

@@ -179,8 +179,10 @@ def _replace(src: Path, dst: Path) -> None:
 def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
     success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
-    docstring). A symbolic link at ``path`` is written through: its target gets the new content (a rename
-    over the link would replace the link and leave the file it points to as it was)."""
+    docstring). The temporaries of ``path`` that killed writers left are removed first
+    (``remove_stale_temporaries``): every atomic writer owns its target's leftovers. A symbolic link at
+    ``path`` is written through: its target gets the new content (a rename over the link would replace the
+    link and leave the file it points to as it was)."""
     path = Path(path)
     if path.is_symlink() and path.exists():
         path = Path(os.path.realpath(path))
@@ -188,6 +190,7 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
     try:
         check_no_broken_link(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path, tag)
         yield tmp
         if tmp.is_file():
             if path.is_dir() and not path.is_symlink():

@@ -66,6 +66,10 @@ from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
 # Config keys that define a model: its weights and how its outputs are read.
 # data.av2_cameras: the order of the camera tensors (the MLP view transform has one layer per camera)
 MODEL_KEYS = ("grid", "model", "data.image_size", "data.classes", "data.dt_clip", "data.av2_cameras")
+# What inference takes from the checkpoint: the MODEL_KEYS and how the images were fitted to the model's
+# size in training (data.image_fit: cover crops, contain pads; the other would show the model images unlike
+# those it learnt from)
+CHECKPOINT_KEYS = (*MODEL_KEYS, "data.image_fit")
 # The decoding options of Mapper.from_checkpoint(path, **decode_overrides): model.gnn.<name>.
 DECODE_OPTIONS = tuple(key.rsplit(".", 1)[1] for key in DECODE_KEYS)
 # Of those, the keys an exported graph does not read (post-processing, training-only settings; the AV2 camera
@@ -83,6 +87,9 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
 TEMPORAL_INPUTS = ("ego_pose", "scene_start", "frame_index")
 MEMORY_NAMES = tuple(f"memory_{k}" for k in MEMORY_KEYS)
 NEXT_MEMORY_NAMES = tuple(f"next_memory_{k}" for k in MEMORY_KEYS)
+# a frame's ground_height beyond this (metres from the ego origin) is a unit or frame mistake: a vehicle's
+# origin lies on the road (nuScenes) or on its rear axle (AV2, 0.33-0.43 m above it)
+MAX_GROUND_HEIGHT_M = 5.0
 EXPORT_FORMAT = 2  # bump when the graph's inputs, outputs or their meaning change (2: ground_height)
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
@@ -124,7 +131,7 @@ class DeployError(UserError):
 def inference_config(
     cfg: ExperimentConfig, saved: dict, overrides: Sequence[str] = (), source: str = "the checkpoint"
 ) -> tuple[ExperimentConfig, list[str]]:
-    """The config to run a checkpoint with: ``cfg`` (CONFIG file + overrides) with the ``MODEL_KEYS``
+    """The config to run a checkpoint with: ``cfg`` (CONFIG file + overrides) with the ``CHECKPOINT_KEYS``
     of the checkpoint's ``saved`` config, then the command-line ``overrides`` again (they win).
 
     Returns the config and human-readable notes on where the CONFIG file was overruled.
@@ -133,19 +140,19 @@ def inference_config(
     explicit = parse_overrides(list(overrides))
     explicit_keys = list(flatten(explicit))
     merged, trained_d = config_to_dict(cfg), config_to_dict(trained)
-    for key in MODEL_KEYS:
+    for key in CHECKPOINT_KEYS:
         set_key(merged, key, copy.deepcopy(get_key(trained_d, key)))
     deep_update(merged, explicit)
     out = config_from_dict(merged)
     notes = []
     ignored = [k for k in diff_configs(cfg, trained)
-               if is_under(k, MODEL_KEYS) and not is_under(k, explicit_keys)]
+               if is_under(k, CHECKPOINT_KEYS) and not is_under(k, explicit_keys)]
     if ignored:
         cfg_d = config_to_dict(cfg)
         notes.append("the CONFIG file's model settings differ from those the checkpoint was trained with; using "
                      "the checkpoint's: " + ", ".join(f"{k}={get_key(trained_d, k)!r} (CONFIG: {get_key(cfg_d, k)!r})"
                                                        for k in ignored))
-    changed = [k for k in diff_configs(trained, out) if is_under(k, MODEL_KEYS)]
+    changed = [k for k in diff_configs(trained, out) if is_under(k, CHECKPOINT_KEYS)]
     if changed:
         out_d = config_to_dict(out)
         notes.append("overriding the checkpoint's " + ", ".join(
@@ -763,6 +770,10 @@ class Mapper:
             heights = [math.nan]  # named below
         if not all(math.isfinite(h) for h in heights):
             raise RigError(f"a frame's ground_height must be a finite height in metres, got {given}")
+        if any(abs(h) > MAX_GROUND_HEIGHT_M for h in heights):
+            raise RigError(f"a frame's ground_height is the road's height in the ego frame, within "
+                           f"{MAX_GROUND_HEIGHT_M:g} m of the ego origin (about -0.35 for AV2's rear axle), got "
+                           f"{given}: in metres, not millimetres or a height above sea level")
         return {**{k: torch.stack(v) for k, v in out.items()}, "ground_height": torch.tensor(heights),
                 "ego_pose": torch.stack([_ego_pose(frame.ego_pose) for frame in frames])}
 

@@ -241,6 +241,12 @@ def predict_sample(
     i = find_sample(dataset, index, token)
     sample = dataset.load_sample(i)
     memory = scene_memory(model, dataset, i) if is_temporal(model) else None
+    if is_temporal(model):
+        scene = dataset.scene_of(i)
+        before = dataset.scene_indices(scene).index(i)
+        notes.append(f"a temporal model: its memory comes from the {before} earlier frame(s) of scene {scene}, "
+                     "walked in order" if before else
+                     f"a temporal model: the first frame of scene {scene}, so no memory (as a single-frame model)")
     outputs, (preds,) = predict_batch(model, collate_fn([sample]), cfg, memory)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
     figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),

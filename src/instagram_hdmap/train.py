@@ -63,7 +63,7 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 # that define its training targets (training knobs may change).
 # train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
 # one skipped the rest of the epoch and moved the learning rate along the schedule)
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size")
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "train.trainable")
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
@@ -309,20 +309,24 @@ class TrainingRun:
     """
 
     def __init__(self, cfg: ExperimentConfig, device: torch.device, out_dir: Path, loaders, validate: bool,
-                 fresh: bool = True):
+                 fresh: bool = True, init_state: dict | None = None):
         self.cfg, self.device, self.out_dir, self.validating = cfg, device, out_dir, validate
         self.world = du.get_world_size()
         self.grid = BEVGrid.from_config(cfg.grid)
         self.decode = decode_options(cfg.model.gnn, self.grid)
         self.train_loader, self.sampler, self.val_loader = loaders
         # ImageNet weights on a fresh start only (a resumed run has its own)
-        self.model = build_model(cfg, pretrained=fresh).to(device)
-        self.random_init = random_init_warning(cfg) if fresh else None
+        self.model = build_model(cfg, pretrained=fresh and init_state is None).to(device)
+        self.random_init = random_init_warning(cfg) if fresh and init_state is None else None
         if self.random_init:
             du.print_main(self.random_init)
+        if init_state is not None:
+            new = init_weights(self.model, init_state)
+            du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
+                                                                  "start from their initialisation)" if new else ""))
+        trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.train.lr,
-                                          weight_decay=cfg.train.weight_decay)
+        self.optimizer = torch.optim.Adam(trainable, lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
         self.batch_size = loader_batch_size(self.train_loader)
         self.steps_per_epoch = math.ceil(self.sampler.num_samples / self.batch_size)
         self.total_steps = cfg.train.epochs * self.steps_per_epoch  # the schedule's length; max_steps only cuts it
@@ -349,11 +353,13 @@ class TrainingRun:
         seed_everything(cfg.train.seed + du.get_rank())
         if cfg.train.deterministic:
             torch.use_deterministic_algorithms(True)
-        if state is None and cfg.model.backbone.name != "tiny" and cfg.model.backbone.weights == "imagenet":
+        init_state = load_init_state(cfg) if state is None else None  # fails fast, before the loaders
+        if (state is None and init_state is None and cfg.model.backbone.name != "tiny"
+                and cfg.model.backbone.weights == "imagenet"):
             imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
         if loaders is None:
             loaders = build_loaders(cfg, du.get_world_size(), with_val=validate)
-        run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None)
+        run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None, init_state=init_state)
         if state is not None:
             run.restore(state)
             run.check_not_finished(state, Path(resume))
@@ -559,6 +565,67 @@ class TrainingRun:
     def final_summary(self) -> dict:
         return {"epoch": self.position.epoch, "step": self.position.step,  # a resume that trained nothing
                 **self.summary, **self.schedule_summary(), "out_dir": str(self.out_dir)}
+
+
+# the config keys a checkpoint that starts a fine-tuning (train.init_from) must share with the run: what
+# the weights mean (the geometry, the inputs, the outputs); the architecture is checked by the weights'
+# names and shapes, and the temporal memory may be new
+INIT_KEYS = ("grid", "data.image_size", "data.classes", "data.dt_clip", "data.av2_cameras", "model.view_transform")
+
+
+def load_init_state(cfg: ExperimentConfig) -> dict | None:
+    """``train.init_from``'s checkpoint (None without one), its config checked against ``cfg`` (``INIT_KEYS``)."""
+    path = cfg.train.init_from
+    if not path:
+        return None
+    state = load_checkpoint(path)
+    if isinstance(state.get("config"), dict):
+        old = saved_config(state["config"], f"checkpoint {path}")
+        differ = [k for k in diff_configs(old, cfg) if is_under(k, INIT_KEYS)]
+        if differ:
+            old_d, new_d = config_to_dict(old), config_to_dict(cfg)
+            lines = "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
+            raise UserError(f"train.init_from={path}: the checkpoint was trained with other inputs or geometry "
+                            f"({lines}); its weights would mean something else here")
+    return state
+
+
+def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
+    """``state``'s model weights into ``model`` (``train.init_from``); every weight must match by name and
+    shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built)."""
+    own, theirs = model.state_dict(), state["model"]
+    missing = [k for k in own if k not in theirs]
+    wrong = ([f"{k} (not in this model)" for k in theirs if k not in own]
+             + [f"{k} (missing)" for k in missing if not k.startswith("temporal.")]
+             + [f"{k} ({tuple(theirs[k].shape)} vs {tuple(own[k].shape)} here)" for k in own
+                if k in theirs and theirs[k].shape != own[k].shape])
+    if wrong:
+        more = f" and {len(wrong) - 3} more" if len(wrong) > 3 else ""
+        raise UserError(f"train.init_from: the checkpoint's weights do not fit this model's architecture "
+                        f"({'; '.join(wrong[:3])}{more}); start from a checkpoint of the same model config")
+    model.load_state_dict(theirs, strict=False)
+    return missing
+
+
+def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Parameter]:
+    """Only the parameters under ``prefixes`` (``train.trainable``; empty: all) keep ``requires_grad``;
+    returns them. A prefix naming no parameter is an error listing the model's parts."""
+    named = dict(model.named_parameters())
+    if not prefixes:
+        return list(named.values())
+    def under(name: str, prefix: str) -> bool:
+        return name == prefix or name.startswith(prefix + ".")
+    unused = [p for p in prefixes if not any(under(n, p) for n in named)]
+    if unused:
+        parts = sorted({n.split(".")[0] for n in named})
+        raise UserError(f"train.trainable: {unused} name no parameter of this model (its parts: {', '.join(parts)}; "
+                        "a prefix is a dotted module path, e.g. temporal or bev_heads.encoder)")
+    kept = []
+    for name, param in named.items():
+        param.requires_grad_(any(under(name, p) for p in prefixes))
+        if param.requires_grad:
+            kept.append(param)
+    return kept
 
 
 def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:

@@ -252,11 +252,17 @@ class MapDataset(Dataset):
             if j in self._bad:
                 continue
             try:
-                return self.load_sample(j)
+                sample = self.load_sample(j)
             except UserError as e:
                 self._bad.add(j)
                 warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip, {len(self._bad)} so far): {e}",
                               stacklevel=2)
+                continue
+            # True: another sample stands in for a bad one; a temporal model counts the bad frame as a
+            # missing one (no fusion, the memory resets) and evaluation does not score the stand-in
+            sample["replaced"] = torch.tensor(j != index)
+            sample["stands_for"] = self.sample_tokens[index]
+            return sample
         raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
 
 

@@ -78,6 +78,11 @@ class Sensor:
         return np.array(self.translation)
 
 
+# a rig file's camera whose optical axis is steeper than this is a rotation read wrongly (a quaternion in
+# [x, y, z, w] order turns four of nuScenes' six cameras 55-71 degrees up or down), not a surround camera
+MAX_CAMERA_PITCH_DEG = 45
+
+
 def parse_image_size(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
     """'1600x900' (or (1600, 900)) -> (width, height); raises UserError naming the problem."""
     if isinstance(text, (tuple, list)):
@@ -275,5 +280,11 @@ def read_rig_file(path) -> list[CameraCalibration]:
         if size is None:
             raise RigError(f"{where}: no 'image_size' (give [width, height] for the rig or for this camera)")
         calib = check_calibration(name, cam["intrinsics"], rotation, cam["translation"], f"rig file {path}", size)
+        pitch = float(np.degrees(np.arcsin(np.clip(calib.rotation[2, 2], -1, 1))))  # optical axis above horizontal
+        if abs(pitch) > MAX_CAMERA_PITCH_DEG:
+            hint = ("is the quaternion in [w, x, y, z] order (nuScenes, pyquaternion), not [x, y, z, w] (scipy, ROS)?"
+                    if "quaternion" in cam else "is the rotation camera -> ego (not ego -> camera, its transpose)?")
+            raise RigError(f"{where}: the camera looks {abs(pitch):.0f} degrees {'up' if pitch > 0 else 'down'}; a "
+                           f"surround camera looks within {MAX_CAMERA_PITCH_DEG} degrees of the horizon: {hint}")
         cameras.append(CameraCalibration(name, calib.intrinsics, calib.rotation, calib.translation, size))
     return cameras

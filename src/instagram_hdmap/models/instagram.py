@@ -42,6 +42,18 @@ class InstaGraM(nn.Module):
         self.graph_head = graph_head
         self.temporal = temporal
 
+    def train(self, mode: bool = True) -> InstaGraM:
+        """As ``nn.Module.train``, but a BatchNorm layer whose parameters are all frozen (``train.trainable``)
+        stays in eval mode: a frozen part keeps the running statistics it was trained with."""
+        super().train(mode)
+        if mode:
+            for module in self.modules():
+                params = list(module.parameters(recurse=False))
+                if (isinstance(module, nn.modules.batchnorm._BatchNorm) and params
+                        and not any(p.requires_grad for p in params)):
+                    module.eval()
+        return self
+
     @property
     def is_temporal(self) -> bool:
         return self.temporal is not None

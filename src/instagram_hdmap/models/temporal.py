@@ -17,7 +17,10 @@ Which samples fuse (``memory_status``, one code per sample, ``STATUS_NAMES``): a
 memory (``FUSED``) unless the memory row is empty or the batch flags a scene start (``NO_MEMORY``),
 the ego moved more than ``max_jump_m`` since the memory's frame (``POSE_JUMP``), the frame does not
 follow the memory's frame (``frame_index`` not one more: ``MISSING_FRAME``), or, in training, the
-memory was dropped at random (``DROPPED``). A sample that does not fuse uses its own features only
+memory was dropped at random (``DROPPED``). A batch row flagged ``replaced`` (``data.on_bad_sample=skip``
+put another sample in place of a bad frame) is a missing frame: ``MISSING_FRAME``, never fused, and the
+memory it leaves is empty (the next frame starts anew, ``NO_MEMORY``).
+A sample that does not fuse uses its own features only
 (the fusion still runs, with an all-invalid history, so every parameter always gets a gradient) and
 starts a new memory. A frame index at or below the memory's one, without a scene start, is frames out
 of order: ``FrameOrderError`` naming the scene (eager mode; an exported graph or a captured CUDA graph
@@ -122,7 +125,8 @@ def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: floa
     if frame is not None:
         gap = frame.reshape(B).long() - memory["frame_index"].long()
         missing = gap != 1
-        _check_order(batch, valid & ~start & (gap <= 0), frame, memory["frame_index"])
+        replaced = _replaced(batch, B, valid)
+        _check_order(batch, valid & ~start & ~replaced & (gap <= 0), frame, memory["frame_index"])
     else:
         missing = valid.new_zeros(B)
     status = torch.full_like(memory["frame_index"].long(), FUSED)
@@ -130,7 +134,14 @@ def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: floa
     status = torch.where(jump, torch.full_like(status, POSE_JUMP), status)
     if drop is not None:
         status = torch.where(drop, torch.full_like(status, DROPPED), status)
-    return torch.where(~valid | start, torch.full_like(status, NO_MEMORY), status)
+    status = torch.where(~valid | start, torch.full_like(status, NO_MEMORY), status)
+    return torch.where(_replaced(batch, B, valid), torch.full_like(status, MISSING_FRAME), status)
+
+
+def _replaced(batch: dict, B: int, like: torch.Tensor) -> torch.Tensor:
+    """[B] bool: rows standing in for a bad frame (``replaced``; none without the key)."""
+    flag = batch.get("replaced")
+    return like.new_zeros(B) if flag is None else flag.bool().reshape(B).to(like.device)
 
 
 def _check_order(batch: dict, backwards: torch.Tensor, frame: torch.Tensor, previous: torch.Tensor) -> None:
@@ -213,7 +224,7 @@ class BEVMemoryFusion(nn.Module):
         new_memory = {
             "bev": fused.detach().float(),
             "ego_pose": batch["ego_pose"].detach().float(),
-            "valid": torch.ones_like(memory["valid"]),
+            "valid": ~_replaced(batch, B, memory["valid"]),
             "frame_index": frame.detach(),
         }
         return fused, new_memory, status
