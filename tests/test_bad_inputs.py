@@ -531,6 +531,20 @@ def row_checkpoint_config_as_yaml_text(env):
               "--checkpoint", junk, "--out", env.tmp / "e2")
 
 
+@row("S5", "Mapper: ego -> camera poses given as cam_to_ego (the inverses) are named: a surround camera is not rolled "
+          "on its side (the sweep left it: accepted, a map from the wrong rays, exit 0)")
+def row_mapper_ego_to_camera_poses(env):
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    inverse = {c: np.linalg.inv(T) for c, T in poses.items()}
+    with pytest.raises(RigError, match=r"camera CAM_FRONT: .cam_to_ego.: the camera is rolled \d+ degrees.*"
+                                       r"camera -> ego rotation \(not ego -> camera"):
+        mapper(Frame(images=images, intrinsics=K, cam_to_ego=inverse))
+    assert isinstance(mapper(Frame(images=images, intrinsics=K, cam_to_ego=poses)), list)  # the published rig
+
+
 @row("7", "a 0-byte .pt is named as empty")
 def row_empty_checkpoint(env):
     path = env.tmp / "empty.pt"

@@ -51,7 +51,7 @@ from .config import (
     set_key,
 )
 from .data import rig_cameras
-from .data.rig import RigError, check_calibration
+from .data.rig import RigError, check_calibration, check_upright
 from .data.transforms import ImageError, load_image, prepare_image
 from .distributed import resolve_device
 from .engine import move_to
@@ -758,6 +758,7 @@ class Mapper:
                     rgb = _rgb_array(image, name)
                     calib = check_calibration(name, K, T[:3, :3], T[:3, 3], image_size=(rgb.shape[1], rgb.shape[0]))
                     pixels, post_rot, post_tran = prepare_image(rgb, d.image_size, fit=d.image_fit)
+                check_upright(calib.rotation, f"camera {name}: 'cam_to_ego'")
                 for key, value in zip(keys, (pixels, calib.intrinsics, calib.rotation, calib.translation, post_rot,
                                              post_tran)):
                     per[key].append(torch.as_tensor(value).float())

@@ -218,6 +218,24 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
     return CameraCalibration(name, K, R, t)
 
 
+def check_upright(rotation: np.ndarray, where: str, hint: str | None = None) -> None:
+    """A ``RigError`` for a camera -> ego rotation that no surround camera has: the optical axis (z) or the
+    image's x axis more than ``MAX_CAMERA_PITCH_DEG`` from the horizon (looking at the sky or the road,
+    or rolled on its side). Such a rotation is one read wrongly: ego -> camera (the transpose; a front
+    camera's x axis then points up), a quaternion in another order, a y-up world."""
+    R = np.asarray(rotation, dtype=np.float64)
+    pitch = float(np.degrees(np.arcsin(np.clip(R[2, 2], -1, 1))))  # the optical axis above the horizon
+    roll = float(np.degrees(np.arcsin(np.clip(abs(R[2, 0]), 0, 1))))  # the image's x axis off the horizon
+    hint = hint or "is it the camera -> ego rotation (not ego -> camera, its transpose)?"
+    if abs(pitch) > MAX_CAMERA_PITCH_DEG:
+        raise RigError(f"{where}: the camera looks {abs(pitch):.0f} degrees {'up' if pitch > 0 else 'down'}; a "
+                       f"surround camera looks within {MAX_CAMERA_PITCH_DEG} degrees of the horizon: {hint}")
+    if roll > MAX_CAMERA_PITCH_DEG:
+        raise RigError(f"{where}: the camera is rolled {roll:.0f} degrees (its image's x axis, left to right, is "
+                       f"that far off the horizon); a surround camera is rolled less than {MAX_CAMERA_PITCH_DEG} "
+                       f"degrees: {hint}")
+
+
 def _image_size(value, what: str) -> tuple[int, int]:
     if (not isinstance(value, (list, tuple)) or len(value) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
@@ -280,11 +298,7 @@ def read_rig_file(path) -> list[CameraCalibration]:
         if size is None:
             raise RigError(f"{where}: no 'image_size' (give [width, height] for the rig or for this camera)")
         calib = check_calibration(name, cam["intrinsics"], rotation, cam["translation"], f"rig file {path}", size)
-        pitch = float(np.degrees(np.arcsin(np.clip(calib.rotation[2, 2], -1, 1))))  # optical axis above horizontal
-        if abs(pitch) > MAX_CAMERA_PITCH_DEG:
-            hint = ("is the quaternion in [w, x, y, z] order (nuScenes, pyquaternion), not [x, y, z, w] (scipy, ROS)?"
-                    if "quaternion" in cam else "is the rotation camera -> ego (not ego -> camera, its transpose)?")
-            raise RigError(f"{where}: the camera looks {abs(pitch):.0f} degrees {'up' if pitch > 0 else 'down'}; a "
-                           f"surround camera looks within {MAX_CAMERA_PITCH_DEG} degrees of the horizon: {hint}")
+        check_upright(calib.rotation, where, "is the quaternion in [w, x, y, z] order (nuScenes, pyquaternion), not "
+                      "[x, y, z, w] (scipy, ROS)?" if "quaternion" in cam else None)
         cameras.append(CameraCalibration(name, calib.intrinsics, calib.rotation, calib.translation, size))
     return cameras
