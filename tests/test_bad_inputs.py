@@ -539,8 +539,8 @@ def row_mapper_ego_to_camera_poses(env):
 
     mapper, images, K, poses = _mapper_frame(env)
     inverse = {c: np.linalg.inv(T) for c, T in poses.items()}
-    with pytest.raises(RigError, match=r"camera CAM_FRONT: .cam_to_ego.: the camera is rolled \d+ degrees.*"
-                                       r"camera -> ego rotation \(not ego -> camera"):
+    with pytest.raises(RigError, match=r"camera CAM_FRONT(_LEFT)?: .cam_to_ego.: the camera is (rolled \d+ degrees|"
+                                       r"upside down).*camera -> ego rotation \(not ego -> camera"):
         mapper(Frame(images=images, intrinsics=K, cam_to_ego=inverse))
     assert isinstance(mapper(Frame(images=images, intrinsics=K, cam_to_ego=poses)), list)  # the published rig
 

@@ -347,6 +347,7 @@ class TrainingRun:
     def start(cls, cfg: ExperimentConfig, *, resume: str | None, force: bool, loaders, validate: bool) -> TrainingRun:
         device = du.init_distributed(du.resolve_device(cfg.train.device).type)
         out_dir = Path(cfg.train.out_dir)
+        check_init_from_outside(cfg, out_dir, resume)
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
         state = load_resume_state(resume, cfg)
@@ -571,6 +572,26 @@ class TrainingRun:
 # the weights mean (the geometry, the inputs, the outputs); the architecture is checked by the weights'
 # names and shapes, and the temporal memory may be new
 INIT_KEYS = ("grid", "data.image_size", "data.classes", "data.dt_clip", "data.av2_cameras", "model.view_transform")
+
+
+def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:
+    """``train.init_from`` must not be a checkpoint of ``out_dir``'s run: starting over there (``--force``)
+    removes it before it is read, and the new run's saves replace it."""
+    path = cfg.train.init_from
+    if not path or resume is not None:  # a resumed run has its own weights; init_from is not read
+        return
+    for name in CHECKPOINTS:
+        if _same_path(Path(path), out_dir / name):  # a link to it, too
+            raise UserError(f"train.init_from={path} is the {name} of train.out_dir={out_dir}, which this run "
+                            "starts over (--force removes it, the run's own saves replace it): copy it out of the "
+                            "folder first, or choose another train.out_dir")
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def load_init_state(cfg: ExperimentConfig) -> dict | None:

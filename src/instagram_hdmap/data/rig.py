@@ -221,15 +221,25 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
 def check_upright(rotation: np.ndarray, where: str, hint: str | None = None) -> None:
     """A ``RigError`` for a camera -> ego rotation that no surround camera has: the optical axis (z) or the
     image's x axis more than ``MAX_CAMERA_PITCH_DEG`` from the horizon (looking at the sky or the road,
-    or rolled on its side). Such a rotation is one read wrongly: ego -> camera (the transpose; a front
-    camera's x axis then points up), a quaternion in another order, a y-up world."""
+    or rolled on its side), or the image's y axis pointing up (upside down). Such a rotation is one read
+    wrongly: ego -> camera (the transpose; a front camera's x axis then points up), a quaternion in another
+    order, a y-up world, an OpenGL camera (y up, z backward)."""
     R = np.asarray(rotation, dtype=np.float64)
     pitch = float(np.degrees(np.arcsin(np.clip(R[2, 2], -1, 1))))  # the optical axis above the horizon
-    roll = float(np.degrees(np.arcsin(np.clip(abs(R[2, 0]), 0, 1))))  # the image's x axis off the horizon
+    # the roll about the optical axis, over the whole circle: the angle between the image's down (y) and the
+    # world's down, seen along the optical axis (arcsin(R[2, 0]) alone takes 180 degrees, an image upside
+    # down, for 0, and 120 for 60)
+    roll = abs(float(np.degrees(np.arctan2(R[2, 0], -R[2, 1]))))
     hint = hint or "is it the camera -> ego rotation (not ego -> camera, its transpose)?"
     if abs(pitch) > MAX_CAMERA_PITCH_DEG:
         raise RigError(f"{where}: the camera looks {abs(pitch):.0f} degrees {'up' if pitch > 0 else 'down'}; a "
                        f"surround camera looks within {MAX_CAMERA_PITCH_DEG} degrees of the horizon: {hint}")
+    if roll > 135:  # the image's y axis points up: an OpenGL / Blender camera (y up, z backward) or one upside down
+        raise RigError(f"{where}: the camera is upside down (rolled {roll:.0f} degrees: its image's y axis, top to "
+                       f"bottom, points up): {hint} The rotation is a camera's with x right, y down, z forward "
+                       "(OpenCV's convention; an OpenGL / Blender camera, y up and z backward, is R @ diag(1, -1, -1)); "
+                       "turn the images of a camera mounted upside down by 180 degrees (with the intrinsics and "
+                       "rotation of the turned image)")
     if roll > MAX_CAMERA_PITCH_DEG:
         raise RigError(f"{where}: the camera is rolled {roll:.0f} degrees (its image's x axis, left to right, is "
                        f"that far off the horizon); a surround camera is rolled less than {MAX_CAMERA_PITCH_DEG} "
