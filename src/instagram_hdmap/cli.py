@@ -137,7 +137,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
 # --- evaluation ------------------------------------------------------------------------------
 
 
+# evaluate-json's options of the raster protocol and their defaults (None on the command line: not given)
+RASTER_FLAGS = {"xbound": [-30.0, 30.0], "ybound": [-15.0, 15.0], "resolution": 0.15, "rank_by": "ascending",
+                "fix_instance_ids": False, "device": "cpu"}
+
+
 def _cmd_evaluate_json(args: argparse.Namespace) -> int:
+    given = [f"--{k.replace('_', '-')}" for k in RASTER_FLAGS if getattr(args, k) not in (None, False)]
+    if args.protocol == "vector" and given:  # the vector protocol has no canvas: they would be ignored
+        raise UserError(f"{', '.join(given)}: options of the raster protocol; the vector protocol (MapTR) scores "
+                        "every vector of the files, on no canvas: pass --protocol raster, or drop them")
+    for key, default in RASTER_FLAGS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
     if not (math.isfinite(args.resolution) and args.resolution > 0):
         raise UserError(f"--resolution {args.resolution}: metres per pixel of the raster canvas must be > 0")
     for flag, (lo, hi) in (("--xbound", args.xbound), ("--ybound", args.ybound)):
@@ -340,15 +352,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="vector: MapTR (default); raster: HDMapNet / InstaGraM paper")
     p.add_argument("--thresholds", type=float, nargs="+", default=[0.5, 1.0, 1.5], help="Chamfer thresholds (m)")
     p.add_argument("--out", help="metrics JSON to write")
-    p.add_argument("--rank-by", choices=["ascending", "descending"], default="ascending",
+    p.add_argument("--rank-by", choices=["ascending", "descending"],
                    help="raster: PR-curve order; ascending reproduces the reference's bug (default)")
     p.add_argument("--fix-instance-ids", action="store_true",
                    help="raster: int32 instance ids, each with its own confidence (fixes the reference's misalignment)")
-    p.add_argument("--xbound", type=float, nargs=2, default=[-30.0, 30.0], help="raster: canvas x range (m)")
-    p.add_argument("--ybound", type=float, nargs=2, default=[-15.0, 15.0], help="raster: canvas y range (m)")
-    p.add_argument("--resolution", type=float, default=0.15, help="raster: metres per pixel")
-    p.add_argument("--device", default="cpu",
-                   help="raster: where torch.cdist runs, cpu or cuda (the reference ran on CUDA)")
+    p.add_argument("--xbound", type=float, nargs=2, help="raster: canvas x range (m; default -30 30)")
+    p.add_argument("--ybound", type=float, nargs=2, help="raster: canvas y range (m; default -15 15)")
+    p.add_argument("--resolution", type=float, help="raster: metres per pixel (default 0.15)")
+    p.add_argument("--device", help="raster: where torch.cdist runs, cpu (default) or cuda (the reference ran on CUDA)")
     p.add_argument("--ignore-extra-predictions", action="store_true",
                    help="ignore prediction tokens that are not in the GT file (default: error)")
     p.set_defaults(func=_cmd_evaluate_json)
