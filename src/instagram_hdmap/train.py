@@ -355,6 +355,13 @@ class TrainingRun:
         if cfg.train.deterministic:
             torch.use_deterministic_algorithms(True)
         init_state = load_init_state(cfg) if state is None else None  # fails fast, before the loaders
+        if init_state is not None or cfg.train.trainable:  # so do the weights' fit and the prefixes (a model: ~1 s)
+            with torch.random.fork_rng(devices=[]):  # the run's own model is initialised as without the probe
+                probe = build_model(cfg, pretrained=False)
+            if init_state is not None:
+                init_weights(probe, init_state)
+            freeze_parameters(probe, cfg.train.trainable)
+            del probe
         if (state is None and init_state is None and cfg.model.backbone.name != "tiny"
                 and cfg.model.backbone.weights == "imagenet"):
             imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
@@ -599,7 +606,10 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
     path = cfg.train.init_from
     if not path:
         return None
-    state = load_checkpoint(path)
+    try:
+        state = load_checkpoint(path)
+    except CheckpointError as e:  # named as this key (not --checkpoint)
+        raise CheckpointError(f"train.init_from: {str(e).replace(' with --checkpoint', '')}") from None
     if isinstance(state.get("config"), dict):
         old = saved_config(state["config"], f"checkpoint {path}")
         differ = [k for k in diff_configs(old, cfg) if is_under(k, INIT_KEYS)]
