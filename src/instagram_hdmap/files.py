@@ -210,6 +210,10 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
                               "again") from e
         if cause.errno in (errno.EACCES, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EPERM):
             raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose a writable path") from e
+        if cause.filename is not None and str(cause.filename) in (str(tmp), str(path), str(path.parent)):
+            # another failure of the write itself (a file system that takes no new files, such as /proc, or a
+            # folder removed while the job ran): named, not a traceback
+            raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose another path") from e
         raise
     finally:
         _remove(tmp)

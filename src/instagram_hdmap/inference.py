@@ -51,7 +51,7 @@ from .config import (
     set_key,
 )
 from .data import rig_cameras
-from .data.rig import RigError, check_calibration, check_upright
+from .data.rig import RigError, camera_named_by, check_calibration, check_upright
 from .data.transforms import ImageError, load_image, prepare_image
 from .distributed import resolve_device
 from .engine import move_to
@@ -748,6 +748,11 @@ class Mapper:
             for name, image, K, T in zip(self.cameras, images, Ks, poses):
                 T = _cam_to_ego(T, name)
                 if isinstance(image, (str, Path)):
+                    named = camera_named_by(image, self.cameras)
+                    if named is not None and named != name:  # a list of paths in another order than the cameras
+                        raise RigError(f"camera {name}: its image {image} is named for camera {named}; give the "
+                                       f"images in the order of the checkpoint's cameras ({', '.join(self.cameras)}) "
+                                       "or as a mapping by name")
                     size = image_size_of(image, name)
                     calib = check_calibration(name, K, T[:3, :3], T[:3, 3], image_size=size)
                     try:

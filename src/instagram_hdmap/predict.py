@@ -39,7 +39,7 @@ from . import distributed as du
 from .config import ExperimentConfig, UserError
 from .data import build_dataset
 from .data.base import collate_fn
-from .data.rig import CameraCalibration, RigError, read_rig_file
+from .data.rig import CameraCalibration, RigError, camera_named_by, read_rig_file
 from .data.streaming import StreamingBatchSampler
 from .data.transforms import load_image
 from .engine import evaluate, is_temporal
@@ -294,6 +294,10 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
         if other != cam.name:
             raise RigError(f"cameras {other} and {cam.name} are given the same image {path}; give each camera its "
                            "own image, in the rig file's order")
+        named = camera_named_by(path, names)
+        if named is not None and named != cam.name:  # images given in another order than the rig file's cameras
+            raise RigError(f"image {path} is named for camera {named} but is given for camera {cam.name}: give the "
+                           f"images in the rig file's order ({', '.join(names)})")
         size = image_size_of(path, cam.name)
         if tuple(size) != tuple(cam.image_size):
             raise RigError(f"rig file {rig_file}: camera {cam.name}: 'image_size' is {cam.image_size[0]}x"

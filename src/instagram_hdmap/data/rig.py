@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -244,6 +245,19 @@ def check_upright(rotation: np.ndarray, where: str, hint: str | None = None) -> 
         raise RigError(f"{where}: the camera is rolled {roll:.0f} degrees (its image's x axis, left to right, is "
                        f"that far off the horizon); a surround camera is rolled less than {MAX_CAMERA_PITCH_DEG} "
                        f"degrees: {hint}")
+
+
+def camera_named_by(path, cameras: Sequence[str]) -> str | None:
+    """The one camera of ``cameras`` whose name ``path``'s file name (else its folder's) holds as a whole
+    word, case aside (nuScenes' ``...__CAM_FRONT__....jpg``, AV2's ``ring_front_center/....jpg``); None when
+    it names none or several. CAM_FRONT inside CAM_FRONT_LEFT does not count."""
+    for part in (Path(path).name, Path(path).parent.name):
+        spans = [(m.start(), m.end(), c) for c in cameras
+                 for m in re.finditer(rf"(?<![A-Za-z0-9]){re.escape(c)}(?![A-Za-z0-9])", part, re.IGNORECASE)]
+        named = {c for a, b, c in spans if not any(a2 <= a and b <= b2 and (a2, b2) != (a, b) for a2, b2, _ in spans)}
+        if named:
+            return named.pop() if len(named) == 1 else None
+    return None
 
 
 def _image_size(value, what: str) -> tuple[int, int]:
