@@ -57,6 +57,11 @@ def init_distributed(device_kind: str | None = None) -> torch.device:
     """
     kind = device_kind or ("cuda" if torch.cuda.is_available() else "cpu")
     if "RANK" in os.environ and "WORLD_SIZE" in os.environ and not is_dist():
+        missing = [v for v in ("MASTER_ADDR", "MASTER_PORT") if not os.environ.get(v)]
+        if missing:  # RANK and WORLD_SIZE left in the environment (a shell, a job script), not a torchrun launch
+            raise UserError(f"RANK and WORLD_SIZE are set (a torchrun launch) but {' and '.join(missing)} "
+                            f"{'is' if len(missing) == 1 else 'are'} not: launch with torchrun, or unset RANK and "
+                            "WORLD_SIZE for a single process")
         local_rank = int(os.environ.get("LOCAL_RANK", 0))
         backend = "nccl" if kind == "cuda" else "gloo"
         if kind == "cuda":
