@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -240,13 +241,20 @@ def predict_sample(
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
     sample = dataset.load_sample(i)
-    memory = scene_memory(model, dataset, i) if is_temporal(model) else None
+    memory, walked = walk_scene(model, dataset, i) if is_temporal(model) else (None, 0)
     if is_temporal(model):
         scene = dataset.scene_of(i)
         before = dataset.scene_indices(scene).index(i)
-        notes.append(f"a temporal model: its memory comes from the {before} earlier frame(s) of scene {scene}, "
-                     "walked in order" if before else
-                     f"a temporal model: the first frame of scene {scene}, so no memory (as a single-frame model)")
+        if before and walked == 0:
+            notes.append(f"a temporal model: no memory, as the frame before it in scene {scene} is bad "
+                         "(data.on_bad_sample=skip)")
+        elif before and walked < before:
+            notes.append(f"a temporal model: its memory comes from the {walked} frame(s) of scene {scene} after its "
+                         "last bad frame (data.on_bad_sample=skip), walked in order")
+        else:
+            notes.append(f"a temporal model: its memory comes from the {before} earlier frame(s) of scene {scene}, "
+                         "walked in order" if before else
+                         f"a temporal model: the first frame of scene {scene}, so no memory (as a single-frame model)")
     outputs, (preds,) = predict_batch(model, collate_fn([sample]), cfg, memory)
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
     figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
@@ -263,11 +271,33 @@ def predict_sample(
 def scene_memory(model, dataset, index: int) -> dict | None:
     """A temporal model's memory just before sample ``index``: its scene walked in order from the first
     frame up to the sample (the memory a streaming evaluation gives it; None at a scene's first frame)."""
+    return walk_scene(model, dataset, index)[0]
+
+
+def walk_scene(model, dataset, index: int) -> tuple[dict | None, int]:
+    """``scene_memory`` and how many frames it was walked over: fewer after a bad frame, which with
+    ``data.on_bad_sample=skip`` is a missing one (the memory starts anew after it)."""
     run = dataset.scene_indices(dataset.scene_of(index))
-    memory = None
+    memory, walked = None, 0
     for j in run[: run.index(index)]:
-        memory = run_model(model, collate_fn([dataset.load_sample(j)]), memory)["memory"]
-    return memory
+        sample = load_or_skip(dataset, j)
+        if sample is None:
+            memory, walked = None, 0
+        else:
+            memory, walked = run_model(model, collate_fn([sample]), memory)["memory"], walked + 1
+    return memory, walked
+
+
+def load_or_skip(dataset, index: int) -> dict | None:
+    """``dataset.load_sample(index)``; with ``data.on_bad_sample=skip``, None for a bad sample (with the
+    dataset's warning) instead of its error."""
+    if dataset.data_cfg.on_bad_sample != "skip":
+        return dataset.load_sample(index)
+    try:
+        return dataset.load_sample(index)
+    except UserError as e:
+        warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip): {e}", stacklevel=2)
+        return None
 
 
 # --- your own images: predict-images ------------------------------------------------------------------
@@ -399,11 +429,14 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
     grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
-    memory, writer, size = None, None, None
+    memory, writer, size, skipped = None, None, None, 0
     with atomic_path(video, keep_suffix=True) as tmp:
         try:
             for k, i in enumerate(tqdm(indices, desc=f"video {scene}", unit="frame", disable=not progress)):
-                sample = dataset.load_sample(i)
+                sample = load_or_skip(dataset, i)
+                if sample is None:  # a bad frame (data.on_bad_sample=skip): no picture, and the memory starts anew
+                    memory, skipped = None, skipped + 1
+                    continue
                 batch = collate_fn([sample])
                 batch["scene_start"] = torch.tensor([k == 0])
                 outputs, (preds,) = predict_batch(model, batch, cfg, memory)
@@ -425,13 +458,18 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
                 if (frame.shape[1], frame.shape[0]) != size:
                     frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
                 writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+            if writer is None:
+                raise PredictError(f"every frame of scene {scene} is bad (data.on_bad_sample=skip); see the warnings")
             writer.release()
             writer = None
             _check_video(tmp, video)
         finally:
             if writer is not None:
                 writer.release()
-    return {"video": video, "frames": len(indices), "scene": scene, "split": split, "notes": notes}
+    if skipped:
+        notes.append(f"{skipped} bad frame(s) of scene {scene} left out (data.on_bad_sample=skip; the warnings name "
+                     "them)")
+    return {"video": video, "frames": len(indices) - skipped, "scene": scene, "split": split, "notes": notes}
 
 
 # --- a split: evaluate ---------------------------------------------------------------------------------
