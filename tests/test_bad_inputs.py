@@ -5,7 +5,7 @@ checks the promise: a wrong input is named on one line (``UserError``, exit code
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
-fourth, ``S5`` one found by a fifth). Everything runs on the tiny synthetic world of conftest.py and a
+fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth). Everything runs on the tiny synthetic world of conftest.py and a
 random tiny model: no training longer than a few steps.
 """
 
@@ -40,7 +40,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3", "S4", "S5"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S6"
     what: str
     run: Callable
 
@@ -1734,6 +1734,139 @@ def row_export_onnx_temporal_config_named(env):
 def row_eval_thresholds_twice(env):
     env.error(r"'eval\.thresholds' lists a threshold twice", "model-summary", env.yaml, "eval.thresholds=[0.5,0.5,1.0]")
 
+
+
+# ==================================================================================================
+# The sixth sweep (S6): cases found by a sixth sweep of the same kind
+# ==================================================================================================
+
+
+@row("S6", "train --force with train.init_from a checkpoint of train.out_dir is refused (--force removed the checkpoint "
+          "before it was read: 'checkpoint not found', the weights lost)")
+def row_init_from_inside_out_dir(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=1")
+    before = (run / "best.pt").read_bytes()
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"train\.init_from=.*best\.pt is the best\.pt of train\.out_dir=.*run, which this run starts over .*copy "
+              r"it out of the folder", "train", env.yaml, f"train.out_dir={run}", f"train.init_from={run / 'best.pt'}",
+              "--force")
+    assert (run / "best.pt").read_bytes() == before
+
+
+@row("S6", "train.init_from's errors name the key, and its weights' fit and train.trainable's prefixes are checked before "
+          "the data loaders (a long setup on nuScenes; the message said '--checkpoint')")
+def row_init_from_and_trainable_checked_first(env):
+    forbid(env, "instagram_hdmap.train.build_loaders", "the data loaders")
+    env.error(r"train\.init_from: .*tiny_world\.yaml is not a PyTorch checkpoint", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'r1'}", f"train.init_from={env.yaml}")
+    line = env.error(r"train\.trainable: \['temporl'\] name no parameter of this model", "train", env.yaml,
+                     f"train.out_dir={env.tmp / 'r2'}", "train.trainable=[temporl]")
+    assert "--checkpoint" not in line
+    env.error(r"train\.init_from: the checkpoint's weights do not fit .*temporal\.", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'r3'}", "model.gnn.sinkhorn_iters=3",  # a temporal model's weights
+              f"train.init_from={_temporal_checkpoint(env)}")
+
+
+def _temporal_checkpoint(env) -> Path:
+    """A random tiny temporal checkpoint (``model.temporal.memory=bev``, 3 Sinkhorn iterations)."""
+    from instagram_hdmap.models import build_model
+
+    torch.manual_seed(0)
+    cfg = env.cfg("model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3")
+    return save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+
+
+@row("S6", "Mapper: a camera upside down (an OpenGL / Blender pose, y up and z backward, or a 180 degree roll) is named "
+          "(accepted: rays from the wrong side of the car, exit 0), and a roll of 120 degrees is not reported as 60")
+def row_mapper_camera_upside_down(env):
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    for flip in (np.diag([1.0, -1.0, -1.0, 1.0]), np.diag([-1.0, -1.0, 1.0, 1.0])):  # OpenGL axes; rolled 180
+        with pytest.raises(RigError, match=r"camera CAM_FRONT_LEFT: 'cam_to_ego': the camera is upside down .*OpenGL"):
+            mapper(images=images, intrinsics=K, cam_to_ego={c: T @ flip for c, T in poses.items()})
+    c, s = np.cos(np.radians(120)), np.sin(np.radians(120))
+    roll = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])  # about the optical axis
+    with pytest.raises(RigError, match=r"rolled 120 degrees"):
+        mapper(images=images, intrinsics=K, cam_to_ego={c: T @ roll for c, T in poses.items()})
+    c, s = np.cos(np.radians(-20)), np.sin(np.radians(-20))
+    pitched = np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1]])  # 20 degrees down: a real rig
+    assert isinstance(mapper(images=images, intrinsics=K, cam_to_ego={c: T @ pitched for c, T in poses.items()}), list)
+
+
+@row("S6", "predict-images: images named for other cameras than the rig file's order gives them (in the model's order, "
+          "or shuffled) are named (a map from swapped cameras, exit 0)")
+def row_images_named_for_other_cameras(env):
+    def reverse(data):
+        data["cameras"] = dict(reversed(list(data["cameras"].items())))
+
+    rig, images = _rig_files(env, reverse)  # the images in the model's order, the rig file's cameras reversed
+    forbid(env, "instagram_hdmap.predict.save_figure", "drawing")
+    env.error(r"image .*CAM_FRONT_LEFT\.jpg is named for camera CAM_FRONT_LEFT but is given for camera CAM_BACK_RIGHT: "
+              r"give the images in the rig file's order", "predict-images", "--checkpoint", env.ckpt, "--rig", rig,
+              "--out", env.tmp / "out", "--device", "cpu", *images)
+    mapper, arrays, K, poses = _mapper_frame(env)
+    with pytest.raises(UserError, match=r"camera CAM_FRONT_LEFT: its image .*CAM_FRONT\.jpg is named for camera "
+                                        r"CAM_FRONT"):
+        mapper(images=[images[1], images[0], *images[2:]], intrinsics=[K[c] for c in mapper.cameras],
+               cam_to_ego=[poses[c] for c in mapper.cameras])
+
+
+@row("S6", "evaluate-json: raster-only flags (--xbound, --resolution, --rank-by, ...) with the vector protocol are "
+          "refused (ignored silently: a range the user meant to evaluate on was not applied)")
+def row_evaluate_json_raster_flags_with_vector(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    forbid(env, "instagram_hdmap.evaluation.Evaluator.compute", "the evaluation")
+    env.error(r"--xbound, --ybound: options of the raster protocol; .*pass --protocol raster", "evaluate-json",
+              "--pred", gt, "--gt", gt, "--xbound", "-15", "15", "--ybound", "-7.5", "7.5")
+    env.error(r"--rank-by: options of the raster protocol", "evaluate-json", "--pred", gt, "--gt", gt, "--rank-by",
+              "descending")
+
+
+@row("S6", "a config whose _base_ is missing or a folder names the file that includes it (said 'config file not "
+          "found: base.yaml', the user's file being there)")
+def row_missing_base_named(env):
+    (env.tmp / "exp.yaml").write_text("_base_: base.yaml\ntrain:\n  lr: 0.1\n")
+    env.error(r"config file .*exp\.yaml: its _base_ base\.yaml .* is not a file", "model-summary", env.tmp / "exp.yaml")
+
+
+@row("S6", "a write whose folder is removed while the job runs (or a file system that takes no new files) is one line "
+          "naming the file (was a raw FileNotFoundError)")
+def row_output_folder_removed_during_the_write(env):
+    from instagram_hdmap.files import OutputError, atomic_path
+
+    target = env.tmp / "out" / "metrics.json"
+    with pytest.raises(OutputError, match=r"cannot write .*out/metrics\.json: No such file or directory"):
+        with atomic_path(target) as tmp:
+            shutil.rmtree(target.parent)  # another process cleaning up, a network folder unmounted
+            tmp.write_text("{}")
+
+
+@row("S6", "RANK and WORLD_SIZE left in the environment without MASTER_ADDR (a shell, a job script; not torchrun) are "
+          "one line (was torch's raw ValueError)")
+def row_rank_without_torchrun(env):
+    env.monkeypatch.setenv("RANK", "0")
+    env.monkeypatch.setenv("WORLD_SIZE", "2")
+    env.monkeypatch.delenv("MASTER_ADDR", raising=False)
+    env.monkeypatch.delenv("MASTER_PORT", raising=False)
+    env.error(r"RANK and WORLD_SIZE are set .* but MASTER_ADDR and MASTER_PORT are not: launch with torchrun, or "
+              r"unset", "train", env.yaml, f"train.out_dir={env.tmp / 'r'}")
+
+
+@row("S6", "predict and predict --video of a temporal model with data.on_bad_sample=skip and a bad earlier frame: the "
+          "frame is a missing one, as in evaluate (was the bad frame's error, exit 2)")
+def row_temporal_predict_skip_mode(env):
+    root = env.shadow_world(copy_samples=True)
+    _break_image(root, root, 0, "CAM_FRONT", "missing")  # the first frame of the validation scene
+    ckpt = _temporal_checkpoint(env)
+    args = (env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", "model.temporal.memory=bev",
+            "model.gnn.sinkhorn_iters=3", "--checkpoint", ckpt)
+    rc, out, err = env.cli("predict", *args, "--index", "1", "--out", env.tmp / "p")
+    assert rc == 0 and "no memory, as the frame before it in scene" in out + err, (out + err)[-2000:]
+    rc, out, err = env.cli("predict", *args, "--scene", _val_scene(env), "--video", env.tmp / "v.mp4")
+    assert rc == 0 and "1 bad frame(s) of scene" in out + err and (env.tmp / "v.mp4").is_file(), (out + err)[-2000:]
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
