@@ -1869,6 +1869,30 @@ def row_temporal_predict_skip_mode(env):
     assert rc == 0 and "1 bad frame(s) of scene" in out + err and (env.tmp / "v.mp4").is_file(), (out + err)[-2000:]
 
 
+@row("S6", "train.stream_frames=1 with a temporal model is refused (every frame started a new memory: the fusion never "
+          "trained with one, a single-frame training, exit 0)")
+def row_temporal_stream_frames_1(env):
+    forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
+    env.error(r"train\.stream_frames=1: every frame would start a new memory", "train", env.yaml,
+              "model.temporal.memory=bev", "train.stream_frames=1", f"train.out_dir={env.tmp / 'r'}")
+
+
+@row("S6", "MapStream: float32 ego poses at UTM coordinates are named (float32 had rounded them to 0.5 m before the "
+          "stream's float64 shift: the memory misplaced by that much, exit 0)")
+def row_mapstream_float32_utm_poses(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import RigError
+
+    _, images, K, poses = _mapper_frame(env)
+    mapper = Mapper.from_checkpoint(_temporal_checkpoint(env), device="cpu")
+    pose = np.eye(4)
+    pose[:3, 3] = [4.4e6, 5.8e5, 300.0]  # UTM northing, easting, height
+    for given in (pose.astype(np.float32), torch.tensor(pose, dtype=torch.float32)):
+        with pytest.raises(RigError, match=r"ego_pose is float32 at 4\.4e\+06 m .* only to 0\.5 m.* float64"):
+            mapper.stream().step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=given))
+    assert isinstance(mapper.stream().step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=pose)), list)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -831,6 +831,13 @@ class MapStream:
             return frame  # Mapper.batch names it
         if T.shape not in ((4, 4), (3, 4)) or not np.isfinite(T).all():
             return frame  # Mapper.batch names it
+        dtype = np.dtype(str(pose.dtype).removeprefix("torch.")) if hasattr(pose, "dtype") else np.dtype(np.float64)
+        far = float(np.abs(T[:3, 3]).max())
+        if dtype.kind == "f" and dtype.itemsize < 8 and float(np.spacing(np.array(far, dtype))) > 0.01:
+            raise RigError(f"the frame's ego_pose is {dtype} at {far:.3g} m from the world origin, where {dtype} "
+                           f"holds positions only to {float(np.spacing(np.array(far, dtype))):g} m: the memory would "
+                           "be misplaced by that much; give ego poses as float64 (the stream moves them near the "
+                           "origin itself)")
         if self.origin is None:
             self.origin = T[:3, 3].copy()
         T[:3, 3] -= self.origin

@@ -348,6 +348,9 @@ class TrainingRun:
         device = du.init_distributed(du.resolve_device(cfg.train.device).type)
         out_dir = Path(cfg.train.out_dir)
         check_init_from_outside(cfg, out_dir, resume)
+        if cfg.model.temporal.memory != "none" and cfg.train.stream_frames == 1:  # pieces of one frame: no history
+            raise UserError("train.stream_frames=1: every frame would start a new memory, so the temporal model would "
+                            "never train with one (a single-frame training); use 0 (whole scenes) or at least 2")
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
         state = load_resume_state(resume, cfg)
