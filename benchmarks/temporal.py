@@ -88,6 +88,42 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     return result
 
 
+def memory_off(results: list[dict], args, val_root) -> str:
+    """Every temporal run evaluated again with its memory off (``model.temporal.max_jump_m=0.001``: every frame
+    a reset), and the mean size of its fusion's weights on the warped memory and its validity channel."""
+    import torch
+
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.predict import run_evaluation
+
+    lines = ["memory on / off (the same checkpoint; the gated fusion's mean |w| on its inputs):"]
+    for r in results:
+        if not r["config"].startswith("temporal"):
+            continue
+        out = Path(args.out) / f"{r['config']}_seed{r['seed']}"
+        done = out / result_name(args).replace(".json", "_memoff.json")
+        ckpt = out / "run" / "last.pt"
+        if not done.is_file():
+            off = ["model.temporal.max_jump_m=0.001"]
+            cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *off])
+            metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
+            done.write_text(json.dumps({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
+                                        "flicker_mean": metrics["consistency"]["flicker_mean"]}, indent=1))
+        off = json.loads(done.read_text())
+        model = torch.load(ckpt, weights_only=True)["model"]
+        weights = ""
+        if "temporal.mix.0.weight" in model:  # the gated fusion's input: [current, warped memory, validity]
+            w = model["temporal.mix.0.weight"]
+            c = w.shape[1] // 2
+            weights = (f"; |w| memory {float(w[:, c:].abs().mean()):.2g}, current "
+                       f"{float(w[:, :c].abs().mean()):.2g}")
+        lines.append(f"  {r['config']} s{r['seed']}: mAP {r['mAP']:.3f} / {off['mAP']:.3f} "
+                     f"({r['mAP'] - off['mAP']:+.3f}), flicker {r['flicker_mean']:.3f} / {off['flicker_mean']:.3f}"
+                     + weights)
+    return "\n".join(lines)
+
+
 def result_name(args) -> str:
     """A run's result file: ``result.json`` on the demo's validation world, ``result_valN.json`` on N scenes (a
     finished run evaluated on another world is evaluated again, not trained again)."""
@@ -184,6 +220,8 @@ def main() -> None:
                    help="the single-frame checkpoints to start from: DIR/single_seedS/run/last.pt (default: --out)")
     p.add_argument("--val-scenes", type=int, default=VAL_WORLD["scenes_val"],
                    help="scenes of the validation world (more: less noise in the AP and flicker)")
+    p.add_argument("--memory-off", action="store_true",
+                   help="also evaluate every temporal run with its memory off (does it use its memory?)")
     p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
     p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
                    help="what the temporal fine-tuning trains (the single-frame one trains everything)")
@@ -204,6 +242,8 @@ def main() -> None:
     print(table(results))
     if args.finetune:
         print(paired(results))
+    if args.memory_off:
+        print(memory_off(results, args, val_root))
 
 
 if __name__ == "__main__":
