@@ -129,7 +129,10 @@ def result_name(args) -> str:
     finished run evaluated on another world is evaluated again, not trained again)."""
     from instagram_hdmap.demo import VAL_WORLD
 
-    return "result.json" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}.json"
+    name = "result" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}"
+    if args.val_occluders is not None and args.val_occluders != args.occluders:
+        name += f"_occ{args.val_occluders:g}"
+    return name + ".json"
 
 
 def table(results: list[dict]) -> str:
@@ -222,6 +225,9 @@ def main() -> None:
                    help="scenes of the validation world (more: less noise in the AP and flicker)")
     p.add_argument("--memory-off", action="store_true",
                    help="also evaluate every temporal run with its memory off (does it use its memory?)")
+    p.add_argument("--val-occluders", type=float,
+                   help="another occluder density for the validation world (default: --occluders); e.g. 0: what "
+                        "do the occluders cost a model, the most a memory could win back")
     p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
     p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
                    help="what the temporal fine-tuning trains (the single-frame one trains everything)")
@@ -230,7 +236,8 @@ def main() -> None:
     args = p.parse_args()
     cache = Path(args.cache) if args.cache else default_cache_dir()
     train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
-    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": args.occluders},
+    val_occluders = args.occluders if args.val_occluders is None else args.val_occluders
+    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": val_occluders},
                                workers=args.workers)
     results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs
                if not (args.finetune and args.finetune_base)]
