@@ -88,12 +88,51 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     return result
 
 
+def memory_off(results: list[dict], args, val_root) -> str:
+    """Every temporal run evaluated again with its memory off (``model.temporal.max_jump_m=0.001``: every frame
+    a reset), and the mean size of its fusion's weights on the warped memory and its validity channel."""
+    import torch
+
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.predict import run_evaluation
+
+    lines = ["memory on / off (the same checkpoint; the gated fusion's mean |w| on its inputs):"]
+    for r in results:
+        if not r["config"].startswith("temporal"):
+            continue
+        out = Path(args.out) / f"{r['config']}_seed{r['seed']}"
+        done = out / result_name(args).replace(".json", "_memoff.json")
+        ckpt = out / "run" / "last.pt"
+        if not done.is_file():
+            off = ["model.temporal.max_jump_m=0.001"]
+            cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *off])
+            metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
+            done.write_text(json.dumps({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
+                                        "flicker_mean": metrics["consistency"]["flicker_mean"]}, indent=1))
+        off = json.loads(done.read_text())
+        model = torch.load(ckpt, weights_only=True)["model"]
+        weights = ""
+        if "temporal.mix.0.weight" in model:  # the gated fusion's input: [current, warped memory, validity]
+            w = model["temporal.mix.0.weight"]
+            c = w.shape[1] // 2
+            weights = (f"; |w| memory {float(w[:, c:].abs().mean()):.2g}, current "
+                       f"{float(w[:, :c].abs().mean()):.2g}")
+        lines.append(f"  {r['config']} s{r['seed']}: mAP {r['mAP']:.3f} / {off['mAP']:.3f} "
+                     f"({r['mAP'] - off['mAP']:+.3f}), flicker {r['flicker_mean']:.3f} / {off['flicker_mean']:.3f}"
+                     + weights)
+    return "\n".join(lines)
+
+
 def result_name(args) -> str:
     """A run's result file: ``result.json`` on the demo's validation world, ``result_valN.json`` on N scenes (a
     finished run evaluated on another world is evaluated again, not trained again)."""
     from instagram_hdmap.demo import VAL_WORLD
 
-    return "result.json" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}.json"
+    name = "result" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}"
+    if args.val_occluders is not None and args.val_occluders != args.occluders:
+        name += f"_occ{args.val_occluders:g}"
+    return name + ".json"
 
 
 def table(results: list[dict]) -> str:
@@ -184,6 +223,11 @@ def main() -> None:
                    help="the single-frame checkpoints to start from: DIR/single_seedS/run/last.pt (default: --out)")
     p.add_argument("--val-scenes", type=int, default=VAL_WORLD["scenes_val"],
                    help="scenes of the validation world (more: less noise in the AP and flicker)")
+    p.add_argument("--memory-off", action="store_true",
+                   help="also evaluate every temporal run with its memory off (does it use its memory?)")
+    p.add_argument("--val-occluders", type=float,
+                   help="another occluder density for the validation world (default: --occluders); e.g. 0: what "
+                        "do the occluders cost a model, the most a memory could win back")
     p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
     p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
                    help="what the temporal fine-tuning trains (the single-frame one trains everything)")
@@ -192,7 +236,8 @@ def main() -> None:
     args = p.parse_args()
     cache = Path(args.cache) if args.cache else default_cache_dir()
     train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
-    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": args.occluders},
+    val_occluders = args.occluders if args.val_occluders is None else args.val_occluders
+    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": val_occluders},
                                workers=args.workers)
     results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs
                if not (args.finetune and args.finetune_base)]
@@ -204,6 +249,8 @@ def main() -> None:
     print(table(results))
     if args.finetune:
         print(paired(results))
+    if args.memory_off:
+        print(memory_off(results, args, val_root))
 
 
 if __name__ == "__main__":

@@ -716,3 +716,23 @@ def test_fine_tuning_the_fusion_from_a_single_frame_checkpoint(tiny_world, tmp_p
     assert "grid.resolution" in refused(ckpt, "grid.resolution=0.5", "grid.cell_size=2")
     msg = refused("train.trainable=[temporl]")
     assert "temporl" in msg and "temporal" in msg
+
+
+def test_the_fusion_keeps_its_memory_weights_through_the_single_frame_epochs(tiny_world, tmp_path):
+    # with the memory empty (the single-frame epochs of train.stream_warmup) the fusion's memory weights get
+    # no data gradient; Adam with the paper's coupled L2 then pushed them to zero at ~lr per step (a dead
+    # fusion: 1e-28 after the demo config's warm-up). The fusion carries no weight decay: they stay as built
+    from instagram_hdmap.checkpoint import load_checkpoint
+    from instagram_hdmap.train import build_loaders, seed_everything, train
+
+    cfg = _drive_cfg(tiny_world, tmp_path / "warm", "train.epochs=2", "train.stream_warmup=0.5",
+                     "train.max_steps=3", "train.weight_decay=0.1", "train.lr=0.01")
+    train(cfg, loaders=build_loaders(cfg, 1, with_val=False), validate=False)
+    seed_everything(cfg.train.seed)  # as the run did before building its model
+    start = build_model(cfg).state_dict()
+    tuned = load_checkpoint(tmp_path / "warm" / "last.pt")["model"]
+    c = cfg.model.bev_heads.stage_channels[0]
+    # [x, warped memory, validity]: the memory's and the validity's weights are untouched, x's trained
+    assert torch.equal(tuned["temporal.mix.0.weight"][:, c:], start["temporal.mix.0.weight"][:, c:])
+    assert not torch.equal(tuned["temporal.mix.0.weight"][:, :c], start["temporal.mix.0.weight"][:, :c])
+    assert not torch.equal(tuned["bev_heads.stem.0.weight"], start["bev_heads.stem.0.weight"])

@@ -287,6 +287,8 @@ class TrainConfig:
     epochs: int = bounded(30, ge=1)
     batch_size: int = bounded(32, ge=1)  # in total, over all processes
     lr: float = bounded(1e-3, gt=0)
+    # Adam's L2, added to the gradient as the official code does; not on a temporal fusion's parameters
+    # (param_groups in train.py: with the memory empty, the L2 alone would erase its memory weights)
     weight_decay: float = bounded(1e-7, ge=0)
     # LR schedule as a function of progress = max(steps / total steps, elapsed / time budget)
     # (schedule.py): "step" decays x lr_gamma every lr_step epochs' worth of progress (the paper's

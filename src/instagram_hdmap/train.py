@@ -326,7 +326,7 @@ class TrainingRun:
                                                                   "start from their initialisation)" if new else ""))
         trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
-        self.optimizer = torch.optim.Adam(trainable, lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
+        self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
         self.batch_size = loader_batch_size(self.train_loader)
         self.steps_per_epoch = math.ceil(self.sampler.num_samples / self.batch_size)
         self.total_steps = cfg.train.epochs * self.steps_per_epoch  # the schedule's length; max_steps only cuts it
@@ -384,6 +384,12 @@ class TrainingRun:
     def restore(self, state: dict) -> None:
         """The full state of a checkpoint: weights, optimizer, clock, scaler, position, best, RNGs."""
         self.model.load_state_dict(state["model"])
+        saved_groups = len(state["optimizer"].get("param_groups", []))
+        if saved_groups != len(self.optimizer.param_groups):  # a temporal run saved before param_groups()
+            raise CheckpointError(
+                f"the checkpoint's optimizer has {saved_groups} parameter group(s), this version's "
+                f"{len(self.optimizer.param_groups)} (the temporal fusion's own group, without weight decay): it "
+                f"cannot be resumed exactly; start a new run from its weights with train.init_from=CHECKPOINT")
         self.optimizer.load_state_dict(state["optimizer"])
         self.clock.load_state_dict(state.get("clock") or {})
         if self.scaler is not None and state.get("scaler") is not None:
@@ -639,6 +645,20 @@ def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
                         f"({'; '.join(wrong[:3])}{more}); start from a checkpoint of the same model config")
     model.load_state_dict(theirs, strict=False)
     return missing
+
+
+def param_groups(model: torch.nn.Module, params: list[torch.nn.Parameter], weight_decay: float) -> list[dict]:
+    """Adam's parameter groups: ``weight_decay`` (the paper's L2, added to the gradient as the official code
+    does) on all but the temporal fusion's parameters, which get none. Adam normalises each step by the
+    gradient's size, so a parameter whose data gradient is zero (the fusion's memory weights while the
+    memory is empty: the single-frame epochs of ``train.stream_warmup``, every scene start) is pushed to
+    zero by the L2 term alone at ~lr per step: two thousand warm-up steps at 2e-3 erased the memory
+    weights (1e-28) and the fusion ignored its memory for good (benchmarks/README.md, "Temporal")."""
+    temporal = {id(p) for name, p in model.named_parameters() if name.startswith("temporal.")}
+    decayed = [p for p in params if id(p) not in temporal]
+    fusion = [p for p in params if id(p) in temporal]
+    return [g for g in ({"params": decayed, "weight_decay": weight_decay}, {"params": fusion, "weight_decay": 0.0})
+            if g["params"]]
 
 
 def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Parameter]:
