@@ -5,8 +5,8 @@ checks the promise: a wrong input is named on one line (``UserError``, exit code
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
-fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth). Everything runs on the tiny synthetic world of conftest.py and a
-random tiny model: no training longer than a few steps.
+fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth). Everything runs on the tiny
+synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -1741,8 +1741,8 @@ def row_eval_thresholds_twice(env):
 # ==================================================================================================
 
 
-@row("S6", "train --force with train.init_from a checkpoint of train.out_dir is refused (--force removed the checkpoint "
-          "before it was read: 'checkpoint not found', the weights lost)")
+@row("S6", "train --force with train.init_from a checkpoint of train.out_dir is refused (--force removed the "
+          "checkpoint before it was read: 'checkpoint not found', the weights lost)")
 def row_init_from_inside_out_dir(env):
     run = env.tmp / "run"
     _toy_run(env, [0.2], "train.epochs=1")
@@ -1754,8 +1754,8 @@ def row_init_from_inside_out_dir(env):
     assert (run / "best.pt").read_bytes() == before
 
 
-@row("S6", "train.init_from's errors name the key, and its weights' fit and train.trainable's prefixes are checked before "
-          "the data loaders (a long setup on nuScenes; the message said '--checkpoint')")
+@row("S6", "train.init_from's errors name the key, and its weights' fit and train.trainable's prefixes are checked "
+          "before the data loaders (a long setup on nuScenes; the message said '--checkpoint')")
 def row_init_from_and_trainable_checked_first(env):
     forbid(env, "instagram_hdmap.train.build_loaders", "the data loaders")
     env.error(r"train\.init_from: .*tiny_world\.yaml is not a PyTorch checkpoint", "train", env.yaml,
@@ -1778,8 +1778,9 @@ def _temporal_checkpoint(env) -> Path:
                            env.tmp / "temporal.pt")
 
 
-@row("S6", "Mapper: a camera upside down (an OpenGL / Blender pose, y up and z backward, or a 180 degree roll) is named "
-          "(accepted: rays from the wrong side of the car, exit 0), and a roll of 120 degrees is not reported as 60")
+@row("S6", "Mapper: a camera upside down (an OpenGL / Blender pose, y up and z backward, or a 180 degree roll) is "
+          "named (accepted: rays from the wrong side of the car, exit 0), and a roll of 120 degrees is not reported "
+          "as 60")
 def row_mapper_camera_upside_down(env):
     from instagram_hdmap.data.rig import RigError
 

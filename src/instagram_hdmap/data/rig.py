@@ -238,7 +238,8 @@ def check_upright(rotation: np.ndarray, where: str, hint: str | None = None) -> 
     if roll > 135:  # the image's y axis points up: an OpenGL / Blender camera (y up, z backward) or one upside down
         raise RigError(f"{where}: the camera is upside down (rolled {roll:.0f} degrees: its image's y axis, top to "
                        f"bottom, points up): {hint} The rotation is a camera's with x right, y down, z forward "
-                       "(OpenCV's convention; an OpenGL / Blender camera, y up and z backward, is R @ diag(1, -1, -1)); "
+                       "(OpenCV's convention; an OpenGL / Blender camera, y up and z backward, is "
+                       "R @ diag(1, -1, -1)); "
                        "turn the images of a camera mounted upside down by 180 degrees (with the intrinsics and "
                        "rotation of the turned image)")
     if roll > MAX_CAMERA_PITCH_DEG:
