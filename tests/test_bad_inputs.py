@@ -1894,6 +1894,14 @@ def row_mapstream_float32_utm_poses(env):
     assert isinstance(mapper.stream().step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=pose)), list)
 
 
+@row("S6", "evaluate-json --thresholds with a threshold twice is named (mAP, their mean, counted it twice; "
+          "eval.thresholds was checked, the flag not)")
+def row_evaluate_json_thresholds_twice(env):
+    gt = _submission(env.tmp / "gt.json", {"a": [{"pts": [[0, 0], [1, 1]], "type": 0}]}, True)
+    env.error(r"thresholds: \[0\.5, 0\.5\] lists a threshold twice", "evaluate-json", "--pred", gt, "--gt", gt,
+              "--thresholds", "0.5", "0.5")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

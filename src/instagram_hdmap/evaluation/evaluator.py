@@ -54,6 +54,9 @@ def check_thresholds(thresholds: Sequence[float]) -> tuple[float, ...]:
     bad = [t for t in out if not (math.isfinite(t) and t > 0)]
     if bad:
         raise EvaluationInputError(f"thresholds must be finite and > 0 metres; got {bad}")
+    if len(set(out)) != len(out):  # mAP averages over them: one given twice would count twice
+        raise EvaluationInputError(f"thresholds: {list(out)} lists a threshold twice, which mAP (their mean) would "
+                                   "count twice; give each once")
     return out
 
 
