@@ -1902,6 +1902,18 @@ def row_evaluate_json_thresholds_twice(env):
               "--thresholds", "0.5", "0.5")
 
 
+@row("S6", "a path key written ~/... in a YAML file or a quoted override is the home folder (train.out_dir: ~/runs made "
+          "a folder named '~' in the working directory, and said 'outputs in ~/runs')")
+def row_tilde_in_path_keys(env):
+    home = env.tmp / "home"
+    env.monkeypatch.setenv("HOME", str(home))
+    path = env.tmp / "exp.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  out_dir: ~/runs/x\n")
+    cfg = load_config(path, ["train.init_from=~/best.pt", "data.dataroot=~/data/nuscenes"])
+    assert (cfg.train.out_dir, cfg.train.init_from, cfg.data.dataroot) == (
+        str(home / "runs" / "x"), str(home / "best.pt"), str(home / "data" / "nuscenes"))
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

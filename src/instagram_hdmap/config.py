@@ -23,6 +23,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 import re
 import types
 import typing
@@ -588,8 +589,25 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         cfg = _merge(cfg, _read_yaml(Path(path)))
     if overrides:
         cfg = _merge(cfg, parse_overrides(overrides))
+    expand_home(cfg)
     validate_config(cfg)
     return cfg
+
+
+# the keys that hold a file or folder path: a leading ~ is the user's home, as a shell would read it (a YAML
+# file or a quoted override keeps it: train.out_dir=~/runs made a folder named "~" in the working directory)
+PATH_KEYS = ("data.dataroot", "data.splits_file", "model.backbone.weights", "train.out_dir", "train.init_from")
+
+
+def expand_home(cfg: ExperimentConfig) -> None:
+    for key in PATH_KEYS:
+        section, name = key.rsplit(".", 1)
+        obj = cfg
+        for part in section.split("."):
+            obj = getattr(obj, part)
+        value = getattr(obj, name)
+        if isinstance(value, str) and (value == "~" or value.startswith("~/")):
+            setattr(obj, name, os.path.expanduser(value))
 
 
 def check_ranges(obj: Any, prefix: str = "") -> None:
