@@ -1902,8 +1902,8 @@ def row_evaluate_json_thresholds_twice(env):
               "--thresholds", "0.5", "0.5")
 
 
-@row("S6", "a path key written ~/... in a YAML file or a quoted override is the home folder (train.out_dir: ~/runs made "
-          "a folder named '~' in the working directory, and said 'outputs in ~/runs')")
+@row("S6", "a path key written ~/... in a YAML file or a quoted override is the home folder (train.out_dir: ~/runs "
+          "made a folder named '~' in the working directory, and said 'outputs in ~/runs')")
 def row_tilde_in_path_keys(env):
     home = env.tmp / "home"
     env.monkeypatch.setenv("HOME", str(home))
