@@ -736,3 +736,21 @@ def test_the_fusion_keeps_its_memory_weights_through_the_single_frame_epochs(tin
     assert torch.equal(tuned["temporal.mix.0.weight"][:, c:], start["temporal.mix.0.weight"][:, c:])
     assert not torch.equal(tuned["temporal.mix.0.weight"][:, :c], start["temporal.mix.0.weight"][:, :c])
     assert not torch.equal(tuned["bev_heads.stem.0.weight"], start["bev_heads.stem.0.weight"])
+
+
+def test_resume_of_a_temporal_checkpoint_with_one_optimizer_group_is_named(tiny_world, tmp_path):
+    # temporal checkpoints written before the fusion had its own parameter group cannot resume exactly
+    from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+    from instagram_hdmap.train import build_loaders, train
+
+    cfg = _drive_cfg(tiny_world, tmp_path / "run", "train.max_steps=1")
+    train(cfg, loaders=build_loaders(cfg, 1, with_val=False), validate=False)
+    state = load_checkpoint(tmp_path / "run" / "last.pt")
+    groups = state["optimizer"]["param_groups"]
+    assert len(groups) == 2 and groups[1]["weight_decay"] == 0.0
+    merged = {**groups[0], "params": groups[0]["params"] + groups[1]["params"]}
+    old = save_checkpoint({**state, "optimizer": {**state["optimizer"], "param_groups": [merged]}},
+                          tmp_path / "old" / "last.pt")
+    cfg = _drive_cfg(tiny_world, tmp_path / "old", "train.max_steps=2")
+    with pytest.raises(CheckpointError, match=r"old/last\.pt: its optimizer has 1 parameter group.*train\.init_from"):
+        train(cfg, loaders=build_loaders(cfg, 1, with_val=False), validate=False, resume=str(old))

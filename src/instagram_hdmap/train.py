@@ -372,7 +372,7 @@ class TrainingRun:
             loaders = build_loaders(cfg, du.get_world_size(), with_val=validate)
         run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None, init_state=init_state)
         if state is not None:
-            run.restore(state)
+            run.restore(state, Path(resume))
             run.check_not_finished(state, Path(resume))
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
                           f"({run.position.step_in_epoch} into the epoch)")
@@ -381,13 +381,13 @@ class TrainingRun:
                 run.model, device_ids=[device.index] if device.type == "cuda" else None)
         return run
 
-    def restore(self, state: dict) -> None:
+    def restore(self, state: dict, path: Path | str = "the checkpoint") -> None:
         """The full state of a checkpoint: weights, optimizer, clock, scaler, position, best, RNGs."""
         self.model.load_state_dict(state["model"])
         saved_groups = len(state["optimizer"].get("param_groups", []))
         if saved_groups != len(self.optimizer.param_groups):  # a temporal run saved before param_groups()
             raise CheckpointError(
-                f"the checkpoint's optimizer has {saved_groups} parameter group(s), this version's "
+                f"checkpoint {path}: its optimizer has {saved_groups} parameter group(s), this version's "
                 f"{len(self.optimizer.param_groups)} (the temporal fusion's own group, without weight decay): it "
                 f"cannot be resumed exactly; start a new run from its weights with train.init_from=CHECKPOINT")
         self.optimizer.load_state_dict(state["optimizer"])
