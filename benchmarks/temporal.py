@@ -106,7 +106,7 @@ def memory_off(results: list[dict], args, val_root) -> str:
         ckpt = out / "run" / "last.pt"
         if not done.is_file():
             off = ["model.temporal.max_jump_m=0.001"]
-            cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *off])
+            cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override, *off])
             metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
             done.write_text(json.dumps({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
                                         "flicker_mean": metrics["consistency"]["flicker_mean"]}, indent=1))

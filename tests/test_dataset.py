@@ -656,3 +656,28 @@ def test_show_gt_cli(tiny_world, world_overrides, tmp_path, capsys):
         assert cv2.imread(str(tmp_path / "png" / name)).std() > 5  # not blank
     assert main(["show-gt", *args, "--index", "99", "--out", str(tmp_path / "png")]) == 2
     assert "out of range" in capsys.readouterr().err
+
+
+def test_camera_dropout_blanks_the_same_cameras_for_every_model(tiny_world, world_overrides):
+    # data.camera_dropout: a camera's image becomes the ImageNet mean (0 after normalisation) with the given
+    # probability, drawn from the sample index alone: the same cameras in every epoch and every run
+    from instagram_hdmap.config import load_config
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.data.base import blank_cameras
+
+    cfg = load_config(None, [*world_overrides(tiny_world), "data.image_size=[32,64]"])
+    clear = build_dataset(cfg, cfg.data.train_split, augment=False)
+    cfg = load_config(None, [*world_overrides(tiny_world), "data.image_size=[32,64]", "data.camera_dropout=0.5"])
+    dropped = build_dataset(cfg, cfg.data.train_split, augment=False)
+    blanked = 0
+    for i in range(len(clear)):
+        a, b = clear.load_sample(i)["images"], dropped.load_sample(i)["images"]
+        zero = b.flatten(1).abs().amax(1) == 0
+        assert torch.equal(a[~zero], b[~zero])
+        assert all(bool((a[v] != 0).any()) for v in zero.nonzero().flatten())  # a real image was blanked
+        assert torch.equal(b, dropped.load_sample(i)["images"])  # the same draw every time
+        blanked += int(zero.sum())
+    assert 0 < blanked < 6 * len(clear)
+    # over many samples the share blanked is the probability
+    share = np.mean([float(blank_cameras(torch.ones(6, 1, 1, 1), 0.3, i).eq(0).float().mean()) for i in range(2000)])
+    assert abs(share - 0.3) < 0.02

@@ -121,6 +121,11 @@ class DataConfig:
     # resize the whole image to (h, w), each axis on its own (the official InstaGraM / HDMapNet
     # loader: 1600 x 900 -> 352 x 128, no crop; configs/paper)
     image_fit: Literal["cover", "contain", "stretch"] = "cover"
+    # each camera image of a sample is blanked (the ImageNet mean: a camera that failed) with this
+    # probability, drawn from the sample's index alone (the same cameras in every epoch, for every model,
+    # in training and evaluation): a world where one frame lacks what the frame before saw (the temporal
+    # benchmark, docs/temporal.md); 0: off
+    camera_dropout: float = bounded(0.0, ge=0, lt=1)
     av2_cameras: tuple[str, ...] = AV2_RING_CAMERAS  # av2: the ring cameras fed to the model, in this order
     av2_frame_step: int = bounded(5, ge=1)  # av2: one lidar sweep in N is a sample (AV2's sweeps come at 10 Hz)
     sample_dist: float = bounded(1.5, gt=0)  # metres between resampled map vertices

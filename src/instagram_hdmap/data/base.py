@@ -221,6 +221,8 @@ class MapDataset(Dataset):
             msg = str(e) if token in str(e) else f"sample {token}: {e}"
             raise type(e)(msg) from None
         d = self.data_cfg
+        if d.camera_dropout > 0:
+            cams["images"] = blank_cameras(cams["images"], d.camera_dropout, index)
         targets = build_targets(polylines, self.grid, len(d.classes), d.dt_clip)
         frame = self.scenes.frame[index]
         return {
@@ -264,6 +266,20 @@ class MapDataset(Dataset):
             sample["stands_for"] = self.sample_tokens[index]
             return sample
         raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
+
+
+CAMERA_DROPOUT_STREAM = 0xD209  # the random stream of data.camera_dropout, apart from augmentation's
+
+
+def blank_cameras(images: torch.Tensor, p: float, index: int) -> torch.Tensor:
+    """``data.camera_dropout``: each of the V normalised images [V, 3, h, w] set to 0 (the ImageNet mean)
+    with probability ``p``, drawn from the sample's ``index`` alone."""
+    drop = np.random.default_rng([CAMERA_DROPOUT_STREAM, index]).random(images.shape[0]) < p
+    if not drop.any():
+        return images
+    images = images.clone()
+    images[torch.from_numpy(drop)] = 0.0
+    return images
 
 
 def collate_fn(samples: list[dict]) -> dict:
