@@ -175,13 +175,18 @@ def unlock_out_dir(out_dir: Path) -> None:
         handle.close()
 
 
+def config_differences(old: ExperimentConfig, cfg: ExperimentConfig, keys) -> str:
+    """The keys under ``keys`` whose values differ, as "key: checkpoint X vs now Y; ..." ("" if none)."""
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys)]
+    old_d, new_d = config_to_dict(old), config_to_dict(cfg)
+    return "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
+
+
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
     old = saved_config(ckpt_cfg, f"checkpoint {path}")
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
-    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys)]
-    if differ:
-        old_d, new_d = config_to_dict(old), config_to_dict(cfg)
-        lines = "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
+    lines = config_differences(old, cfg, keys)
+    if lines:
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
 
 
@@ -620,11 +625,8 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
     except CheckpointError as e:  # named as this key (not --checkpoint)
         raise CheckpointError(f"train.init_from: {str(e).replace(' with --checkpoint', '')}") from None
     if isinstance(state.get("config"), dict):
-        old = saved_config(state["config"], f"checkpoint {path}")
-        differ = [k for k in diff_configs(old, cfg) if is_under(k, INIT_KEYS)]
-        if differ:
-            old_d, new_d = config_to_dict(old), config_to_dict(cfg)
-            lines = "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
+        lines = config_differences(saved_config(state["config"], f"checkpoint {path}"), cfg, INIT_KEYS)
+        if lines:
             raise UserError(f"train.init_from={path}: the checkpoint was trained with other inputs or geometry "
                             f"({lines}); its weights would mean something else here")
     return state
@@ -667,16 +669,14 @@ def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Paramet
     named = dict(model.named_parameters())
     if not prefixes:
         return list(named.values())
-    def under(name: str, prefix: str) -> bool:
-        return name == prefix or name.startswith(prefix + ".")
-    unused = [p for p in prefixes if not any(under(n, p) for n in named)]
+    unused = [p for p in prefixes if not any(is_under(n, [p]) for n in named)]
     if unused:
         parts = sorted({n.split(".")[0] for n in named})
         raise UserError(f"train.trainable: {unused} name no parameter of this model (its parts: {', '.join(parts)}; "
                         "a prefix is a dotted module path, e.g. temporal or bev_heads.encoder)")
     kept = []
     for name, param in named.items():
-        param.requires_grad_(any(under(name, p) for p in prefixes))
+        param.requires_grad_(is_under(name, prefixes))
         if param.requires_grad:
             kept.append(param)
     return kept
