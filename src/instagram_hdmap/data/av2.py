@@ -60,7 +60,16 @@ import torch
 from shapely.geometry import LineString, Polygon
 
 from ..config import ExperimentConfig, UserError
-from .base import DatasetError, MapDataset, check_intrinsics, check_rotation, check_translation
+from .base import (
+    DatasetError,
+    MapDataset,
+    check_camera_plausible,
+    check_distinct_images,
+    check_ego_level,
+    check_intrinsics,
+    check_rotation,
+    check_translation,
+)
 from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
 from .transforms import ImageAug, load_image, sample_augmentation
 
@@ -287,6 +296,10 @@ class AV2MapDataset(MapDataset):
                 where = f"log {log}: camera {cam} in {extr_path}"
                 check_rotation(pin.ego_SE3_cam.rotation, "its rotation (camera -> ego)", where)
                 check_translation(pin.ego_SE3_cam.translation, "its translation (camera -> ego)", where)
+                check_camera_plausible(pin.intrinsics.K, pin.ego_SE3_cam.rotation, pin.ego_SE3_cam.translation,
+                                       (pin.width_px, pin.height_px), f"{where} and {intr_path.name}",
+                                       "is (qw, qx, qy, qz) the camera -> ego rotation, in that order (not ego -> "
+                                       "camera, its inverse; not qx, qy, qz, qw)?")
             self._cameras[log] = cams
         return self._cameras[log]
 
@@ -300,6 +313,7 @@ class AV2MapDataset(MapDataset):
         where = f"log {log}: the ego pose at lidar sweep {ts} in {path}"
         check_rotation(pose.rotation, "its rotation", where)
         check_translation(pose.translation, "its translation", where)
+        check_ego_level(pose.rotation, where, "(qw, qx, qy, qz) in another order?")
         return pose
 
     def _image_path(self, log: str, cam: str, ts: int) -> Path:
@@ -344,8 +358,10 @@ class AV2MapDataset(MapDataset):
         """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""
         log, ts = self.samples[index]
         cams = self._log_cameras(log)
-        return [(self._image_path(log, cam, ts), (cams[cam].width_px, cams[cam].height_px))
-                for cam in self.camera_names]
+        files = [(self._image_path(log, cam, ts), (cams[cam].width_px, cams[cam].height_px))
+                 for cam in self.camera_names]
+        check_distinct_images([path for path, _ in files], self.camera_names, f"log {log}, lidar sweep {ts}")
+        return files
 
     def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
         """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],

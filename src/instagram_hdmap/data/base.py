@@ -24,6 +24,7 @@ sample is replaced by the next good one (one warning per bad sample, with the ru
 
 from __future__ import annotations
 
+import os
 import warnings
 
 import numpy as np
@@ -138,6 +139,59 @@ def check_intrinsics(intrinsics, where: str) -> None:
                            "both must be > 0 (pixels)")
     if not np.allclose(K[2], (0.0, 0.0, 1.0)):
         raise DatasetError(f"{where}: the camera intrinsics' last row must be (0, 0, 1), got {K[2].tolist()}")
+
+
+MAX_EGO_TILT_DEG = 25  # the ego frame's z axis off the vertical: the steepest public roads are ~20 degrees
+
+
+def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[int, int], where: str,
+                           hint: str) -> None:
+    """A calibration whose every field is well formed but that no surround camera has (Mapper's checks,
+    data/rig.py): a camera more than ``MAX_CAMERA_OFFSET_M`` from the ego origin (millimetres), a focal
+    length of a field of view over 175 degrees (intrinsics normalised or in millimetres), a principal point
+    outside the ``image_size`` (width, height) image (intrinsics of another image size), a camera looking
+    up or down, rolled or upside down (``check_upright``: ego -> camera, a quaternion in another order)."""
+    from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright
+
+    K, t = np.asarray(intrinsics, dtype=np.float64), np.asarray(translation, dtype=np.float64)
+    dist = float(np.linalg.norm(t))
+    if dist > MAX_CAMERA_OFFSET_M:
+        raise DatasetError(f"{where}: its translation {t.round(3).tolist()} puts the camera {dist:.4g} m from the ego "
+                           f"origin (more than {MAX_CAMERA_OFFSET_M:g} m): a calibration in millimetres? the "
+                           "translation is in metres")
+    w, h = image_size
+    if K[0, 0] < w / MAX_FOV_RATIO or K[1, 1] < h / MAX_FOV_RATIO:
+        raise DatasetError(f"{where}: its focal length (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels for a {w}x{h} "
+                           "image is a field of view over 175 degrees: intrinsics normalised by the image size "
+                           "(or in millimetres)? they are in pixels")
+    if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+        raise DatasetError(f"{where}: its principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) lies outside its "
+                           f"{w}x{h} image: intrinsics of another image size? scale them with the image")
+    try:
+        check_upright(rotation, where, hint)
+    except RigError as e:
+        raise DatasetError(str(e)) from None
+
+
+def check_ego_level(rotation, where: str, hint: str) -> None:
+    """An ego -> world rotation whose z axis is more than ``MAX_EGO_TILT_DEG`` off the vertical: no vehicle
+    on a road is tilted so; a quaternion read in another order is."""
+    R = np.asarray(rotation, dtype=np.float64)
+    tilt = float(np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))))
+    if tilt > MAX_EGO_TILT_DEG:
+        raise DatasetError(f"{where}: its rotation tilts the vehicle {tilt:.0f} degrees off level (a vehicle on a "
+                           f"road is tilted less than {MAX_EGO_TILT_DEG}): {hint}")
+
+
+def check_distinct_images(paths, cameras, where: str) -> None:
+    """No image file (symbolic links followed) given for two cameras of one sample."""
+    seen: dict = {}
+    for cam, path in zip(cameras, paths):
+        key = os.path.realpath(path)
+        if key in seen:
+            raise DatasetError(f"{where}: cameras {seen[key]} and {cam} read the same image file {path}: each camera "
+                               "has its own images (a table or a link pointing at the wrong file)")
+        seen[key] = cam
 
 
 class MapDataset(Dataset):

@@ -110,6 +110,9 @@ class _LocationMap:
         self.ped_tree = shapely.STRtree(self.peds)
         self.ped_edge_tree = shapely.STRtree(self.ped_edges)
         self.area_tree = shapely.STRtree(self.areas)
+        geoms = [g for g in (self.dividers, self.peds, self.areas) if len(g)]
+        # the map's extent (xmin, ymin, xmax, ymax); NaN for a map without geometry
+        self.bounds = shapely.total_bounds(np.concatenate(geoms)) if geoms else np.full(4, np.nan)
         if self.divider_exclusion is not None:
             shapely.prepare(self.divider_exclusion)  # point-in-zone tests per sample (_divider_pieces)
 
@@ -327,6 +330,11 @@ class LocalMapBuilder:
         """Polylines around the global pose (x, y, yaw radians), metres in the ego frame."""
         lmap = self.location_map(location)
         patch = self.patch_global(x, y, yaw)
+        x0, y0, x1, y1 = lmap.bounds
+        if np.isfinite(lmap.bounds).all() and not patch.intersects(box(x0, y0, x1, y1)):
+            raise MapError(f"the ego position ({x:.1f}, {y:.1f}) lies outside the map of location '{location}' (x "
+                           f"{x0:.0f}..{x1:.0f}, y {y0:.0f}..{y1:.0f} m): ego poses in millimetres, or a log of "
+                           "another location (nuScenes: the log table's 'location'; AV2: the log's map/ folder)?")
         c, s = np.cos(yaw), np.sin(yaw)
         rot = np.array([[c, -s], [s, c]])  # ego -> global; global -> ego is (p - t) @ rot
 

@@ -29,7 +29,16 @@ import numpy as np
 import torch
 
 from ..config import ExperimentConfig
-from .base import DatasetError, MapDataset, check_intrinsics, check_translation, reject_text
+from .base import (
+    DatasetError,
+    MapDataset,
+    check_camera_plausible,
+    check_distinct_images,
+    check_ego_level,
+    check_intrinsics,
+    check_translation,
+    reject_text,
+)
 from .local_map import LocalMapBuilder, MapError
 from .rig import CAMERAS
 from .transforms import ImageAug, load_image, sample_augmentation
@@ -241,8 +250,10 @@ class NuScenesMapDataset(MapDataset):
                                f"{self.dataroot}")
         sd = self._get("sample_data", data[channel])
         pose = self._get("ego_pose", _field(sd, "ego_pose_token", "sample_data"))
-        check_pose_record(pose, "ego_pose", f"ego_pose {pose.get('token')} of {channel} in "
-                                            f"{self.dataroot / self.data_cfg.version}/ego_pose.json")
+        where = f"ego_pose {pose.get('token')} of {channel} in {self.dataroot / self.data_cfg.version}/ego_pose.json"
+        check_pose_record(pose, "ego_pose", where)
+        check_ego_level(_pose_matrix(pose["rotation"], pose["translation"])[:3, :3], where,
+                        "a quaternion in (x, y, z, w) order? nuScenes writes (w, x, y, z)")
         return pose
 
     # --- pieces -----------------------------------------------------------------------------------
@@ -280,6 +291,9 @@ class NuScenesMapDataset(MapDataset):
             out["cam_to_ego_trans"].append(pose[:3, 3])
             out["post_rot"].append(post_rot)
             out["post_tran"].append(post_tran)
+        check_distinct_images([self.dataroot / self._camera_records(sample, c)[0]["filename"] for c in CAMERAS],
+                              CAMERAS, f"sample {sample['token']} in {self.dataroot / self.data_cfg.version}/"
+                                       "sample_data.json")
         return {k: torch.stack(v) for k, v in out.items()}
 
     def _camera_records(self, sample: dict, cam: str) -> tuple[dict, dict]:
@@ -303,6 +317,10 @@ class NuScenesMapDataset(MapDataset):
                  f"{self.dataroot / self.data_cfg.version}/calibrated_sensor.json")
         check_pose_record(cs, "calibrated_sensor", where)
         check_intrinsics(_field(cs, "camera_intrinsic", "calibrated_sensor"), where)
+        check_camera_plausible(cs["camera_intrinsic"], _pose_matrix(cs["rotation"], cs["translation"])[:3, :3].double(),
+                               cs["translation"], (sd["width"], sd["height"]), where,
+                               "is its rotation the camera -> ego quaternion, in (w, x, y, z) order (not ego -> "
+                               "camera, its inverse; not x, y, z, w)?")
         return sd, cs
 
     def ego_pose(self, index: int) -> torch.Tensor:
