@@ -15,6 +15,7 @@ of tied scores -- independent of how the samples were split over updates and pro
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -286,6 +287,49 @@ def _check_canvas(gt, grid: BEVGrid) -> None:
                               f"{y1:g} (to score a crop on purpose, drop xbound/ybound from the GT file's meta)")
 
 
+FRAME_META_KEYS = ("classes", "xbound", "ybound", "frame", "dataset")  # what the ids and coordinates mean
+
+
+def _check_same_frame(pred, gt) -> None:
+    """The prediction file is in the GT file's classes and frame: a meta key both files state (``classes``,
+    ``xbound`` / ``ybound``, ``frame``, ``dataset``) agrees, and the predicted points lie mostly within twice
+    the GT's map patch (the meta's, else the GT points' extent) and not all on [0, 1] (global coordinates,
+    pixels, other units, coordinates normalised by the patch: AP 0 with no word otherwise)."""
+    for key in FRAME_META_KEYS:
+        a, b = pred.meta.get(key), gt.meta.get(key)
+        if a is not None and b is not None and json.dumps(a) != json.dumps(b):
+            try:
+                if np.allclose(np.asarray(a, dtype=float), np.asarray(b, dtype=float)):
+                    continue
+            except (TypeError, ValueError):
+                pass
+            raise SubmissionError(f"{pred.path}: its meta says {key} = {a!r}, the GT file {gt.path}'s says {b!r}: the "
+                                  f"{'class ids' if key == 'classes' else 'coordinates'} mean other things; write the "
+                                  "predictions in the GT's setting (or evaluate against a GT of theirs)")
+    pts = [p["pts"] for polys in pred.samples.values() for p in polys]
+    if not pts:
+        return
+    pts = np.concatenate(pts)
+    try:
+        (x0, x1), (y0, y1) = ([float(v) for v in gt.meta[k]] for k in ("xbound", "ybound"))
+    except (KeyError, TypeError, ValueError):
+        gts = [p["pts"] for polys in gt.samples.values() for p in polys]
+        if not gts:
+            return
+        (x0, y0), (x1, y1) = np.concatenate(gts).min(0), np.concatenate(gts).max(0)
+    w, h = x1 - x0, y1 - y0
+    inside = ((pts[:, 0] >= x0 - w / 2) & (pts[:, 0] <= x1 + w / 2)
+              & (pts[:, 1] >= y0 - h / 2) & (pts[:, 1] <= y1 + h / 2))
+    if inside.mean() < 0.5:
+        raise SubmissionError(f"{pred.path}: {1 - inside.mean():.0%} of its points lie outside twice the GT's map "
+                              f"patch (x {x0:g}..{x1:g}, y {y0:g}..{y1:g} m): predictions in global coordinates, "
+                              "pixels or another unit? points are metres in the ego frame")
+    if len(pts) >= 10 and min(w, h) > 4 and ((pts >= 0) & (pts <= 1)).all():
+        raise SubmissionError(f"{pred.path}: every point lies in [0, 1] x [0, 1] on a GT map patch of {w:g} x {h:g} m: "
+                              "coordinates normalised by the patch (MapTR's raw output)? points are metres in the "
+                              "ego frame")
+
+
 def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "vector",
                    thresholds: Sequence[float] = (0.5, 1.0, 1.5), *, grid: BEVGrid | None = None,
                    rank_by: str = "ascending", fix_instance_ids: bool = False, device: str = "cpu",
@@ -309,6 +353,7 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
         raise SubmissionError(f"{gt_path}: the GT file holds no samples")
     if protocol == "raster":
         _check_canvas(gt, grid if grid is not None else DEFAULT_RASTER_GRID)
+    _check_same_frame(pred, gt)
     extra = [t for t in pred.samples if t not in gt.samples]
     if extra and not ignore_extra_predictions:
         raise SubmissionError(
