@@ -509,6 +509,10 @@ def run_evaluation(
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
+    if cfg.data.camera_dropout > 0:  # a training config's world with dropped cameras, easily inherited unseen
+        notes.append(f"data.camera_dropout={cfg.data.camera_dropout:g}: each camera image of the split is blanked in "
+                     f"{cfg.data.camera_dropout:.0%} of the frames (a fixed draw), so these are not the AP of the full "
+                     "images; set data.camera_dropout=0 for those")
     grid = BEVGrid.from_config(cfg.grid)
     split = cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)

@@ -63,7 +63,8 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 # that define its training targets (training knobs may change).
 # train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
 # one skipped the rest of the epoch and moved the learning rate along the schedule)
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "train.trainable")
+# train.seed: the epochs' sample order (the saved position counts batches of that order)
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "train.trainable", "train.seed")
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
@@ -369,6 +370,7 @@ class TrainingRun:
             if init_state is not None:
                 init_weights(probe, init_state)
             freeze_parameters(probe, cfg.train.trainable)
+            check_frozen_are_trained(probe, cfg, fresh=state is None and init_state is None)
             del probe
         if (state is None and init_state is None and cfg.model.backbone.name != "tiny"
                 and cfg.model.backbone.weights == "imagenet"):
@@ -680,6 +682,20 @@ def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Paramet
         if param.requires_grad:
             kept.append(param)
     return kept
+
+
+def check_frozen_are_trained(model: torch.nn.Module, cfg: ExperimentConfig, fresh: bool) -> None:
+    """A fresh run (no ``train.init_from``, no resume) with ``train.trainable`` would keep the frozen
+    parameters at their random initialisation: only a backbone with ``model.backbone.weights`` starts trained."""
+    if not fresh or not cfg.train.trainable:
+        return
+    pretrained = ("backbone",) if cfg.model.backbone.weights else ()
+    frozen = sorted({n.split(".")[0] for n, p in model.named_parameters()
+                     if not p.requires_grad and not is_under(n, pretrained)})
+    if frozen:
+        raise UserError(f"train.trainable={list(cfg.train.trainable)} without train.init_from: the frozen parts "
+                        f"({', '.join(frozen)}) keep their random initialisation; give train.init_from=CHECKPOINT "
+                        "(the weights to fine-tune), or drop train.trainable")
 
 
 def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
