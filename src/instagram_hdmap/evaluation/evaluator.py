@@ -316,7 +316,8 @@ def _check_same_frame(pred, gt) -> None:
         gts = [p["pts"] for polys in gt.samples.values() for p in polys]
         if not gts:
             return
-        (x0, y0), (x1, y1) = np.concatenate(gts).min(0), np.concatenate(gts).max(0)
+        # no patch stated (a GT file of another tool): the GT points' extent, with room for a patch of tens of metres
+        (x0, y0), (x1, y1) = np.concatenate(gts).min(0) - 30, np.concatenate(gts).max(0) + 30
     w, h = x1 - x0, y1 - y0
     inside = ((pts[:, 0] >= x0 - w / 2) & (pts[:, 0] <= x1 + w / 2)
               & (pts[:, 1] >= y0 - h / 2) & (pts[:, 1] <= y1 + h / 2))
