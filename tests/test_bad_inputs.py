@@ -5,8 +5,9 @@ checks the promise: a wrong input is named on one line (``UserError``, exit code
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
-fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth). Everything runs on the tiny
-synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
+fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh).
+Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer
+than a few steps.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S6"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S7"
     what: str
     run: Callable
 
@@ -1912,6 +1913,146 @@ def row_tilde_in_path_keys(env):
     cfg = load_config(path, ["train.init_from=~/best.pt", "data.dataroot=~/data/nuscenes"])
     assert (cfg.train.out_dir, cfg.train.init_from, cfg.data.dataroot) == (
         str(home / "runs" / "x"), str(home / "best.pt"), str(home / "data" / "nuscenes"))
+
+
+# ==================================================================================================
+# The seventh sweep (S7): cases found by a seventh sweep of the same kind
+# ==================================================================================================
+
+
+def _evaluate_world(env, edit, pattern: str) -> str:
+    """Evaluate on a shadow world whose tables ``edit`` changed; it must stop on one line matching ``pattern``."""
+    root = env.tmp / "world"
+    if root.exists():
+        shutil.rmtree(root)
+    return env.error(pattern, "evaluate", env.yaml, f"data.dataroot={env.shadow_world(edit)}", "--checkpoint",
+                     env.ckpt, "--out", env.tmp / "eval")
+
+
+@row("S7", "nuScenes tables: a camera calibration in millimetres, intrinsics of another image size, a quaternion in "
+          "x, y, z, w order or an ego -> camera rotation are named (the Mapper refused them; the dataset ran, exit 0)")
+def row_dataset_calibration_consistent_but_wrong(env):
+    from pyquaternion import Quaternion
+
+    def edit(change, channel="CAM_FRONT"):
+        return lambda tables: change(camera_record(tables, channel)[1])
+
+    def mm(cs):
+        cs["translation"] = [v * 1000 for v in cs["translation"]]
+
+    def intrinsics_1600x900(cs):
+        cs["camera_intrinsic"] = (np.array(cs["camera_intrinsic"]) * [[4], [4], [1]]).tolist()
+
+    def xyzw(cs):
+        w, x, y, z = cs["rotation"]
+        cs["rotation"] = [x, y, z, w]
+
+    def inverse(cs):
+        cs["rotation"] = list(Quaternion(cs["rotation"]).inverse.elements)
+
+    where = r"camera CAM_FRONT: calibrated_sensor \w+ in .*calibrated_sensor\.json: "
+    _evaluate_world(env, edit(mm), where + r"its translation .* puts the camera \d{4} m from the ego .*millimetres")
+    _evaluate_world(env, edit(intrinsics_1600x900), where + r"its principal point .* outside its 400x225 image")
+    for change in (xyzw, inverse):  # CAM_FRONT's quaternion read so still gives a level camera: a rig's trips on others
+        _evaluate_world(env, edit(change, "CAM_FRONT_LEFT"), r"camera CAM_FRONT_LEFT: .*: the camera (looks|is "
+                        r"rolled|is upside down).*\(w, x, y, z\) order")
+
+
+@row("S7", "AV2: an egovehicle_SE3_sensor translation in millimetres or intrinsics of the full-size image are named "
+          "(ran, exit 0)")
+def row_av2_calibration_consistent_but_wrong(env):
+    from pyarrow import feather
+
+    root, log = _av2_copy(env)
+    extrinsics = log / "calibration" / "egovehicle_SE3_sensor.feather"
+    _edit_feather(extrinsics, "tx_m", 0, 1000 * feather.read_table(str(extrinsics)).column("tx_m")[0].as_py())
+    _av2_error(env, root, rf"log {log.name}: camera \w+ in .*egovehicle_SE3_sensor\.feather .*from the ego origin")
+    root, log = _av2_copy(env) if shutil.rmtree(root) is None else (None, None)
+    intrinsics = log / "calibration" / "intrinsics.feather"
+    _edit_feather(intrinsics, "cx_px", 0, 5 * feather.read_table(str(intrinsics)).column("cx_px")[0].as_py())
+    _av2_error(env, root, rf"log {log.name}: camera \w+ in .*intrinsics\.feather: its principal point .* outside")
+
+
+@row("S7", "nuScenes tables: ego poses whose quaternion is in x, y, z, w order, or in millimetres, are named (the GT "
+          "map was cut at another heading or far off the map, exit 0)")
+def row_dataset_ego_pose_consistent_but_wrong(env):
+    from pyquaternion import Quaternion
+
+    def xyzw(tables):
+        for pose in tables["ego_pose"]:
+            w, x, y, z = Quaternion(axis=[0, 0, 1], degrees=90).elements  # heading 90 degrees, read in xyzw order
+            pose["rotation"] = [x, y, z, w]
+
+    def mm(tables):
+        for pose in tables["ego_pose"]:
+            pose["translation"] = [v * 1000 for v in pose["translation"]]
+
+    _evaluate_world(env, xyzw, r"ego_pose \w+ of LIDAR_TOP .*: its rotation tilts the vehicle 90 degrees .*"
+                               r"\(x, y, z, w\)")
+    _evaluate_world(env, mm, r"the ego position \(\d+\.\d, \d+\.\d\) lies outside the map of location .*millimetres")
+
+
+@row("S7", "nuScenes tables: two cameras of a sample reading the same image file is named (ran, exit 0)")
+def row_dataset_same_image_for_two_cameras(env):
+    def same(tables):
+        front, _ = camera_record(tables, "CAM_FRONT")
+        left, _ = camera_record(tables, "CAM_FRONT_LEFT")
+        left["filename"] = front["filename"]
+
+    _evaluate_world(env, same, r"cameras CAM_FRONT_LEFT and CAM_FRONT read the same image file .*CAM_FRONT__")
+
+
+@row("S7", "evaluate-json: a prediction file of other classes or another patch (its meta), or in global coordinates "
+          "or normalised to [0, 1], is named (AP 0 or class ids mixed up, exit 0)")
+def row_submission_in_another_setting(env):
+    line = {"a": [{"pts": [[float(x), float(x) / 4] for x in range(-8, 9)], "type": 0}]}
+    meta = {"classes": ["divider", "ped_crossing", "boundary"], "xbound": [-8.0, 8.0], "ybound": [-4.0, 4.0]}
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"meta": {**meta, "ground_truth": True}, "results": line}))
+
+    def pred(change_meta=None, move=lambda p: p):
+        vectors = {"a": [{**v, "pts": [move(np.array(q)).tolist() for q in v["pts"]], "confidence_level": 0.9}
+                         for v in line["a"]]}
+        path = env.tmp / "pred.json"
+        path.write_text(json.dumps({"meta": {**meta, **(change_meta or {}), "ground_truth": False},
+                                    "results": vectors}))
+        return path
+
+    assert env.cli("evaluate-json", "--pred", pred(), "--gt", gt)[0] == 0
+    env.error(r"pred\.json: its meta says classes = \['ped_crossing', 'divider', 'boundary'\], the GT file .*'s says",
+              "evaluate-json", "--pred", pred({"classes": ["ped_crossing", "divider", "boundary"]}), "--gt", gt)
+    env.error(r"its meta says xbound = \[-30\.0, 30\.0\]", "evaluate-json", "--pred", pred({"xbound": [-30.0, 30.0]}),
+              "--gt", gt)
+    env.error(r"100% of its points lie outside twice the GT's map patch .*global coordinates", "evaluate-json",
+              "--pred", pred(move=lambda p: p + [4.4e3, 5.8e3]), "--gt", gt)
+    env.error(r"every point lies in \[0, 1\] x \[0, 1\] .*normalised", "evaluate-json", "--pred",
+              pred(move=lambda p: (p + [8, 4]) / [16, 8]), "--gt", gt)
+
+
+@row("S7", "train.trainable without train.init_from is refused before the loaders (the frozen parts stayed random: a "
+          "training of the rest on random features, exit 0)")
+def row_trainable_without_init_from(env):
+    forbid(env, "instagram_hdmap.train.build_loaders", "the data loaders")
+    env.error(r"train\.trainable=\['backbone'\] without train\.init_from: the frozen parts \(bev_heads, graph_head, "
+              r"view_transform\) keep their random initialisation", "train", env.yaml, f"train.out_dir={env.tmp / 'r'}",
+              "train.trainable=[backbone]")
+
+
+@row("S7", "--resume with another train.seed is refused (the saved position counted batches of the old seed's order: "
+          "the rest of the epoch saw some samples twice and others never, exit 0)")
+def row_resume_with_another_seed(env):
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    with pytest.raises(UserError, match=r"incompatible config \(train\.seed: checkpoint 0 vs now 7\)"):
+        _toy_run(env, [], "train.epochs=2", "train.seed=7", resume=str(env.tmp / "run" / "last.pt"))
+
+
+@row("S7", "evaluate with data.camera_dropout (a training config's setting) says that the images were blanked (the AP "
+          "of dropped cameras, reported as the model's)")
+def row_evaluate_notes_camera_dropout(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "data.camera_dropout=0.3", "--checkpoint", env.ckpt, "--out",
+                           env.tmp / "eval")
+    assert rc == 0 and re.search(r"note: data\.camera_dropout=0\.3: each camera image of the split is blanked in 30%",
+                                 out), out
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
