@@ -21,6 +21,11 @@ Both start from the same weights, so the seed's own spread cancels in the paired
 
     python benchmarks/temporal.py --minutes 12 --seeds 0 1 --configs single --finetune 1200
 
+``--memory`` chooses what the temporal model remembers (``model.temporal.memory``: ``bev`` features, the
+previous frame's predicted ``graph`` drawn as a raster, or ``bev+graph``); a temporal run of another memory
+than ``bev`` is named after it (``temporal_ft_all_graph``, ...), so several memories share one ``--out``
+and its single-frame runs.
+
 ``--finetune-base DIR`` takes the single-frame checkpoints of an earlier ``--out`` (nothing is trained but
 the fine-tunings; the start is evaluated too, ``single_base``); ``--val-scenes N`` validates on a world of N
 scenes instead of the demo's 4 (the AP of 80 frames moves by a few hundredths between equal models).
@@ -69,6 +74,8 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
               *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override, *extra]
     summary, train_s = ({"step": steps} if trained else {}), 0.0
+    if config == "temporal":  # what the memory holds (--memory)
+        common.append(f"model.temporal.memory={args.memory}")
     if checkpoint is None:
         cfg = load_config(CONFIGS[config], [*world_overrides(train_root), *common])
         t0 = time.perf_counter()
@@ -106,7 +113,8 @@ def memory_off(results: list[dict], args, val_root) -> str:
         ckpt = out / "run" / "last.pt"
         if not done.is_file():
             off = ["model.temporal.max_jump_m=0.001"]
-            cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override, *off])
+            cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override,
+                                                    f"model.temporal.memory={args.memory}", *off])
             metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
             done.write_text(json.dumps({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
                                         "flicker_mean": metrics["consistency"]["flicker_mean"]}, indent=1))
@@ -115,9 +123,11 @@ def memory_off(results: list[dict], args, val_root) -> str:
         weights = ""
         if "temporal.mix.0.weight" in model:  # the gated fusion's input: [current, warped memory, validity]
             w = model["temporal.mix.0.weight"]
-            c = w.shape[1] // 2
-            weights = (f"; |w| memory {float(w[:, c:].abs().mean()):.2g}, current "
-                       f"{float(w[:, :c].abs().mean()):.2g}")
+            c = model["temporal.out.weight"].shape[1]  # the current features' channels
+            bev = c if args.memory in ("bev", "bev+graph") else 0  # [current c, bev, graph raster, validity]
+            parts = {"current": w[:, :c], "memory bev": w[:, c:c + bev], "memory graph": w[:, c + bev:-1]}
+            parts = {k: v for k, v in parts.items() if v.shape[1]}
+            weights = "; |w| " + ", ".join(f"{k} {float(v.abs().mean()):.2g}" for k, v in parts.items())
         lines.append(f"  {r['config']} s{r['seed']}: mAP {r['mAP']:.3f} / {off['mAP']:.3f} "
                      f"({r['mAP'] - off['mAP']:+.3f}), flicker {r['flicker_mean']:.3f} / {off['flicker_mean']:.3f}"
                      + weights)
@@ -146,7 +156,9 @@ def table(results: list[dict]) -> str:
                      + f"{r['mAP']:>8.3f}{r['flicker_mean']:>9.3f}{r['flicker_detected_mean']:>10.3f}")
     lines.append("-" * len(head))
     mean = {}
-    for name in ("single", "temporal"):
+    temporal = next((r["config"] for r in results if r["config"].startswith("temporal")
+                     and not r["config"].startswith("temporal_ft")), "temporal")  # a from-scratch run's name
+    for name in ("single", temporal):
         rs = [r for r in results if r["config"] == name]
         if not rs:
             continue
@@ -157,7 +169,7 @@ def table(results: list[dict]) -> str:
         lines.append(f"{name + ' mean':<18}{'':>7}" + "".join(f"{mean[name]['AP_class'][c]:>11.3f}" for c in classes)
                      + f"{mean[name]['mAP']:>8.3f}{mean[name]['flicker']:>9.3f}{mean[name]['flicker_detected']:>10.3f}")
     if len(mean) == 2:
-        s, t = mean["single"], mean["temporal"]
+        s, t = mean["single"], mean[temporal]
         lines.append(f"temporal - single: mAP {t['mAP'] - s['mAP']:+.3f} (x{t['mAP'] / max(s['mAP'], 1e-9):.2f}); "
                      f"flicker x{t['flicker'] / max(s['flicker'], 1e-9):.2f}, among detected "
                      f"x{t['flicker_detected'] / max(s['flicker_detected'], 1e-9):.2f} "
@@ -166,6 +178,11 @@ def table(results: list[dict]) -> str:
 
 
 FT_NAMES = {"temporal": "temporal_ft", "all": "temporal_ft_all"}  # the fine-tuned temporal runs' names
+
+
+def memory_suffix(args) -> str:
+    """A temporal run's name suffix for ``--memory`` (none for the BEV memory: the first runs' names)."""
+    return "" if args.memory == "bev" else "_" + args.memory.replace("+", "_")
 
 
 def finetune_runs(seed: int, args, roots) -> list[dict]:
@@ -177,14 +194,14 @@ def finetune_runs(seed: int, args, roots) -> list[dict]:
     trainable = [] if args.finetune_trainable == "all" else ["train.trainable=[temporal]"]
     start = [run_one("single_base", seed, args, roots, "single", checkpoint=base)] if args.finetune_base else []
     return [*start, run_one("single_ft", seed, args, roots, "single", (), budget),
-            run_one(FT_NAMES[args.finetune_trainable], seed, args, roots, "temporal",
+            run_one(FT_NAMES[args.finetune_trainable] + memory_suffix(args), seed, args, roots, "temporal",
                     ("train.stream_warmup=0", *trainable), budget)]
 
 
 def paired(results: list[dict]) -> str:
     """Per seed: temporal_ft - single_ft (the same start), and their means."""
     by = {(r["config"], r["seed"]): r for r in results}
-    name = next((c for c, _ in by if c in FT_NAMES.values()), None)
+    name = next((c for c, _ in by if c.startswith("temporal_ft")), None)
     seeds = sorted({s for c, s in by if c == name and ("single_ft", s) in by})
     if not seeds:
         return ""
@@ -231,6 +248,8 @@ def main() -> None:
     p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
     p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
                    help="what the temporal fine-tuning trains (the single-frame one trains everything)")
+    p.add_argument("--memory", choices=["bev", "graph", "bev+graph"], default="bev",
+                   help="what the temporal model remembers (model.temporal.memory; docs/temporal.md)")
     p.add_argument("--set", dest="override", nargs="+", default=[], metavar="KEY=VALUE",
                    help="config overrides for both models")
     args = p.parse_args()
@@ -239,8 +258,9 @@ def main() -> None:
     val_occluders = args.occluders if args.val_occluders is None else args.val_occluders
     val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": val_occluders},
                                workers=args.workers)
-    results = [run_one(name, seed, args, (train_root, val_root)) for seed in args.seeds for name in args.configs
-               if not (args.finetune and args.finetune_base)]
+    results = [run_one(name + (memory_suffix(args) if name == "temporal" else ""), seed, args,
+                       (train_root, val_root), name)
+               for seed in args.seeds for name in args.configs if not (args.finetune and args.finetune_base)]
     if args.finetune:
         results += [r for seed in args.seeds for r in finetune_runs(seed, args, (train_root, val_root))]
     Path(args.out).mkdir(parents=True, exist_ok=True)

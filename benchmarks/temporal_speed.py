@@ -1,13 +1,15 @@
 """What the BEV memory costs: the fusion's share of the forward pass (batch 1, CPU by default).
 
     python benchmarks/temporal_speed.py                                   # Table I B0 LSS, nuScenes rig
+    python benchmarks/temporal_speed.py model.temporal.memory=bev+graph   # with the graph memory
     python benchmarks/temporal_speed.py --config configs/temporal/av2_b0_lss_256x352.yaml --runs 30
 
 Times, interleaved run by run so that a machine's load shifts all of them alike, under ``torch.no_grad``:
 the single-frame model (``model.temporal.memory=none``), the same model with the memory
 (``configs/temporal/nuscenes_b0_lss_128x352.yaml``, a valid memory of the previous frame 1.5 m behind,
 so the warp and the fusion run on real history), and the fusion module alone on the first-stage features
-(``BEVMemoryFusion``: the warp, the gates, the new memory). Prints the medians (p10-p90) and the two
+(``BEVMemoryFusion``: the warp, the gates, the new memory) and, for a graph memory, the drawing of the
+frame's predicted graph (``render_graph``). Prints the medians (p10-p90) and the two
 shares: (temporal - single) / single and fusion alone / single (issue 19's budget: <= 10 %).
 """
 
@@ -73,9 +75,13 @@ def main() -> None:
     jobs = {"single-frame model": run(lambda: single(batch)),
             "temporal model": run(lambda: temporal(batch, memory=memory)),
             "fusion alone": run(lambda: temporal.temporal(first, batch, memory))}
+    with torch.no_grad():
+        outputs = temporal(batch, memory=memory)
+    if temporal.temporal.graph_channels:  # a graph memory: drawing this frame's graph for the next one
+        jobs["graph raster"] = run(lambda: temporal.temporal.remember_graph({"bev": None}, outputs))
     times: dict[str, list[float]] = {k: [] for k in jobs}
     with torch.no_grad():
-        assert temporal(batch, memory=memory)["memory_status"].item() == 0  # the memory is fused
+        assert outputs["memory_status"].item() == 0  # the memory is fused
         for _ in range(args.warmup):
             for fn in jobs.values():
                 fn()
@@ -85,13 +91,15 @@ def main() -> None:
     med = {k: statistics.median(v) for k, v in times.items()}
     print(f"{cfg.name}: batch 1, {device}, {torch.get_num_threads()} thread(s), {args.runs} interleaved runs; "
           f"fusion on {temporal.temporal.channels} x {temporal.temporal.size[0]} x {temporal.temporal.size[1]} "
-          f"({cfg.model.temporal.fusion}, kernel {cfg.model.temporal.kernel})")
+          f"({cfg.model.temporal.fusion}, kernel {cfg.model.temporal.kernel}, {cfg.model.temporal.memory} memory)")
     for name, v in times.items():
         q = statistics.quantiles(v, n=10)
         print(f"  {name:<20}{1000 * med[name]:9.2f} ms  (p10 {1000 * q[0]:.2f}, p90 {1000 * q[-1]:.2f})")
     base = med["single-frame model"]
     print(f"  temporal - single: {100 * (med['temporal model'] - base) / base:+.1f} % of the single-frame forward")
-    print(f"  fusion alone:      {100 * med['fusion alone'] / base:.1f} % of the single-frame forward (budget 10 %)")
+    own = med["fusion alone"] + med.get("graph raster", 0.0)
+    print(f"  fusion alone{' + raster' if 'graph raster' in med else ''}: {100 * own / base:.1f} % of the "
+          "single-frame forward (budget 10 %)")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from instagram_hdmap.models.temporal import (
     POSE_JUMP,
     FrameOrderError,
     relative_pose,
+    render_graph,
     rigid_inverse,
     warp_bev,
 )
@@ -77,10 +78,11 @@ def test_memory_off_is_the_single_frame_model():
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_gated_fusion_starts_as_the_identity():
+@pytest.mark.parametrize("memory, channels", [("bev", 16), ("graph", 3 + 1), ("bev+graph", 16 + 3 + 1)])
+def test_gated_fusion_starts_as_the_identity(memory, channels):
     # the gated fusion's output convolution is zero-initialised: an untrained temporal model gives the
-    # single-frame model's outputs, with or without memory
-    cfg = load_config(None, [*TINY, "model.temporal.memory=bev"])
+    # single-frame model's outputs, with or without memory, whatever its memory holds
+    cfg = load_config(None, [*TINY, f"model.temporal.memory={memory}"])
     torch.manual_seed(0)
     temporal = build_model(cfg).eval()
     single = build_model(load_config(None, TINY)).eval()
@@ -94,6 +96,94 @@ def test_gated_fusion_starts_as_the_identity():
     assert first["memory_status"].tolist() == [NO_MEMORY] * 2 and second["memory_status"].tolist() == [FUSED] * 2
     for k in ref:
         torch.testing.assert_close(second[k], ref[k])
+    # the memory map: the stage-1 features (16 channels) and / or the graph raster (3 classes + vertices)
+    assert first["memory"]["bev"].shape == (2, channels, 16, 32) and not first["memory"]["bev"].requires_grad
+    assert first["memory"]["bev"].shape == temporal.initial_memory(2, batch["images"])["bev"].shape
+
+
+# --- the graph memory: the previous frame's predicted graph as a raster ------------------------------------
+
+
+def _graph(vertices_px, scores, classes, edges, n_pad: int = 2) -> dict:
+    """Graph-head outputs of one sample: vertices [n, 2] px, scores [n], class index per vertex, edges (i, j);
+    ``n_pad`` padded slots (mask False) whose rows point nowhere."""
+    n = len(vertices_px)
+    N = n + n_pad
+    px = torch.zeros(1, N, 2)
+    px[0, :n] = torch.tensor(vertices_px, dtype=torch.float32)
+    mask = torch.zeros(1, N, dtype=torch.bool)
+    mask[0, :n] = True
+    sc = torch.zeros(1, N)
+    sc[0, :n] = torch.tensor(scores)
+    log_probs = torch.full((1, N, 3), math.log(1e-6))
+    for i, c in enumerate(classes):
+        log_probs[0, i, c] = 0.0
+    assignment = torch.full((1, N + 1, N + 1), -30.0)
+    assignment[0, :, N] = 0.0  # everything else to the dustbin
+    for i, j in edges:
+        assignment[0, i, j], assignment[0, i, N] = math.log(0.9), math.log(0.1)
+    return {"pred_vertices_px": px, "pred_vertex_mask": mask, "pred_vertex_scores": sc,
+            "pred_class_log_probs": log_probs, "pred_log_assignment": assignment}
+
+
+def test_render_graph_draws_the_edges_by_class_and_the_vertices():
+    grid = BEVGrid(-8.0, 8.0, -4.0, 4.0, 0.25, 4)  # 64 x 32 px
+    # a class-1 polyline along the row v = 9 from u = 4 to u = 20 (three vertices), a lone class-2 vertex
+    g = _graph([[4.0, 9.0], [12.0, 9.0], [20.0, 9.0], [40.0, 25.0]], [0.8, 0.6, 0.7, 0.5], [1, 1, 1, 2],
+               [(0, 1), (1, 2)])
+    raster = render_graph(g, grid, 16, 32, samples=9)  # h x w = 16 x 32: a cell is 2 x 2 px
+    assert raster.shape == (1, 4, 16, 32) and raster.min() >= 0 and raster.max() <= 1
+    row = 4  # px v = 9 -> cell row floor(9.5 / 2)
+    drawn = (raster[0, 1] > 1e-6).nonzero().tolist()  # (a vertex without successor: a weight of e^-30)
+    # the edges cover every cell of the row from u = 4 to u = 20 (cells 2 .. 10), nothing else
+    assert sorted(drawn) == [[row, c] for c in range(2, 11)]
+    assert raster[0, 1, int(row), 2:11].min() >= 0.9 * 0.99  # each cell at least one point of weight ~0.9
+    assert raster[0, 0].max() < 1e-4 and raster[0, 2].max() < 1e-4  # no class-0 edge (class probabilities 1e-6)
+    vertices = raster[0, 3]
+    expected = {(4, 2): 0.8, (4, 6): 0.6, (4, 10): 0.7, (12, 20): 0.5}
+    assert {tuple(ij): round(float(vertices[tuple(ij)]), 4) for ij in vertices.nonzero().tolist()} == expected
+
+
+def test_the_graph_memory_feeds_the_next_frame():
+    # a fusion that is not the identity: the next frame's output depends on the previous frame's graph
+    # raster when it fuses, and not at a scene start
+    cfg = load_config(None, [*TINY, "model.temporal.memory=graph"])
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    with torch.no_grad():
+        model.temporal.out.weight.normal_(0, 0.2)
+        batch = random_batch(cfg)
+        first = model(batch)
+        nxt = dict(batch, scene_start=torch.zeros(2, dtype=torch.bool), frame_index=torch.ones(2, dtype=torch.long))
+        a = model(nxt, first["memory"])
+        other = dict(first["memory"], bev=torch.zeros_like(first["memory"]["bev"]))
+        b = model(nxt, other)
+        start = dict(nxt, scene_start=torch.ones(2, dtype=torch.bool))
+        c, d = model(start, first["memory"]), model(start, other)
+    assert first["memory"]["bev"].amax() > 0  # the first frame drew a graph
+    assert not torch.allclose(a["pred_vertex_logits"], b["pred_vertex_logits"])
+    torch.testing.assert_close(c["pred_vertex_logits"], d["pred_vertex_logits"])
+
+
+def test_a_memory_of_another_model_is_named():
+    cfg = load_config(None, [*TINY, "model.temporal.memory=bev+graph"])
+    model = build_model(cfg).eval()
+    bev_model = build_model(load_config(None, [*TINY, "model.temporal.memory=bev"])).eval()
+    batch = random_batch(cfg)
+    with torch.no_grad():
+        memory = bev_model(batch)["memory"]
+        with pytest.raises(ValueError, match=r"the memory map has 16 channels, this model's "
+                                             r"\(model.temporal.memory=bev\+graph\) has 20"):
+            model(batch, memory)
+    from instagram_hdmap.config import ConfigError
+
+    with pytest.raises(ConfigError, match="model.temporal.fusion"):
+        build_model(load_config(None, [*TINY, "model.temporal.memory=graph", "model.temporal.fusion=gru"]))
+    gru = build_model(load_config(None, [*TINY, "model.temporal.memory=bev+graph", "model.temporal.fusion=gru"]))
+    with torch.no_grad():
+        out = gru.eval()(batch)
+        assert gru(dict(batch, scene_start=torch.zeros(2, dtype=torch.bool), frame_index=torch.ones(2).long()),
+                   out["memory"])["memory_status"].tolist() == [FUSED, FUSED]
 
 
 # --- the warp ---------------------------------------------------------------------------------------------
@@ -517,7 +607,8 @@ def test_streaming_evaluation_without_memory_is_the_frame_by_frame_ap(tiny_world
 # --- ONNX ---------------------------------------------------------------------------------------------------
 
 
-def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
+@pytest.mark.parametrize("memory", ["bev", "bev+graph"])
+def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path, memory):
     pytest.importorskip("onnxruntime", reason="the [deploy] extra is not installed")
     import onnx
 
@@ -527,7 +618,7 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
 
     # the tiny model with every cell a vertex slot (N = 128: top-N never cuts through equal scores)
     cfg = load_config("configs/synthetic/tiny.yaml", ["model.gnn.sinkhorn_iters=5", "model.gnn.num_vertices=128",
-                                                      "model.temporal.memory=bev", "model.temporal.kernel=3"])
+                                                      f"model.temporal.memory={memory}", "model.temporal.kernel=3"])
     torch.manual_seed(0)
     model = build_model(cfg).eval()
     with torch.no_grad():
@@ -539,7 +630,8 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
     assert [i.name for i in proto.graph.input] == list(input_names(cfg))
     assert [o.name for o in proto.graph.output] == list(output_names(cfg))
     assert input_names(cfg)[-4:] == ("memory_bev", "memory_ego_pose", "memory_valid", "memory_frame_index")
-    assert info["inputs"]["memory_bev"] == [1, 16, 16, 32] == info["outputs"]["next_memory_bev"]
+    channels = 16 if memory == "bev" else 16 + 3 + 1  # the stage-1 features, the graph raster
+    assert info["inputs"]["memory_bev"] == [1, channels, 16, 32] == info["outputs"]["next_memory_bev"]
     onnx_model = OnnxModel(path, cfg)
     assert onnx_model.is_temporal
     grid = BEVGrid.from_config(cfg.grid)
@@ -559,8 +651,9 @@ def test_onnx_export_of_the_temporal_model_over_three_frames(tmp_path):
                 assert torch.equal(g[name], e[name]), (k, name)
             else:
                 torch.testing.assert_close(g[name], e[name], atol=1e-4, rtol=1e-5, msg=f"frame {k} {name}")
-        for key in ("bev", "ego_pose"):
-            torch.testing.assert_close(got["memory"][key], expected["memory"][key], atol=1e-5, rtol=1e-5)
+        # (the graph raster sums exp(log assignment), compared to 1e-4 above)
+        torch.testing.assert_close(got["memory"]["bev"], expected["memory"]["bev"], atol=1e-4, rtol=1e-5)
+        torch.testing.assert_close(got["memory"]["ego_pose"], expected["memory"]["ego_pose"], atol=1e-5, rtol=1e-5)
         for key in ("valid", "frame_index"):
             assert torch.equal(got["memory"][key], expected["memory"][key])
         threshold = 0.5 * float(e["pred_log_assignment"][0, :-1, :-1].exp().max(1).values.median())

@@ -244,9 +244,11 @@ class GraphHeadConfig:
 class TemporalConfig:
     """Streaming temporal fusion (models/temporal.py, docs/temporal.md). ``memory=none`` is the paper's
     single-frame model, bit for bit; ``bev`` carries the previous frame's BEV features, warped into
-    the current ego frame by the relative pose, and fuses them with the current ones in the BEV encoder."""
+    the current ego frame by the relative pose, and fuses them with the current ones in the BEV encoder;
+    ``graph`` carries the previous frame's predicted map graph (vertices, edges and their classes) drawn as a
+    raster and fuses that; ``bev+graph`` both."""
 
-    memory: Literal["none", "bev"] = "none"
+    memory: Literal["none", "bev", "graph", "bev+graph"] = "none"
     # gated: x + sigmoid(g) * d from a conv of [x, warped memory, validity], d zero-initialised (the
     # model starts as the single-frame one); gru: StreamMapNet's ConvGRU (gates, LayerNorm)
     fusion: Literal["gated", "gru"] = "gated"
@@ -257,6 +259,8 @@ class TemporalConfig:
     drop_prob: float = bounded(0.1, ge=0, lt=1)
     # a jump of the ego position larger than this between consecutive frames resets the memory
     max_jump_m: float = bounded(10.0, gt=0)
+    # graph memory: points drawn along each predicted edge of the previous frame (models/temporal.py render_graph)
+    edge_samples: int = bounded(8, ge=2, le=64)
 
 
 @dataclass

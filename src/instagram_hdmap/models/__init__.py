@@ -91,6 +91,9 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(gh.heads > 0 and gh.dim % gh.heads == 0, "model.gnn.heads",
              f"the dimension D={gh.dim} must be divisible by the number of heads ({gh.heads})")
     _require(gh.sinkhorn_iters >= 1, "model.gnn.sinkhorn_iters", "must be >= 1")
+    _require(m.temporal.memory != "graph" or m.temporal.fusion == "gated", "model.temporal.fusion",
+             "a graph memory alone (model.temporal.memory=graph) is fused by the gated fusion: the GRU's state is "
+             "BEV features; use model.temporal.fusion=gated, or model.temporal.memory=bev+graph with the GRU")
     _require(m.temporal.kernel % 2 == 1, "model.temporal.kernel", f"must be odd (the fused map keeps its size), "
              f"got {m.temporal.kernel}")
 
@@ -144,9 +147,9 @@ def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=Non
     )
     tc = m.temporal
     temporal = None
-    if tc.memory == "bev":  # fused after the BEV encoder's first stage, at H/2 x W/2 (models/bev_heads.py)
+    if tc.memory != "none":  # fused after the BEV encoder's first stage, at H/2 x W/2 (models/bev_heads.py)
         temporal = BEVMemoryFusion(bh.stage_channels[0], grid, (grid.H // 2, grid.W // 2), tc.fusion, tc.kernel,
-                                   tc.drop_prob, tc.max_jump_m)
+                                   tc.drop_prob, tc.max_jump_m, tc.memory, num_classes, tc.edge_samples)
     return InstaGraM(backbone, view_transform, bev_heads, graph_head, temporal)
 
 
@@ -182,7 +185,8 @@ def summarize_parameters(model: InstaGraM) -> str:
         ("  class + match heads, dustbin", _count(gh.class_head) + _count(gh.match_head) + gh.bin_score.numel()),
     ]
     if model.temporal is not None:
-        rows.append((f"temporal ({model.temporal.fusion} BEV memory)", _count(model.temporal)))
+        rows.append((f"temporal ({model.temporal.fusion} fusion, {model.temporal.memory} memory)",
+                     _count(model.temporal)))
     total = _count(model)
     trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
     width = max(len(name) for name, _ in rows) + 2

@@ -84,6 +84,8 @@ class InstaGraM(nn.Module):
             heads = self.bev_heads(bev, fuse=fuse)
         distance = heads.get("pred_distance")  # None without a distance head
         graph = self.graph_head(heads["pred_vertex_logits"], distance, heads["bev_features"])
+        if self.temporal is not None:  # a graph memory holds this frame's predicted graph
+            temporal["memory"] = self.temporal.remember_graph(temporal["memory"], graph)
         out = {
             "pred_vertex_logits": heads["pred_vertex_logits"],
             "pred_heatmap": vertex_heatmap(heads["pred_vertex_logits"], self.graph_head.grid.cell_size),

@@ -4,11 +4,18 @@ the relative ego pose, fused with the current BEV features (docs/temporal.md).
 Shapes: B batch, C channels, h x w a BEV feature map covering the whole grid extent (any resolution;
 in the model the half-resolution grid of F_bev's first stage, H/2 x W/2).
 
+What the memory holds (``model.temporal.memory``): ``bev`` the fused BEV features of the previous frame
+(StreamMapNet's BEV memory); ``graph`` the previous frame's predicted map graph (its vertices with their
+scores, its edges with their classes: the graph head's output) rendered as a raster of K + 1 channels
+(``render_graph``), the InstaGraM-specific memory; ``bev+graph`` both. Either is warped the same way and
+fed to the same fusion.
+
 The memory (``InstaGraM.forward(batch, memory)`` in and ``outputs["memory"]`` out) is a dict of
 tensors, ``MEMORY_KEYS``:
 
-* ``bev`` [B, C, h, w]: the fused BEV features of the previous frame (detached: no gradient crosses
-  a step, as StreamMapNet);
+* ``bev`` [B, M, h, w]: the previous frame's BEV memory map, detached (no gradient crosses a step, as
+  StreamMapNet): its fused features (C channels, ``bev``), then its graph raster (K + 1 channels,
+  ``graph``), M = ``BEVMemoryFusion.memory_channels``;
 * ``ego_pose`` [B, 4, 4]: that frame's ego -> global pose;
 * ``valid`` [B] bool: the row holds a frame (False: empty memory, ``initial_memory``);
 * ``frame_index`` [B] int64: that frame's index in its scene.
@@ -107,6 +114,56 @@ def warp_bev(features: torch.Tensor, cur_to_prev: torch.Tensor, grid: BEVGrid,
     return warped, inside
 
 
+# --- the graph memory: the previous frame's map graph as a raster --------------------------------------
+
+
+def render_graph(graph: dict[str, torch.Tensor], grid: BEVGrid, h: int, w: int, samples: int = 8) -> torch.Tensor:
+    """The predicted map graph of a frame, drawn on an h x w map over the grid (no gradient).
+
+    ``graph``: the graph head's outputs (``pred_vertices_px`` [B, N, 2] BEV pixels, ``pred_vertex_mask``
+    [B, N], ``pred_vertex_scores`` [B, N], ``pred_class_log_probs`` [B, N, K], ``pred_log_assignment``
+    [B, N+1, N+1]) -> [B, K + 1, h, w] in [0, 1]:
+
+    * channel k < K: the edges of class k. Each real vertex i is joined to its most likely successor
+      j = argmax_j P[i, j] (P = exp(log assignment) without the dustbin, the matrix the decoders follow);
+      ``samples`` points along the edge each add P[i, j] times the mean class probability of i and j to
+      the cell they fall in;
+    * channel K: the vertices, each adding its score to its cell.
+
+    Sums are clipped at 1 (a presence map). Only tensor ops (scatter-add, gather), so the graph exports to
+    ONNX with the rest of the model.
+    """
+    with torch.no_grad():
+        px = graph["pred_vertices_px"].float()  # [B, N, 2] (u, v), pixel centres at integers
+        mask = graph["pred_vertex_mask"].bool()
+        B, N = mask.shape
+        scores = graph["pred_vertex_scores"].float() * mask
+        probs = graph["pred_class_log_probs"].float().exp()  # [B, N, K]
+        K = probs.shape[-1]
+        adjacency = graph["pred_log_assignment"][:, :N, :N].float().exp()  # [B, N, N], row i -> column j
+        weight, successor = adjacency.max(-1)  # [B, N]
+        succ_mask = mask.gather(1, successor)
+        weight = weight * (mask & succ_mask)
+        succ_px = px.gather(1, successor[..., None].expand(B, N, 2))
+        succ_probs = probs.gather(1, successor[..., None].expand(B, N, K))
+        t = torch.linspace(0.0, 1.0, samples, device=px.device)[None, None, :, None]  # [1, 1, T, 1]
+        points = px[:, :, None] + t * (succ_px - px)[:, :, None]  # [B, N, T, 2]
+        value = weight[..., None] * 0.5 * (probs + succ_probs)  # [B, N, K]
+
+        def cell(uv: torch.Tensor) -> torch.Tensor:  # BEV pixels -> flat index of the h x w cell
+            col = torch.floor((uv[..., 0] + 0.5) * (w / grid.W)).clamp(0, w - 1)
+            row = torch.floor((uv[..., 1] + 0.5) * (h / grid.H)).clamp(0, h - 1)
+            return (row * w + col).long()
+
+        edge_cells = cell(points)  # [B, N, T]
+        channel = torch.arange(K, device=px.device) * (h * w)  # [K]
+        index = (edge_cells[..., None] + channel).reshape(B, -1)  # [B, N*T*K]
+        edge_value = value[:, :, None, :].expand(B, N, samples, K).reshape(B, -1)
+        edges = px.new_zeros(B, K * h * w).scatter_add(1, index, edge_value).reshape(B, K, h, w)
+        vertices = px.new_zeros(B, h * w).scatter_add(1, cell(px), scores).reshape(B, 1, h, w)
+        return torch.cat([edges, vertices], 1).clamp(max=1.0)
+
+
 # --- which samples fuse --------------------------------------------------------------------------
 
 
@@ -159,31 +216,48 @@ def _check_order(batch: dict, backwards: torch.Tensor, frame: torch.Tensor, prev
 # --- the fusion module -----------------------------------------------------------------------------
 
 
+MEMORIES = ("bev", "graph", "bev+graph")
+
+
 class BEVMemoryFusion(nn.Module):
     """Current BEV features + warped memory -> fused features, the new memory and the status.
 
+    ``memory``: what the memory map holds (module docstring); ``num_classes`` K (the graph raster's K + 1
+    channels), ``edge_samples`` (``render_graph``).
     ``fusion="gated"``: ``[g, d] = conv([x, m * warped, m])``, ``fused = x + sigmoid(g) * d`` with the last
     convolution zero-initialised, so an untrained fusion is the identity (the single-frame model).
     ``fusion="gru"``: StreamMapNet's ConvGRU (``necks/gru.py``): ``z, r = sigmoid(conv([h, x, m]))``,
     ``q = conv([r * h, x])``, ``fused = LayerNorm((1 - z) h + z q)`` over channels, with the history
-    ``h = m * warped + (1 - m) * x`` (a cell without history starts from its current features).
+    ``h = m * warped + (1 - m) * x`` (a cell without history starts from its current features); with a
+    graph raster (``bev+graph``) the warped raster joins the gates' and the candidate's inputs. ``graph``
+    alone has no features to carry: the gated fusion only.
     """
 
     def __init__(self, channels: int, grid: BEVGrid, size: tuple[int, int], fusion: str = "gated",
-                 kernel: int = 1, drop_prob: float = 0.0, max_jump_m: float = 10.0):
+                 kernel: int = 1, drop_prob: float = 0.0, max_jump_m: float = 10.0, memory: str = "bev",
+                 num_classes: int = 0, edge_samples: int = 8):
         super().__init__()
+        if memory not in MEMORIES:
+            raise ValueError(f"memory must be one of {MEMORIES}, got {memory!r}")
+        if memory == "graph" and fusion != "gated":
+            raise ValueError("a graph memory alone is fused by the gated fusion (the GRU carries BEV features)")
         self.channels, self.grid, self.size = channels, grid, tuple(size)
         self.fusion, self.drop_prob, self.max_jump_m = fusion, drop_prob, max_jump_m
+        self.memory, self.edge_samples = memory, edge_samples
+        self.bev_channels = channels if memory in ("bev", "bev+graph") else 0
+        self.graph_channels = num_classes + 1 if memory in ("graph", "bev+graph") else 0
+        self.memory_channels = self.bev_channels + self.graph_channels
         pad = kernel // 2
-        c = channels
+        c, g = channels, self.graph_channels
         if fusion == "gated":
-            self.mix = nn.Sequential(nn.Conv2d(2 * c + 1, c, kernel, padding=pad), nn.ReLU(inplace=True))
+            self.mix = nn.Sequential(nn.Conv2d(c + self.memory_channels + 1, c, kernel, padding=pad),
+                                     nn.ReLU(inplace=True))
             self.out = nn.Conv2d(c, 2 * c, 1)
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
         else:
-            self.gates = nn.Conv2d(2 * c + 1, 2 * c, kernel, padding=pad)
-            self.candidate = nn.Conv2d(2 * c, c, kernel, padding=pad)
+            self.gates = nn.Conv2d(2 * c + g + 1, 2 * c, kernel, padding=pad)
+            self.candidate = nn.Conv2d(2 * c + g, c, kernel, padding=pad)
             self.norm = nn.LayerNorm(c)
         h, w = self.size
         self.register_buffer("plane", bev_plane_m(grid, h, w, torch.zeros(())), persistent=False)
@@ -192,7 +266,7 @@ class BEVMemoryFusion(nn.Module):
         """An empty memory of ``batch_size`` rows (``valid`` all False) on ``like``'s device."""
         h, w = self.size
         return {
-            "bev": like.new_zeros(batch_size, self.channels, h, w, dtype=torch.float32),
+            "bev": like.new_zeros(batch_size, self.memory_channels, h, w, dtype=torch.float32),
             "ego_pose": torch.eye(4, device=like.device).expand(batch_size, 4, 4).contiguous(),
             "valid": torch.zeros(batch_size, dtype=torch.bool, device=like.device),
             "frame_index": torch.zeros(batch_size, dtype=torch.long, device=like.device),
@@ -210,6 +284,10 @@ class BEVMemoryFusion(nn.Module):
         if memory["bev"].shape[0] != B:
             raise ValueError(f"the memory holds {memory['bev'].shape[0]} rows for a batch of {B}: one memory row "
                              "per stream, in the same order every step")
+        if memory["bev"].shape[1] != self.memory_channels:
+            raise ValueError(f"the memory map has {memory['bev'].shape[1]} channels, this model's "
+                             f"(model.temporal.memory={self.memory}) has {self.memory_channels}: pass back "
+                             "outputs['memory'] of this model, or None to start anew")
         drop = None
         if self.training and self.drop_prob > 0:
             drop = torch.rand(B, device=x.device) < self.drop_prob
@@ -222,19 +300,30 @@ class BEVMemoryFusion(nn.Module):
         frame = batch.get("frame_index")
         frame = memory["frame_index"] + 1 if frame is None else frame.reshape(B).long()
         new_memory = {
-            "bev": fused.detach().float(),
+            "bev": fused.detach().float() if self.bev_channels else None,  # the graph raster: ``remember_graph``
             "ego_pose": batch["ego_pose"].detach().float(),
             "valid": ~_replaced(batch, B, memory["valid"]),
             "frame_index": frame.detach(),
         }
         return fused, new_memory, status
 
+    def remember_graph(self, memory: dict[str, torch.Tensor], graph: dict[str, torch.Tensor]) -> dict:
+        """The new memory of ``forward`` completed with this frame's predicted graph (``render_graph``, the
+        graph head's outputs) where the memory holds one; the memory map is then whole."""
+        if not self.graph_channels:
+            return memory
+        h, w = self.size
+        raster = render_graph(graph, self.grid, h, w, self.edge_samples)
+        bev = raster if memory["bev"] is None else torch.cat([memory["bev"], raster], 1)
+        return {**memory, "bev": bev}
+
     def _fuse(self, x: torch.Tensor, history: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         if self.fusion == "gated":
             gate_logits, delta = self.out(self.mix(torch.cat([x, history, m], 1))).chunk(2, 1)
             return x + torch.sigmoid(gate_logits) * delta
-        h = history + (1 - m) * x
-        z, r = torch.sigmoid(self.gates(torch.cat([h, x, m], 1))).chunk(2, 1)
-        q = self.candidate(torch.cat([r * h, x], 1))
+        graph = [history[:, self.channels:]] if self.graph_channels else []  # the warped graph raster
+        h = history[:, :self.channels] + (1 - m) * x
+        z, r = torch.sigmoid(self.gates(torch.cat([h, x, *graph, m], 1))).chunk(2, 1)
+        q = self.candidate(torch.cat([r * h, x, *graph], 1))
         out = (1 - z) * h + z * q
         return self.norm(out.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
