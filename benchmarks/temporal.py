@@ -221,6 +221,39 @@ def paired(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def check_args(p: argparse.ArgumentParser, args) -> None:
+    """The options' ranges, the fine-tuning's start and the overrides, before the worlds are generated (minutes):
+    a wrong value is one line (argparse's error, exit 2), not a traceback after the generation."""
+    from instagram_hdmap.config import UserError, load_config
+
+    def positive(name: str, value, integer: bool = False) -> None:
+        if value is not None and not (math.isfinite(value) and value > 0):
+            p.error(f"{name} must be {'a whole number >= 1' if integer else 'a number > 0'}, got {value}")
+
+    positive("--minutes", args.minutes)
+    positive("--finetune-lr", args.finetune_lr)
+    for name in ("steps", "finetune", "val_scenes", "threads", "workers"):
+        positive(f"--{name.replace('_', '-')}", getattr(args, name), integer=True)
+    for name in ("occluders", "val_occluders"):
+        value = getattr(args, name)
+        if value is not None and not 0 <= value <= 1:
+            p.error(f"--{name.replace('_', '-')} must be a density in [0, 1], got {value}")
+    if any(seed < 0 for seed in args.seeds):
+        p.error(f"--seeds must be >= 0, got {args.seeds}")
+    if args.finetune_base and not args.finetune:
+        p.error("--finetune-base needs --finetune STEPS (the fine-tuning it starts)")
+    if args.finetune_base:
+        missing = [str(Path(args.finetune_base) / f"single_seed{seed}" / "run" / "last.pt") for seed in args.seeds
+                   if not (Path(args.finetune_base) / f"single_seed{seed}" / "run" / "last.pt").is_file()]
+        if missing:
+            p.error(f"--finetune-base {args.finetune_base}: no single-frame checkpoint {', '.join(missing)}")
+    for name, path in CONFIGS.items():
+        try:
+            load_config(path, args.override)
+        except UserError as e:
+            p.error(f"--set (the {name} config): {e}")
+
+
 def main() -> None:
     from instagram_hdmap.demo import VAL_WORLD, WORLD, default_cache_dir, ensure_world
 
@@ -253,6 +286,7 @@ def main() -> None:
     p.add_argument("--set", dest="override", nargs="+", default=[], metavar="KEY=VALUE",
                    help="config overrides for both models")
     args = p.parse_args()
+    check_args(p, args)
     cache = Path(args.cache) if args.cache else default_cache_dir()
     train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
     val_occluders = args.occluders if args.val_occluders is None else args.val_occluders

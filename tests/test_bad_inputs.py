@@ -2055,6 +2055,19 @@ def row_evaluate_notes_camera_dropout(env):
                                  out), out
 
 
+@row("S7", "benchmarks/temporal.py: an option out of range (--steps 0, --occluders 2), a --finetune-base without its "
+          "checkpoints or a wrong --set key is one line before the worlds are generated (a traceback after minutes)")
+def row_benchmark_temporal_options_checked_first(env):
+    cache = env.tmp / "cache"
+    for args in (["--steps", "0"], ["--occluders", "2"], ["--finetune", "5", "--finetune-base", str(env.tmp / "none")],
+                 ["--set", "train.nope=1"]):
+        p = subprocess.run([sys.executable, str(REPO / "benchmarks" / "temporal.py"), *args, "--cache", str(cache),
+                            "--out", str(env.tmp / "out")], capture_output=True, text=True, timeout=120)
+        assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+        assert re.search(r"temporal\.py: error: (--steps|--occluders|--finetune-base|--set)", p.stderr), p.stderr
+    assert not cache.exists()  # no world generated
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
