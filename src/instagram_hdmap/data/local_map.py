@@ -82,6 +82,11 @@ EXCLUDED_FRACTION = 0.5
 EXCLUDED_STEP_M = 0.5  # ... the fraction measured at points this far apart along the piece
 
 
+# an ego pose this far outside its location's map is not in that city: poses in millimetres (nuScenes' and AV2's
+# city frames span a few km; closer, a pose off the mapped streets just has an empty local map)
+OFF_MAP_M = 10_000.0
+
+
 class MapError(UserError):
     """A map expansion file is missing or unreadable."""
 
@@ -331,8 +336,9 @@ class LocalMapBuilder:
         lmap = self.location_map(location)
         patch = self.patch_global(x, y, yaw)
         x0, y0, x1, y1 = lmap.bounds
-        if np.isfinite(lmap.bounds).all() and not patch.intersects(box(x0, y0, x1, y1)):
-            raise MapError(f"the ego position ({x:.1f}, {y:.1f}) lies outside the map of location '{location}' (x "
+        if np.isfinite(lmap.bounds).all() and patch.distance(box(x0, y0, x1, y1)) > OFF_MAP_M:
+            raise MapError(f"the ego position ({x:.1f}, {y:.1f}) lies {patch.distance(box(x0, y0, x1, y1)) / 1000:.0f} "
+                           f"km outside the map of location '{location}' (x "
                            f"{x0:.0f}..{x1:.0f}, y {y0:.0f}..{y1:.0f} m): ego poses in millimetres, or a log of "
                            "another location (nuScenes: the log table's 'location'; AV2: the log's map/ folder)?")
         c, s = np.cos(yaw), np.sin(yaw)
