@@ -308,3 +308,31 @@ def _junctions(polys: list[Polygon]) -> list[set[int]]:
         merged = {i}.union(*linked)
         groups = [g for g in groups if g not in linked] + [merged]
     return groups
+
+
+def test_a_real_drive_fuses_every_frame_at_the_default_limits():
+    # model.temporal.max_jump_m (10 m) and max_turn_deg (60 degrees) must not reset the memory of a real
+    # drive: every 0.5 s step of the log (it turns 71 degrees in all, up to 14.6 per half second) fuses
+    import torch
+
+    from instagram_hdmap.config import TemporalConfig
+    from instagram_hdmap.models.temporal import FUSED, memory_status
+
+    table = read_city_SE3_ego(REAL / "val" / LOG)
+    stamps = sorted(table)
+    half_s, last = [stamps[0]], stamps[0]
+    for t in stamps:
+        if t - last >= 5e8:  # the nuScenes keyframe rate: 2 Hz
+            half_s.append(t)
+            last = t
+    mats = torch.tensor(np.stack([table[t].transform_matrix for t in half_s]), dtype=torch.float32)
+    cfg = TemporalConfig()
+    n = len(half_s) - 1
+    memory = {"ego_pose": mats[:-1], "valid": torch.ones(n, dtype=torch.bool),
+              "frame_index": torch.arange(n)}
+    batch = {"ego_pose": mats[1:], "frame_index": torch.arange(1, n + 1),
+             "scene_start": torch.zeros(n, dtype=torch.bool)}
+    status = memory_status(batch, memory, cfg.max_jump_m, max_turn_deg=cfg.max_turn_deg)
+    turns = [abs(math.degrees(_yaw(table[b]) - _yaw(table[a]))) for a, b in zip(half_s, half_s[1:])]
+    assert n >= 30 and max(turns) > 10  # the log turns
+    assert status.tolist() == [FUSED] * n

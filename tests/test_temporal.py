@@ -284,7 +284,13 @@ def test_memory_resets_and_frame_order():
                    ego_pose=batch["ego_pose"].clone())
         nxt["ego_pose"][3, 0, 3] += 10.5  # a teleport of 10.5 m > model.temporal.max_jump_m
         status = model(nxt, memory)["memory_status"].tolist()
+        # a turn in place: 30 degrees fuses (a sharp real turn is ~15 per half second), 70 or 180 is a pose jump
+        turns = []
+        for deg in (30, 70, 180):
+            spun = dict(nxt, ego_pose=batch["ego_pose"] @ pose(0.0, 0.0, math.radians(deg)))
+            turns.append(model(spun, memory)["memory_status"][0].item())
     assert status == [FUSED, NO_MEMORY, MISSING_FRAME, POSE_JUMP]
+    assert turns == [FUSED, POSE_JUMP, POSE_JUMP]
     back = dict(nxt, scene="scene-0042", frame_index=torch.tensor([0, 1, 1, 1]))
     back["scene"] = ["scene-0041", "scene-0042", "scene-0043", "scene-0044"]
     memory["frame_index"][:] = torch.tensor([3, 0, 0, 0])

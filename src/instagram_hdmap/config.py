@@ -259,6 +259,9 @@ class TemporalConfig:
     drop_prob: float = bounded(0.1, ge=0, lt=1)
     # a jump of the ego position larger than this between consecutive frames resets the memory
     max_jump_m: float = bounded(10.0, gt=0)
+    # so does a turn of the ego larger than this (degrees; 180: never): real drives turn <= ~15 degrees in the
+    # half second between nuScenes keyframes (the synthetic worlds up to 35); more is a pose in the wrong unit or frame
+    max_turn_deg: float = bounded(60.0, gt=0, le=180)
     # graph memory: points drawn along each predicted edge of the previous frame (models/temporal.py render_graph)
     edge_samples: int = bounded(8, ge=2, le=64)
 

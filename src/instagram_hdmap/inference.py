@@ -804,8 +804,9 @@ class MapStream:
     validity, moved into each new frame by the frames' ``ego_pose``; a single-frame model has none and
     runs frame by frame); ``reset()`` starts a new scene (the next batch carries ``scene_start`` = True
     and no memory). ``status``: the last step's memory status (``models.temporal.STATUS_NAMES``: fused,
-    no_memory, pose_jump: the ego moved more than ``model.temporal.max_jump_m`` since the previous
-    frame, so the memory was reset), and ``counts`` of them since the stream began."""
+    no_memory, pose_jump: the ego moved more than ``model.temporal.max_jump_m`` or turned more than
+    ``model.temporal.max_turn_deg`` since the previous frame, so the memory was reset), and ``counts`` of
+    them since the stream began."""
 
     def __init__(self, mapper: Mapper):
         self.mapper = mapper

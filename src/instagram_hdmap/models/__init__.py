@@ -149,7 +149,8 @@ def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=Non
     temporal = None
     if tc.memory != "none":  # fused after the BEV encoder's first stage, at H/2 x W/2 (models/bev_heads.py)
         temporal = BEVMemoryFusion(bh.stage_channels[0], grid, (grid.H // 2, grid.W // 2), tc.fusion, tc.kernel,
-                                   tc.drop_prob, tc.max_jump_m, tc.memory, num_classes, tc.edge_samples)
+                                   tc.drop_prob, tc.max_jump_m, tc.memory, num_classes, tc.edge_samples,
+                                   tc.max_turn_deg)
     return InstaGraM(backbone, view_transform, bev_heads, graph_head, temporal)
 
 

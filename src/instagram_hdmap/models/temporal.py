@@ -22,11 +22,13 @@ tensors, ``MEMORY_KEYS``:
 
 Which samples fuse (``memory_status``, one code per sample, ``STATUS_NAMES``): a sample fuses its
 memory (``FUSED``) unless the memory row is empty or the batch flags a scene start (``NO_MEMORY``),
-the ego moved more than ``max_jump_m`` since the memory's frame (``POSE_JUMP``), the frame does not
-follow the memory's frame (``frame_index`` not one more: ``MISSING_FRAME``), or, in training, the
-memory was dropped at random (``DROPPED``). A batch row flagged ``replaced`` (``data.on_bad_sample=skip``
-put another sample in place of a bad frame) is a missing frame: ``MISSING_FRAME``, never fused, and the
-memory it leaves is empty (the next frame starts anew, ``NO_MEMORY``).
+the ego moved more than ``max_jump_m`` or turned more than ``max_turn_deg`` since the memory's frame
+(``POSE_JUMP``: the real AV2 log of ../shared/av2_real turns at most 14.6 degrees per half second, the
+nuScenes keyframe interval, the synthetic worlds up to 35; a spin of 60 or more is a pose in the wrong
+unit or frame), the frame does not follow the memory's frame (``frame_index`` not one more:
+``MISSING_FRAME``), or, in training, the memory was dropped at random (``DROPPED``). A batch row flagged
+``replaced`` (``data.on_bad_sample=skip`` put another sample in place of a bad frame) is a missing frame:
+``MISSING_FRAME``, never fused, and the memory it leaves is empty (the next frame starts anew, ``NO_MEMORY``).
 A sample that does not fuse uses its own features only
 (the fusion still runs, with an all-invalid history, so every parameter always gets a gradient) and
 starts a new memory. A frame index at or below the memory's one, without a scene start, is frames out
@@ -41,6 +43,8 @@ masked (``valid`` channel 0).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -168,7 +172,7 @@ def render_graph(graph: dict[str, torch.Tensor], grid: BEVGrid, h: int, w: int, 
 
 
 def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: float,
-                  drop: torch.Tensor | None = None) -> torch.Tensor:
+                  drop: torch.Tensor | None = None, max_turn_deg: float = 180.0) -> torch.Tensor:
     """[B] int64 status codes (module docstring) of a batch against its memory. ``drop`` [B] bool:
     memories dropped on purpose (training). Raises ``FrameOrderError`` (eager only) for frames out of
     order inside a scene."""
@@ -178,6 +182,9 @@ def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: floa
     start = valid.new_zeros(B) if start is None else start.bool().reshape(B)
     rel = batch["ego_pose"][:, :2, 3].float() - memory["ego_pose"][:, :2, 3].float()
     jump = (rel * rel).sum(-1) > max_jump_m * max_jump_m
+    if max_turn_deg < 180:  # the angle of the relative rotation: cos = (trace(R_prev^T R_cur) - 1) / 2
+        turn = (memory["ego_pose"][:, :3, :3].float() * batch["ego_pose"][:, :3, :3].float()).sum((-1, -2))
+        jump = jump | ((turn - 1) * 0.5 < math.cos(math.radians(max_turn_deg)))
     frame = batch.get("frame_index")
     if frame is not None:
         gap = frame.reshape(B).long() - memory["frame_index"].long()
@@ -235,7 +242,7 @@ class BEVMemoryFusion(nn.Module):
 
     def __init__(self, channels: int, grid: BEVGrid, size: tuple[int, int], fusion: str = "gated",
                  kernel: int = 1, drop_prob: float = 0.0, max_jump_m: float = 10.0, memory: str = "bev",
-                 num_classes: int = 0, edge_samples: int = 8):
+                 num_classes: int = 0, edge_samples: int = 8, max_turn_deg: float = 180.0):
         super().__init__()
         if memory not in MEMORIES:
             raise ValueError(f"memory must be one of {MEMORIES}, got {memory!r}")
@@ -243,7 +250,7 @@ class BEVMemoryFusion(nn.Module):
             raise ValueError("a graph memory alone is fused by the gated fusion (the GRU carries BEV features)")
         self.channels, self.grid, self.size = channels, grid, tuple(size)
         self.fusion, self.drop_prob, self.max_jump_m = fusion, drop_prob, max_jump_m
-        self.memory, self.edge_samples = memory, edge_samples
+        self.memory, self.edge_samples, self.max_turn_deg = memory, edge_samples, max_turn_deg
         self.bev_channels = channels if memory in ("bev", "bev+graph") else 0
         self.graph_channels = num_classes + 1 if memory in ("graph", "bev+graph") else 0
         self.memory_channels = self.bev_channels + self.graph_channels
@@ -291,7 +298,7 @@ class BEVMemoryFusion(nn.Module):
         drop = None
         if self.training and self.drop_prob > 0:
             drop = torch.rand(B, device=x.device) < self.drop_prob
-        status = memory_status(batch, memory, self.max_jump_m, drop)
+        status = memory_status(batch, memory, self.max_jump_m, drop, self.max_turn_deg)
         use = status == FUSED  # [B]
         cur_to_prev = relative_pose(memory["ego_pose"], batch["ego_pose"])
         warped, inside = warp_bev(memory["bev"].to(x.dtype), cur_to_prev, self.grid, self.plane)
