@@ -1989,7 +1989,8 @@ def row_dataset_ego_pose_consistent_but_wrong(env):
 
     _evaluate_world(env, xyzw, r"ego_pose \w+ of LIDAR_TOP .*: its rotation tilts the vehicle 90 degrees .*"
                                r"\(x, y, z, w\)")
-    _evaluate_world(env, mm, r"the ego position \(\d+\.\d, \d+\.\d\) lies \d+ km outside the map of location .*millimetres")
+    _evaluate_world(env, mm, r"the ego position \(\d+\.\d, \d+\.\d\) lies \d+ km outside the map of location "
+                             r".*millimetres")
 
 
 @row("S7", "nuScenes tables: two cameras of a sample reading the same image file is named (ran, exit 0)")
