@@ -2069,6 +2069,100 @@ def row_benchmark_temporal_options_checked_first(env):
     assert not cache.exists()  # no world generated
 
 
+@row("S7", "nuScenes tables: a camera image taken seconds from its sample (timestamps of another moment or unit) is "
+          "named with the sample, the camera and the gap (ran, exit 0); every sample of the synthetic worlds passes")
+def row_camera_image_of_another_moment(env):
+    from instagram_hdmap.data.base import check_camera_time
+
+    def late(tables):
+        for sd in tables["sample_data"]:
+            if sd["fileformat"] == "jpg" and "CAM_BACK__" in sd["filename"]:
+                sd["timestamp"] += 5_000_000
+
+    _evaluate_world(env, late, r"sample \w+: camera CAM_BACK: sample_data \w+ in .*sample_data\.json: the image's "
+                               r"timestamp \d+ us is 5 s from its sample's")
+    for split in ("train", "val"):  # the synthetic worlds' every sample (AV2: av2's 25 ms synchronisation, checked)
+        for ds in (val_dataset(env.cfg(f"data.val_split={split}")), _av2_dataset(env, split)):
+            for i in range(len(ds)):
+                ds.camera_files(i)
+    with pytest.raises(UserError, match=r"camera ring_rear_left: .* 0\.6 s from its sample's"):
+        check_camera_time(1_000_000, 1_600_000, "camera ring_rear_left: x.jpg")
+    check_camera_time(1_000_000, 1_050_000, "a real rig's 50 ms")
+
+
+def _av2_dataset(env, split: str, root: Path | None = None):
+    from instagram_hdmap.data import build_dataset
+
+    root = root or env.request.getfixturevalue("av2_world")
+    cfg = env.cfg("data.dataset=av2", "data.splits_file=null", "data.av2_frame_step=1", "data.image_fit=contain",
+                  f"data.dataroot={root}")
+    return build_dataset(cfg, split, augment=False)
+
+
+REAL_AV2 = REPO.parent / "shared" / "av2_real"
+
+
+@row("S7", "a camera whose optical axis points where its channel does not (CAM_FRONT and CAM_BACK swapped in the "
+          "sensor table, a Mapper given the back camera's pose as the front's) is named (ran, exit 0); every camera "
+          "of the real nuScenes rig, the real AV2 log and the synthetic worlds passes")
+def row_camera_heading_of_another_channel(env):
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.base import NOMINAL_CAMERA_YAW_DEG, camera_heading_problem
+    from instagram_hdmap.data.rig import RigError, rig
+    from instagram_hdmap.data.synthetic.av2_writer import av2_rig
+
+    def swap(tables):
+        for s in tables["sensor"]:
+            s["channel"] = {"CAM_FRONT": "CAM_BACK", "CAM_BACK": "CAM_FRONT"}.get(s["channel"], s["channel"])
+
+    _evaluate_world(env, swap, r"camera CAM_(FRONT|BACK): calibrated_sensor \w+ in .*: its optical axis points "
+                               r"-?\d+ degrees left of the vehicle's forward direction, 180 degrees off where a CAM_")
+    mapper, images, K, poses = _mapper_frame(env)
+    with pytest.raises(RigError, match=r"camera CAM_FRONT: 'cam_to_ego': its optical axis points 180 degrees left .* "
+                                       r"off where a CAM_FRONT camera looks \(0;"):
+        mapper(Frame(images=images, intrinsics=K, cam_to_ego={**poses, "CAM_FRONT": poses["CAM_BACK"]}))
+    # the real rigs and the synthetic ones pass; the AV2 world's cameras pass when its dataset loads them
+    real = {c: s.rot for c, s in rig().items() if s.modality == "camera"}
+    real |= {c: s.rot for c, s in av2_rig().items() if s.modality == "camera"}
+    if (REAL_AV2 / "val").is_dir():
+        from av2.utils.io import read_ego_SE3_sensor
+
+        for log in (REAL_AV2 / "val").iterdir():
+            real |= {f"{c} of {log.name}": p.rotation for c, p in read_ego_SE3_sensor(log).items()
+                     if c.startswith("ring")}
+        real_ds = _av2_dataset(env, "val", REAL_AV2)
+        real_ds._log_cameras(real_ds.samples[0][0])  # the dataset's own checks (heading included) pass
+    assert len(real) >= 13 and set(NOMINAL_CAMERA_YAW_DEG) <= {c.split(" ")[0] for c in real}
+    assert {c: camera_heading_problem(c.split(" ")[0], R) for c, R in real.items()} == dict.fromkeys(real)
+    ds = _av2_dataset(env, "val")
+    ds._log_cameras(ds.samples[0][0])
+    assert camera_heading_problem("my_roof_camera", poses["CAM_BACK"][:3, :3]) is None  # unknown names: not checked
+
+
+@row("S7", "train.init_from with --resume says in one note that init_from is not read on a resume (silently ignored)")
+def row_init_from_with_resume_notes(env):
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    last = env.tmp / "run" / "last.pt"
+    env.capsys.readouterr()
+    _toy_run(env, [0.3, 0.4], "train.epochs=2", f"train.init_from={env.ckpt}", resume=str(last))
+    out = env.capsys.readouterr().out
+    assert len(re.findall(r"note: train\.init_from=.*random\.pt is not read on a resume: the weights are .*last\.pt's",
+                          out)) == 1, out
+
+
+@row("S7", "nuScenes tables: every camera image of a sample given one calibrated_sensor is named as a duplicate "
+          "calibration (was 'has no CAM_FRONT_LEFT image', naming no cause)")
+def row_cameras_share_one_calibration(env):
+    def share(tables):
+        token = camera_record(tables, "CAM_FRONT")[1]["token"]
+        for sd in tables["sample_data"]:
+            if sd["fileformat"] == "jpg":
+                sd["calibrated_sensor_token"] = token
+
+    _evaluate_world(env, share, r"sample \w+ has no CAM_FRONT_LEFT image: 6 of its key-frame sample_data records "
+                                r"\(calibrated_sensor \w+\) are calibrated as CAM_FRONT .*a duplicate calibration")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

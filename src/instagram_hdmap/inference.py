@@ -51,6 +51,7 @@ from .config import (
     set_key,
 )
 from .data import rig_cameras
+from .data.base import camera_heading_problem
 from .data.rig import RigError, camera_named_by, check_calibration, check_upright
 from .data.transforms import ImageError, load_image, prepare_image
 from .distributed import resolve_device
@@ -764,6 +765,9 @@ class Mapper:
                     calib = check_calibration(name, K, T[:3, :3], T[:3, 3], image_size=(rgb.shape[1], rgb.shape[0]))
                     pixels, post_rot, post_tran = prepare_image(rgb, d.image_size, fit=d.image_fit)
                 check_upright(calib.rotation, f"camera {name}: 'cam_to_ego'")
+                heading = camera_heading_problem(name, calib.rotation)
+                if heading is not None:
+                    raise RigError(f"camera {name}: 'cam_to_ego': {heading}")
                 for key, value in zip(keys, (pixels, calib.intrinsics, calib.rotation, calib.translation, post_rot,
                                              post_tran)):
                     per[key].append(torch.as_tensor(value).float())

@@ -383,6 +383,9 @@ class TrainingRun:
             run.check_not_finished(state, Path(resume))
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
                           f"({run.position.step_in_epoch} into the epoch)")
+            if cfg.train.init_from:
+                du.print_main(f"note: train.init_from={cfg.train.init_from} is not read on a resume: the weights are "
+                              f"{resume}'s (the run's own checkpoint)")
         if run.world > 1:
             run.net = torch.nn.parallel.DistributedDataParallel(
                 run.model, device_ids=[device.index] if device.type == "cuda" else None)

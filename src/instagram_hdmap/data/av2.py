@@ -64,6 +64,7 @@ from .base import (
     DatasetError,
     MapDataset,
     check_camera_plausible,
+    check_camera_time,
     check_distinct_images,
     check_ego_level,
     check_intrinsics,
@@ -299,7 +300,7 @@ class AV2MapDataset(MapDataset):
                 check_camera_plausible(pin.intrinsics.K, pin.ego_SE3_cam.rotation, pin.ego_SE3_cam.translation,
                                        (pin.width_px, pin.height_px), f"{where} and {intr_path.name}",
                                        "is (qw, qx, qy, qz) the camera -> ego rotation, in that order (not ego -> "
-                                       "camera, its inverse; not qx, qy, qz, qw)?")
+                                       "camera, its inverse; not qx, qy, qz, qw)?", channel=cam)
             self._cameras[log] = cams
         return self._cameras[log]
 
@@ -330,6 +331,8 @@ class AV2MapDataset(MapDataset):
             raise DatasetError(f"log {log}: no {cam} image within {CAMERA_WINDOW_MS} ms of lidar sweep {ts} "
                                f"(sensors/lidar/{ts}.feather) in {folder}: {detail}; the log's camera and lidar "
                                "timestamps do not match")
+        if path.stem.isdigit():  # av2's synchronisation keeps a ring camera within 25 ms: any other within 0.5 s
+            check_camera_time(ts // 1000, int(path.stem) // 1000, f"log {log}, lidar sweep {ts}: camera {cam}: {path}")
         return path
 
     # --- pieces ---------------------------------------------------------------------------------

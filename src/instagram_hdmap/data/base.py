@@ -145,12 +145,13 @@ MAX_EGO_TILT_DEG = 25  # the ego frame's z axis off the vertical: the steepest p
 
 
 def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[int, int], where: str,
-                           hint: str) -> None:
+                           hint: str, channel: str | None = None) -> None:
     """A calibration whose every field is well formed but that no surround camera has (Mapper's checks,
     data/rig.py): a camera more than ``MAX_CAMERA_OFFSET_M`` from the ego origin (millimetres), a focal
     length of a field of view over 175 degrees (intrinsics normalised or in millimetres), a principal point
     outside the ``image_size`` (width, height) image (intrinsics of another image size), a camera looking
-    up or down, rolled or upside down (``check_upright``: ego -> camera, a quaternion in another order)."""
+    up or down, rolled or upside down (``check_upright``: ego -> camera, a quaternion in another order), and
+    a camera of a known ``channel`` looking where that channel does not (``camera_heading_problem``)."""
     from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright
 
     K, t = np.asarray(intrinsics, dtype=np.float64), np.asarray(translation, dtype=np.float64)
@@ -171,6 +172,50 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
         check_upright(rotation, where, hint)
     except RigError as e:
         raise DatasetError(str(e)) from None
+    problem = camera_heading_problem(channel, rotation) if channel is not None else None
+    if problem is not None:
+        raise DatasetError(f"{where}: {problem}")
+
+
+# the optical axis' yaw in the ego frame (degrees, left of forward) of the known surround channels: the real
+# nuScenes rig (data/rig.py, n015: 0, +-55, 180, +-110) and the real AV2 log's calibration (../shared/av2_real:
+# 0, +-45, +-99, +-153), rounded
+NOMINAL_CAMERA_YAW_DEG = {
+    "CAM_FRONT": 0.0, "CAM_FRONT_LEFT": 55.0, "CAM_FRONT_RIGHT": -55.0,
+    "CAM_BACK": 180.0, "CAM_BACK_LEFT": 110.0, "CAM_BACK_RIGHT": -110.0,
+    "ring_front_center": 0.0, "ring_front_left": 45.0, "ring_front_right": -45.0,
+    "ring_side_left": 99.0, "ring_side_right": -99.0, "ring_rear_left": 153.0, "ring_rear_right": -153.0,
+}
+MAX_CAMERA_YAW_OFF_DEG = 60  # every camera of those real rigs lies within 2 degrees of its channel's direction
+
+
+def camera_heading_problem(channel: str, rotation) -> str | None:
+    """What is wrong with a camera -> ego ``rotation`` for the known channel ``channel`` (its optical axis
+    more than ``MAX_CAMERA_YAW_OFF_DEG`` off the channel's direction: the channels' names swapped, a
+    calibration of another camera), or None (an unknown channel name is not checked)."""
+    nominal = NOMINAL_CAMERA_YAW_DEG.get(channel)
+    if nominal is None:
+        return None
+    z = np.asarray(rotation, dtype=np.float64)[:, 2]  # the optical axis in the ego frame
+    yaw = float(np.degrees(np.arctan2(z[1], z[0])))
+    off = abs((yaw - nominal + 180.0) % 360.0 - 180.0)
+    if off <= MAX_CAMERA_YAW_OFF_DEG:
+        return None
+    return (f"its optical axis points {yaw:.0f} degrees left of the vehicle's forward direction, {off:.0f} degrees "
+            f"off where a {channel} camera looks ({nominal:.0f}; within {MAX_CAMERA_YAW_OFF_DEG} on real rigs): the "
+            "camera names swapped, or another camera's calibration?")
+
+
+MAX_CAMERA_DELAY_S = 0.5  # a keyframe's camera image and its sample: real rigs are within ~50 ms
+
+
+def check_camera_time(sample_us: int, camera_us: int, where: str) -> None:
+    """A camera image taken more than ``MAX_CAMERA_DELAY_S`` from its sample (timestamps in microseconds)."""
+    gap = abs(int(camera_us) - int(sample_us)) / 1e6
+    if gap > MAX_CAMERA_DELAY_S:
+        raise DatasetError(f"{where}: the image's timestamp {int(camera_us)} us is {gap:.3g} s from its sample's "
+                           f"({int(sample_us)} us); a camera of a sample is taken within {MAX_CAMERA_DELAY_S:g} s of "
+                           "it (real rigs: ~50 ms): an image of another moment, or timestamps in another unit")
 
 
 def check_ego_level(rotation, where: str, hint: str) -> None:

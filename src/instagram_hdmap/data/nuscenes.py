@@ -33,6 +33,7 @@ from .base import (
     DatasetError,
     MapDataset,
     check_camera_plausible,
+    check_camera_time,
     check_distinct_images,
     check_ego_level,
     check_intrinsics,
@@ -302,7 +303,8 @@ class NuScenesMapDataset(MapDataset):
         pinhole matrix with positive focal lengths."""
         data = _field(sample, "data", "sample")
         if cam not in data:
-            raise DatasetError(f"sample {sample['token']} has no {cam} image in {self.dataroot}")
+            raise DatasetError(self._shared_calibration(sample, cam)
+                               or f"sample {sample['token']} has no {cam} image in {self.dataroot}")
         sd = self._get("sample_data", data[cam])
         for key in ("filename", "width", "height"):
             _field(sd, key, "sample_data")
@@ -320,8 +322,27 @@ class NuScenesMapDataset(MapDataset):
         check_camera_plausible(cs["camera_intrinsic"], _pose_matrix(cs["rotation"], cs["translation"])[:3, :3].double(),
                                cs["translation"], (sd["width"], sd["height"]), where,
                                "is its rotation the camera -> ego quaternion, in (w, x, y, z) order (not ego -> "
-                               "camera, its inverse; not x, y, z, w)?")
+                               "camera, its inverse; not x, y, z, w)?", channel=cam)
+        check_camera_time(_field(sample, "timestamp", "sample"), _field(sd, "timestamp", "sample_data"),
+                          f"sample {sample['token']}: camera {cam}: sample_data {sd.get('token', '?')} in "
+                          f"{self.dataroot / self.data_cfg.version}/sample_data.json")
         return sd, cs
+
+    def _shared_calibration(self, sample: dict, cam: str) -> str | None:
+        """Why ``sample`` lacks camera ``cam`` when its key-frame images share calibrated_sensor records (the
+        devkit files each image under its calibration's channel, so the others' channels vanish), else None."""
+        channels: dict[str, list[str]] = {}
+        for sd in self.nusc.sample_data:
+            if sd.get("sample_token") == sample["token"] and sd.get("is_key_frame") and sd.get("channel"):
+                channels.setdefault(sd["channel"], []).append(sd.get("calibrated_sensor_token", "?"))
+        shared = {ch: toks for ch, toks in channels.items() if len(toks) > 1}
+        if not shared:
+            return None
+        ch, toks = max(shared.items(), key=lambda kv: len(kv[1]))
+        return (f"sample {sample['token']} has no {cam} image: {len(toks)} of its key-frame sample_data records "
+                f"(calibrated_sensor {', '.join(sorted(set(toks)))[:120]}) are calibrated as {ch} in "
+                f"{self.dataroot / self.data_cfg.version}/sample_data.json: a duplicate calibration (each camera's "
+                "images have their own calibrated_sensor record, of that camera's sensor)")
 
     def ego_pose(self, index: int) -> torch.Tensor:
         """[4, 4] ego -> global of the sample's reference pose (LIDAR_TOP, else CAM_FRONT)."""
