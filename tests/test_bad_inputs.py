@@ -2163,6 +2163,19 @@ def row_cameras_share_one_calibration(env):
                                 r"\(calibrated_sensor \w+\) are calibrated as CAM_FRONT .*a duplicate calibration")
 
 
+@row("S7", "an atomic write over a file with a second (hard-linked) name replaces the name written; the other name "
+          "keeps the old content, as os.replace does (the promise docs/faults.md states)")
+def row_atomic_write_over_a_hard_link(env):
+    from instagram_hdmap.files import write_json
+
+    old, other = env.tmp / "metrics.json", env.tmp / "backup.json"
+    old.write_text('{"mAP": 0.5}')
+    os.link(old, other)
+    write_json({"mAP": 0.7}, old)
+    assert json.loads(old.read_text()) == {"mAP": 0.7} and json.loads(other.read_text()) == {"mAP": 0.5}
+    assert not old.samefile(other)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
