@@ -60,6 +60,19 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     config = config or name
     out = Path(args.out) / f"{name}_seed{seed}"
     done = out / result_name(args)
+    if budget is None:
+        budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
+            f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
+            f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
+    # what the run was trained with (its world's occluders, budget, overrides): a result of other options in the
+    # same --out is refused, not reported as this one's (results written before the key: not checked)
+    options = None if checkpoint is not None else {"occluders": args.occluders, "train": [
+        *budget, *args.override, *extra, *([f"model.temporal.memory={args.memory}"] if config == "temporal" else [])]}
+    for path in sorted(out.glob("result*.json")):
+        saved = json.loads(path.read_text()).get("options")
+        if options is not None and saved is not None and saved != options:
+            raise SystemExit(f"temporal.py: error: {path} was trained with {saved}, this command asks for {options}: "
+                             "use another --out (or the same options)")
     if done.is_file():
         return json.loads(done.read_text())
     trained = [p for p in out.glob("result*.json") if p != done]  # evaluated on another validation world
@@ -67,10 +80,6 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     if checkpoint is None and trained:
         checkpoint = out / "run" / "last.pt"
         steps = json.loads(trained[0].read_text()).get("steps", 0)
-    if budget is None:
-        budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
-            f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
-            f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
     common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
               *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override, *extra]
     summary, train_s = ({"step": steps} if trained else {}), 0.0
@@ -90,7 +99,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
                                                         "flicker_detected_mean", "pairs", "pairs_detected")},
-              "memory": metrics.get("memory")}
+              "memory": metrics.get("memory"), **({"options": options} if options is not None else {})}
     done.write_text(json.dumps(result, indent=1))
     return result
 
@@ -225,6 +234,7 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
     """The options' ranges, the fine-tuning's start and the overrides, before the worlds are generated (minutes):
     a wrong value is one line (argparse's error, exit 2), not a traceback after the generation."""
     from instagram_hdmap.config import UserError, load_config
+    from instagram_hdmap.models import build_model
 
     def positive(name: str, value, integer: bool = False) -> None:
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -247,11 +257,15 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
                    if not (Path(args.finetune_base) / f"single_seed{seed}" / "run" / "last.pt").is_file()]
         if missing:
             p.error(f"--finetune-base {args.finetune_base}: no single-frame checkpoint {', '.join(missing)}")
+    memory_set = [o for o in args.override if o.split("=", 1)[0].strip() == "model.temporal.memory"]
+    if memory_set:  # run_one appends --memory after the overrides: the --set would be dropped without a word
+        p.error(f"--set {memory_set[0]}: the temporal model's memory is --memory ({args.memory}), not a --set")
     for name, path in CONFIGS.items():
-        try:
-            load_config(path, args.override)
+        try:  # as run_one builds it: the temporal config with --memory (a --set may not fit that memory)
+            memory = [f"model.temporal.memory={args.memory}"] if name == "temporal" else []
+            build_model(load_config(path, [*args.override, *memory]))  # the checks across keys live in build_model
         except UserError as e:
-            p.error(f"--set (the {name} config): {e}")
+            p.error(f"--set (the {name} config{f', --memory {args.memory}' if name == 'temporal' else ''}): {e}")
 
 
 def main() -> None:

@@ -5,7 +5,8 @@ checks the promise: a wrong input is named on one line (``UserError``, exit code
 nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`` is the number of
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
-fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh).
+fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
+found by an eighth).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer
 than a few steps.
 """
@@ -41,7 +42,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S7"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S8"
     what: str
     run: Callable
 
@@ -2174,6 +2175,116 @@ def row_atomic_write_over_a_hard_link(env):
     write_json({"mAP": 0.7}, old)
     assert json.loads(old.read_text()) == {"mAP": 0.7} and json.loads(other.read_text()) == {"mAP": 0.5}
     assert not old.samefile(other)
+
+
+# ==================================================================================================
+# The eighth sweep (S8): cases found by an eighth sweep of the same kind
+# ==================================================================================================
+
+
+def _temporal_checkpoint(env, name: str, *overrides) -> Path:
+    from instagram_hdmap.models import build_model
+
+    cfg = env.cfg("model.gnn.sinkhorn_iters=3", *overrides)
+    return save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)}, env.tmp / name)
+
+
+@row("S8", "Mapper.forward with the memory of a temporal model of another grid (the same memory channels) is a "
+          "ValueError naming both sizes (a raw RuntimeError of a reshape deep in the warp)")
+def row_memory_of_a_model_of_another_grid(env):
+    from instagram_hdmap import Mapper
+
+    coarse = _temporal_checkpoint(env, "coarse.pt", "model.temporal.memory=graph", "grid.resolution=0.5")
+    fine = _temporal_checkpoint(env, "fine.pt", "model.temporal.memory=graph")
+    a, b = Mapper.from_checkpoint(coarse, device="cpu"), Mapper.from_checkpoint(fine, device="cpu")
+    _, images, K, poses = _mapper_frame(env)
+    from instagram_hdmap import Frame
+
+    frame = Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=np.eye(4))
+    memory = a.forward(a.batch([frame]) | {"ego_pose": torch.eye(4)[None]})["memory"]
+    with pytest.raises(ValueError, match=r"the memory map is 8 x 16 cells, this model's 16 x 32 \(another grid\)"):
+        b.forward(b.batch([frame]) | {"ego_pose": torch.eye(4)[None], "frame_index": torch.tensor([2])}, memory)
+    own = b.forward(b.batch([frame]) | {"ego_pose": torch.eye(4)[None]})["memory"]  # its own memory fuses
+    out = b.forward(b.batch([frame]) | {"ego_pose": torch.eye(4)[None], "frame_index": torch.tensor([2])}, own)
+    assert out["memory_status"].tolist() == [0]
+
+
+def _benchmark_temporal(env, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(REPO / "benchmarks" / "temporal.py"), *args, "--cache",
+                           str(env.tmp / "cache"), "--out", str(env.tmp / "out")], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+
+
+@row("S8", "benchmarks/temporal.py: a --set that does not fit --memory (model.temporal.fusion=gru with --memory graph) "
+          "is one line before the worlds are generated (it passed the check, then a traceback after minutes), and "
+          "--set model.temporal.memory=... is refused (--memory overrode it without a word)")
+def row_benchmark_temporal_set_against_memory(env):
+    for args, pattern in ((["--memory", "graph", "--set", "model.temporal.fusion=gru"],
+                           r"--set \(the temporal config, --memory graph\): config key 'model\.temporal\.fusion'"),
+                          (["--memory", "graph", "--set", "model.temporal.memory=bev"],
+                           r"--set model\.temporal\.memory=bev: the temporal model's memory is --memory \(graph\)")):
+        p = _benchmark_temporal(env, *args, "--steps", "2")
+        assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+        assert re.search(pattern, p.stderr), p.stderr[-2000:]
+    assert not (env.tmp / "cache").exists()  # no world generated
+
+
+@row("S8", "benchmarks/temporal.py: a run folder of --out holding a result trained with other options (another "
+          "--steps, --set or --occluders) is refused; it was reported as this command's result, exit 0")
+def row_benchmark_temporal_stale_result(env):
+    import argparse
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_temporal", REPO / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    from instagram_hdmap.demo import VAL_WORLD
+
+    args = argparse.Namespace(out=str(env.tmp / "out"), steps=200, minutes=15.0, occluders=0.7, override=[],
+                              memory="graph", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, threads=None)
+    folder = env.tmp / "out" / "temporal_graph_seed0"
+    folder.mkdir(parents=True)
+    old = {"config": "temporal_graph", "seed": 0, "mAP": 0.5,
+           "options": {"occluders": 0.7, "train": ["train.max_steps=100", "train.epochs=1", "train.lr_step=1",
+                                                   "model.temporal.memory=graph"]}}
+    (folder / "result.json").write_text(json.dumps(old))
+    forbid(env, "instagram_hdmap.train.train", "a training")
+    with pytest.raises(SystemExit, match=r"result\.json was trained with .*max_steps=100.*this command asks for "
+                                         r".*max_steps=200.*use another --out"):
+        bench.run_one("temporal_graph", 0, args, (None, None), "temporal")
+    args.steps = 100  # the same options: the result is this command's
+    assert bench.run_one("temporal_graph", 0, args, (None, None), "temporal")["mAP"] == 0.5
+    del old["options"]  # a result written before the options were recorded is taken as it is
+    (folder / "result.json").write_text(json.dumps(old))
+    args.steps = 200
+    assert bench.run_one("temporal_graph", 0, args, (None, None), "temporal")["mAP"] == 0.5
+
+
+@row("S8", "evaluate-json: a prediction file whose meta states the patch as [min, max, resolution] (HDMapNet's "
+          "xbound) and a file whose one element lies in [0, 1] x [0, 1] where its GT does are valid (both refused)")
+def row_submission_valid_but_refused(env):
+    meta = {"classes": ["divider", "ped_crossing", "boundary"], "xbound": [-8.0, 8.0], "ybound": [-4.0, 4.0]}
+    line = {"a": [{"pts": [[float(x), float(x) / 4] for x in range(-8, 9)], "type": 0}]}
+    near = {"a": [{"pts": [[0.1 * i, 0.5] for i in range(10)], "type": 1}]}
+    for vectors, pred_meta in ((line, {**meta, "xbound": [-8.0, 8.0, 0.25], "ybound": [-4.0, 4.0, 0.25]}),
+                               (near, meta)):
+        gt, pred = env.tmp / "gt.json", env.tmp / "pred.json"
+        gt.write_text(json.dumps({"meta": {**meta, "ground_truth": True}, "results": vectors}))
+        pred.write_text(json.dumps({"meta": {**pred_meta, "ground_truth": False}, "results": {
+            "a": [{**v, "confidence_level": 0.9} for v in vectors["a"]]}}))
+        rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt)
+        assert rc == 0, err
+    env.error(r"its meta says xbound = \[-15\.0, 15\.0, 0\.15\]", "evaluate-json", "--pred", _rewrite(  # another patch
+        pred, xbound=[-15.0, 15.0, 0.15], results=line), "--gt", _rewrite(gt, results=line))
+
+
+def _rewrite(path: Path, results: dict, **meta) -> Path:
+    doc = json.loads(path.read_text())
+    doc["meta"].update(meta)
+    doc["results"] = {k: [{**v, **({"confidence_level": 0.9} if not doc["meta"]["ground_truth"] else {})} for v in vs]
+                      for k, vs in results.items()}
+    path.write_text(json.dumps(doc))
+    return path
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -295,6 +295,10 @@ class BEVMemoryFusion(nn.Module):
             raise ValueError(f"the memory map has {memory['bev'].shape[1]} channels, this model's "
                              f"(model.temporal.memory={self.memory}) has {self.memory_channels}: pass back "
                              "outputs['memory'] of this model, or None to start anew")
+        if tuple(memory["bev"].shape[-2:]) != self.size:  # a model of another grid or BEV size
+            raise ValueError(f"the memory map is {memory['bev'].shape[-2]} x {memory['bev'].shape[-1]} cells, this "
+                             f"model's {self.size[0]} x {self.size[1]} (another grid): pass back outputs['memory'] of "
+                             "this model, or None to start anew")
         drop = None
         if self.training and self.drop_prob > 0:
             drop = torch.rand(B, device=x.device) < self.drop_prob
