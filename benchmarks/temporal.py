@@ -53,6 +53,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     evaluate that checkpoint only (no training)."""
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.files import write_json
     from instagram_hdmap.predict import run_evaluation
     from instagram_hdmap.train import train
 
@@ -69,7 +70,10 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     options = None if checkpoint is not None else {"occluders": args.occluders, "train": [
         *budget, *args.override, *extra, *([f"model.temporal.memory={args.memory}"] if config == "temporal" else [])]}
     for path in sorted(out.glob("result*.json")):
-        saved = json.loads(path.read_text()).get("options")
+        try:
+            saved = json.loads(path.read_text()).get("options")
+        except (OSError, ValueError, AttributeError):
+            continue
         if options is not None and saved is not None and saved != options:
             raise SystemExit(f"temporal.py: error: {path} was trained with {saved}, this command asks for {options}: "
                              "use another --out (or the same options)")
@@ -100,7 +104,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
                                                         "flicker_detected_mean", "pairs", "pairs_detected")},
               "memory": metrics.get("memory"), **({"options": options} if options is not None else {})}
-    done.write_text(json.dumps(result, indent=1))
+    write_json(result, done, indent=1)  # atomic: a killed benchmark leaves no half-written result to read back
     return result
 
 

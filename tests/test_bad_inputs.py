@@ -2287,6 +2287,20 @@ def _rewrite(path: Path, results: dict, **meta) -> Path:
     return path
 
 
+@row("S8", "a checkpoint whose saved temporal memory holds NaN (weights finite) is named when it loads (a resume "
+          "stopped on a 'non-finite loss' advising a lower learning rate)")
+def row_checkpoint_with_nonfinite_memory(env):
+    state = torch.load(env.ckpt, weights_only=True)
+    memory = {"bev": torch.zeros(1, 4, 16, 32), "ego_pose": torch.eye(4)[None],
+              "valid": torch.ones(1, dtype=torch.bool), "frame_index": torch.ones(1, dtype=torch.long)}
+    save_checkpoint({**state, "memory": [memory]}, env.tmp / "ok.pt")
+    load_checkpoint(env.tmp / "ok.pt")  # a finite memory loads
+    memory["bev"][0, 0, 3, 4] = float("nan")
+    path = save_checkpoint({**state, "memory": [memory]}, env.tmp / "last.pt")
+    with pytest.raises(CheckpointError, match=r"last\.pt: the temporal streams' saved memory \('bev'\) holds NaN"):
+        load_checkpoint(path)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -86,6 +86,12 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""
         raise CheckpointError(f"checkpoint {path}: the weights {bad[0]}{more} hold NaN or infinite values (a "
                               "diverged training saved them); use an earlier checkpoint such as best.pt")
+    memories = state.get("memory") if isinstance(state.get("memory"), list) else []
+    bad = [k for rank in memories if isinstance(rank, dict) for k, v in rank.items()
+           if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:  # a temporal run's streams would fuse them into every frame until their scenes end (a NaN loss)
+        raise CheckpointError(f"checkpoint {path}: the temporal streams' saved memory ('{bad[0]}') holds NaN or "
+                              "infinite values; the file is corrupt: use an earlier checkpoint such as best.pt")
     return state
 
 
