@@ -97,7 +97,8 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
         checkpoint = out / "run" / "last.pt"
     else:
         train_s = json.loads(trained[0].read_text()).get("train_s", 0.0) if trained else 0.0
-    val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common])
+    val_only = [] if args.val_dropout is None else [f"data.camera_dropout={args.val_dropout}"]
+    val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common, *val_only])
     metrics = run_evaluation(val_cfg, checkpoint, "vector", out / f"eval{result_name(args)[6:-5]}")["metrics"]
     result = {"config": name, "seed": seed, "steps": summary.get("step", 0), "train_s": round(train_s, 1),
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
@@ -125,7 +126,8 @@ def memory_off(results: list[dict], args, val_root) -> str:
         done = out / result_name(args).replace(".json", "_memoff.json")
         ckpt = out / "run" / "last.pt"
         if not done.is_file():
-            off = ["model.temporal.max_jump_m=0.001"]
+            off = ["model.temporal.max_jump_m=0.001",
+                   *([] if args.val_dropout is None else [f"data.camera_dropout={args.val_dropout}"])]
             cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override,
                                                     f"model.temporal.memory={args.memory}", *off])
             metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
@@ -155,6 +157,8 @@ def result_name(args) -> str:
     name = "result" if args.val_scenes == VAL_WORLD["scenes_val"] else f"result_val{args.val_scenes}"
     if args.val_occluders is not None and args.val_occluders != args.occluders:
         name += f"_occ{args.val_occluders:g}"
+    if args.val_dropout is not None:
+        name += f"_drop{args.val_dropout:g}"
     return name + ".json"
 
 
@@ -248,7 +252,7 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
     positive("--finetune-lr", args.finetune_lr)
     for name in ("steps", "finetune", "val_scenes", "threads", "workers"):
         positive(f"--{name.replace('_', '-')}", getattr(args, name), integer=True)
-    for name in ("occluders", "val_occluders"):
+    for name in ("occluders", "val_occluders", "val_dropout"):
         value = getattr(args, name)
         if value is not None and not 0 <= value <= 1:
             p.error(f"--{name.replace('_', '-')} must be a density in [0, 1], got {value}")
@@ -296,6 +300,9 @@ def main() -> None:
     p.add_argument("--val-occluders", type=float,
                    help="another occluder density for the validation world (default: --occluders); e.g. 0: what "
                         "do the occluders cost a model, the most a memory could win back")
+    p.add_argument("--val-dropout", type=float,
+                   help="evaluate with this data.camera_dropout instead of the training's (e.g. 0: every camera "
+                        "works; the flicker a model has when no frame lacks anything)")
     p.add_argument("--finetune-lr", type=float, default=2e-4, help="the fine-tuning's constant learning rate")
     p.add_argument("--finetune-trainable", choices=["temporal", "all"], default="temporal",
                    help="what the temporal fine-tuning trains (the single-frame one trains everything)")
