@@ -2241,7 +2241,8 @@ def row_benchmark_temporal_stale_result(env):
     from instagram_hdmap.demo import VAL_WORLD
 
     args = argparse.Namespace(out=str(env.tmp / "out"), steps=200, minutes=15.0, occluders=0.7, override=[],
-                              memory="graph", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, threads=None)
+                              memory="graph", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None,
+                              threads=None)
     folder = env.tmp / "out" / "temporal_graph_seed0"
     folder.mkdir(parents=True)
     old = {"config": "temporal_graph", "seed": 0, "mAP": 0.5,
