@@ -47,6 +47,14 @@ CONFIGS = {"single": REPO / "configs" / "synthetic" / "demo.yaml",
            "temporal": REPO / "configs" / "temporal" / "synthetic.yaml"}
 
 
+def budget_overrides(args) -> list[str]:
+    """A from-scratch run's training budget: ``--minutes`` of wall time, or ``--steps`` (epochs of 120 steps)."""
+    if args.steps is None:
+        return [f"train.time_budget_min={args.minutes}"]
+    epochs = math.ceil(args.steps / 120)
+    return [f"train.max_steps={args.steps}", f"train.epochs={epochs}", f"train.lr_step={max(1, round(0.8 * epochs))}"]
+
+
 def run_one(name: str, seed: int, args, roots, config: str | None = None, extra: tuple[str, ...] = (),
             budget: list[str] | None = None, checkpoint: Path | None = None) -> dict:
     """Train ``config`` (``name``'s folder) and evaluate it on the validation world; with ``checkpoint``,
@@ -62,9 +70,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     out = Path(args.out) / f"{name}_seed{seed}"
     done = out / result_name(args)
     if budget is None:
-        budget = [f"train.time_budget_min={args.minutes}"] if args.steps is None else [
-            f"train.max_steps={args.steps}", f"train.epochs={math.ceil(args.steps / 120)}",
-            f"train.lr_step={max(1, round(0.8 * math.ceil(args.steps / 120)))}"]
+        budget = budget_overrides(args)
     # what the run was trained with (its world's occluders, budget, overrides): a result of other options in the
     # same --out is refused, not reported as this one's (results written before the key: not checked)
     options = None if checkpoint is not None else {"occluders": args.occluders, "train": [
@@ -243,6 +249,7 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
     a wrong value is one line (argparse's error, exit 2), not a traceback after the generation."""
     from instagram_hdmap.config import UserError, load_config
     from instagram_hdmap.models import build_model
+    from instagram_hdmap.train import check_stream_schedule
 
     def positive(name: str, value, integer: bool = False) -> None:
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -271,9 +278,16 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
     for name, path in CONFIGS.items():
         try:  # as run_one builds it: the temporal config with --memory (a --set may not fit that memory)
             memory = [f"model.temporal.memory={args.memory}"] if name == "temporal" else []
-            build_model(load_config(path, [*args.override, *memory]))  # the checks across keys live in build_model
+            cfg = load_config(path, [*budget_overrides(args), *args.override, *memory])
+            build_model(cfg)  # the checks across keys live in build_model
         except UserError as e:
             p.error(f"--set (the {name} config{f', --memory {args.memory}' if name == 'temporal' else ''}): {e}")
+        if name in args.configs and not (args.finetune and args.finetune_base):  # trained from scratch here
+            try:  # a temporal schedule that streams, as train checks (--steps 100 is 1 epoch)
+                check_stream_schedule(cfg)
+            except UserError as e:
+                budget = f"--steps {args.steps}" if args.steps is not None else f"--minutes {args.minutes:g}"
+                p.error(f"the {name} run ({budget}): {e}")
 
 
 def main() -> None:

@@ -2302,6 +2302,19 @@ def row_checkpoint_with_nonfinite_memory(env):
         load_checkpoint(path)
 
 
+@row("S8", "a temporal training whose train.stream_warmup rounds to every epoch (0.6 of 1 epoch; the benchmark's "
+          "--steps 100) is refused before the loaders: it ran on single frames only, its memory never trained, exit 0")
+def row_temporal_warmup_covers_every_epoch(env):
+    forbid(env, "instagram_hdmap.train.build_loaders", "the data loaders")
+    env.error(r"train\.stream_warmup=0\.6 of train\.epochs=1 is 1 single-frame epoch\(s\) of 1: the temporal model "
+              r"would never train with its memory", "train", env.yaml, f"train.out_dir={env.tmp / 'r'}",
+              "model.temporal.memory=graph", "train.stream_warmup=0.6", "train.epochs=1")
+    p = _benchmark_temporal(env, "--steps", "100")
+    assert p.returncode == 2 and re.search(r"the temporal run \(--steps 100\): train\.stream_warmup=0\.6 of "
+                                           r"train\.epochs=1", p.stderr), p.stderr[-2000:]
+    assert not (env.tmp / "cache").exists()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

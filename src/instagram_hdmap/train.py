@@ -354,9 +354,7 @@ class TrainingRun:
         device = du.init_distributed(du.resolve_device(cfg.train.device).type)
         out_dir = Path(cfg.train.out_dir)
         check_init_from_outside(cfg, out_dir, resume)
-        if cfg.model.temporal.memory != "none" and cfg.train.stream_frames == 1:  # pieces of one frame: no history
-            raise UserError("train.stream_frames=1: every frame would start a new memory, so the temporal model would "
-                            "never train with one (a single-frame training); use 0 (whole scenes) or at least 2")
+        check_stream_schedule(cfg)
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
         state = load_resume_state(resume, cfg)
@@ -598,6 +596,24 @@ class TrainingRun:
 # the weights mean (the geometry, the inputs, the outputs); the architecture is checked by the weights'
 # names and shapes, and the temporal memory may be new
 INIT_KEYS = ("grid", "data.image_size", "data.classes", "data.dt_clip", "data.av2_cameras", "model.view_transform")
+
+
+def check_stream_schedule(cfg: ExperimentConfig) -> None:
+    """A temporal training whose schedule never streams is refused: pieces of one frame
+    (``train.stream_frames=1``), or ``train.stream_warmup`` rounding to every epoch of ``train.epochs``
+    (0.6 of 1 epoch: the whole run on shuffled single frames, the memory always empty: exit 0, the
+    memory never trained)."""
+    if cfg.model.temporal.memory == "none":
+        return
+    if cfg.train.stream_frames == 1:  # pieces of one frame: no history
+        raise UserError("train.stream_frames=1: every frame would start a new memory, so the temporal model would "
+                        "never train with one (a single-frame training); use 0 (whole scenes) or at least 2")
+    single = round(cfg.train.stream_warmup * cfg.train.epochs)
+    if single >= cfg.train.epochs:
+        raise UserError(f"train.stream_warmup={cfg.train.stream_warmup:g} of train.epochs={cfg.train.epochs} is "
+                        f"{single} single-frame epoch(s) of {cfg.train.epochs}: the temporal model would never train "
+                        "with its memory (it is empty on single frames); raise train.epochs or lower "
+                        "train.stream_warmup")
 
 
 def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:
