@@ -2182,7 +2182,7 @@ def row_atomic_write_over_a_hard_link(env):
 # ==================================================================================================
 
 
-def _temporal_checkpoint(env, name: str, *overrides) -> Path:
+def _memory_checkpoint(env, name: str, *overrides) -> Path:
     from instagram_hdmap.models import build_model
 
     cfg = env.cfg("model.gnn.sinkhorn_iters=3", *overrides)
@@ -2194,8 +2194,8 @@ def _temporal_checkpoint(env, name: str, *overrides) -> Path:
 def row_memory_of_a_model_of_another_grid(env):
     from instagram_hdmap import Mapper
 
-    coarse = _temporal_checkpoint(env, "coarse.pt", "model.temporal.memory=graph", "grid.resolution=0.5")
-    fine = _temporal_checkpoint(env, "fine.pt", "model.temporal.memory=graph")
+    coarse = _memory_checkpoint(env, "coarse.pt", "model.temporal.memory=graph", "grid.resolution=0.5")
+    fine = _memory_checkpoint(env, "fine.pt", "model.temporal.memory=graph")
     a, b = Mapper.from_checkpoint(coarse, device="cpu"), Mapper.from_checkpoint(fine, device="cpu")
     _, images, K, poses = _mapper_frame(env)
     from instagram_hdmap import Frame
