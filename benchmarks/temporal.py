@@ -263,6 +263,13 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
         value = getattr(args, name)
         if value is not None and not 0 <= value <= 1:
             p.error(f"--{name.replace('_', '-')} must be a density in [0, 1], got {value}")
+    if args.val_dropout is not None and args.val_dropout >= 1:  # data.camera_dropout's range: < 1
+        p.error(f"--val-dropout must be below 1 (1 blanks every camera of every frame), got {args.val_dropout}")
+    try:  # where every run writes (a file of that name, a folder without write permission): now, not after training
+        from instagram_hdmap.files import check_output_dir
+        check_output_dir(args.out, "--out")
+    except UserError as e:
+        p.error(str(e))
     if any(seed < 0 for seed in args.seeds):
         p.error(f"--seeds must be >= 0, got {args.seeds}")
     if args.finetune_base and not args.finetune:

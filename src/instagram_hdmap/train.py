@@ -304,6 +304,27 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
         unlock_out_dir(Path(cfg.train.out_dir))
 
 
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises ``KeyboardInterrupt`` in the main thread while the block runs (so a preempted training
+    saves ``last.pt`` as Ctrl-C does, instead of losing the steps since its last save); the old handler after."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum} (SIGTERM)")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 class TrainingRun:
     """One training run's parts and position; ``train`` calls its steps in order:
 
@@ -492,7 +513,12 @@ class TrainingRun:
 
     def fit(self) -> None:
         """Epochs until the schedule (or ``train.max_steps``) is done; on Ctrl-C, ``last.pt`` holds the
-        weights after the last completed step, which ``position`` names, and the interrupt goes on."""
+        weights after the last completed step, which ``position`` names, and the interrupt goes on. A SIGTERM
+        (a scheduler's preemption, ``docker stop``, ``timeout``) is a Ctrl-C here (``_sigterm_as_interrupt``)."""
+        with _sigterm_as_interrupt():
+            self._fit()
+
+    def _fit(self) -> None:
         try:
             finished = self.should_stop(self.position.step)
             max_steps = self.cfg.train.max_steps

@@ -149,10 +149,11 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
     """A calibration whose every field is well formed but that no surround camera has (Mapper's checks,
     data/rig.py): a camera more than ``MAX_CAMERA_OFFSET_M`` from the ego origin (millimetres), a focal
     length of a field of view over 175 degrees (intrinsics normalised or in millimetres), a principal point
-    outside the ``image_size`` (width, height) image (intrinsics of another image size), a camera looking
+    that no crop of the ``image_size`` (width, height) image has (``principal_point_implausible``: intrinsics of
+    another image size), a camera looking
     up or down, rolled or upside down (``check_upright``: ego -> camera, a quaternion in another order), and
     a camera of a known ``channel`` looking where that channel does not (``camera_heading_problem``)."""
-    from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright
+    from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, principal_point_implausible
 
     K, t = np.asarray(intrinsics, dtype=np.float64), np.asarray(translation, dtype=np.float64)
     dist = float(np.linalg.norm(t))
@@ -165,7 +166,7 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
         raise DatasetError(f"{where}: its focal length (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels for a {w}x{h} "
                            "image is a field of view over 175 degrees: intrinsics normalised by the image size "
                            "(or in millimetres)? they are in pixels")
-    if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+    if principal_point_implausible(K, (w, h)):
         raise DatasetError(f"{where}: its principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) lies outside its "
                            f"{w}x{h} image: intrinsics of another image size? scale them with the image")
     try:

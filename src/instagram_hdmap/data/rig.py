@@ -179,13 +179,23 @@ MAX_FOV_RATIO = 50.0
 MAX_CAMERA_OFFSET_M = 100.0  # a camera farther than this from the ego origin is not on the vehicle (mm for m?)
 
 
+def principal_point_implausible(intrinsics, image_size: tuple[int, int]) -> bool:
+    """Whether the principal point of ``intrinsics`` is one no camera of a ``image_size`` (width, height) image has:
+    beyond both its right and its bottom edge (the intrinsics of a larger image: scaling moves it away from the
+    origin on both axes), or more than an image size outside it. An image cropped off-centre (its rows below the
+    horizon, a part of a wide image) puts it outside on one side, validly."""
+    K = np.asarray(intrinsics, dtype=np.float64)
+    (cx, cy), (w, h) = K[:2, 2], image_size
+    return bool((cx > w and cy > h) or not (-w <= cx <= 2 * w and -h <= cy <= 2 * h))
+
+
 def check_calibration(name: str, intrinsics, rotation, translation, source: str = "",
                       image_size: tuple[int, int] | None = None) -> CameraCalibration:
     """The calibration of camera ``name`` as float64 arrays, or a ``RigError`` naming ``source`` (a rig
     file, say), the camera and the field: intrinsics not 3x3, with a focal length <= 0, a last row
-    other than (0, 0, 1) or (given the camera's ``image_size`` (width, height)) a principal point
-    outside the image (intrinsics in the pixels of another image size); a rotation that is not
-    orthonormal with determinant +1; a translation that is not 3 numbers in metres within
+    other than (0, 0, 1) or (given the camera's ``image_size`` (width, height)) a principal point no crop of
+    the image has (``principal_point_implausible``: intrinsics in the pixels of another image size); a rotation
+    that is not orthonormal with determinant +1; a translation that is not 3 numbers in metres within
     ``MAX_CAMERA_OFFSET_M`` of the ego origin."""
     where = f"{source}: camera {name}" if source else f"camera {name}"
     K = _matrix(intrinsics, (3, 3), f"{where}: 'intrinsics'")
@@ -201,7 +211,7 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
             raise RigError(f"{where}: 'intrinsics' has a focal length of (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels "
                            f"for a {w}x{h} image, a field of view over 175 degrees that no pinhole camera has: "
                            "intrinsics normalised by the image size (or in millimetres)? give them in pixels")
-        if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+        if principal_point_implausible(K, (w, h)):
             raise RigError(f"{where}: 'intrinsics' put the principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) "
                            f"outside its {w}x{h} image: intrinsics are in the pixels of the image given (scaled "
                            "with it when the image is resized)")

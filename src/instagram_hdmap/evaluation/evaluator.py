@@ -300,8 +300,11 @@ def _check_same_frame(pred, gt) -> None:
         if a is not None and b is not None and json.dumps(a) != json.dumps(b):
             try:
                 a_, b_ = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-                if key in ("xbound", "ybound") and {a_.shape, b_.shape} == {(2,), (3,)}:
-                    a_, b_ = a_[:2], b_[:2]  # [min, max, resolution] (HDMapNet's configs) states the same patch
+                shapes = {a_.shape, b_.shape}
+                if key in ("xbound", "ybound") and shapes <= {(2,), (3,)} and (3,) in shapes:
+                    # [min, max, resolution] (HDMapNet's configs) states the patch [min, max] (the raster's resolution
+                    # is no part of the coordinates)
+                    a_, b_ = a_[:2], b_[:2]
                 if np.allclose(a_, b_):
                     continue
             except (TypeError, ValueError):
@@ -328,6 +331,7 @@ def _check_same_frame(pred, gt) -> None:
         raise SubmissionError(f"{pred.path}: {1 - inside.mean():.0%} of its points lie outside twice the GT's map "
                               f"patch (x {x0:g}..{x1:g}, y {y0:g}..{y1:g} m): predictions in global coordinates, "
                               "pixels or another unit? points are metres in the ego frame")
+    _check_within_patch(pred, gt)
     unit = [np.asarray(p["pts"], dtype=float) for name in pred.samples for p in gt.samples.get(name, [])]
     gt_unit = bool(unit) and bool(((np.concatenate(unit) >= 0) & (np.concatenate(unit) <= 1)).mean() >= 0.5)
     if len(pts) >= 10 and min(w, h) > 4 and ((pts >= 0) & (pts <= 1)).all() and not gt_unit:
@@ -335,6 +339,48 @@ def _check_same_frame(pred, gt) -> None:
         raise SubmissionError(f"{pred.path}: every point lies in [0, 1] x [0, 1] on a GT map patch of {w:g} x {h:g} m: "
                               "coordinates normalised by the patch (MapTR's raw output)? points are metres in the "
                               "ego frame")
+
+
+BEYOND_PATCH_SHARE = 0.2  # of a file's points beyond its patch (+10%): a valid file has ~none (both clip to it)
+
+
+def _beyond(pts: np.ndarray, bounds: tuple[float, float, float, float]) -> float:
+    """The share of ``pts`` beyond the patch ``bounds`` (x0, x1, y0, y1) enlarged by 10% on each side."""
+    x0, x1, y0, y1 = bounds
+    mx, my = 0.1 * (x1 - x0), 0.1 * (y1 - y0)
+    inside = (pts[:, 0] >= x0 - mx) & (pts[:, 0] <= x1 + mx) & (pts[:, 1] >= y0 - my) & (pts[:, 1] <= y1 + my)
+    return float(1.0 - inside.mean())
+
+
+def _check_within_patch(pred, gt) -> None:
+    """Predictions and GT both lie within the map patch a file's meta states (the GT's, else the prediction's):
+    the exporters clip to it. A file of another frame whose axes are swapped (MapTR's lidar frame: x right,
+    y forward) lies within twice the patch but beyond it (AP 0 with no word otherwise)."""
+    def bounds(sub):
+        try:
+            (x0, x1), (y0, y1) = ([float(v) for v in sub.meta[k][:2]] for k in ("xbound", "ybound"))
+        except (KeyError, TypeError, ValueError):
+            return None
+        return (x0, x1, y0, y1) if x1 > x0 and y1 > y0 else None
+
+    patch, stated_by = (bounds(gt), gt) if bounds(gt) is not None else (bounds(pred), pred)
+    if patch is None:
+        return
+    for sub in (pred, gt):
+        polys = [p["pts"] for polys in sub.samples.values() for p in polys if len(p["pts"])]
+        if not polys:
+            continue
+        pts = np.concatenate(polys)
+        share = _beyond(pts, patch)
+        if share <= BEYOND_PATCH_SHARE:
+            continue
+        x0, x1, y0, y1 = patch
+        swapped = _beyond(pts[:, ::-1], patch) < 0.05
+        hint = ("its axes are another frame's: x right, y forward (MapTR's lidar frame)? points are x forward, y "
+                "left: (x, y) -> (y, -x)" if swapped else "predictions of a larger patch, or another frame?")
+        raise SubmissionError(f"{sub.path}: {share:.0%} of its points lie beyond the map patch {stated_by.path}'s "
+                              f"meta states (x {x0:g}..{x1:g}, y {y0:g}..{y1:g} m), where the exporters clip them: "
+                              f"{hint}")
 
 
 def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "vector",
@@ -351,7 +397,8 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
     """
     gt = read_submission(gt_path, "gt")
     pred = read_submission(pred_path, "pred")
-    if gt.looks_like() == "pred":
+    if gt.looks_like() == "pred" and not (gt.reference_gt() and pred.looks_like() != "gt"):
+        # (a GT of the official exporters carries confidence_level 1 on every vector: a GT unless --pred is one)
         swapped = (f"; are --pred and --gt swapped? ({pred_path} looks like a GT file)"
                    if pred.looks_like() == "gt" else "; give the GT file of the split (instagram-hdmap export-gt)")
         raise SubmissionError(f"{gt_path}: given as the GT but it is a prediction file (meta.ground_truth false or "

@@ -74,6 +74,7 @@ class Submission:
     samples: dict[str, list[dict]]  # token -> polyline dicts {"pts" [P, 2], "label"[, "score"]}, file order
     notes: list[str] = field(default_factory=list)
     confidences: int = 0  # vectors that carry a confidence_level (a GT file has none)
+    unit_confidences: int = 0  # of those, the ones of exactly 1 (the official GT exports write 1 on every vector)
 
     def looks_like(self) -> Literal["pred", "gt"] | None:
         """What the file itself says it is: its ``meta.ground_truth`` flag, else whether its vectors
@@ -84,6 +85,12 @@ class Submission:
         if any(self.samples.values()):
             return "pred" if self.confidences else "gt"
         return None
+
+    def reference_gt(self) -> bool:
+        """A GT file of the official exporters (HDMapNet's and InstaGraM's ``export_gt_to_json.py``): no
+        ``meta.ground_truth`` flag and ``confidence_level`` 1 on every vector."""
+        n = sum(len(v) for v in self.samples.values())
+        return "ground_truth" not in self.meta and n > 0 and self.confidences == self.unit_confidences == n
 
 
 def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: int = 3) -> Submission:
@@ -123,7 +130,7 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: '{key}' must be a dict token -> vectors or a list of "
                               f"{{'sample_token', 'vectors'}}, got {type(results).__name__}")
     samples: dict[str, list[dict]] = {}
-    counts = {"defaulted_confidence": 0, "truncated": 0, "confidences": 0}
+    counts = {"defaulted_confidence": 0, "truncated": 0, "confidences": 0, "unit_confidences": 0}
     for token, vectors in items:
         if not isinstance(token, str):
             raise SubmissionError(f"{path}: sample token {token!r} is not a string")
@@ -140,7 +147,7 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         notes.append(
             f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
         )
-    return Submission(str(path), meta, samples, notes, counts["confidences"])
+    return Submission(str(path), meta, samples, notes, counts["confidences"], counts.get("unit_confidences", 0))
 
 
 def vectors_to_polylines(
@@ -173,6 +180,8 @@ def vectors_to_polylines(
                                   "ped_crossing 0, divider 1): renumber 'type'")
         poly = {"pts": pts, "label": k}
         counts["confidences"] = counts.get("confidences", 0) + ("confidence_level" in v)
+        c = v.get("confidence_level")
+        counts["unit_confidences"] = counts.get("unit_confidences", 0) + (c == 1 and not isinstance(c, bool))
         if role == "pred":
             s = v.get("confidence_level")
             if s is None:
