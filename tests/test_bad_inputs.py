@@ -6,7 +6,8 @@ nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
-found by an eighth).
+found by an eighth, ``S9`` one found by a ninth; a ninth-sweep row of a valid input that was refused checks that
+it runs).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer
 than a few steps.
 """
@@ -42,7 +43,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S8"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S9"
     what: str
     run: Callable
 
@@ -2313,6 +2314,157 @@ def row_temporal_warmup_covers_every_epoch(env):
     assert p.returncode == 2 and re.search(r"the temporal run \(--steps 100\): train\.stream_warmup=0\.6 of "
                                            r"train\.epochs=1", p.stderr), p.stderr[-2000:]
     assert not (env.tmp / "cache").exists()
+
+
+# ==================================================================================================
+# The ninth sweep (S9): cases found by a ninth sweep of the same kind
+# ==================================================================================================
+
+
+@row("S9", "an image cropped off-centre (the rows below the horizon, the right part of a wide image) with its "
+          "intrinsics shifted puts the principal point outside the image, validly: the Mapper and the datasets "
+          "refused it as intrinsics of another image size; those (beyond both far edges) are still named")
+def row_principal_point_of_a_cropped_image(env):
+    from instagram_hdmap.data.base import DatasetError, check_camera_plausible
+    from instagram_hdmap.data.rig import RigError, rig
+
+    mapper, images, K, poses = _mapper_frame(env)
+    for axis, cut in ((0, 130), (1, 220)):  # rows 130.. (cy < 0), columns 220.. of CAM_FRONT (cx < 0)
+        cropped, shifted = dict(images), {c: k.copy() for c, k in K.items()}
+        for cam in (mapper.cameras if axis == 0 else ["CAM_FRONT"]):
+            cropped[cam] = np.ascontiguousarray(images[cam][cut:] if axis == 0 else images[cam][:, cut:])
+            shifted[cam][1 - axis, 2] -= cut
+        assert min(k[1 - axis, 2] for k in shifted.values()) < 0
+        mapper(images=cropped, intrinsics=shifted, cam_to_ego=poses)  # runs
+    sensor = rig((1600, 900))["CAM_FRONT"]
+    crop = sensor.intrinsic.copy()
+    crop[1, 2] -= 520  # the 1600 x 380 rows below the horizon
+    check_camera_plausible(crop, sensor.rot, sensor.trans, (1600, 380), "CAM_FRONT", "hint", channel="CAM_FRONT")
+    with pytest.raises(DatasetError, match=r"principal point .* outside its 400x225 image"):  # K of 1600 x 900
+        check_camera_plausible(sensor.intrinsic, sensor.rot, sensor.trans, (400, 225), "CAM_FRONT", "hint")
+    mapper, images, K, poses = _mapper_frame(env, intrinsics_size=(800, 450))  # K of twice the size
+    with pytest.raises(RigError, match=r"principal point .* outside its 400x225 image"):
+        mapper(images=images, intrinsics=K, cam_to_ego=poses)
+
+
+def _gt_and_pred(env, pred_tf=None, pred_meta=None):
+    """The tiny world's GT (export-gt) and a prediction file of its vectors (confidence 0.8), points mapped by
+    ``pred_tf``; returns (gt path, its document, pred path)."""
+    gt = env.tmp / "gt.json"
+    rc, out, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err
+    doc = json.loads(gt.read_text())
+    tf = pred_tf or (lambda p: p)
+    pred = env.tmp / "pred.json"
+    pred.write_text(json.dumps({"meta": {**doc["meta"], "ground_truth": False} if pred_meta is None else pred_meta,
+                                "results": {k: [{**v, "pts": tf(v["pts"]), "confidence_level": 0.8} for v in vs]
+                                            for k, vs in doc["results"].items()}}))
+    return gt, doc, pred
+
+
+@row("S9", "evaluate-json: a GT file of the official exporters (InstaGraM's / HDMapNet's export_gt_to_json.py: "
+          "confidence_level 1 on every vector, no ground_truth flag) was refused as a prediction file; files "
+          "swapped are still named")
+def row_official_gt_file_with_unit_confidences(env):
+    gt, doc, pred = _gt_and_pred(env)
+    official = env.tmp / "official_gt.json"
+    official.write_text(json.dumps({"meta": {"use_camera": True, "use_lidar": False, "use_radar": False,
+                                             "use_external": False, "vector": True},
+                                    "results": {k: [{**v, "confidence_level": 1} for v in vs]
+                                                for k, vs in doc["results"].items()}}))
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", official)
+    assert rc == 0 and re.search(r"^mAP\s+0\.6667", out, re.M), err + out
+    env.error(r"official_gt\.json: given as the GT but it is a prediction file .* are --pred and --gt swapped",
+              "evaluate-json", "--pred", gt, "--gt", official)
+
+
+@row("S9", "evaluate-json: a prediction file in MapTR's lidar frame (x right, y forward) against a GT of this "
+          "package's frame, or the reverse (a MapTR GT file without meta), lies within twice the patch: mAP 0, "
+          "exit 0; its points beyond the stated patch are named, with the axes' hint. Meta patches [min, max, "
+          "resolution] of two raster resolutions state the same patch (were refused)")
+def row_submission_with_swapped_axes(env):
+    gt, doc, pred = _gt_and_pred(env, pred_tf=lambda p: [[-y, x] for x, y in p])  # MapTR: (x, y) = (-y, x)
+    hint = r"x right, y forward \(MapTR's lidar frame\)\? points are x forward, y left"
+    env.error(r"pred\.json: \d+% of its points lie beyond the map patch .*gt\.json's meta states .*" + hint,
+              "evaluate-json", "--pred", pred, "--gt", gt)
+    maptr_gt = env.tmp / "maptr_gt.json"  # MapTR's GT form: {"GTs": [{"sample_token", "vectors"}]}, no meta
+    maptr_gt.write_text(json.dumps({"GTs": [{"sample_token": k, "vectors": [{**v, "pts": [[-y, x] for x, y in v["pts"]]}
+                                                                             for v in vs]}
+                                            for k, vs in doc["results"].items()]}))
+    gt, doc, pred = _gt_and_pred(env)
+    env.error(r"maptr_gt\.json: \d+% of its points lie beyond the map patch .*pred\.json's meta states .*" + hint,
+              "evaluate-json", "--pred", pred, "--gt", maptr_gt)
+    meta3 = {**doc["meta"], "xbound": [-8.0, 8.0, 0.15], "ybound": [-4.0, 4.0, 0.15]}  # another raster resolution
+    gt.write_text(json.dumps({**doc, "meta": meta3}))
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt)  # the same patch: scored
+    assert rc == 0 and re.search(r"^mAP\s+0\.6667", out, re.M), err + out
+
+
+@row("S9", "benchmarks/temporal.py: --val-dropout 1 (data.camera_dropout must be < 1) and an --out that is a file "
+          "passed the checks, then stopped on a traceback after the worlds and the trainings")
+def row_benchmark_temporal_val_dropout_and_out(env):
+    def bench(*args, out):
+        return subprocess.run([sys.executable, str(REPO / "benchmarks" / "temporal.py"), *args, "--steps", "400",
+                               "--cache", str(env.tmp / "cache"), "--out", str(out)], capture_output=True, text=True,
+                              timeout=120, env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+
+    p = bench("--val-dropout", "1", out=env.tmp / "out")
+    assert p.returncode == 2 and "--val-dropout must be below 1" in p.stderr, p.stderr[-2000:]
+    (env.tmp / "results").write_text("notes")
+    p = bench(out=env.tmp / "results")
+    assert p.returncode == 2 and re.search(r"--out .*results: is a file, not a folder", p.stderr), p.stderr[-2000:]
+    assert not (env.tmp / "cache").exists()
+
+
+@row("S9", "a training stopped by SIGTERM (a scheduler's preemption, docker stop, timeout) lost every step since its "
+          "last save; it now saves last.pt as Ctrl-C does, and puts the old handler back")
+def row_sigterm_saves_last_pt(env):
+    import signal
+
+    from instagram_hdmap.train import TrainingRun
+
+    received = []
+
+    def ours(signum, frame):  # the handler before the run (unfixed, the run kept training through the signal)
+        received.append(signum)
+
+    previous = signal.signal(signal.SIGTERM, ours)
+    try:
+        on_step = TrainingRun.on_step
+
+        def step_then_term(self, info):
+            on_step(self, info)
+            if info.step == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+        env.monkeypatch.setattr(TrainingRun, "on_step", step_then_term)
+        rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=2",
+                               "train.checkpoint_every=0")
+        assert rc == 130 and "interrupted: saved" in out + err, (rc, err[-2000:])
+        state = torch.load(env.tmp / "run" / "last.pt", weights_only=True)
+        assert (state["epoch"], state["step"]) == (0, 2), (state["epoch"], state["step"])
+        assert not received and signal.getsignal(signal.SIGTERM) is ours  # the run's handler, then ours again
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@row("S9", "evaluate-json: a submission with a UTF-8 byte-order mark (Windows editors) was refused as not JSON; a "
+          "gzip-compressed file or a pickle (mmcv.dump to .pkl) is named as such (was a 'utf-8' codec error)")
+def row_submission_file_encodings(env):
+    import gzip
+    import pickle
+
+    gt, doc, pred = _gt_and_pred(env)
+    bom = env.tmp / "bom.json"
+    bom.write_bytes(b"\xef\xbb\xbf" + pred.read_bytes())
+    rc, out, err = env.cli("evaluate-json", "--pred", bom, "--gt", gt)
+    assert rc == 0 and re.search(r"^mAP\s+0\.6667", out, re.M), err + out
+    (env.tmp / "pred.json.gz").write_bytes(gzip.compress(pred.read_bytes()))
+    env.error(r"pred\.json\.gz: a gzip-compressed file \(gunzip it\), not JSON", "evaluate-json", "--pred",
+              env.tmp / "pred.json.gz", "--gt", gt)
+    (env.tmp / "pred.pkl").write_bytes(pickle.dumps(json.loads(pred.read_text())))
+    env.error(r"pred\.pkl: a Python pickle \(mmcv\.dump to \.pkl; dump to \.json\), not JSON", "evaluate-json",
+              "--pred", env.tmp / "pred.pkl", "--gt", gt)
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -97,7 +97,13 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
     """Read a submission (role "pred") or GT (role "gt") file into polyline dicts per token."""
     path = Path(path)
     try:
-        with open(path) as f:
+        with open(path, "rb") as f:
+            head = f.read(2)
+        kind = {b"\x1f\x8b": "gzip-compressed file (gunzip it)"}.get(head[:2]) or (
+            "Python pickle (mmcv.dump to .pkl; dump to .json)" if head[:1] == b"\x80" else None)  # magic numbers
+        if kind is not None:
+            raise SubmissionError(f"{path}: a {kind}, not JSON; expected the HDMapNet submission format")
+        with open(path, encoding="utf-8-sig") as f:  # a byte-order mark (Windows editors) is not part of the JSON
             data = json.load(f, object_pairs_hook=_unique_keys)
     except FileNotFoundError:
         raise SubmissionError(f"{path}: no such file") from None
