@@ -2467,6 +2467,29 @@ def row_submission_file_encodings(env):
               "--pred", env.tmp / "pred.pkl", "--gt", gt)
 
 
+@row("S9", "predict (and predict --video) with data.camera_dropout > 0 (a training config's setting) blanked cameras "
+          "of the frame without a word (evaluate said so already)")
+def row_predict_notes_camera_dropout(env):
+    rc, out, err = env.cli("predict", env.yaml, "data.camera_dropout=0.5", "--checkpoint", env.ckpt, "--index", "0",
+                           "--out", env.tmp / "pred")
+    assert rc == 0, err
+    assert re.search(r"note: data\.camera_dropout=0\.5: each camera image of the split is blanked .* not the "
+                     r"predictions of the full images", out + err), out + err
+
+
+@row("S9", "a config's _base_ written ~/... (the home folder, as the path keys read it since S6) was joined to the "
+          "config's folder and refused as not a file")
+def row_base_with_tilde(env):
+    env.monkeypatch.setenv("HOME", str(env.tmp / "home"))
+    (env.tmp / "home" / "configs").mkdir(parents=True)
+    shutil.copy(env.yaml, env.tmp / "home" / "configs" / "base.yaml")
+    (env.tmp / "exp").mkdir()
+    exp = env.tmp / "exp" / "exp.yaml"
+    exp.write_text("_base_: ~/configs/base.yaml\ntrain:\n  lr: 0.002\n")
+    cfg = load_config(exp)
+    assert cfg.train.lr == 0.002 and cfg.data.dataroot == load_config(env.yaml).data.dataroot
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

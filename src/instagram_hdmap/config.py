@@ -547,11 +547,12 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if not isinstance(base, str) or not base:
         raise ConfigError(f"config file {path}: '_base_' must name one YAML file (a path relative to {path.parent}), "
                           f"got {base!r}")
-    if not (path.parent / base).is_file():
-        raise ConfigError(f"config file {path}: its _base_ {base} ({path.parent / base}) is not a file"
-                          + (" but a folder" if (path.parent / base).is_dir() else "")
+    base_path = path.parent / Path(base).expanduser()  # ~/...: the home folder, as the path keys (PATH_KEYS)
+    if not base_path.is_file():
+        raise ConfigError(f"config file {path}: its _base_ {base} ({base_path}) is not a file"
+                          + (" but a folder" if base_path.is_dir() else "")
                           + f"; _base_ is a YAML file's path relative to {path.parent}")
-    merged = _read_yaml(path.parent / base, (*seen, path.resolve()))
+    merged = _read_yaml(base_path, (*seen, path.resolve()))
     deep_update(merged, data)
     return merged
 

@@ -149,6 +149,16 @@ def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_thre
     return edges.cpu().numpy(), followed[i, j].cpu().numpy()
 
 
+def camera_dropout_notes(cfg: ExperimentConfig, what: str) -> list[str]:
+    """A note when ``data.camera_dropout`` > 0 (a training config's setting, easily inherited unseen) blanks the
+    split's camera images: ``what`` (the AP, the predictions) is not that of the full images."""
+    if cfg.data.camera_dropout <= 0:
+        return []
+    return [f"data.camera_dropout={cfg.data.camera_dropout:g}: each camera image of the split is blanked in "
+            f"{cfg.data.camera_dropout:.0%} of the frames (a fixed draw), so these are not {what} of the full "
+            "images; set data.camera_dropout=0 for those"]
+
+
 def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = None, onnx: str | Path | None = None,
                    gt_as_prediction: bool = False, overrides: Sequence[str] = ()):
     """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint, an
@@ -237,6 +247,7 @@ def predict_sample(
     check_output_dir(out, "--out")  # before the model runs
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
+    notes += camera_dropout_notes(cfg, "the predictions")
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
@@ -425,6 +436,7 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     check_output_file(video, "--video", [(checkpoint, "--checkpoint"), (onnx, "--onnx")])  # before the frames
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
+    notes += camera_dropout_notes(cfg, "the predictions")
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
@@ -509,10 +521,7 @@ def run_evaluation(
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
-    if cfg.data.camera_dropout > 0:  # a training config's world with dropped cameras, easily inherited unseen
-        notes.append(f"data.camera_dropout={cfg.data.camera_dropout:g}: each camera image of the split is blanked in "
-                     f"{cfg.data.camera_dropout:.0%} of the frames (a fixed draw), so these are not the AP of the full "
-                     "images; set data.camera_dropout=0 for those")
+    notes += camera_dropout_notes(cfg, "the AP")
     grid = BEVGrid.from_config(cfg.grid)
     split = cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
