@@ -2490,6 +2490,20 @@ def row_base_with_tilde(env):
     assert cfg.train.lr == 0.002 and cfg.data.dataroot == load_config(env.yaml).data.dataroot
 
 
+@row("S9", "AV2: a camera frame dropped at a lidar sweep (no image within 25 ms) was two lines: av2's own logging "
+          "warning ('No corresponding ring image at ...') above the one-line error")
+def row_av2_dropped_camera_frame_one_line(env):
+    root, log = _av2_copy(env)
+    sorted((log / "sensors" / "cameras" / "ring_side_left").iterdir())[0].unlink()
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "show-gt", str(env.yaml), "data.dataset=av2",
+                        "data.splits_file=null", "data.av2_frame_step=1", "data.image_fit=contain",
+                        f"data.dataroot={root}", "--split", "train", "--index", "0", "--out", str(env.tmp / "show")],
+                       capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2 and len(lines) == 1, p.stderr[-2000:]
+    assert re.search(r"no ring_side_left image within 25 ms of lidar sweep", lines[0]), lines[0]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

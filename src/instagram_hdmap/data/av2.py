@@ -51,6 +51,7 @@ sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -322,7 +323,13 @@ class AV2MapDataset(MapDataset):
         if not folder.is_dir():
             raise DatasetError(f"log {log}: camera folder {folder} does not exist; the log has no {cam} images "
                                "(an incomplete log, or choose the cameras with data.av2_cameras)")
-        path = self.loader.get_closest_img_fpath(log, cam, ts)
+        sync_log = logging.getLogger("av2.utils.synchronization_database")
+        level = sync_log.level
+        sync_log.setLevel(logging.ERROR)  # its "No corresponding ring image" warning: the error below says it
+        try:
+            path = self.loader.get_closest_img_fpath(log, cam, ts)
+        finally:
+            sync_log.setLevel(level)
         if path is None or not path.is_file():
             stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
             nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
