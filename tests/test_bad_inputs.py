@@ -20,6 +20,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -2446,6 +2447,24 @@ def row_sigterm_saves_last_pt(env):
         assert not received and signal.getsignal(signal.SIGTERM) is ours  # the run's handler, then ours again
     finally:
         signal.signal(signal.SIGTERM, previous)
+    # a scheduler's SIGTERM to the whole process group kills the data-loader worker too: still saved, one line
+    run = env.tmp / "group"
+    p = subprocess.Popen([sys.executable, "-m", "instagram_hdmap.cli", "train", str(env.yaml), f"train.out_dir={run}",
+                          "train.epochs=50", "train.batch_size=1", "data.num_workers=1", "train.checkpoint_every=0",
+                          "train.val_every=100"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+    try:
+        for _ in range(600):
+            if (run / "last.pt").exists() or p.poll() is not None:
+                break
+            time.sleep(0.2)
+        time.sleep(1.0)  # part-way through the next epoch
+        os.killpg(p.pid, signal.SIGTERM)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130 and "Traceback" not in err and "interrupted: saved" in out, (p.returncode, err[-2000:])
 
 
 @row("S9", "evaluate-json: a submission with a UTF-8 byte-order mark (Windows editors) was refused as not JSON; a "

@@ -315,7 +315,14 @@ def _sigterm_as_interrupt():
         yield
         return
 
+    chld = getattr(signal, "SIGCHLD", None)
+    held: list = []
+
     def interrupt(signum, frame):
+        # a SIGTERM to the process group (a scheduler's) kills the data-loader workers too: torch's SIGCHLD handler
+        # would raise "worker killed" in the middle of the save below; it is put back after
+        if chld is not None and not held:
+            held.append(signal.signal(chld, signal.SIG_DFL))
         raise KeyboardInterrupt(f"signal {signum} (SIGTERM)")
 
     previous = signal.signal(signal.SIGTERM, interrupt)
@@ -323,6 +330,8 @@ def _sigterm_as_interrupt():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if held:
+            signal.signal(chld, held[0])
 
 
 class TrainingRun:

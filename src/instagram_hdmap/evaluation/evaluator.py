@@ -377,7 +377,8 @@ def _check_within_patch(pred, gt) -> None:
         x0, x1, y0, y1 = patch
         swapped = _beyond(pts[:, ::-1], patch) < 0.05
         hint = ("its axes are another frame's: x right, y forward (MapTR's lidar frame)? points are x forward, y "
-                "left: (x, y) -> (y, -x)" if swapped else "predictions of a larger patch, or another frame?")
+                "left: (x, y) -> (y, -x)" if swapped else
+                f"{'predictions' if sub is pred else 'a GT'} of a larger patch, or another frame?")
         raise SubmissionError(f"{sub.path}: {share:.0%} of its points lie beyond the map patch {stated_by.path}'s "
                               f"meta states (x {x0:g}..{x1:g}, y {y0:g}..{y1:g} m), where the exporters clip them: "
                               f"{hint}")
