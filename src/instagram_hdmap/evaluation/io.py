@@ -7,9 +7,9 @@ Format (x forward, y left, metres, ego frame)::
                                  "confidence_level": s}, ...]}}
 
 ``confidence_level`` is absent in GT files (the official exporters' GT files carry 1 on every vector:
-``Submission.reference_gt``). A UTF-8 byte-order mark is read; gzip and pickle files are named. Also accepted: ``results`` as a list of
-``{"sample_token", "vectors"}`` (InstaGraM's and MapTR's form), a dict value ``{"vectors": [...]}``,
-and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_crossing,
+``Submission.reference_gt``). A UTF-8 byte-order mark is read; gzip and pickle files are named. Also
+accepted: ``results`` as a list of ``{"sample_token", "vectors"}`` (InstaGraM's and MapTR's form), a dict
+value ``{"vectors": [...]}``, and ``GTs`` instead of ``results`` (MapTR's GT file). Classes: 0 divider, 1 ped_crossing,
 2 boundary. Rules:
 
 * ``pts_num`` may be absent (= ``len(pts)``); if smaller than ``len(pts)`` only the first
