@@ -817,6 +817,27 @@ def test_fine_tuning_the_fusion_from_a_single_frame_checkpoint(tiny_world, tmp_p
     assert "temporl" in msg and "temporal" in msg
 
 
+def test_init_from_a_checkpoint_of_another_memory_starts_the_fusion_fresh():
+    # a bev checkpoint into a bev+graph model: the fusion's input widths differ, so none of it is taken (a
+    # half-trained fusion would not be the identity); everything else is; into a bev model, all of it
+    from instagram_hdmap.train import init_weights
+
+    torch.manual_seed(0)
+    bev = build_model(load_config(None, [*TINY, "model.temporal.memory=bev"]))
+    with torch.no_grad():
+        bev.temporal.out.weight.normal_()
+    state = {"model": bev.state_dict()}
+    both = build_model(load_config(None, [*TINY, "model.temporal.memory=bev+graph"]))
+    fresh = {k: v.clone() for k, v in both.state_dict().items()}
+    new = init_weights(both, state)
+    assert sorted(new) == sorted(k for k in fresh if k.startswith("temporal."))
+    for k, v in both.state_dict().items():
+        assert torch.equal(v, fresh[k] if k.startswith("temporal.") else state["model"][k]), k
+    same = build_model(load_config(None, [*TINY, "model.temporal.memory=bev"]))
+    assert init_weights(same, state) == []
+    assert torch.equal(same.temporal.out.weight, bev.temporal.out.weight)
+
+
 def test_the_fusion_keeps_its_memory_weights_through_the_single_frame_epochs(tiny_world, tmp_path):
     # with the memory empty (the single-frame epochs of train.stream_warmup) the fusion's memory weights get
     # no data gradient; Adam with the paper's coupled L2 then pushed them to zero at ~lr per step (a dead

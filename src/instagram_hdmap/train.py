@@ -690,8 +690,15 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
 
 def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
     """``state``'s model weights into ``model`` (``train.init_from``); every weight must match by name and
-    shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built)."""
+    shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built). A
+    checkpoint whose fusion does not fit this model's (another memory or fusion kind: other names or shapes)
+    lends none of it: the whole fusion starts from its initialisation (the gated one then is the identity),
+    never half trained. A fusion for a model without one is an error (the run's config is not temporal)."""
     own, theirs = model.state_dict(), state["model"]
+    fusion = [k for k in theirs if k.startswith("temporal.")]
+    if (any(k.startswith("temporal.") for k in own)  # (into a single-frame model a fusion is an error, below)
+            and any(k not in own or own[k].shape != theirs[k].shape for k in fusion)):
+        theirs = {k: v for k, v in theirs.items() if not k.startswith("temporal.")}
     missing = [k for k in own if k not in theirs]
     wrong = ([f"{k} (not in this model)" for k in theirs if k not in own]
              + [f"{k} (missing)" for k in missing if not k.startswith("temporal.")]
