@@ -6,8 +6,8 @@ nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
-found by an eighth, ``S9`` one found by a ninth; a ninth-sweep row of a valid input that was refused checks that
-it runs).
+found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth; a ninth- or tenth-sweep row of a
+valid input that was refused checks that it runs).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer
 than a few steps.
 """
@@ -44,7 +44,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S9"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S10"
     what: str
     run: Callable
 
@@ -2521,6 +2521,39 @@ def row_av2_dropped_camera_frame_one_line(env):
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert p.returncode == 2 and len(lines) == 1, p.stderr[-2000:]
     assert re.search(r"no ring_side_left image within 25 ms of lidar sweep", lines[0]), lines[0]
+
+
+# --- the tenth sweep ----------------------------------------------------------------------------------
+
+
+@row("S10", "a second SIGTERM during the save that the first one started (scancel or docker stop twice, a supervisor "
+            "that repeats it) aborted that save: the older last.pt stayed, the steps since were lost")
+def row_second_sigterm_during_the_save(env):
+    import signal
+
+    from instagram_hdmap.train import TrainingRun
+
+    on_step, save = TrainingRun.on_step, TrainingRun.save
+
+    def step_then_term(self, info):
+        on_step(self, info)
+        if info.step == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def save_under_a_second_term(self, name, metrics=None, gather=True):
+        if not gather:  # the interrupt's save: the second signal arrives as it starts
+            os.kill(os.getpid(), signal.SIGTERM)
+        save(self, name, metrics, gather)
+
+    previous = signal.getsignal(signal.SIGTERM)
+    env.monkeypatch.setattr(TrainingRun, "on_step", step_then_term)
+    env.monkeypatch.setattr(TrainingRun, "save", save_under_a_second_term)
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=2",
+                           "train.checkpoint_every=0")
+    assert rc == 130 and "interrupted: saved" in out + err, (rc, err[-2000:])
+    state = torch.load(env.tmp / "run" / "last.pt", weights_only=True)
+    assert (state["epoch"], state["step"]) == (0, 2), (state["epoch"], state["step"])
+    assert signal.getsignal(signal.SIGTERM) is previous  # the handler before the run, again
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -323,6 +323,9 @@ def _sigterm_as_interrupt():
         # would raise "worker killed" in the middle of the save below; it is put back after
         if chld is not None and not held:
             held.append(signal.signal(chld, signal.SIG_DFL))
+        # a second SIGTERM (scancel or docker stop twice) would abort the save below, keeping the older last.pt
+        # and losing the steps since: ignored until the block ends (SIGKILL still stops it)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         raise KeyboardInterrupt(f"signal {signum} (SIGTERM)")
 
     previous = signal.signal(signal.SIGTERM, interrupt)
