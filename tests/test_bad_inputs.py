@@ -2556,6 +2556,19 @@ def row_second_sigterm_during_the_save(env):
     assert signal.getsignal(signal.SIGTERM) is previous  # the handler before the run, again
 
 
+@row("S10", "evaluate-json --protocol raster of export-gt's file of a smaller patch (the tiny world's 16 m x 8 m) on "
+            "the default canvas was refused as 'which would crop it': a larger canvas crops nothing, it counts "
+            "predictions beyond the patch")
+def row_raster_canvas_larger_than_the_patch(env):
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"meta": {"xbound": [-8.0, 8.0], "ybound": [-4.0, 4.0], "ground_truth": True},
+                              "results": {"a": [{"pts": [[0, 0], [5, 0]], "type": 0}]}}))
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": [[0, 0], [5, 0]], "type": 0, "confidence_level": 0.9}]},
+                       False)
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt, "--protocol", "raster")
+    assert rc == 2 and "would crop" not in err and "beyond the patch" in err and "--xbound -8 8 --ybound -4 4" in err, err
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -273,18 +273,22 @@ def format_table(metrics: dict) -> str:
 
 
 def _check_canvas(gt, grid: BEVGrid) -> None:
-    """The raster canvas covers the map patch the GT file's meta states (export-gt writes ``xbound`` /
-    ``ybound``): a smaller canvas crops the map silently (a 100 m x 100 m GT scored on 60 m x 30 m)."""
+    """The raster canvas is the map patch the GT file's meta states (export-gt writes ``xbound`` /
+    ``ybound``): a smaller canvas crops the map silently (a 100 m x 100 m GT scored on 60 m x 30 m), a larger one
+    counts predictions beyond the patch (the message says which)."""
     patch = [gt.meta.get("xbound"), gt.meta.get("ybound")]
     try:
         (x0, x1), (y0, y1) = ([float(v) for v in b] for b in patch)
     except (TypeError, ValueError):
         return  # no patch stated (a GT file of another tool)
     if (x0, x1, y0, y1) != (grid.xmin, grid.xmax, grid.ymin, grid.ymax):
+        crops = x0 < grid.xmin or x1 > grid.xmax or y0 < grid.ymin or y1 > grid.ymax
+        why = ("which would crop it" if crops else  # a larger canvas: predictions beyond the patch would count
+               "which would score predictions beyond the patch that the GT's own canvas leaves out")
         raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
                               f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
-                              f"{grid.ymax:g}], which would crop it: pass --xbound {x0:g} {x1:g} --ybound {y0:g} "
-                              f"{y1:g} (to score a crop on purpose, drop xbound/ybound from the GT file's meta)")
+                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} "
+                              f"{y1:g} (to score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
 
 
 FRAME_META_KEYS = ("classes", "xbound", "ybound", "frame", "dataset")  # what the ids and coordinates mean
