@@ -2569,6 +2569,21 @@ def row_raster_canvas_larger_than_the_patch(env):
     assert rc == 2 and "would crop" not in err and "beyond the patch" in err and "--xbound -8 8 --ybound -4 4" in err, err
 
 
+@row("S10", "synth-preview --out without a picture suffix (a name such as 'preview', or an existing file 'notes'): "
+            "matplotlib's raw ValueError about the format 'tmp-PID' of the temporary file; a seed of 2**70 was "
+            "refused as not 'a whole number >= 0'")
+def row_synth_preview_out_without_suffix(env):
+    env.error(r"--out .*preview: the picture's format comes from its suffix; .*\.png", "synth-preview", env.world,
+              "--out", env.tmp / "preview")
+    (env.tmp / "notes").write_text("mine")
+    env.error(r"--out .*notes: the picture's format", "synth-preview", env.world, "--out", env.tmp / "notes")
+    assert (env.tmp / "notes").read_text() == "mine"
+    env.error(r"--seed 1180591620717411303424: .* from 0 to 2\*\*63 - 1", "synth", "--out", env.tmp / "w", "--seed",
+              str(2**70), "--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1")
+    rc, out, err = env.cli("synth-preview", env.world, "--out", env.tmp / "p.PNG")  # the suffix in any case
+    assert rc == 0 and (env.tmp / "p.PNG").stat().st_size > 0, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -62,6 +62,12 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 def _cmd_synth_preview(args: argparse.Namespace) -> int:
     check_output_file(args.out, "--out")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    formats = FigureCanvasAgg.get_supported_filetypes()  # the picture's format comes from the name's suffix
+    if Path(args.out).suffix.lower().lstrip(".") not in formats:
+        raise UserError(f"--out {args.out}: the picture's format comes from its suffix; give a file name ending in "
+                        ".png (or .jpg, .pdf, .svg)")
     write_preview(args.dataroot, args.out, index=args.index)
     print(f"wrote {args.out}")
     return 0

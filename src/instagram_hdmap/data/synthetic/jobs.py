@@ -85,7 +85,7 @@ class SceneJob:
 def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int, seed: int = 0) -> None:
     """The arguments of a world: scene and sample counts, and the seed (numpy's generators take 0 .. 2**63)."""
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2**63:
-        raise UserError(f"--seed {seed}: a world's seed is a whole number >= 0")
+        raise UserError(f"--seed {seed}: a world's seed is a whole number from 0 to 2**63 - 1")
     if scenes_train < 0 or scenes_val < 0:
         raise UserError(f"--scenes-train {scenes_train} / --scenes-val {scenes_val}: counts cannot be negative")
     if scenes_train + scenes_val == 0:
