@@ -2584,6 +2584,18 @@ def row_synth_preview_out_without_suffix(env):
     assert rc == 0 and (env.tmp / "p.PNG").stat().st_size > 0, err[-2000:]
 
 
+@row("S10", "export-onnx --out naming the CONFIG file (the YAML given first) replaced the config with the ONNX graph, "
+            "exit 0 (--out naming the checkpoint was refused already)")
+def row_export_onnx_out_is_the_config(env):
+    pytest.importorskip("onnx", reason="the [deploy] extra is not installed")
+    config = env.tmp / "exp.yaml"
+    shutil.copy(env.yaml, config)
+    before = config.read_bytes()
+    env.error(r"--out .*exp\.yaml is the CONFIG file the job reads", "export-onnx", config, "--checkpoint", env.ckpt,
+              "--out", config)
+    assert config.read_bytes() == before
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

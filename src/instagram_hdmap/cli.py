@@ -262,6 +262,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    check_output_file(args.out, "--out", [(args.config, "CONFIG"), (args.checkpoint, "--checkpoint")])
     info = export_checkpoint(_load(args), args.checkpoint, args.out, overrides=args.overrides, opset=args.opset)
     print(f"wrote {info['path']}: opset {info['opset']}, {info['nodes']} nodes, static batch 1, config "
           f"{info['config'].name} (sha256 {info['config_sha256'][:12]})")
