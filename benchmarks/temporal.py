@@ -122,6 +122,7 @@ def memory_off(results: list[dict], args, val_root) -> str:
 
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.files import write_json
     from instagram_hdmap.predict import run_evaluation
 
     lines = ["memory on / off (the same checkpoint; the gated fusion's mean |w| on its inputs):"]
@@ -137,8 +138,8 @@ def memory_off(results: list[dict], args, val_root) -> str:
             cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override,
                                                     f"model.temporal.memory={args.memory}", *off])
             metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
-            done.write_text(json.dumps({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
-                                        "flicker_mean": metrics["consistency"]["flicker_mean"]}, indent=1))
+            write_json({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
+                        "flicker_mean": metrics["consistency"]["flicker_mean"]}, done, indent=1)  # atomic
         off = json.loads(done.read_text())
         model = torch.load(ckpt, weights_only=True)["model"]
         weights = ""
@@ -299,6 +300,7 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
 
 def main() -> None:
     from instagram_hdmap.demo import VAL_WORLD, WORLD, default_cache_dir, ensure_world
+    from instagram_hdmap.files import write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default="runs/temporal_bench")
@@ -344,7 +346,7 @@ def main() -> None:
     if args.finetune:
         results += [r for seed in args.seeds for r in finetune_runs(seed, args, (train_root, val_root))]
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    (Path(args.out) / "results.json").write_text(json.dumps({"args": vars(args), "runs": results}, indent=1))
+    write_json({"args": vars(args), "runs": results}, Path(args.out) / "results.json", indent=1)
     print(f"worlds: {train_root} (train), {val_root} (validation, unseen roads), occluders {args.occluders}")
     print(table(results))
     if args.finetune:

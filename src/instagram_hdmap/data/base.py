@@ -35,6 +35,7 @@ from tqdm import tqdm
 from ..config import ConfigError, ExperimentConfig, UserError
 from ..geometry import BEVGrid
 from ..targets import build_targets
+from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, principal_point_implausible
 
 # padding of the per-vertex keys in collate_fn (everything else is -1)
 VERTEX_KEYS = (
@@ -149,12 +150,10 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
     """A calibration whose every field is well formed but that no surround camera has (Mapper's checks,
     data/rig.py): a camera more than ``MAX_CAMERA_OFFSET_M`` from the ego origin (millimetres), a focal
     length of a field of view over 175 degrees (intrinsics normalised or in millimetres), a principal point
-    that no crop of the ``image_size`` (width, height) image has (``principal_point_implausible``: intrinsics of
-    another image size), a camera looking
-    up or down, rolled or upside down (``check_upright``: ego -> camera, a quaternion in another order), and
-    a camera of a known ``channel`` looking where that channel does not (``camera_heading_problem``)."""
-    from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, principal_point_implausible
-
+    that no crop of the ``image_size`` (width, height) image has (``principal_point_implausible``: intrinsics
+    of another image size), a camera looking up or down, rolled or upside down (``check_upright``: ego ->
+    camera, a quaternion in another order), and a camera of a known ``channel`` looking where that channel
+    does not (``camera_heading_problem``)."""
     K, t = np.asarray(intrinsics, dtype=np.float64), np.asarray(translation, dtype=np.float64)
     dist = float(np.linalg.norm(t))
     if dist > MAX_CAMERA_OFFSET_M:
