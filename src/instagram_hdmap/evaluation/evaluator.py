@@ -287,8 +287,8 @@ def _check_canvas(gt, grid: BEVGrid) -> None:
                "which would score predictions beyond the patch that the GT's own canvas leaves out")
         raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
                               f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
-                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} "
-                              f"{y1:g} (to score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
+                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g} (to score "
+                              "another canvas on purpose, drop xbound/ybound from the GT file's meta)")
 
 
 FRAME_META_KEYS = ("classes", "xbound", "ybound", "frame", "dataset")  # what the ids and coordinates mean
