@@ -2597,6 +2597,41 @@ def row_export_onnx_out_is_the_config(env):
     assert config.read_bytes() == before
 
 
+@row("S10", "a training whose terminal closed (SIGHUP: an ssh session dropped, without nohup or tmux) died without "
+            "saving, losing every step since its last save; it now saves last.pt as for SIGTERM, and a SIGHUP that "
+            "nohup ignores stays ignored")
+def row_sighup_saves_last_pt(env):
+    import signal
+
+    if not hasattr(signal, "SIGHUP"):
+        pytest.skip("no SIGHUP on this platform")
+    from instagram_hdmap.train import TrainingRun
+
+    on_step = TrainingRun.on_step
+
+    def step_then_hup(self, info):
+        on_step(self, info)
+        if info.step == 2:
+            os.kill(os.getpid(), signal.SIGHUP)
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a terminal's process: the default (death)
+    try:
+        env.monkeypatch.setattr(TrainingRun, "on_step", step_then_hup)
+        rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=2",
+                               "train.checkpoint_every=0")
+        assert rc == 130 and "interrupted: saved" in out + err, (rc, err[-2000:])
+        state = torch.load(env.tmp / "run" / "last.pt", weights_only=True)
+        assert (state["epoch"], state["step"]) == (0, 2), (state["epoch"], state["step"])
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # under nohup: the signal stays ignored, the run goes on
+        env.monkeypatch.setattr(TrainingRun, "on_step", step_then_hup)
+        rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'nohup'}", "train.epochs=1",
+                               "train.checkpoint_every=0")
+        assert rc == 0 and "interrupted" not in out + err, (rc, err[-2000:])
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

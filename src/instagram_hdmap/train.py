@@ -307,7 +307,9 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
     """SIGTERM raises ``KeyboardInterrupt`` in the main thread while the block runs (so a preempted training
-    saves ``last.pt`` as Ctrl-C does, instead of losing the steps since its last save); the old handler after."""
+    saves ``last.pt`` as Ctrl-C does, instead of losing the steps since its last save); so does SIGHUP (the
+    terminal closed without nohup or tmux) where nothing handles it yet (nohup ignores it: left so); the old
+    handlers after."""
     import signal
     import threading
 
@@ -325,14 +327,18 @@ def _sigterm_as_interrupt():
             held.append(signal.signal(chld, signal.SIG_DFL))
         # a second SIGTERM (scancel or docker stop twice) would abort the save below, keeping the older last.pt
         # and losing the steps since: ignored until the block ends (SIGKILL still stops it)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        raise KeyboardInterrupt(f"signal {signum} (SIGTERM)")
+        for sig in caught:
+            signal.signal(sig, signal.SIG_IGN)
+        raise KeyboardInterrupt(f"signal {signum} ({signal.Signals(signum).name})")
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    hup = getattr(signal, "SIGHUP", None)  # (not on Windows)
+    caught = [signal.SIGTERM] + ([hup] if hup is not None and signal.getsignal(hup) is signal.SIG_DFL else [])
+    previous = {sig: signal.signal(sig, interrupt) for sig in caught}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         if held:
             signal.signal(chld, held[0])
 
