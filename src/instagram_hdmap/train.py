@@ -304,6 +304,15 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
         unlock_out_dir(Path(cfg.train.out_dir))
 
 
+_SIGNALS_RECEIVED: list[int] = []  # signals _sigterm_as_interrupt turned into KeyboardInterrupt during the run
+
+
+def raise_if_signalled() -> None:
+    """The KeyboardInterrupt of a SIGTERM / SIGHUP whose first one was lost (raised inside a destructor)."""
+    if _SIGNALS_RECEIVED:
+        raise KeyboardInterrupt(f"signal {_SIGNALS_RECEIVED[0]} (received during the step)")
+
+
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
     """SIGTERM raises ``KeyboardInterrupt`` in the main thread while the block runs (so a preempted training
@@ -329,14 +338,19 @@ def _sigterm_as_interrupt():
         # and losing the steps since: ignored until the block ends (SIGKILL still stops it)
         for sig in caught:
             signal.signal(sig, signal.SIG_IGN)
+        # remembered too: an exception raised while Python runs a destructor (__del__, a weakref callback) is
+        # printed and dropped, and the run would train on with the signal now ignored; the next step raises it
+        _SIGNALS_RECEIVED.append(signum)
         raise KeyboardInterrupt(f"signal {signum} ({signal.Signals(signum).name})")
 
     hup = getattr(signal, "SIGHUP", None)  # (not on Windows)
     caught = [signal.SIGTERM] + ([hup] if hup is not None and signal.getsignal(hup) is signal.SIG_DFL else [])
     previous = {sig: signal.signal(sig, interrupt) for sig in caught}
+    _SIGNALS_RECEIVED.clear()
     try:
         yield
     finally:
+        _SIGNALS_RECEIVED.clear()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if held:
@@ -586,6 +600,7 @@ class TrainingRun:
         """After each step: the position (for Ctrl-C), and ``last.pt`` every ``train.checkpoint_every`` steps."""
         self.position = Position(info.epoch, info.step, info.step_in_epoch)
         self.memory = info.memory
+        raise_if_signalled()
         every = self.cfg.train.checkpoint_every
         if every and info.step % every == 0:
             self.save("last.pt")
