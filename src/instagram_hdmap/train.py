@@ -27,6 +27,7 @@ import math
 import os
 import random
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -345,12 +346,18 @@ def _sigterm_as_interrupt():
 
     hup = getattr(signal, "SIGHUP", None)  # (not on Windows)
     caught = [signal.SIGTERM] + ([hup] if hup is not None and signal.getsignal(hup) is signal.SIG_DFL else [])
+    def unraisable(info):  # that dropped KeyboardInterrupt is raised again at the next step: no traceback for it
+        if not (isinstance(info.exc_value, KeyboardInterrupt) and _SIGNALS_RECEIVED):
+            hook(info)
+
     previous = {sig: signal.signal(sig, interrupt) for sig in caught}
+    hook, sys.unraisablehook = sys.unraisablehook, unraisable
     _SIGNALS_RECEIVED.clear()
     try:
         yield
     finally:
         _SIGNALS_RECEIVED.clear()
+        sys.unraisablehook = hook
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if held:
