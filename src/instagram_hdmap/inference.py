@@ -555,7 +555,10 @@ def _rgb_array(image, camera: str) -> np.ndarray:
     if isinstance(image, torch.Tensor):
         if image.ndim != 3 or image.shape[0] != 3:
             raise RigError(f"camera {camera}: an image tensor must be [3, H, W] (RGB), got {list(image.shape)}")
-        image = image.detach().cpu().permute(1, 2, 0).numpy()
+        image = image.detach().cpu()
+        if image.is_floating_point() and image.dtype not in (torch.float16, torch.float32, torch.float64):
+            image = image.float()  # bfloat16 (and float8) have no numpy dtype; their 0..1 values are exact in float32
+        image = image.permute(1, 2, 0).numpy()
     if not isinstance(image, np.ndarray):
         raise RigError(f"camera {camera}: an image must be a numpy array, a PIL image, a tensor or a file path, got "
                        f"{type(image).__name__}")

@@ -139,6 +139,10 @@ class Evaluator:
         loader hands the next good sample in place of a bad one, which must not count twice; the
         repeats are counted (``counters["repeated_samples"]``, a note)."""
         if tokens is not None:
+            tokens = list(tokens)  # a numpy array or a pandas column of tokens, too
+            if len(tokens) != len(preds):
+                raise EvaluationInputError(f"{self.protocol} AP update: {len(tokens)} tokens for {len(preds)} samples "
+                                           "of predictions; give one token per sample")
             keep = [b for b, t in enumerate(tokens) if t not in self._seen and t not in tokens[:b]]
             self.repeated += len(tokens) - len(keep)
             if len(keep) < len(tokens):

@@ -84,8 +84,8 @@ def read_polylines(
             raise EvaluationInputError(f"{what}: 'label' must be an integer class id, got {label!r}")
         if not 0 <= int(label) < num_classes:
             raise EvaluationInputError(
-                f"{what}: unknown class id {int(label)}; expected 0..{num_classes - 1} "
-                "(0 divider, 1 ped_crossing, 2 boundary)"
+                f"{what}: unknown class id {int(label)}; expected 0..{num_classes - 1}"
+                + (" (0 divider, 1 ped_crossing, 2 boundary)" if num_classes == 3 else " (the evaluator's classes)")
             )
         score = 1.0
         if role == "prediction":
