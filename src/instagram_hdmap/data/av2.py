@@ -207,6 +207,11 @@ def _yaw(rotation: np.ndarray) -> float:
     return math.atan2(rotation[1, 0], rotation[0, 0])
 
 
+# a lidar sweep's pose in a timestamp_ns column rounded by float64 (a step of 64 ns at AV2's 3.2e17 ns) lies
+# this close; the poses themselves are ~6 ms apart
+ROUNDED_TIMESTAMP_NS = 1000
+
+
 class AV2MapDataset(MapDataset):
     """Samples of one split folder of an AV2 sensor-dataset root (module docstring)."""
 
@@ -223,6 +228,8 @@ class AV2MapDataset(MapDataset):
         self.loader = AV2SensorDataLoader(data_dir=self.split_dir, labels_dir=self.split_dir)
         self.samples: list[tuple[str, int]] = []
         for log in self.loader.get_log_ids():
+            if log.startswith("."):  # a hidden folder (_check_root), which av2 lists as a log
+                continue
             sweeps = self.loader.get_ordered_log_lidar_timestamps(log)
             if not sweeps:
                 raise DatasetError(f"log {log}: no lidar sweeps in {self.split_dir / log / 'sensors' / 'lidar'} "
@@ -244,7 +251,8 @@ class AV2MapDataset(MapDataset):
             raise DatasetError(f"{root} is not an AV2 sensor-dataset root: it has no split folder '{split_dir.name}' "
                                f"of logs (expected {root}/{{train,val,test}}/<log_id>/sensors/...); its folders: "
                                f"{', '.join(found) or 'none'} (set data.dataroot, data.train_split / data.val_split)")
-        logs = [p for p in split_dir.iterdir() if p.is_dir()]
+        # a hidden folder (.ipynb_checkpoints, .Trash-1000, .git) is not a log; av2's loader skips it too
+        logs = [p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")]
         if not logs:
             raise DatasetError(f"split folder {split_dir} holds no logs (expected {split_dir}/<log_id>/sensors/...)")
         for log in logs:
@@ -310,7 +318,13 @@ class AV2MapDataset(MapDataset):
         poses = self._log_poses(log)
         path = self.split_dir / log / "city_SE3_egovehicle.feather"
         if ts not in poses:
-            raise DatasetError(f"log {log}: {path} has no ego pose at lidar sweep {ts} (sensors/lidar/{ts}.feather)")
+            near = min(poses, key=lambda t: abs(int(t) - ts), default=None)
+            rounded = (f"; its nearest is {int(near)}, {abs(int(near) - ts)} ns away: its timestamp_ns column was "
+                       "rounded (saved as float64, which holds 15-16 digits of a timestamp's 18; pandas turns an "
+                       "int64 column into floats where a merge or concat leaves a NaN): write it as int64"
+                       if near is not None and 0 < abs(int(near) - ts) < ROUNDED_TIMESTAMP_NS else "")
+            raise DatasetError(f"log {log}: {path} has no ego pose at lidar sweep {ts} (sensors/lidar/{ts}.feather)"
+                               + rounded)
         pose = poses[ts]
         where = f"log {log}: the ego pose at lidar sweep {ts} in {path}"
         check_rotation(pose.rotation, "its rotation", where)
@@ -333,8 +347,11 @@ class AV2MapDataset(MapDataset):
         if path is None or not path.is_file():
             stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
             nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
+            others = sorted({q.suffix for q in folder.iterdir() if q.is_file() and q.suffix.lower() != ".jpg"})
             detail = (f"the nearest is {folder / f'{nearest}.jpg'}, {abs(nearest - ts) / 1e6:.1f} ms away"
-                      if nearest is not None else "the folder holds no images")
+                      if nearest is not None else
+                      f"the folder holds no .jpg images (AV2's loader reads only <timestamp_ns>.jpg; it holds "
+                      f"{', '.join(others)} files: convert them to JPEG)" if others else "the folder holds no images")
             raise DatasetError(f"log {log}: no {cam} image within {CAMERA_WINDOW_MS} ms of lidar sweep {ts} "
                                f"(sensors/lidar/{ts}.feather) in {folder}: {detail}; the log's camera and lidar "
                                "timestamps do not match")
