@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -454,6 +455,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# the options and arguments that name files or folders
+PATH_ARGS = ("config", "dataroot", "out", "checkpoint", "resume", "pred", "gt", "onnx", "rig", "video", "cache",
+             "images")
+
+
+def _expand_home(args: argparse.Namespace) -> None:
+    """``~/...`` in a path argument is the home folder: the shell leaves it unexpanded after ``=``
+    (``--out=~/eval``) or in quotes, which would write into a folder named ``~`` under the working
+    directory while the messages say ``~/eval`` (the config's path keys read ``~`` so too)."""
+    for name in PATH_ARGS:
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value.startswith("~"):
+            setattr(args, name, os.path.expanduser(value))
+        elif isinstance(value, list):
+            setattr(args, name, [os.path.expanduser(v) if isinstance(v, str) and v.startswith("~") else v
+                                 for v in value])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -463,6 +482,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
+    _expand_home(args)
     try:
         return args.func(args) or 0
     except UserError as e:
