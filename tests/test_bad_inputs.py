@@ -6,8 +6,8 @@ nothing is lost, and no result is silently wrong. ``ROWS`` is the table; ``case`
 the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S2`` one found by a
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
-found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth; a ninth- or tenth-sweep row of a
-valid input that was refused checks that it runs).
+found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
+eleventh; a ninth-, tenth- or eleventh-sweep row of a valid input that was refused checks that it runs).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer
 than a few steps.
 """
@@ -44,7 +44,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S10"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S11"
     what: str
     run: Callable
 
@@ -2630,6 +2630,84 @@ def row_sighup_saves_last_pt(env):
         assert rc == 0 and "interrupted" not in out + err, (rc, err[-2000:])
     finally:
         signal.signal(signal.SIGHUP, previous)
+
+
+
+# --- the eleventh sweep -------------------------------------------------------------------------------
+
+
+@row("S11", "Mapper: an image tensor in bfloat16 (0..1, a mixed-precision pipeline's) crashed with torch's raw "
+            "'TypeError: Got unsupported ScalarType BFloat16' (float16 and float64 tensors were accepted)")
+def row_mapper_bfloat16_image(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import rig
+
+    mapper = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    calib = rig((64, 36))
+    poses = {c: np.vstack([np.c_[calib[c].rot, calib[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras}
+    intrinsics = {c: calib[c].intrinsic for c in mapper.cameras}
+    pixels = torch.rand(3, 36, 64, generator=torch.Generator().manual_seed(0)).to(torch.bfloat16)
+    got = mapper.batch([Frame({c: pixels for c in mapper.cameras}, intrinsics, poses)])["images"]
+    want = mapper.batch([Frame({c: pixels.float() for c in mapper.cameras}, intrinsics, poses)])["images"]
+    assert torch.equal(got, want)
+
+
+@row("S11", "Evaluator.update: tokens given as a numpy array (a pandas column's values) crashed with numpy's raw "
+            "'truth value of an array ... is ambiguous'; fewer tokens than samples, with a raw IndexError")
+def row_evaluator_tokens_array_and_count(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+
+    line = {"pts": np.array([[0.0, 0.0], [5.0, 0.0]]), "label": 0}
+    ev = Evaluator("vector")
+    ev.update([[{**line, "score": 0.9}], []], [[line], [line]], tokens=np.array(["a", "b"]))
+    ev.update([[{**line, "score": 0.9}]], [[line]], tokens=np.array(["a"]))  # seen: not scored twice
+    metrics = ev.compute()
+    assert metrics["counters"]["samples"] == 2 and metrics["num_gt"]["divider"] == 2, metrics["counters"]
+    with pytest.raises(EvaluationInputError, match="1 tokens for 2 samples"):
+        Evaluator("raster").update([[], []], [[line], [line]], tokens=["a"])
+
+
+@row("S11", "AV2: a pose table re-saved with timestamp_ns as float64 (pandas makes an int64 column float where a "
+            "merge leaves a NaN) was refused as 'has no ego pose at lidar sweep' with no hint that the column was "
+            "rounded; a camera folder of PNG images, as 'the folder holds no images'")
+def row_av2_rounded_timestamps_and_png_images(env):
+    import pyarrow as pa
+    from pyarrow import feather
+
+    root, log = _av2_copy(env)
+    table = feather.read_table(str(log / "city_SE3_egovehicle.feather"))
+    rounded = pa.array(table.column("timestamp_ns").to_numpy().astype(np.float64))
+    table = table.set_column(table.column_names.index("timestamp_ns"), "timestamp_ns", rounded)
+    feather.write_feather(table, str(log / "city_SE3_egovehicle.feather"))
+    _av2_error(env, root, r"has no ego pose at lidar sweep \d+ .*ns away: its timestamp_ns column was rounded .*"
+                          r"write it as int64")
+    shutil.rmtree(root)
+    root, log = _av2_copy(env)
+    for image in (log / "sensors" / "cameras" / "ring_side_left").iterdir():
+        image.rename(image.with_suffix(".png"))
+    _av2_error(env, root, r"ring_side_left: the folder holds no \.jpg images .*\.png files: convert them to JPEG")
+
+
+@row("S11", "AV2: a hidden folder in a split folder (Jupyter's .ipynb_checkpoints, a .Trash-1000) made a valid "
+            "dataset refused as 'not an AV2 split folder'; it is not a log and is skipped")
+def row_av2_hidden_folder_in_the_split(env):
+    root, log = _av2_copy(env)
+    (root / "train" / ".ipynb_checkpoints").mkdir()
+    (root / "train" / ".DS_Store").write_text("")
+    assert len(_av2_dataset(env, "train", root)) == len(_av2_dataset(env, "train"))
+
+
+@row("S11", "a path option written --out=~/eval (the shell expands no ~ after '='; nor in quotes) wrote a folder "
+            "named '~' under the working directory while saying 'wrote ~/eval/...'; it is the home folder, as "
+            "the config's path keys read it")
+def row_tilde_in_cli_paths(env):
+    home = env.tmp / "home"
+    home.mkdir()
+    env.monkeypatch.setenv("HOME", str(home))
+    rc, out, err = env.cli("export-gt", env.yaml, "--out=~/gt.json")
+    assert rc == 0 and (home / "gt.json").is_file() and not (env.tmp / "~").exists(), err[-2000:]
+    env.error(r"checkpoint not found: .*home/nope\.pt", "evaluate", env.yaml, "--checkpoint=~/nope.pt",
+              "--out", env.tmp / "eval")
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
