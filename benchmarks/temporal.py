@@ -74,7 +74,8 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     # what the run was trained with (its world's occluders, budget, overrides): a result of other options in the
     # same --out is refused, not reported as this one's (results written before the key: not checked)
     options = None if checkpoint is not None else {"occluders": args.occluders, "train": [
-        *budget, *args.override, *extra, *([f"model.temporal.memory={args.memory}"] if config == "temporal" else [])]}
+        *budget, *args.override, *extra, *([f"model.temporal.memory={args.memory}", *args.temporal_override]
+                                           if config == "temporal" else [])]}
     for path in sorted(out.glob("result*.json")):
         try:
             saved = json.loads(path.read_text()).get("options")
@@ -93,8 +94,8 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     common = [f"train.seed={seed}", f"train.out_dir={out / 'run'}", "train.checkpoint_every=0", *budget,
               *([f"train.cpu_threads={args.threads}"] if args.threads else []), *args.override, *extra]
     summary, train_s = ({"step": steps} if trained else {}), 0.0
-    if config == "temporal":  # what the memory holds (--memory)
-        common.append(f"model.temporal.memory={args.memory}")
+    if config == "temporal":  # what the memory holds (--memory) and the temporal model's own overrides
+        common += [f"model.temporal.memory={args.memory}", *args.temporal_override]
     if checkpoint is None:
         cfg = load_config(CONFIGS[config], [*world_overrides(train_root), *common])
         t0 = time.perf_counter()
@@ -136,7 +137,8 @@ def memory_off(results: list[dict], args, val_root) -> str:
             off = ["model.temporal.max_jump_m=0.001",
                    *([] if args.val_dropout is None else [f"data.camera_dropout={args.val_dropout}"])]
             cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override,
-                                                    f"model.temporal.memory={args.memory}", *off])
+                                                    f"model.temporal.memory={args.memory}",
+                                                    *args.temporal_override, *off])
             metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
             write_json({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
                         "flicker_mean": metrics["consistency"]["flicker_mean"]}, done, indent=1)  # atomic
@@ -205,8 +207,13 @@ FT_NAMES = {"temporal": "temporal_ft", "all": "temporal_ft_all"}  # the fine-tun
 
 
 def memory_suffix(args) -> str:
-    """A temporal run's name suffix for ``--memory`` (none for the BEV memory: the first runs' names)."""
-    return "" if args.memory == "bev" else "_" + args.memory.replace("+", "_")
+    """A temporal run's name suffix for ``--memory`` (none for the BEV memory: the first runs' names) and
+    ``--temporal-set`` (``train.stream_frames=10`` -> ``_stream_frames10``)."""
+    suffix = "" if args.memory == "bev" else "_" + args.memory.replace("+", "_")
+    for item in args.temporal_override:
+        key, _, value = item.partition("=")
+        suffix += "_" + "".join(c if c.isalnum() or c in "-." else "_" for c in key.rsplit(".", 1)[-1] + value)
+    return suffix
 
 
 def finetune_runs(seed: int, args, roots) -> list[dict]:
@@ -280,12 +287,13 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
                    if not (Path(args.finetune_base) / f"single_seed{seed}" / "run" / "last.pt").is_file()]
         if missing:
             p.error(f"--finetune-base {args.finetune_base}: no single-frame checkpoint {', '.join(missing)}")
-    memory_set = [o for o in args.override if o.split("=", 1)[0].strip() == "model.temporal.memory"]
-    if memory_set:  # run_one appends --memory after the overrides: the --set would be dropped without a word
-        p.error(f"--set {memory_set[0]}: the temporal model's memory is --memory ({args.memory}), not a --set")
+    for flag, overrides in (("--set", args.override), ("--temporal-set", args.temporal_override)):
+        memory_set = [o for o in overrides if o.split("=", 1)[0].strip() == "model.temporal.memory"]
+        if memory_set:  # --memory names the runs and is what the memory-off check reads: one place for it
+            p.error(f"{flag} {memory_set[0]}: the temporal model's memory is --memory ({args.memory}), not a {flag}")
     for name, path in CONFIGS.items():
         try:  # as run_one builds it: the temporal config with --memory (a --set may not fit that memory)
-            memory = [f"model.temporal.memory={args.memory}"] if name == "temporal" else []
+            memory = [f"model.temporal.memory={args.memory}", *args.temporal_override] if name == "temporal" else []
             cfg = load_config(path, [*budget_overrides(args), *args.override, *memory])
             build_model(cfg)  # the checks across keys live in build_model
         except UserError as e:
@@ -333,6 +341,9 @@ def main() -> None:
                    help="what the temporal model remembers (model.temporal.memory; docs/temporal.md)")
     p.add_argument("--set", dest="override", nargs="+", default=[], metavar="KEY=VALUE",
                    help="config overrides for both models")
+    p.add_argument("--temporal-set", dest="temporal_override", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="config overrides for the temporal model only (its runs are named after them, so a "
+                        "variant shares --out and the single-frame runs: e.g. train.stream_frames=10)")
     args = p.parse_args()
     check_args(p, args)
     cache = Path(args.cache) if args.cache else default_cache_dir()

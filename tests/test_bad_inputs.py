@@ -2224,7 +2224,9 @@ def row_benchmark_temporal_set_against_memory(env):
     for args, pattern in ((["--memory", "graph", "--set", "model.temporal.fusion=gru"],
                            r"--set \(the temporal config, --memory graph\): config key 'model\.temporal\.fusion'"),
                           (["--memory", "graph", "--set", "model.temporal.memory=bev"],
-                           r"--set model\.temporal\.memory=bev: the temporal model's memory is --memory \(graph\)")):
+                           r"--set model\.temporal\.memory=bev: the temporal model's memory is --memory \(graph\)"),
+                          (["--memory", "graph", "--temporal-set", "model.temporal.memory=bev"],
+                           r"--temporal-set model\.temporal\.memory=bev: the temporal model's memory is --memory")):
         p = _benchmark_temporal(env, *args, "--steps", "2")
         assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
         assert re.search(pattern, p.stderr), p.stderr[-2000:]
@@ -2244,7 +2246,7 @@ def row_benchmark_temporal_stale_result(env):
 
     args = argparse.Namespace(out=str(env.tmp / "out"), steps=200, minutes=15.0, occluders=0.7, override=[],
                               memory="graph", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None,
-                              threads=None)
+                              threads=None, temporal_override=[])
     folder = env.tmp / "out" / "temporal_graph_seed0"
     folder.mkdir(parents=True)
     old = {"config": "temporal_graph", "seed": 0, "mAP": 0.5,

@@ -874,3 +874,35 @@ def test_resume_of_a_temporal_checkpoint_with_one_optimizer_group_is_named(tiny_
     cfg = _drive_cfg(tiny_world, tmp_path / "old", "train.max_steps=2")
     with pytest.raises(CheckpointError, match=r"old/last\.pt: its optimizer has 1 parameter group.*train\.init_from"):
         train(cfg, loaders=build_loaders(cfg, 1, with_val=False), validate=False, resume=str(old))
+
+
+def test_benchmark_names_a_temporal_variant_after_its_own_overrides(monkeypatch, tmp_path):
+    """benchmarks/temporal.py --temporal-set: the overrides reach the temporal config only (the single-frame runs of
+    the same --out are shared), and the run is named after them, so a variant never reads another's result."""
+    import argparse
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_temporal", Path(__file__).resolve().parents[1] / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    variant = ["train.stream_frames=10", "model.temporal.kernel=5"]
+    args = argparse.Namespace(memory="bev+graph", temporal_override=variant, out=str(tmp_path), steps=10,
+                              minutes=1.0, occluders=0.0, override=["train.lr=0.001"],
+                              val_scenes=4, val_occluders=None, val_dropout=None, threads=None)
+    assert bench.memory_suffix(args) == "_bev_graph_stream_frames10_kernel5"
+    seen = {}
+
+    def fake_train(cfg, force, validate):  # what each config was trained with; no training
+        seen[cfg.name] = (cfg.train.stream_frames, cfg.model.temporal.kernel, cfg.train.lr)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr("instagram_hdmap.train.train", fake_train)
+    monkeypatch.setattr("instagram_hdmap.demo.world_overrides", lambda root: [])
+    for name in ("single", "temporal"):
+        with pytest.raises(RuntimeError, match="stop"):
+            bench.run_one(name, 0, args, (None, None), name)
+    single = load_config(bench.CONFIGS["single"])
+    assert seen["temporal_synthetic"] == (10, 5, 0.001)
+    assert seen[single.name] == (single.train.stream_frames, single.model.temporal.kernel, 0.001)
