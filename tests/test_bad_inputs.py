@@ -2712,6 +2712,19 @@ def row_tilde_in_cli_paths(env):
               "--out", env.tmp / "eval")
 
 
+
+@row("S11", "predict-images: a rig file saved with a UTF-8 byte-order mark (Windows Notepad, PowerShell's "
+            "Out-File) and CRLF line ends was refused as 'not valid JSON (Unexpected UTF-8 BOM)'; a submission "
+            "file with one was read already (S9)")
+def row_rig_file_with_a_byte_order_mark(env):
+    path, images = _rig_files(env)
+    text = json.dumps(json.loads(path.read_text()), indent=1).replace("\n", "\r\n")
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    rc, out, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", path, "--out", env.tmp / "out",
+                           "--device", "cpu", *images)
+    assert rc == 0 and (env.tmp / "out" / "prediction.json").is_file(), err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

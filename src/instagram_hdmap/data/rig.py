@@ -292,7 +292,7 @@ def read_rig_file(path) -> list[CameraCalibration]:
     ``RigError`` line naming the file, the camera and the field."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark (Windows editors) is no JSON
     except OSError as e:
         raise RigError(f"rig file {path} cannot be read ({e.strerror or e})") from None
     except UnicodeDecodeError:
