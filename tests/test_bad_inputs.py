@@ -2655,7 +2655,8 @@ def row_mapper_bfloat16_image(env):
 
 
 @row("S11", "Evaluator.update: tokens given as a numpy array (a pandas column's values) crashed with numpy's raw "
-            "'truth value of an array ... is ambiguous'; fewer tokens than samples, with a raw IndexError")
+            "'truth value of an array ... is ambiguous'; fewer tokens than samples, with a raw IndexError; an unknown "
+            "class id of an Evaluator of two classes was named with the three default class names")
 def row_evaluator_tokens_array_and_count(env):
     from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
 
@@ -2667,6 +2668,8 @@ def row_evaluator_tokens_array_and_count(env):
     assert metrics["counters"]["samples"] == 2 and metrics["num_gt"]["divider"] == 2, metrics["counters"]
     with pytest.raises(EvaluationInputError, match="1 tokens for 2 samples"):
         Evaluator("raster").update([[], []], [[line], [line]], tokens=["a"])
+    with pytest.raises(EvaluationInputError, match=r"unknown class id 2; expected 0\.\.1 \(the evaluator's classes\)"):
+        Evaluator("vector", classes=("lane", "kerb")).update([[{**line, "label": 2, "score": 0.5}]], [[line]])
 
 
 @row("S11", "AV2: a pose table re-saved with timestamp_ns as float64 (pandas makes an int64 column float where a "
