@@ -7,9 +7,9 @@ the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
-eleventh; a ninth-, tenth- or eleventh-sweep row of a valid input that was refused checks that it runs).
-Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer
-than a few steps.
+eleventh, ``S12`` one found by a twelfth; a ninth-, tenth- or eleventh-sweep row of a valid input that
+was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a random
+tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S11"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S12"
     what: str
     run: Callable
 
@@ -2726,6 +2726,40 @@ def row_rig_file_with_a_byte_order_mark(env):
     rc, out, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", path, "--out", env.tmp / "out",
                            "--device", "cpu", *images)
     assert rc == 0 and (env.tmp / "out" / "prediction.json").is_file(), err[-2000:]
+
+
+# --- the twelfth sweep -------------------------------------------------------------------------------
+
+
+@row("S12", "Mapper: a model moved to another precision in a notebook (mapper.model.half(), .double(), "
+            ".bfloat16()) crashed with torch's raw 'Input type (torch.FloatTensor) and weight type ... should be "
+            "the same' from the first convolution; one line names the dtype, model.float() and torch.autocast")
+def row_mapper_model_of_another_dtype(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import rig
+
+    mapper = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    calib = rig((64, 36))
+    frame = Frame({c: np.zeros((36, 64, 3), np.uint8) for c in mapper.cameras},
+                  {c: calib[c].intrinsic for c in mapper.cameras},
+                  {c: np.vstack([np.c_[calib[c].rot, calib[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras})
+    for cast, name in ((torch.nn.Module.half, "float16"), (torch.nn.Module.double, "float64")):
+        cast(mapper.model)
+        with pytest.raises(UserError, match=rf"model's weights are {name} .*call model\.float\(\).*torch\.autocast"):
+            mapper(frame)
+    mapper.model.float()
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the way the message gives to lower the precision
+        assert isinstance(mapper(frame), list)
+
+
+@row("S12", "a YAML or --set of an older release's key (train.max_minutes, which checkpoints still load) was "
+            "refused as an unknown key with the list of valid keys; it names the new key")
+def row_renamed_config_key_named(env):
+    old = env.tmp / "old.yaml"
+    old.write_text(f"_base_: {env.yaml}\ntrain:\n  max_minutes: 5\n")
+    env.error(r"'train\.max_minutes' was renamed 'train\.time_budget_min'", "model-summary", old)
+    env.error(r"'train\.max_minutes' was renamed 'train\.time_budget_min'", "model-summary", env.yaml,
+              "train.max_minutes=5")
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

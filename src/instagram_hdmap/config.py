@@ -468,6 +468,10 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
     for name, value in updates.items():
         key = prefix + str(name)
         if name not in names:
+            renamed = dict(RENAMED_KEYS).get(key)  # a YAML or override of an older release: name the new key
+            if renamed is not None:
+                raise ConfigError(f"config key '{key}' was renamed '{renamed}'; write {renamed} (checkpoints "
+                                  "saved with the old name still load)")
             raise ConfigError(
                 f"unknown config key '{key}'; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
             )

@@ -465,7 +465,13 @@ def run_model(model, batch: dict, memory: dict | None = None) -> dict[str, torch
     returns none; ``batch["scene_start"]`` marks the start)."""
     if isinstance(model, OnnxModel):
         return model(batch, memory) if model.is_temporal else model(batch)
-    batch = move_to(batch, next(model.parameters()).device)
+    param = next(model.parameters())
+    if param.dtype != torch.float32:  # mapper.model.half() / .double() in a notebook: torch's raw "Input type
+        # (torch.FloatTensor) and weight type ... should be the same" from the first convolution
+        raise UserError(f"the model's weights are {str(param.dtype).removeprefix('torch.')} (model.half(), "
+                        ".double() or .to(dtype)?); the model runs in float32: call model.float(), and for lower "
+                        "precision run the calls under torch.autocast(device_type, dtype=torch.bfloat16)")
+    batch = move_to(batch, param.device)
     return model(batch) if memory is None else model(batch, memory=memory)
 
 
