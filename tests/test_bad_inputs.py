@@ -2762,6 +2762,41 @@ def row_renamed_config_key_named(env):
               "train.max_minutes=5")
 
 
+@row("S12", "Evaluator.merge of the state of an evaluator of other classes (two classes into three) crashed with "
+            "numpy's raw 'operands could not be broadcast together'; one of the same count but other names added its "
+            "AP to the wrong classes. Both are named")
+def row_evaluator_merge_of_other_classes(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+
+    line = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    for protocol in ("vector", "raster"):
+        three = Evaluator(protocol)
+        three.update([[{**line, "score": 0.9}]], [[line]], tokens=["a"])
+        for classes in (("divider", "boundary"), ("boundary", "ped_crossing", "divider")):
+            with pytest.raises(EvaluationInputError, match="state of the classes divider, ped_crossing, boundary into "
+                                                           "an evaluator of the classes " + ", ".join(classes)):
+                Evaluator(protocol, classes=classes).merge(three.state_dict())
+        same = Evaluator(protocol)
+        same.merge(three.state_dict())  # the same classes: merged as before
+        assert same.compute()["AP_class"]["divider"] == 1.0
+
+
+@row("S12", "Evaluator.update: a label given as a 0-d tensor (a model's labels tensor iterated, as MapTR's "
+            "labels_3d) was refused as 'must be an integer class id, got tensor(0)' while numpy integers were "
+            "taken; a 0-d integer tensor or array is its integer, a float or bool one is still refused")
+def row_evaluator_label_as_a_0d_tensor(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+
+    gt = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    for label in (torch.tensor(0), np.array(0)):
+        ev = Evaluator("vector")
+        ev.update([[{**gt, "label": label, "score": torch.tensor(0.9)}]], [[gt]])
+        assert ev.compute()["AP_class"]["divider"] == 1.0
+    for label in (torch.tensor(0.0), torch.tensor(True)):
+        with pytest.raises(EvaluationInputError, match="'label' must be an integer class id"):
+            Evaluator("vector").update([[{**gt, "label": label, "score": 0.9}]], [[gt]])
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

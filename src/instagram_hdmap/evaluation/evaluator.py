@@ -164,7 +164,7 @@ class Evaluator:
 
     def state_dict(self) -> dict:
         """Picklable accumulated state (NumPy arrays and numbers); the ``also`` protocols' under "also"."""
-        state = self.impl.state_dict()
+        state = {**self.impl.state_dict(), "classes": list(self.classes)}
         if self.also:
             state = {**state, "also": {p: ev.state_dict() for p, ev in self.also.items()}}
         return state
@@ -173,6 +173,14 @@ class Evaluator:
         """Add another evaluator's ``state_dict()`` (e.g. from another process) to this one."""
         state = dict(state)
         also = state.pop("also", {})
+        # a state of other classes: numpy's raw "operands could not be broadcast" (another count), or its AP
+        # added to the wrong class (the same count, other names)
+        names, num_gt = state.pop("classes", None), state.get("num_gt")
+        if (names is not None and list(names) != list(self.classes)) or \
+                (num_gt is not None and len(num_gt) != len(self.classes)):
+            theirs = ", ".join(map(str, names)) if names is not None else f"{len(num_gt)} classes"
+            raise EvaluationInputError(f"cannot merge an evaluation state of the classes {theirs} into an evaluator of "
+                                       f"the classes {', '.join(self.classes)}; merge states of the same classes")
         self.impl.merge_state(state)
         for p, ev in self.also.items():
             ev.merge(also[p])

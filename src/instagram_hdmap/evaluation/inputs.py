@@ -80,6 +80,8 @@ def read_polylines(
         if not np.isfinite(pts).all():
             raise EvaluationInputError(f"{what}: 'pts' contains NaN or infinite coordinates; fix the polyline")
         label = item["label"]
+        if getattr(label, "ndim", None) == 0 and hasattr(label, "item"):  # a 0-d tensor or array (a model's labels,
+            label = label.item()  # iterated): its Python number, checked below as any label
         if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)):
             raise EvaluationInputError(f"{what}: 'label' must be an integer class id, got {label!r}")
         if not 0 <= int(label) < num_classes:
