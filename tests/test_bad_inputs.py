@@ -2797,6 +2797,20 @@ def row_evaluator_label_as_a_0d_tensor(env):
             Evaluator("vector").update([[{**gt, "label": label, "score": 0.9}]], [[gt]])
 
 
+@row("S12", "to_hdmapnet given mapper(frame)'s list as it is (or a list of frames' lists under one name) crashed "
+            "with a raw \"'list' object has no attribute 'items'\"; a TypeError says it takes {frame name: elements}")
+def row_to_hdmapnet_of_a_list(env):
+    from instagram_hdmap import MapElement, to_hdmapnet
+
+    element = MapElement("divider", np.zeros((3, 2), np.float32), False, np.float32(0.5), 0)
+    with pytest.raises(TypeError, match=r"takes \{frame name: elements\}.*got a list"):
+        to_hdmapnet([element])
+    with pytest.raises(TypeError, match=r"frame 'a': expected a list of MapElement .*got list in it"):
+        to_hdmapnet({"a": [[element]]})
+    doc = json.loads(json.dumps(to_hdmapnet({"a": [element], "b": []})))
+    assert doc["results"]["a"][0]["confidence_level"] == 0.5 and doc["results"]["b"] == []
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

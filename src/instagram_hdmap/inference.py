@@ -506,6 +506,16 @@ class MapElement:
 def to_hdmapnet(elements: Mapping[str, Sequence[MapElement]], meta: dict | None = None) -> dict:
     """``{frame name: elements}`` -> the HDMapNet submission JSON document (``{"meta", "results"}``,
     evaluation/io.py), what ``predict`` writes and ``evaluate-json`` reads."""
+    # mapper(frame)'s list passed as it is: a raw "'list' object has no attribute 'items'" (the names are the
+    # submission's sample tokens, which only the caller knows)
+    if not isinstance(elements, Mapping):
+        raise TypeError(f"to_hdmapnet takes {{frame name: elements}} (the names are the submission's sample tokens), "
+                        f"got a {type(elements).__name__}; e.g. to_hdmapnet({{'frame': mapper(frame)}})")
+    for name, els in elements.items():
+        bad = next((e for e in els if not isinstance(e, MapElement)), None) if isinstance(els, Sequence) else els
+        if bad is not None:
+            raise TypeError(f"to_hdmapnet: frame {name!r}: expected a list of MapElement (one frame's "
+                            f"mapper(...) result), got {type(bad).__name__}" + (" in it" if bad is not els else ""))
     return submission({name: [e.as_polyline() for e in els] for name, els in elements.items()}, meta)
 
 
