@@ -2811,6 +2811,28 @@ def row_to_hdmapnet_of_a_list(env):
     assert doc["results"]["a"][0]["confidence_level"] == 0.5 and doc["results"]["b"] == []
 
 
+@row("S12", "a dataset whose camera images were resized (a half-resolution copy of nuScenes) or rotated was refused "
+            "as 'decodes to 100x57 at 1/2, expected 200x113 from its recorded size 400x225', reduced-decode sizes "
+            "that name neither the file's size nor what to do; the line says both")
+def row_resized_dataset_images_named(env):
+    from PIL import Image
+
+    root = env.shadow_world(copy_samples=True)
+    for image in (root / "samples" / "CAM_FRONT").iterdir():
+        with Image.open(image) as im:
+            size = im.size
+            im.resize((size[0] // 2, size[1] // 2)).save(image)
+    env.error(rf"the file is {size[0] // 2}x{size[1] // 2}, a resized or rotated copy\? .*use the dataset's original "
+              "images", "evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+
+
+@row("S12", "an override written before the CONFIG file (model-summary train.lr=0.1 CONFIG) was refused as 'config "
+            "file not found: train.lr=0.1'; the line says that overrides go after the CONFIG file")
+def row_override_before_the_config(env):
+    env.error(r"config file not found: train\.lr=0\.1; key=value overrides go after the CONFIG file",
+              "model-summary", "train.lr=0.1", env.yaml)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -527,7 +527,9 @@ def load_yaml(text: str):
 
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
+        raise ConfigError(f"config file not found: {path}" + (" (it is a folder)" if path.is_dir() else "")
+                          + ("; key=value overrides go after the CONFIG file" if not seen and "=" in path.name
+                             and not path.exists() else ""))
     if path.resolve() in seen:
         raise ConfigError(f"config file {path} includes itself through _base_")
     raw = path.read_bytes()

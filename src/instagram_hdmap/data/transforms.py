@@ -164,9 +164,20 @@ def load_image(
     img, f = read_image(path, f)
     exp_w, exp_h = math.ceil(W / f), math.ceil(H / f)
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
+        # a dataset whose images were resized (a half-resolution copy) or rotated: say what the file is and
+        # what to do, not only the reduced-decode sizes
+        try:
+            from PIL import Image  # the header's exact size (a reduced decode rounds it)
+
+            with Image.open(path) as im:
+                size = "{}x{}".format(*im.size)
+        except (OSError, ValueError):
+            size = f"about {img.shape[1] * f}x{img.shape[0] * f}"
         raise ImageError(
             f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected "
-            f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather)"
+            f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather): the "
+            f"file is {size}, a resized or rotated copy? the calibration is that of the recorded size: use the "
+            "dataset's original images"
         )
     return _warp(img, A, f, out_hw, bgr=True)
 
