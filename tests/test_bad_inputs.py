@@ -2728,6 +2728,23 @@ def row_rig_file_with_a_byte_order_mark(env):
     assert rc == 0 and (env.tmp / "out" / "prediction.json").is_file(), err[-2000:]
 
 
+@row("S11", "--resume OUT/best.pt while a later last.pt sits in the folder: the run goes on from best.pt (a valid "
+            "choice) and its next save replaced last.pt without a word; now a note names both steps and the "
+            "--resume that continues the later one")
+def row_resume_best_with_a_later_last_pt(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.6, 0.3], "train.epochs=2")  # best.pt at step 2 (0.6), last.pt at step 4
+    assert load_checkpoint(run / "best.pt")["step"] == 2 and load_checkpoint(run / "last.pt")["step"] == 4
+    env.capsys.readouterr()
+    _toy_run(env, [0.2, 0.1], "train.epochs=3", resume=str(run / "best.pt"))
+    out = env.capsys.readouterr().out
+    assert re.search(rf"note: {re.escape(str(run / 'last.pt'))} is at step 4, later than .*best\.pt; this run goes "
+                     rf"on from step 2 .*--resume {re.escape(str(run / 'last.pt'))}", out), out
+    env.capsys.readouterr()
+    _toy_run(env, [], "train.epochs=3", "train.max_steps=6", resume=str(run / "last.pt"))  # its own last.pt: no note
+    assert "note:" not in env.capsys.readouterr().out
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
