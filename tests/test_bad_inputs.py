@@ -2745,6 +2745,21 @@ def row_resume_best_with_a_later_last_pt(env):
     assert "note:" not in env.capsys.readouterr().out
 
 
+@row("S11", "a nuScenes table saved with a UTF-8 byte-order mark (or not valid JSON): the one line named only the "
+            "version folder and json's 'Unexpected UTF-8 BOM'; it now names the table file and what to do")
+def row_nuscenes_table_with_a_byte_order_mark(env):
+    root = env.shadow_world()
+    table = root / "v1.0-trainval" / "calibrated_sensor.json"
+    text = table.read_text()
+    table.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    env.error(r"v1\.0-trainval: calibrated_sensor\.json starts with a UTF-8 byte-order mark, which the nuScenes "
+              r"devkit cannot read; save it as UTF-8 without one", "export-gt", env.yaml, f"data.dataroot={root}",
+              "--out", env.tmp / "gt.json")
+    table.write_text(text[:-20])  # cut short
+    env.error(r"v1\.0-trainval: calibrated_sensor\.json is not valid JSON: ", "export-gt", env.yaml,
+              f"data.dataroot={root}", "--out", env.tmp / "gt.json")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
