@@ -426,3 +426,15 @@ def test_the_readme_rig_example_reads(tmp_path):
     (tmp_path / "rig.json").write_text(json.dumps(data))
     (cam,) = read_rig_file(tmp_path / "rig.json")
     assert cam.name == "CAM_FRONT_LEFT" and cam.image_size == (1600, 900)
+
+
+def test_a_misspelt_frame_field_lists_every_field():
+    """mapper(images=..., intrinsic=...): the message lists every field of a Frame, the optional ones too (sweep 11
+    found ego_pose, which a temporal model needs, left out of the list)."""
+    import dataclasses
+
+    with pytest.raises(TypeError) as info:
+        Mapper._frame({"images": [], "intrinsic": []})
+    message = str(info.value)
+    assert all(f.name in message for f in dataclasses.fields(Frame)), message
+    assert "got ['images', 'intrinsic']" in message

@@ -2728,6 +2728,38 @@ def row_rig_file_with_a_byte_order_mark(env):
     assert rc == 0 and (env.tmp / "out" / "prediction.json").is_file(), err[-2000:]
 
 
+@row("S11", "--resume OUT/best.pt while a later last.pt sits in the folder: the run goes on from best.pt (a valid "
+            "choice) and its next save replaced last.pt without a word; now a note names both steps and the "
+            "--resume that continues the later one")
+def row_resume_best_with_a_later_last_pt(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.6, 0.3], "train.epochs=2")  # best.pt at step 2 (0.6), last.pt at step 4
+    assert load_checkpoint(run / "best.pt")["step"] == 2 and load_checkpoint(run / "last.pt")["step"] == 4
+    env.capsys.readouterr()
+    _toy_run(env, [0.2, 0.1], "train.epochs=3", resume=str(run / "best.pt"))
+    out = env.capsys.readouterr().out
+    assert re.search(rf"note: {re.escape(str(run / 'last.pt'))} is at step 4, later than .*best\.pt; this run goes "
+                     rf"on from step 2 .*--resume {re.escape(str(run / 'last.pt'))}", out), out
+    env.capsys.readouterr()
+    _toy_run(env, [], "train.epochs=3", "train.max_steps=6", resume=str(run / "last.pt"))  # its own last.pt: no note
+    assert "note:" not in env.capsys.readouterr().out
+
+
+@row("S11", "a nuScenes table saved with a UTF-8 byte-order mark (or not valid JSON): the one line named only the "
+            "version folder and json's 'Unexpected UTF-8 BOM'; it now names the table file and what to do")
+def row_nuscenes_table_with_a_byte_order_mark(env):
+    root = env.shadow_world()
+    table = root / "v1.0-trainval" / "calibrated_sensor.json"
+    text = table.read_text()
+    table.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    env.error(r"v1\.0-trainval: calibrated_sensor\.json starts with a UTF-8 byte-order mark, which the nuScenes "
+              r"devkit cannot read; save it as UTF-8 without one", "export-gt", env.yaml, f"data.dataroot={root}",
+              "--out", env.tmp / "gt.json")
+    table.write_text(text[:-20])  # cut short
+    env.error(r"v1\.0-trainval: calibrated_sensor\.json is not valid JSON: ", "export-gt", env.yaml,
+              f"data.dataroot={root}", "--out", env.tmp / "gt.json")
+
+
 # --- the twelfth sweep -------------------------------------------------------------------------------
 
 

@@ -24,6 +24,7 @@ from shapely.geometry import box
 from shapely.ops import unary_union
 
 from instagram_hdmap.cli import main
+from instagram_hdmap.config import UserError
 from instagram_hdmap.data.rig import CAMERAS, rig
 from instagram_hdmap.data.synthetic import generate_world
 from instagram_hdmap.data.synthetic.map_writer import Ref
@@ -294,6 +295,14 @@ def test_preview_png(world, tmp_path):
     write_preview(world, out, index=2)
     img = cv2.imread(str(out))
     assert img is not None and img.shape[1] > 1000 and img.std() > 10
+    # a negative index counts from the end, as show-gt's and predict's do: the same picture as its positive twin
+    count = len(NuScenes(version="v1.0-trainval", dataroot=str(world), verbose=False).sample)
+    write_preview(world, tmp_path / "last.png", index=-1)
+    write_preview(world, tmp_path / "last_too.png", index=count - 1)
+    assert np.array_equal(cv2.imread(str(tmp_path / "last.png")), cv2.imread(str(tmp_path / "last_too.png")))
+    with pytest.raises(UserError, match=rf"--index {-count - 1}: .* has {count} samples \(0\.\.{count - 1}, or "
+                                        rf"-{count}\.\.-1 from the end\)"):
+        write_preview(world, tmp_path / "none.png", index=-count - 1)
 
 
 def _run(capsys, argv) -> tuple[int, str]:

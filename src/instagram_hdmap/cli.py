@@ -321,7 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("synth-preview", help="PNG of one synthetic sample: cameras with map lines, and BEV")
     p.add_argument("dataroot")
     p.add_argument("--out", required=True)
-    p.add_argument("--index", type=int, default=0, help="sample index in the dataroot")
+    p.add_argument("--index", type=int, default=0, help="sample index in the dataroot (negative counts from the end)")
     p.set_defaults(func=_cmd_synth_preview)
 
     for name, help_ in (("export-gt", "write a split's GT polylines as HDMapNet submission JSON"),

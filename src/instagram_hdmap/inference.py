@@ -26,7 +26,8 @@ import hashlib
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import MISSING, dataclass, replace
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 import numpy as np
@@ -749,7 +750,9 @@ class Mapper:
         try:
             return Frame(**fields)
         except TypeError:
-            raise TypeError(f"a frame has the fields images, intrinsics, cam_to_ego (and ground_height); got "
+            optional = [f.name for f in dataclass_fields(Frame) if f.default is not MISSING]
+            required = [f.name for f in dataclass_fields(Frame) if f.name not in optional]
+            raise TypeError(f"a frame has the fields {', '.join(required)} (and {', '.join(optional)}); got "
                             f"{sorted(fields)}") from None
 
     def batch(self, frames: Sequence[Frame]) -> dict[str, torch.Tensor]:

@@ -441,6 +441,11 @@ class TrainingRun:
             run.check_not_finished(state, Path(resume))
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
                           f"({run.position.step_in_epoch} into the epoch)")
+            later = later_last_step(out_dir, Path(resume), run.position.step)
+            if later is not None:  # resuming best.pt on purpose is fine; replacing a later last.pt unsaid is not
+                du.print_main(f"note: {out_dir / 'last.pt'} is at step {later}, later than {resume}; this run goes on "
+                              f"from step {run.position.step} and its next save replaces that last.pt (to continue "
+                              f"from step {later} instead, stop now and pass --resume {out_dir / 'last.pt'})")
             if cfg.train.init_from:
                 du.print_main(f"note: train.init_from={cfg.train.init_from} is not read on a resume: the weights are "
                               f"{resume}'s (the run's own checkpoint)")
@@ -806,6 +811,19 @@ def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
     check_resumable(state, path)
     check_resume_config(state["config"], cfg, path)
     return state
+
+
+def later_last_step(out_dir: Path, resume: Path, step: int) -> int | None:
+    """The step of ``out_dir/last.pt`` when it is another file than ``resume`` and later than ``step`` (a run
+    resumed from its ``best.pt`` replaces it at its next save), else None."""
+    last = out_dir / "last.pt"
+    try:
+        if not last.is_file() or last.resolve() == resume.resolve():
+            return None
+        saved = load_checkpoint(last).get("step")
+    except (CheckpointError, OSError):
+        return None  # an unreadable last.pt is nothing to lose
+    return saved if isinstance(saved, int) and saved > step else None
 
 
 def best_score_in(out_dir: Path) -> float:

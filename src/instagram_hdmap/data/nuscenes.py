@@ -72,10 +72,30 @@ def open_nuscenes(dataroot: str | Path, version: str):
                            "by another, e.g. a sample_annotation of a removed sample); remove or fix the referring "
                            "records") from None
     except (AssertionError, ValueError, OSError, json.JSONDecodeError) as e:
-        raise DatasetError(f"cannot load nuScenes tables from {table_root}: {type(e).__name__}: {e}") from None
+        raise DatasetError(f"cannot load nuScenes tables from {table_root}: "
+                           f"{_unparsable_table(table_root) or f'{type(e).__name__}: {e}'}") from None
     except Exception as e:  # the devkit indexes records without checking them (TypeError, IndexError, ...)
         raise DatasetError(f"cannot load nuScenes tables from {table_root}: "
                            f"{_malformed_table(table_root) or f'{type(e).__name__}: {e}'}") from None
+
+
+def _unparsable_table(table_root: Path) -> str | None:
+    """The first table file of ``table_root`` that the devkit's ``json.load`` cannot read, with why (a UTF-8
+    byte-order mark, which Windows editors write and the devkit refuses, said as such); None if all parse."""
+    for path in sorted(table_root.glob("*.json")):
+        try:
+            data = path.read_bytes()
+            json.loads(data.decode("utf-8"))
+        except OSError:
+            continue
+        except UnicodeDecodeError as e:
+            return f"{path.name} is not UTF-8 text ({e.reason} at byte {e.start})"
+        except ValueError as e:
+            if data.startswith(b"\xef\xbb\xbf"):
+                return (f"{path.name} starts with a UTF-8 byte-order mark, which the nuScenes devkit cannot read; "
+                        "save it as UTF-8 without one")
+            return f"{path.name} is not valid JSON: {e}"
+    return None
 
 
 def _malformed_table(table_root: Path) -> str | None:

@@ -115,8 +115,10 @@ def write_preview(dataroot, out_png, index: int = 0) -> None:
     if not dataroot.is_dir():
         raise UserError(f"{dataroot}: no such folder")
     nusc = open_nuscenes(dataroot, _version_of(dataroot))
-    if not 0 <= index < len(nusc.sample):
-        raise UserError(f"--index {index}: {dataroot} has {len(nusc.sample)} samples (0..{len(nusc.sample) - 1})")
+    if not -len(nusc.sample) <= index < len(nusc.sample):  # negative counts from the end, as show-gt / predict
+        raise UserError(f"--index {index}: {dataroot} has {len(nusc.sample)} samples (0..{len(nusc.sample) - 1}, or "
+                        f"-{len(nusc.sample)}..-1 from the end)")
+    index %= len(nusc.sample)  # the title names the sample by its place
     sample = nusc.sample[index]
     scene = nusc.get("scene", sample["scene_token"])
     location = nusc.get("log", scene["log_token"])["location"]
