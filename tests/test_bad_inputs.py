@@ -2784,6 +2784,31 @@ def row_mapper_model_of_another_dtype(env):
         assert isinstance(mapper(frame), list)
 
 
+@row("S12", "a Mapper whose model was left in training mode (mapper.model.train() after fine-tuning in a notebook) "
+            "computed batch-norm statistics of each call's batch and updated the running ones: every output changed, "
+            "without a word (sweep 12, B7); it now runs in eval mode and the model's mode is given back")
+def row_mapper_model_left_in_training_mode(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import rig
+
+    mapper = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    calib = rig((64, 36))
+    images = np.random.default_rng(0).integers(0, 255, (len(mapper.cameras), 36, 64, 3), dtype=np.uint8)
+    frame = Frame(dict(zip(mapper.cameras, images)), {c: calib[c].intrinsic for c in mapper.cameras},
+                  {c: np.vstack([np.c_[calib[c].rot, calib[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras})
+    batch = mapper.batch([frame])
+    with torch.no_grad():
+        expected = mapper.forward(batch)["pred_vertex_logits"]
+        state = {k: v.clone() for k, v in mapper.model.state_dict().items()}
+        mapper.model.train()
+        got = mapper.forward(batch)["pred_vertex_logits"]
+    assert torch.equal(got, expected)
+    assert mapper.model.training  # the user's mode, given back
+    assert all(torch.equal(v, state[k]) for k, v in mapper.model.state_dict().items())  # no running statistic moved
+    in_training_mode = [(e.label, e.score) for e in mapper(frame)]
+    mapper.model.eval()
+    assert in_training_mode == [(e.label, e.score) for e in mapper(frame)]
+
 @row("S12", "a YAML or --set of an older release's key (train.max_minutes, which checkpoints still load) was "
             "refused as an unknown key with the list of valid keys; it names the new key")
 def row_renamed_config_key_named(env):

@@ -810,8 +810,18 @@ class Mapper:
                 "ego_pose": torch.stack([_ego_pose(frame.ego_pose) for frame in frames])}
 
     def forward(self, batch: dict, memory: dict | None = None) -> dict[str, torch.Tensor]:
-        """The model's outputs for ``batch`` (``run_model``)."""
-        return run_model(self.model, batch, memory)
+        """The model's outputs for ``batch`` (``run_model``), always in eval mode: a model left in training mode
+        (``mapper.model.train()`` in a notebook after fine-tuning) would compute batch-norm statistics of this
+        batch and update its running ones, so every output would change silently; it is switched to eval for
+        the call and back after."""
+        training = isinstance(self.model, torch.nn.Module) and self.model.training
+        if training:
+            self.model.eval()
+        try:
+            return run_model(self.model, batch, memory)
+        finally:
+            if training:
+                self.model.train()
 
     def decode(self, outputs: dict[str, torch.Tensor]) -> list[list[MapElement]]:
         """Model outputs -> each sample's elements (postprocess.py, with the checkpoint's decoding)."""
