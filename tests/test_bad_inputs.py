@@ -1916,6 +1916,10 @@ def row_tilde_in_path_keys(env):
     cfg = load_config(path, ["train.init_from=~/best.pt", "data.dataroot=~/data/nuscenes"])
     assert (cfg.train.out_dir, cfg.train.init_from, cfg.data.dataroot) == (
         str(home / "runs" / "x"), str(home / "best.pt"), str(home / "data" / "nuscenes"))
+    # a bare ~ (YAML's null) on a path that cannot be null is the home folder (it was refused as "expected str, got
+    # None"; sweep 12, K12); on an optional one it stays null: none
+    cfg = load_config(env.yaml, ["train.out_dir=~", "data.dataroot=~", "train.init_from=~"])
+    assert (cfg.train.out_dir, cfg.data.dataroot, cfg.train.init_from) == (str(home), str(home), None)
 
 
 # ==================================================================================================

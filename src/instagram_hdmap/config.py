@@ -585,6 +585,8 @@ def parse_overrides(overrides: list[str]) -> dict:
             raise ConfigError(f"override '{item}': {e}") from None
         except yaml.YAMLError:
             value = raw
+        if raw.strip() == "~" and key.strip() in HOME_NOT_NULL:  # YAML's null, but these paths cannot be null:
+            value = "~"  # the shell's home folder is meant (train.out_dir=~); expand_home reads it
         quoted = raw.strip()[:1] in ("'", '"')  # name="2024": a string is meant
         if isinstance(value, str) and not quoted:  # YAML 1.1 reads "3e-3" as a string; a number is meant
             try:
@@ -616,6 +618,9 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
 # the keys that hold a file or folder path: a leading ~ is the user's home, as a shell would read it (a YAML
 # file or a quoted override keeps it: train.out_dir=~/runs made a folder named "~" in the working directory)
 PATH_KEYS = ("data.dataroot", "data.splits_file", "model.backbone.weights", "train.out_dir", "train.init_from")
+# the path keys that cannot be null: a bare ~ override there is the home folder (on the optional ones, such as
+# train.init_from=~, it stays YAML's null: none)
+HOME_NOT_NULL = ("data.dataroot", "train.out_dir")
 
 
 def expand_home(cfg: ExperimentConfig) -> None:
