@@ -2894,6 +2894,178 @@ def row_override_before_the_config(env):
               "model-summary", "train.lr=0.1", env.yaml)
 
 
+@row("S13", "Evaluator(classes='divider') (one class given as a string) built an evaluator of the seven classes 'd', "
+            "'i', 'v', ... and scored against them with exit 0; classes must be a list of distinct names, and one "
+            "threshold given as a number is that threshold")
+def row_evaluator_classes_as_a_string(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+
+    with pytest.raises(EvaluationInputError, match=r"classes must be a list of class names.*got 'divider'"):
+        Evaluator("vector", classes="divider")
+    with pytest.raises(EvaluationInputError, match="names a class twice"):
+        Evaluator("vector", classes=("divider", "divider"))
+    ev = Evaluator("vector", thresholds=1.0, classes=("divider",))
+    assert ev.thresholds == (1.0,) and ev.classes == ("divider",)
+
+
+@row("S13", "Evaluator.update given a dict {token: polylines} (KeyError: 0), a generator or None (\"object of type "
+            "'generator' has no len()\") crashed, and one token given as a string was read as its characters; a "
+            "generator is taken, the others are one line saying what update takes")
+def row_evaluator_update_of_other_containers(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+
+    gt = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    pred = {**gt, "score": 0.9}
+    with pytest.raises(EvaluationInputError, match=r"not a dict; for \{token: polylines\} pass"):
+        Evaluator().update({"a": [pred]}, {"a": [gt]})
+    with pytest.raises(EvaluationInputError, match="one list of polylines per sample, got NoneType"):
+        Evaluator().update(None, None)
+    with pytest.raises(EvaluationInputError, match="tokens must be a list of one token per sample, got the string"):
+        Evaluator().update([[pred], [pred]], [[gt], [gt]], tokens="ab")
+    ev = Evaluator()
+    ev.update(([pred] for _ in range(2)), ([gt] for _ in range(2)), sample_ids=iter([0, 1]))
+    assert ev.compute()["AP_class"]["divider"] == 1.0 and ev.compute()["num_gt"]["divider"] == 2
+
+
+@row("S13", "Evaluator.update given a model's outputs in a training loop (points and scores with requires_grad) "
+            "crashed with torch's \"Can't call numpy() on Tensor that requires grad\", under both protocols; the "
+            "values are taken, detached")
+def row_evaluator_update_tensors_with_grad(env):
+    from instagram_hdmap.evaluation import Evaluator
+
+    gt = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    pred = {"pts": torch.tensor(gt["pts"], requires_grad=True), "label": torch.tensor(0),
+            "score": torch.tensor(0.9, requires_grad=True)}
+    for protocol in ("vector", "raster"):
+        ev = Evaluator(protocol)
+        ev.update([[pred]], [[gt]])
+        assert ev.compute()["AP_class"]["divider"] == 1.0
+
+
+@row("S13", "Evaluator.merge given the other Evaluator (not its state_dict()) or None, and format_table given an "
+            "Evaluator or a dict of other keys, crashed with raw TypeError / KeyError; an Evaluator is taken as its "
+            "state (or computed), anything else is one line")
+def row_evaluator_merge_and_format_table_of_other_objects(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+    from instagram_hdmap.evaluation.evaluator import format_table
+
+    gt = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    other = Evaluator()
+    other.update([[{**gt, "score": 0.9}]], [[gt]], tokens=["a"])
+    ev = Evaluator()
+    ev.merge(other)
+    assert ev.compute()["num_gt"]["divider"] == 1
+    with pytest.raises(EvaluationInputError, match=r"takes another evaluator's state_dict\(\).*got NoneType"):
+        ev.merge(None)
+    assert format_table(ev) == format_table(ev.compute())
+    with pytest.raises(EvaluationInputError, match="format_table takes the metrics of Evaluator.compute.*without"):
+        format_table({"mAP": 0.5})
+
+
+@row("S13", "read_submission with a role other than 'pred' / 'gt' ('prediction') read a submission as a GT, "
+            "dropping its scores, with no word; write_submission of a list, with its arguments swapped, or keyed by "
+            "a tuple crashed raw (AttributeError, json's TypeError); MapElement lists and bytes paths are taken")
+def row_submission_read_write_misuse(env):
+    from instagram_hdmap import MapElement
+    from instagram_hdmap.evaluation.io import read_submission, write_submission
+
+    pred = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0, "score": 0.25}
+    path = env.tmp / "pred.json"
+    write_submission(path, {"a": [pred], "b": [MapElement("boundary", pred["pts"], False, 0.5, 2)]})
+    sub = read_submission(os.fsencode(path), "pred")
+    assert sub.samples["a"][0]["score"] == 0.25 and sub.samples["b"][0]["label"] == 2
+    with pytest.raises(ValueError, match="role must be 'pred'.*got 'prediction'"):
+        read_submission(path, "prediction")
+    with pytest.raises(TypeError, match=r"takes \{sample token: polylines\}, got a list"):
+        write_submission(env.tmp / "x.json", [[pred]])
+    with pytest.raises(TypeError, match=r"got a path \(the arguments are \(path, samples\)\)"):
+        write_submission({"a": [pred]}, env.tmp / "x.json")
+    with pytest.raises(TypeError, match=r"sample tokens are strings, got \('a', 1\)"):
+        write_submission(env.tmp / "x.json", {("a", 1): [pred]})
+    with pytest.raises(TypeError, match="submission file must be a file path.*got dict"):
+        read_submission({"results": {}}, "pred")
+    assert not (env.tmp / "x.json").exists()
+
+
+@row("S13", "Mapper.forward(frame) / decode(frame) (\"'Frame' object has no attribute 'items'\"), batch([]) "
+            "(torch's 'stack expects a non-empty TensorList'), mapper({name: frame}) ('expected Frame objects, got "
+            "str') and Mapper(None, cfg) crashed raw; each is one line saying what the call takes, and Mapper takes "
+            "a config file's path as the config")
+def row_mapper_calls_of_other_objects(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import rig
+
+    mapper = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    calib = rig((64, 36))
+    images = np.zeros((len(mapper.cameras), 36, 64, 3), dtype=np.uint8)
+    frame = Frame(dict(zip(mapper.cameras, images)), {c: calib[c].intrinsic for c in mapper.cameras},
+                  {c: np.vstack([np.c_[calib[c].rot, calib[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras})
+    with pytest.raises(TypeError, match=r"forward takes a model input batch .*got Frame; to map frames call"):
+        mapper.forward(frame)
+    with pytest.raises(TypeError, match=r"decode takes the model's outputs .*got Frame"):
+        mapper.decode(frame)
+    with pytest.raises(ValueError, match="Mapper.batch: no frames"):
+        mapper.batch([])
+    with pytest.raises(TypeError, match=r"not a dict; for \{name: frame\} use"):
+        mapper({"a": frame})
+    with pytest.raises(TypeError, match="Mapper takes a model .*got NoneType"):
+        Mapper(None, mapper.config)
+    env.yaml_copy = env.tmp / "cfg.yaml"
+    from instagram_hdmap.config import save_config
+
+    save_config(mapper.config, env.yaml_copy)
+    again = Mapper(mapper.model, env.yaml_copy)
+    assert again.config == mapper.config
+    assert [(e.label, e.score) for e in again(frame)] == [(e.label, e.score) for e in mapper(frame)]
+
+
+@row("S13", "load_config given a dict of keys or an ExperimentConfig, and Evaluator.from_config given a YAML path, "
+            "crashed with pathlib's 'expected str, bytes or os.PathLike object, not dict' / \"'str' object has no "
+            "attribute 'eval'\", and one override string was read as its characters; each is taken")
+def row_load_config_of_a_dict_or_config(env):
+    from instagram_hdmap.evaluation import Evaluator
+
+    cfg = load_config({"train": {"lr": 0.01}, "eval": {"thresholds": [1.0]}})
+    assert cfg.train.lr == 0.01
+    again = load_config(cfg, "train.lr=0.02")
+    assert again.train.lr == 0.02 and cfg.train.lr == 0.01  # a copy
+    with pytest.raises(UserError, match="unknown config key 'train.lrr'"):
+        load_config({"train": {"lrr": 0.1}})
+    with pytest.raises(TypeError, match="config file must be a file path.*got int"):
+        load_config(3)
+    assert load_config(os.fsencode(env.yaml)) == load_config(env.yaml)
+    ev = Evaluator.from_config(env.yaml)
+    assert ev.classes == tuple(load_config(env.yaml).data.classes)
+
+
+@row("S13", "MapElement compared (element in elements, a == b) raised numpy's 'truth value of an array ... is "
+            "ambiguous' and could not be hashed (a set of elements); equal elements are equal and hash alike")
+def row_map_element_equality_and_hash(env):
+    from instagram_hdmap import MapElement
+
+    pts = np.array([[0.0, 1.0], [2.0, 3.0], [4.0, 5.0]], np.float32)
+    a, b = MapElement("divider", pts, False, 0.5, 0), MapElement("divider", pts.copy(), False, 0.5, 0)
+    c = MapElement("divider", pts + 1, False, 0.5, 0)
+    assert a == b and a != c and a in [c, b] and len({a, b, c}) == 2 and hash(a) == hash(b)
+
+
+@row("S13", "a MapElement made with score None or points of another shape crashed later, in repr ('unsupported "
+            "format string passed to NoneType') or to_hdmapnet (float(None)); it is refused where it is made")
+def row_map_element_checked(env):
+    from instagram_hdmap import MapElement
+
+    pts = np.zeros((3, 2))
+    with pytest.raises(TypeError, match="score a number in \\[0, 1\\], got .*score None"):
+        MapElement("divider", pts, False, None, 0)
+    with pytest.raises(ValueError, match=r"points must be a \[P, 2\] array .*got shape \[3, 3\]"):
+        MapElement("divider", np.zeros((3, 3)), False, 0.5, 0)
+    with pytest.raises(ValueError, match="score must be in \\[0, 1\\], got 2.0"):
+        MapElement("divider", pts, False, 2.0, 0)
+    assert repr(MapElement("divider", torch.zeros(3, 2), True, np.float32(0.5), 0)) == \
+        "MapElement(divider, 3 points, closed, score 0.50)"
+
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

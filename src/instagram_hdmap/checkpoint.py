@@ -26,7 +26,7 @@ import torch
 
 from .config import UserError
 from .errors import one_line
-from .files import atomic_path
+from .files import as_path, atomic_path
 
 
 class CheckpointError(UserError):
@@ -37,7 +37,7 @@ def save_checkpoint(state: dict, path: str | Path) -> Path:
     """Write ``state`` to ``path`` atomically (``files.atomic_path``: a temporary file in the same
     folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one;
     a full disk is a one-line ``files.OutputError`` naming the file, the old one intact."""
-    path = Path(path)
+    path = as_path(path, "checkpoint path")
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         torch.save(state, f)  # through Python's file object: a failed write (full disk) keeps its OSError
     return path
@@ -50,7 +50,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     bits flipped on disk or in a transfer are named instead of loading as wild weights; after it,
     the model weights must be finite (a checkpoint of a diverged run is named with the first
     non-finite tensor)."""
-    path = Path(path)
+    path = as_path(path, "checkpoint path")
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
     with open(path, "rb") as f:

@@ -34,7 +34,7 @@ from typing import Any, Literal, Union
 import yaml
 
 from .errors import UserError
-from .files import write_text
+from .files import as_path, write_text
 
 
 class ConfigError(UserError, ValueError):
@@ -603,11 +603,23 @@ def parse_overrides(overrides: list[str]) -> dict:
     return nested
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> ExperimentConfig:
-    """Defaults <- YAML file (and its ``_base_`` chain) <- command-line overrides; validated."""
+def load_config(path: str | Path | dict | ExperimentConfig | None = None,
+                overrides: list[str] | str | None = None) -> ExperimentConfig:
+    """Defaults <- YAML file (and its ``_base_`` chain) <- command-line overrides; validated.
+
+    ``path`` may also be a nested dict of keys (as a YAML file holds them) or an ``ExperimentConfig`` (a copy,
+    the overrides applied); ``overrides`` a list of ``"key=value"`` strings (one string: one override)."""
+    if isinstance(overrides, str):  # one "key=value", not its characters ("override 't' must look like ...")
+        overrides = [overrides]
+    if overrides is not None and not isinstance(overrides, (list, tuple)):
+        raise TypeError(f"overrides must be a list of 'key.sub=value' strings, got {type(overrides).__name__}")
     cfg = ExperimentConfig()
-    if path is not None:
-        cfg = _merge(cfg, _read_yaml(Path(path)))
+    if isinstance(path, ExperimentConfig):
+        cfg = copy.deepcopy(path)
+    elif isinstance(path, dict):  # the nested keys of a YAML file, given in Python
+        cfg = _merge(cfg, _rename_old_keys(path))
+    elif path is not None:
+        cfg = _merge(cfg, _read_yaml(as_path(path, "the config file")))
     if overrides:
         cfg = _merge(cfg, parse_overrides(overrides))
     expand_home(cfg)

@@ -39,6 +39,17 @@ class OutputError(UserError):
     permission, a full disk. The message names the path and the cause."""
 
 
+def as_path(value, what: str = "path") -> Path:
+    """``value`` (a str, an ``os.PathLike`` or bytes, as ``open`` takes) as a ``Path``; anything else (a dict, a
+    config object, None) is a ``TypeError`` naming ``what`` instead of pathlib's "expected str, bytes or
+    os.PathLike object, not dict" (which names neither the argument nor what was meant)."""
+    if isinstance(value, bytes):
+        return Path(os.fsdecode(value))
+    if isinstance(value, (str, os.PathLike)):
+        return Path(value)
+    raise TypeError(f"{what} must be a file path (str or pathlib.Path), got {type(value).__name__}")
+
+
 def os_error_in(e: BaseException) -> OSError | None:
     """The OSError that caused ``e``: ``e`` itself or one in its chain (torch.save reports a failed
     write as a RuntimeError raised while handling the OSError of Python's file object)."""

@@ -58,6 +58,7 @@ from .data.transforms import ImageError, load_image, prepare_image
 from .distributed import resolve_device
 from .engine import move_to
 from .evaluation.io import polylines_to_vectors, submission
+from .files import as_path
 from .geometry import BEVGrid
 from .models import build_model
 from .models.temporal import MEMORY_KEYS, STATUS_NAMES
@@ -297,7 +298,7 @@ def read_metadata(path: str | Path) -> dict[str, str]:
     """The ``metadata_props`` of an ONNX file (external weight files are not read); an inline graph is checked
     against the SHA-256 its export stored (``META_GRAPH_SHA``)."""
     onnx, _ = require_onnx()
-    path = Path(path)
+    path = as_path(path, "ONNX file")
     if not path.is_file():
         raise DeployError(f"ONNX file not found: {path}")
     try:
@@ -392,7 +393,9 @@ class OnnxModel:
     def __init__(self, path: str | Path, cfg: ExperimentConfig, *, threads: int | None = None,
                  optimization: str = "all", providers: Sequence[str] = ("CPUExecutionProvider",)):
         _, ort = require_onnx()
-        self.path = Path(path)
+        self.path = as_path(path, "ONNX file")
+        if not isinstance(cfg, ExperimentConfig):
+            cfg = load_config(cfg)  # a YAML file's path: "'str' object has no attribute 'model'" deep in the check
         self.meta = check_export(self.path, cfg)
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or torch.get_num_threads()
@@ -490,6 +493,35 @@ class MapElement:
     closed: bool
     score: float
     class_index: int
+
+    def __post_init__(self) -> None:
+        # checked where it is made (a user's own elements too): a score of None crashed repr and to_hdmapnet far
+        # from here, and points of another shape wrote a broken submission
+        try:
+            points = np.asarray(self.points.detach().cpu() if isinstance(self.points, torch.Tensor) else self.points)
+            score = float(self.score)
+        except (TypeError, ValueError):
+            raise TypeError(f"MapElement: points must be a [P, 2] array and score a number in [0, 1], got points "
+                            f"{type(self.points).__name__}, score {self.score!r}") from None
+        if points.ndim != 2 or points.shape[1] != 2 or not np.issubdtype(points.dtype, np.number):
+            raise ValueError(f"MapElement: points must be a [P, 2] array of x, y in metres, got shape "
+                             f"{list(points.shape)}")
+        if not (math.isfinite(score) and -1e-4 <= score <= 1.0 + 1e-4):  # (a mean of float32 probabilities rounds)
+            raise ValueError(f"MapElement: score must be in [0, 1], got {score}")
+        object.__setattr__(self, "points", points)
+
+    def __eq__(self, other: object) -> bool:
+        # the dataclass's own __eq__ compares the points arrays with ==: "The truth value of an array with more than
+        # one element is ambiguous" for `element in elements`
+        if not isinstance(other, MapElement):
+            return NotImplemented
+        return (self.label, self.closed, float(self.score), int(self.class_index)) == \
+            (other.label, other.closed, float(other.score), int(other.class_index)) and \
+            self.points.shape == other.points.shape and bool(np.array_equal(self.points, other.points))
+
+    def __hash__(self) -> int:  # equal elements hash equal (a set or dict key of elements)
+        return hash((self.label, self.closed, float(self.score), int(self.class_index), self.points.shape,
+                     np.ascontiguousarray(self.points, dtype=np.float64).tobytes()))
 
     def as_polyline(self) -> dict:
         """The polyline dict of docs/conventions.md (``pts``, ``label``, ``closed``, ``score``)."""
@@ -685,6 +717,11 @@ class Mapper:
 
     def __init__(self, model, config: ExperimentConfig, *, device: torch.device | None = None, source: str = "",
                  notes: Sequence[str] = (), batch_size: int = 4):
+        if not (isinstance(model, (torch.nn.Module, OnnxModel))):
+            raise TypeError(f"Mapper takes a model (an InstaGraM module or an OnnxModel), got {type(model).__name__}; "
+                            "load a trained one with Mapper.from_checkpoint(path) or Mapper.from_onnx(path)")
+        if not isinstance(config, ExperimentConfig):
+            config = load_config(config)  # a YAML file's path (or a dict of its keys)
         self.model, self.config, self.source, self.notes = model, config, source, list(notes)
         self.device = device if device is not None else torch.device("cpu")
         self.grid = BEVGrid.from_config(config.grid)
@@ -730,6 +767,9 @@ class Mapper:
         """``mapper(frame)`` or ``mapper(images=..., intrinsics=..., cam_to_ego=...)``: the frame's
         elements; ``mapper([frame, ...])``: a list of them per frame."""
         single = frames is None or isinstance(frames, Frame)
+        if isinstance(frames, Mapping):  # {name: frame}: iterating gave the names ("expected Frame objects, got str")
+            raise TypeError("mapper takes a Frame or a list of Frames, not a dict; for {name: frame} use "
+                            "dict(zip(frames, mapper(list(frames.values()))))")
         if frames is None:
             frames = self._frame(fields)
         elif fields:
@@ -758,6 +798,11 @@ class Mapper:
     def batch(self, frames: Sequence[Frame]) -> dict[str, torch.Tensor]:
         """The model's input batch (docs/conventions.md keys, CPU) of ``frames``: each image resized and
         cropped as the checkpoint's config says, with its calibration (checked: ``RigError``)."""
+        if isinstance(frames, Frame):
+            frames = [frames]
+        frames = list(frames)
+        if not frames:  # torch's raw "stack expects a non-empty TensorList"
+            raise ValueError("Mapper.batch: no frames; give at least one Frame")
         d = self.config.data
         keys = ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
         out: dict[str, list] = {k: [] for k in keys}
@@ -814,6 +859,9 @@ class Mapper:
         (``mapper.model.train()`` in a notebook after fine-tuning) would compute batch-norm statistics of this
         batch and update its running ones, so every output would change silently; it is switched to eval for
         the call and back after."""
+        if not isinstance(batch, Mapping):  # a Frame or a list of them: "'Frame' object has no attribute 'items'"
+            raise TypeError(f"Mapper.forward takes a model input batch (a dict of tensors, Mapper.batch(frames)), got "
+                            f"{type(batch).__name__}; to map frames call mapper(frame) or mapper([frames])")
         training = isinstance(self.model, torch.nn.Module) and self.model.training
         if training:
             self.model.eval()
@@ -825,6 +873,9 @@ class Mapper:
 
     def decode(self, outputs: dict[str, torch.Tensor]) -> list[list[MapElement]]:
         """Model outputs -> each sample's elements (postprocess.py, with the checkpoint's decoding)."""
+        if not isinstance(outputs, Mapping):
+            raise TypeError(f"Mapper.decode takes the model's outputs (the dict of Mapper.forward), got "
+                            f"{type(outputs).__name__}; to map frames call mapper(frame)")
         return [[MapElement(self.classes[p["label"]], p["pts"], p["closed"], p["score"], p["label"]) for p in sample]
                 for sample in postprocess_batch(outputs, self.grid, **self.decode_options)]
 

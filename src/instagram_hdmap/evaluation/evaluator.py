@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..config import ExperimentConfig
+from ..config import ExperimentConfig, load_config
 from ..geometry import BEVGrid
 from .inputs import EvaluationInputError
 from .io import SubmissionError, read_submission
@@ -45,7 +45,9 @@ DESCRIPTIONS = {
 
 
 def check_thresholds(thresholds: Sequence[float]) -> tuple[float, ...]:
-    """Thresholds in metres: a non-empty list of finite numbers > 0."""
+    """Thresholds in metres: a non-empty list of finite numbers > 0 (one number: that one threshold)."""
+    if isinstance(thresholds, (int, float, np.integer, np.floating)) and not isinstance(thresholds, bool):
+        thresholds = (thresholds,)
     try:
         out = tuple(float(t) for t in thresholds)
     except (TypeError, ValueError):
@@ -59,6 +61,34 @@ def check_thresholds(thresholds: Sequence[float]) -> tuple[float, ...]:
         raise EvaluationInputError(f"thresholds: {list(out)} lists a threshold twice, which mAP (their mean) would "
                                    "count twice; give each once")
     return out
+
+
+def check_classes(classes: Sequence[str]) -> tuple[str, ...]:
+    """Class names: a non-empty list of distinct strings (one string would be read as its characters: an
+    evaluator of the classes 'd', 'i', 'v', ...)."""
+    if isinstance(classes, (str, bytes)) or not isinstance(classes, (Sequence, np.ndarray)):
+        raise EvaluationInputError(f"classes must be a list of class names, e.g. ('divider', 'ped_crossing', "
+                                   f"'boundary') or ('divider',), got {classes!r:.80}")
+    out = tuple(classes)
+    if not out or not all(isinstance(c, str) and c for c in out):
+        raise EvaluationInputError(f"classes must be a non-empty list of class names (strings), got {list(out)!r:.120}")
+    if len(set(out)) != len(out):
+        raise EvaluationInputError(f"classes: {list(out)} names a class twice; labels index this list, so each "
+                                   "class must appear once")
+    return out
+
+
+def _samples(value, what: str) -> list:
+    """``preds`` / ``gts`` of ``Evaluator.update``: one list of polylines per sample, as a list (any iterable
+    of them: a generator too). A dict {token: polylines} is named: its order and tokens belong in ``tokens``."""
+    if isinstance(value, Mapping):
+        raise EvaluationInputError(f"Evaluator.update takes {what} as one list of polylines per sample, in order, "
+                                   "not a dict; for {token: polylines} pass [d[t] for t in tokens] with "
+                                   "tokens=tokens")
+    if value is None or isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+        raise EvaluationInputError(f"Evaluator.update takes {what} as one list of polylines per sample, got "
+                                   f"{type(value).__name__}")
+    return list(value)
 
 
 class Evaluator:
@@ -104,6 +134,7 @@ class Evaluator:
         }
         self.protocol = protocol
         self.thresholds = check_thresholds(thresholds)
+        classes = check_classes(classes)
         self._seen: set[str] = set()  # tokens scored so far (update)
         self.repeated = 0  # samples handed again and not scored twice
         self.classes = tuple(classes)
@@ -119,7 +150,10 @@ class Evaluator:
                                      "resolution": grid.resolution}}
 
     @classmethod
-    def from_config(cls, cfg: ExperimentConfig, device: str | torch.device = "cpu") -> Evaluator:
+    def from_config(cls, cfg: ExperimentConfig | str | Path, device: str | torch.device = "cpu") -> Evaluator:
+        """The evaluator a config's ``eval`` section describes (``cfg``: an ``ExperimentConfig`` or a YAML file)."""
+        if not isinstance(cfg, ExperimentConfig):
+            cfg = load_config(cfg)
         ev = cfg.eval
         return cls(ev.protocol, ev.thresholds, cfg.data.classes, grid=BEVGrid.from_config(cfg.grid),
                    rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device, also=ev.also_protocols)
@@ -138,6 +172,12 @@ class Evaluator:
         A token seen before (in this process) is not scored again: with ``data.on_bad_sample=skip`` a
         loader hands the next good sample in place of a bad one, which must not count twice; the
         repeats are counted (``counters["repeated_samples"]``, a note)."""
+        preds, gts = _samples(preds, "predictions"), _samples(gts, "GT")
+        if isinstance(tokens, (str, bytes)):  # one token: its characters would be B tokens
+            raise EvaluationInputError(f"{self.protocol} AP update: tokens must be a list of one token per sample, "
+                                       f"got the string {tokens!r:.60}")
+        if sample_ids is not None:
+            sample_ids = list(sample_ids)
         if tokens is not None:
             tokens = list(tokens)  # a numpy array or a pandas column of tokens, too
             if len(tokens) != len(preds):
@@ -170,7 +210,13 @@ class Evaluator:
         return state
 
     def merge(self, state: dict) -> None:
-        """Add another evaluator's ``state_dict()`` (e.g. from another process) to this one."""
+        """Add another evaluator's ``state_dict()`` (e.g. from another process) to this one (an ``Evaluator``
+        itself is taken as its state)."""
+        if isinstance(state, Evaluator):
+            state = state.state_dict()
+        if not isinstance(state, Mapping):
+            raise EvaluationInputError(f"Evaluator.merge takes another evaluator's state_dict() (or the evaluator), "
+                                       f"got {type(state).__name__}")
         state = dict(state)
         also = state.pop("also", {})
         # a state of other classes: numpy's raw "operands could not be broadcast" (another count), or its AP
@@ -271,7 +317,16 @@ class Evaluator:
 
 
 def format_table(metrics: dict) -> str:
-    """Plain-text table: one row per class (AP per threshold, AP_class), then mAP and the protocol."""
+    """Plain-text table: one row per class (AP per threshold, AP_class), then mAP and the protocol.
+    ``metrics``: ``Evaluator.compute()``'s dict (an ``Evaluator`` is computed)."""
+    if isinstance(metrics, Evaluator):
+        metrics = metrics.compute()
+    need = ("protocol", "protocol_description", "thresholds", "classes", "AP", "AP_class", "mAP")
+    if not isinstance(metrics, Mapping) or any(k not in metrics for k in need):
+        got = (f"a dict without {', '.join(k for k in need if k not in metrics)}" if isinstance(metrics, Mapping)
+               else type(metrics).__name__)
+        raise EvaluationInputError(f"format_table takes the metrics of Evaluator.compute() (or evaluate-json's "
+                                   f"metrics.json), got {got}")
     thr = metrics["thresholds"]
     head = f"{'class':<14}" + "".join(f"{'AP@' + format(t, 'g'):>10}" for t in thr) + f"{'AP_class':>10}"
     lines = [f"protocol: {metrics['protocol']} ({metrics['protocol_description']})", head, "-" * len(head)]

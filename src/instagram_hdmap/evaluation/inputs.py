@@ -38,6 +38,12 @@ class PolylineSet:
     num_short: int = 0  # polylines dropped because they had fewer than two points
 
 
+def _detached(value):
+    """A tensor as its values on the CPU: a model's outputs in a training loop carry ``requires_grad`` (NumPy's
+    raw "Can't call numpy() on Tensor that requires grad"), and may live on the GPU."""
+    return value.detach().cpu() if hasattr(value, "detach") and hasattr(value, "requires_grad") else value
+
+
 def sample_name(index: int, token: str | None) -> str:
     return f"sample '{token}'" if token is not None else f"sample #{index}"
 
@@ -70,7 +76,7 @@ def read_polylines(
         if not isinstance(item, dict) or "pts" not in item or "label" not in item:
             raise EvaluationInputError(f"{what}: expected a dict with keys 'pts' and 'label', got {item!r:.120}")
         try:
-            pts = np.asarray(item["pts"], dtype=np.float64)
+            pts = np.asarray(_detached(item["pts"]), dtype=np.float64)
         except (TypeError, ValueError) as e:
             raise EvaluationInputError(f"{what}: 'pts' is not a numeric [P, 2] array ({e})") from None
         if pts.size == 0:
@@ -79,7 +85,7 @@ def read_polylines(
             raise EvaluationInputError(f"{what}: 'pts' must have shape [P, 2] (x, y in metres), got {pts.shape}")
         if not np.isfinite(pts).all():
             raise EvaluationInputError(f"{what}: 'pts' contains NaN or infinite coordinates; fix the polyline")
-        label = item["label"]
+        label = _detached(item["label"])
         if getattr(label, "ndim", None) == 0 and hasattr(label, "item"):  # a 0-d tensor or array (a model's labels,
             label = label.item()  # iterated): its Python number, checked below as any label
         if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)):
@@ -94,7 +100,7 @@ def read_polylines(
             if "score" not in item:
                 raise EvaluationInputError(f"{what}: a prediction needs a 'score'")
             try:
-                score = float(item["score"])
+                score = float(_detached(item["score"]))
             except (TypeError, ValueError):
                 raise EvaluationInputError(f"{what}: 'score' must be a number, got {item['score']!r}") from None
             if not np.isfinite(score):

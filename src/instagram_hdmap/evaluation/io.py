@@ -41,7 +41,7 @@ from typing import Literal
 import numpy as np
 
 from ..config import MAP_CLASSES, UserError
-from ..files import write_json
+from ..files import as_path, write_json
 
 # Points are metres in the ego frame; a map patch spans tens of metres. Beyond this, the file is in
 # another frame (global coordinates) or in other units, or broken (1e308 overflows the distances).
@@ -96,7 +96,10 @@ class Submission:
 
 def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: int = 3) -> Submission:
     """Read a submission (role "pred") or GT (role "gt") file into polyline dicts per token."""
-    path = Path(path)
+    if role not in ("pred", "gt"):  # any other word was read as a GT: a prediction file's scores dropped, no word
+        raise ValueError(f"read_submission: role must be 'pred' (a submission, with confidence_level) or 'gt', got "
+                         f"{role!r}")
+    path = as_path(path, "the submission file")
     try:
         with open(path, "rb") as f:
             head = f.read(2)
@@ -223,9 +226,12 @@ def _points(raw: object, what: str) -> np.ndarray:
 
 
 def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
-    """Polyline dicts -> submission vectors (``confidence_level`` from "score" when present)."""
+    """Polyline dicts (or ``MapElement`` objects) -> submission vectors (``confidence_level`` from "score" when
+    present)."""
     out = []
     for p in polylines:
+        if hasattr(p, "as_polyline"):  # a MapElement (inference.py), what Mapper returns
+            p = p.as_polyline()
         pts = np.asarray(p["pts"], dtype=np.float64)
         v = {"pts": pts.tolist(), "pts_num": len(pts), "type": int(p["label"])}
         if "score" in p:
@@ -236,8 +242,24 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
 
 def submission(samples: Mapping[str, list[dict]], meta: dict | None = None) -> dict:
     """Polyline dicts per token -> the submission document ``{"meta", "results": {token: vectors}}``."""
+    if not isinstance(samples, Mapping):
+        got = ("a path (the arguments are (path, samples))" if isinstance(samples, (str, Path))
+               else f"a {type(samples).__name__}")
+        raise TypeError(f"a submission takes {{sample token: polylines}}, got {got}; the tokens are the GT's sample "
+                        "tokens")
+    for token, polys in samples.items():
+        if not isinstance(token, (str, int, np.integer)) or isinstance(token, bool):
+            # json.dump's "keys must be str, int, float, bool or None, not tuple", or a token the GT never matches
+            raise TypeError(f"a submission's sample tokens are strings, got {token!r} ({type(token).__name__})")
+        if isinstance(polys, (Mapping, str, bytes)) or not isinstance(polys, (list, tuple)):
+            raise TypeError(f"sample {token!r}: expected a list of polyline dicts (pts, label, score) or MapElement "
+                            f"objects, got {type(polys).__name__}")
+        bad = next((p for p in polys if not (isinstance(p, Mapping) or hasattr(p, "as_polyline"))), None)
+        if bad is not None:
+            raise TypeError(f"sample {token!r}: expected polyline dicts (pts, label, score) or MapElement objects, "
+                            f"got {type(bad).__name__} in the list")
     return {"meta": {"vector": True, **(meta or {})},
-            "results": {token: polylines_to_vectors(polys) for token, polys in samples.items()}}
+            "results": {str(token): polylines_to_vectors(polys) for token, polys in samples.items()}}
 
 
 def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: dict | None = None) -> None:
