@@ -7,7 +7,8 @@ the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
-eleventh, ``S12`` one found by a twelfth; a ninth-, tenth- or eleventh-sweep row of a valid input that
+eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth; a ninth-, tenth- or
+eleventh-sweep row of a valid input that
 was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a random
 tiny model: no training longer than a few steps.
 """
@@ -44,7 +45,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S12"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S13"
     what: str
     run: Callable
 
