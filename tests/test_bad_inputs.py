@@ -3066,6 +3066,152 @@ def row_map_element_checked(env):
         "MapElement(divider, 3 points, closed, score 0.50)"
 
 
+def _flicker_meter(env, **kwargs):
+    """A FlickerMeter of the tiny config's grid, one GT divider 10 m long, and a valid update's arguments
+    (two frames of one scene, the ego 1 m further along in the second)."""
+    from instagram_hdmap.evaluation.consistency import FlickerMeter
+    from instagram_hdmap.geometry import BEVGrid
+
+    meter = FlickerMeter(BEVGrid.from_config(env.cfg().grid), **kwargs)
+    gt = {"pts": np.array([[-5.0, 2.0], [5.0, 2.0]]), "label": 0}
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, 0, 3] = 1.0
+    return meter, gt, poses
+
+
+@row("S13", "FlickerMeter.update given a label beyond num_classes, a negative or a fractional one crashed later in "
+            "compute with a raw IndexError (or was cast); an EvaluationInputError names the sample (scene, frame)")
+def row_flicker_meter_bad_labels(env):
+    from instagram_hdmap.evaluation import EvaluationInputError
+
+    meter, gt, poses = _flicker_meter(env)
+    for label, pattern in ((3, r"unknown class id 3; expected 0\.\.2"), (-1, "unknown class id -1"),
+                           (1.5, "'label' must be an integer class id, got 1.5")):
+        with pytest.raises(EvaluationInputError, match=rf"sample \(scene 'a', frame 1\), GT polyline 0: {pattern}"):
+            meter.update([[], []], [[gt], [dict(gt, label=label)]], ["a", "a"], [0, 1], poses)
+    with pytest.raises(EvaluationInputError, match=r"scene 'a', frame 0\), prediction polyline 0: unknown class id 7"):
+        meter.update([[dict(gt, label=7, score=0.9)]], [[gt]], ["a"], [0], poses[:1])
+    assert meter.records == {}  # nothing of a refused batch is kept
+    meter.update([[dict(gt, score=0.9)], [gt]], [[gt], [gt]], ["a", "a"], [0, 1], poses)  # no score: counts as 1
+    assert meter.compute()["pairs"]["0"] == 1 and meter.compute()["flicker_mean"] == 0.0
+
+
+@row("S13", "FlickerMeter.update given one [4, 4] pose for a batch (LinAlgError or a row taken for a pose), or a "
+            "NaN pose or GT point (flicker 0.0, silently) now says which sample and what is wrong")
+def row_flicker_meter_bad_poses_and_nan(env):
+    from instagram_hdmap.evaluation import EvaluationInputError
+
+    meter, gt, poses = _flicker_meter(env)
+    with pytest.raises(EvaluationInputError, match=r"one \[4, 4\] pose for a batch of 2 samples; .*\[B, 4, 4\]"):
+        meter.update([[], []], [[gt], [gt]], ["a", "a"], [0, 1], poses[0])
+    with pytest.raises(EvaluationInputError, match=r"poses must have shape \[B, 4, 4\] .*got \[2, 3, 3\]"):
+        meter.update([[], []], [[gt], [gt]], ["a", "a"], [0, 1], poses[:, :3, :3])
+    nan = poses.copy()
+    nan[1, 1, 3] = np.nan
+    with pytest.raises(EvaluationInputError, match=r"sample \(scene 'a', frame 1\): its ego pose has NaN"):
+        meter.update([[], []], [[gt], [gt]], ["a", "a"], [0, 1], torch.from_numpy(nan))
+    with pytest.raises(EvaluationInputError, match=r"sample \(scene 'a', frame 0\), GT polyline 0: .*NaN"):
+        meter.update([[], []], [[dict(gt, pts=np.array([[np.nan, 0.0], [1.0, 0.0]]))], [gt]], ["a", "a"], [0, 1],
+                     poses)
+    meter.update([[]], [[gt]], ["a"], [0], poses[0])  # one sample's [4, 4] is its pose
+    assert len(meter.records) == 1
+
+
+@row("S13", "FlickerMeter.update given Mapper's MapElement lists as predictions crashed with a raw AttributeError "
+            "('MapElement' object has no attribute 'get'); they are read through MapElement.as_polyline()")
+def row_flicker_meter_map_elements(env):
+    from instagram_hdmap import MapElement
+
+    results = []
+    for as_element in (False, True):
+        meter, gt, poses = _flicker_meter(env, classes=("divider", "ped_crossing", "boundary"))
+        preds = [[MapElement("divider", gt["pts"], False, 0.8, 0)], []]
+        if not as_element:
+            preds = [[e.as_polyline() for e in p] for p in preds]
+        meter.update(preds, [[gt], [gt]], ["a", "a"], [0, 1], poses)
+        results.append(meter.compute())
+    assert results[0] == results[1] and results[1]["flicker"]["divider"] == 1.0  # detected, then missed
+
+
+@row("S13", "FlickerMeter.update given scenes as one string ('scene-0001': each character taken for a scene, NaN), "
+            "or arguments of different lengths (zip cut them silently) is an EvaluationInputError naming the counts")
+def row_flicker_meter_scenes_and_counts(env):
+    from instagram_hdmap.evaluation import EvaluationInputError
+
+    meter, gt, poses = _flicker_meter(env)
+    with pytest.raises(EvaluationInputError, match=r"scenes must be a list of B scene names.*\['scene-0001'\]"):
+        meter.update([[]], [[gt]], "scene-0001", [0], poses[:1])
+    with pytest.raises(EvaluationInputError, match=r"one entry per sample .*got 1 preds, 2 gts, 2 scenes, 2 frames, "
+                                                   r"2 poses"):
+        meter.update([[]], [[gt], [gt]], ["a", "a"], [0, 1], poses)
+
+
+@row("S13", "FlickerMeter.update given a frame index of 1.5 (cast to 1), -1 or a string is named with its sample")
+def row_flicker_meter_bad_frames(env):
+    from instagram_hdmap.evaluation import EvaluationInputError
+
+    meter, gt, poses = _flicker_meter(env)
+    for frame in (1.5, -1, "1", float("nan")):
+        with pytest.raises(EvaluationInputError, match=r"sample 1 \(scene 'a'\): its frame index must be an integer"):
+            meter.update([[], []], [[gt], [gt]], ["a", "a"], [0, frame], poses)
+    meter.update([[], []], [[gt], [gt]], ["a", "a"], torch.tensor([0.0, 1.0]), poses)  # float-typed whole numbers
+    assert sorted(meter.records) == [("a", 0), ("a", 1)]
+
+
+@row("S13", "FlickerMeter(threshold_m=-1, num_points=1, classes of another length, ...) was taken (wrong or crashing "
+            "later), and merge(meter) crashed raw; both name the argument")
+def row_flicker_meter_bad_arguments(env):
+    from instagram_hdmap.evaluation import EvaluationInputError
+
+    for kwargs, pattern in (({"threshold_m": -1.0}, "threshold_m must be a finite distance > 0"),
+                            ({"link_m": float("nan")}, "link_m must be a finite distance > 0"),
+                            ({"num_points": 1}, "num_points must be an integer >= 2"),
+                            ({"detect_points": 2.5}, "detect_points must be an integer >= 2"),
+                            ({"min_shared_points": 0}, "min_shared_points must be an integer >= 1"),
+                            ({"num_classes": 0}, "num_classes must be an integer >= 1"),
+                            ({"classes": ("divider", "boundary")}, "classes must name the num_classes = 3 classes")):
+        with pytest.raises(EvaluationInputError, match=rf"FlickerMeter: {pattern}"):
+            _flicker_meter(env, **kwargs)
+    meter, gt, poses = _flicker_meter(env)
+    other, _, _ = _flicker_meter(env)
+    other.update([[]], [[gt]], ["a"], [0], poses[:1])
+    with pytest.raises(EvaluationInputError, match=r"merge takes another FlickerMeter's state_dict\(\).*got "
+                                                   r"FlickerMeter; pass other\.state_dict\(\)"):
+        meter.merge(other)
+    with pytest.raises(EvaluationInputError, match=r"merge takes another FlickerMeter's state_dict\(\).*got dict"):
+        meter.merge({"a": 1})
+    meter.merge(other.state_dict())
+    assert list(meter.records) == [("a", 0)]
+
+
+@row("S13", "dataset['<sample token>'] and dataset[0:2] raised raw TypeErrors ('list indices must be integers'), "
+            "an index past the end a bare 'list index out of range': they say what the index is and its range")
+def row_dataset_index_not_an_int(env):
+    ds = val_dataset(env.cfg())
+    n, token = len(ds), ds.sample_tokens[1]
+    with pytest.raises(TypeError, match=rf"takes one sample index, an int in 0\.\.{n - 1} .*got str .*"
+                                        r"dataset\[dataset\.sample_tokens\.index\(token\)\]"):
+        ds[token]
+    with pytest.raises(TypeError, match=r"takes one sample index, .*got slice .*for several samples"):
+        ds[0:2]
+    with pytest.raises(IndexError, match=rf"sample index {n} is out of range: split 'val' has {n} samples"):
+        ds[n]
+    assert ds[ds.sample_tokens.index(token)]["sample_token"] == token == ds[np.int64(1)]["sample_token"]
+    assert ds[-1]["sample_token"] == ds.sample_tokens[-1]
+
+
+@row("S13", "Mapper: an ego_pose with NaN was refused as 'must be a finite 4x4 ... got shape [4, 4]' (the right "
+            "shape); the RigError says it has NaN or infinite values")
+def row_mapper_nan_ego_pose(env):
+    from instagram_hdmap import Frame
+    from instagram_hdmap.data.rig import RigError
+
+    mapper, images, K, poses = _mapper_frame(env)
+    pose = np.eye(4)
+    pose[0, 3] = np.nan
+    with pytest.raises(RigError, match=r"the frame's ego_pose has NaN or infinite values"):
+        mapper.stream().step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=pose))
+
 
 # --- the test: every row of the table ---------------------------------------------------------------
 

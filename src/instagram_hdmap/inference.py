@@ -641,9 +641,12 @@ def _ego_pose(pose) -> torch.Tensor:
     except (TypeError, ValueError):
         raise RigError(f"the frame's ego_pose must be a finite 4x4 (or 3x4) ego -> world transform, got "
                        f"{pose!r:.80}") from None
-    if T.shape not in ((4, 4), (3, 4)) or not bool(torch.isfinite(T).all()):
+    if T.shape not in ((4, 4), (3, 4)):
         raise RigError(f"the frame's ego_pose must be a finite 4x4 (or 3x4) ego -> world transform, got shape "
                        f"{list(T.shape)}")
+    if not bool(torch.isfinite(T).all()):  # the shape is right: say what is wrong (was "got shape [4, 4]")
+        raise RigError(f"the frame's ego_pose has NaN or infinite values ({T.flatten().tolist()!s:.160}); give a "
+                       "finite 4x4 (or 3x4) ego -> world transform")
     R = T[:3, :3].double()
     off, det = float((R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()), float(torch.linalg.det(R))
     if off > 1e-2 or det < 0:  # a temporal model would warp its memory by a non-rigid motion

@@ -24,6 +24,7 @@ sample is replaced by the next good one (one warning per bad sample, with the ru
 
 from __future__ import annotations
 
+import operator
 import os
 import warnings
 
@@ -337,14 +338,38 @@ class MapDataset(Dataset):
             **targets,
         }
 
+    def _sample_index(self, index) -> int:
+        """``dataset[index]``'s index as an int in 0..len - 1 (a negative one counts from the end, as in a list):
+        a token, a slice or a float is a TypeError saying what it takes (was a raw "list indices must be
+        integers"), an index out of range an IndexError naming the range (with on_bad_sample=skip it wrapped
+        around silently)."""
+        n = len(self)
+        try:
+            if isinstance(index, (bool, np.bool_, str, bytes, slice)):
+                raise TypeError
+            i = operator.index(index)  # int, numpy integer, integer 0-d tensor
+        except TypeError:
+            if isinstance(index, (str, bytes)):
+                hint = "; for a sample token: dataset[dataset.sample_tokens.index(token)]"
+            elif isinstance(index, slice):
+                hint = "; for several samples: [dataset[i] for i in range(...)] (collate_fn stacks them into a batch)"
+            else:
+                hint = ""
+            raise TypeError(f"{type(self).__name__}[index] takes one sample index, an int in 0..{n - 1} (split "
+                            f"'{self.split}', {n} samples), got {type(index).__name__} {index!r:.80}{hint}") from None
+        if not -n <= i < n:
+            raise IndexError(f"sample index {i} is out of range: split '{self.split}' has {n} samples (0..{n - 1})")
+        return i % n
+
     def __getitem__(self, index: int | tuple[int, bool]) -> dict:
         """Sample ``index``; ``(index, start)`` (a streaming sampler's pieces, data/streaming.py): the sample
         with ``scene_start`` = ``start``."""
-        if isinstance(index, tuple):
+        if isinstance(index, tuple) and len(index) == 2:
             index, start = index
             sample = self[index]
             sample["scene_start"] = torch.tensor(bool(start))
             return sample
+        index = self._sample_index(index)
         if self.data_cfg.on_bad_sample == "raise":
             return self.load_sample(index)
         n = len(self)

@@ -30,13 +30,15 @@ scene and sorted by frame at ``compute``; samples may arrive in any order, from 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import numbers
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from ..geometry import BEVGrid
 from .chamfer import chamfer_pairs
+from .inputs import EvaluationInputError, read_polylines
 from .vector_ap import resample_polylines
 
 
@@ -64,6 +66,22 @@ def detected_gt(preds: Sequence[dict], gts: Sequence[dict], threshold_m: float, 
     return detected
 
 
+def _real(value) -> bool:
+    """A real number (int, float, numpy scalar), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _as_list(values, name: str, expected: str) -> list:
+    """A batch argument (list, tuple, array or tensor) as a list, or an error naming it."""
+    if isinstance(values, (str, bytes, Mapping)):
+        raise EvaluationInputError(f"FlickerMeter.update: {name} must be {expected}, got {type(values).__name__}")
+    if hasattr(values, "tolist"):
+        values = values.tolist()
+    if not isinstance(values, Sequence) or isinstance(values, (str, bytes)):
+        raise EvaluationInputError(f"FlickerMeter.update: {name} must be {expected}, got {values!r:.80}")
+    return list(values)
+
+
 def _point_to_polyline(q: np.ndarray, line: np.ndarray) -> np.ndarray:
     """[Q, 2] points, [n, 2] polyline -> [Q] distance of each point to the polyline."""
     a, b = line[:-1], line[1:]
@@ -78,11 +96,27 @@ class FlickerMeter:
     def __init__(self, grid: BEVGrid, num_classes: int = 3, classes: Sequence[str] | None = None,
                  threshold_m: float = 1.0, score_threshold: float = 0.0, link_m: float = 0.5,
                  min_shared_points: int = 2, num_points: int = 20, detect_points: int = 100):
-        self.grid, self.num_classes = grid, num_classes
+        if not isinstance(grid, BEVGrid):
+            raise TypeError(f"FlickerMeter: grid must be a BEVGrid (BEVGrid.from_config(cfg.grid)), got "
+                            f"{type(grid).__name__}")
+        for name, value, least in (("num_classes", num_classes, 1), ("min_shared_points", min_shared_points, 1),
+                                   ("num_points", num_points, 2), ("detect_points", detect_points, 2)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+                raise EvaluationInputError(f"FlickerMeter: {name} must be an integer >= {least}, got {value!r}")
+        for name, value in (("threshold_m", threshold_m), ("link_m", link_m)):
+            if not _real(value) or not (math.isfinite(value) and value > 0):
+                raise EvaluationInputError(f"FlickerMeter: {name} must be a finite distance > 0 (metres), "
+                                           f"got {value!r}")
+        if not _real(score_threshold) or math.isnan(score_threshold):
+            raise EvaluationInputError(f"FlickerMeter: score_threshold must be a number, got {score_threshold!r}")
+        if isinstance(classes, (str, bytes)) or (classes is not None and len(classes) != num_classes):
+            raise EvaluationInputError(f"FlickerMeter: classes must name the num_classes = {num_classes} classes, "
+                                       f"one name each, got {classes!r:.120}")
+        self.grid, self.num_classes = grid, int(num_classes)
         self.classes = tuple(classes) if classes is not None else tuple(str(k) for k in range(num_classes))
-        self.threshold_m, self.score_threshold = threshold_m, score_threshold
-        self.link_m, self.min_shared_points, self.num_points = link_m, min_shared_points, num_points
-        self.detect_points = detect_points
+        self.threshold_m, self.score_threshold = float(threshold_m), float(score_threshold)
+        self.link_m, self.min_shared_points, self.num_points = float(link_m), int(min_shared_points), int(num_points)
+        self.detect_points = int(detect_points)
         self.reset()
 
     def reset(self) -> None:
@@ -90,19 +124,72 @@ class FlickerMeter:
 
     def update(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], scenes: Sequence[str],
                frames, poses) -> None:
-        """B samples: polylines (metres, ego frame), their scene names, frame indices [B] and ego poses
-        [B, 4, 4] (tensors or arrays). A sample seen twice (streaming padding) counts once."""
-        frames = frames.tolist() if hasattr(frames, "tolist") else list(frames)
-        poses = poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
-        for b, (p, g) in enumerate(zip(preds, gts)):
-            key = (str(scenes[b]), int(frames[b]))
+        """B samples: polylines (metres, ego frame; predictions may be ``MapElement`` lists, what ``Mapper``
+        returns), their scene names, frame indices [B] and ego poses [B, 4, 4] (tensors or arrays). A
+        sample seen twice (streaming padding) counts once. A bad input is an ``EvaluationInputError`` naming
+        the sample (scene, frame); nothing of the batch is kept then."""
+        if isinstance(scenes, (str, bytes)):
+            raise EvaluationInputError(f"FlickerMeter.update: scenes must be a list of B scene names, one per sample, "
+                                       f"got one string {scenes!r:.80} (for one sample: [{scenes!r:.80}])")
+        scenes = _as_list(scenes, "scenes", "a list of B scene names, one per sample")
+        frames = _as_list(frames, "frames", "B frame indices (a list or a [B] tensor)")
+        for name, value in (("preds", preds), ("gts", gts)):
+            if isinstance(value, (dict, str, bytes)) or not isinstance(value, Sequence):
+                raise EvaluationInputError(f"FlickerMeter.update: {name} must be a list of B samples, each a list "
+                                           f"of polyline dicts, got {type(value).__name__}")
+        try:
+            poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
+                     else np.asarray(poses, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise EvaluationInputError(f"FlickerMeter.update: poses must be B ego -> world transforms [B, 4, 4], "
+                                       f"got {poses!r:.80}") from None
+        counts = {"preds": len(preds), "gts": len(gts), "scenes": len(scenes), "frames": len(frames)}
+        B = len(gts)
+        if poses.shape == (4, 4) and B != 1:
+            raise EvaluationInputError(f"FlickerMeter.update: poses is one [4, 4] pose for a batch of {B} samples; "
+                                       "give one pose per sample, [B, 4, 4]")
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            if poses.shape != (4, 4):
+                raise EvaluationInputError(f"FlickerMeter.update: poses must have shape [B, 4, 4] (ego -> world), "
+                                           f"got {list(poses.shape)}")
+            poses = poses[None]  # one sample's [4, 4]
+        counts["poses"] = len(poses)
+        if len(set(counts.values())) > 1:
+            raise EvaluationInputError("FlickerMeter.update: one entry per sample in each argument, got "
+                                       + ", ".join(f"{v} {k}" for k, v in counts.items()))
+        keys = []
+        for b in range(B):
+            f = frames[b]
+            if isinstance(f, (bool, np.bool_)) or not _real(f) or not math.isfinite(f) or f != int(f) or f < 0:
+                raise EvaluationInputError(f"FlickerMeter.update: sample {b} (scene '{scenes[b]}'): its frame index "
+                                           f"must be an integer >= 0 (the frame's place in its scene), got {f!r}")
+            keys.append((str(scenes[b]), int(f)))
+        checked = []
+        for b, key in enumerate(keys):
+            where = f"sample (scene '{key[0]}', frame {key[1]})"
+            if not np.isfinite(poses[b]).all():
+                raise EvaluationInputError(f"{where}: its ego pose has NaN or infinite values; give a finite 4x4 "
+                                           "ego -> world transform")
+            if not np.allclose(poses[b][3], (0.0, 0.0, 0.0, 1.0), atol=1e-6) or abs(np.linalg.det(poses[b])) < 1e-9:
+                raise EvaluationInputError(f"{where}: its ego pose is not a rigid transform [[R, t], [0, 0, 0, 1]] "
+                                           f"(last row {poses[b][3].round(4).tolist()}, det "
+                                           f"{np.linalg.det(poses[b]):.3g})")
+            p = preds[b]
+            if isinstance(p, Sequence) and not isinstance(p, (str, bytes)):
+                p = [x.as_polyline() if hasattr(x, "as_polyline") and not isinstance(x, dict)  # MapElement
+                     else dict(x, score=x.get("score", 1.0)) if isinstance(x, dict) else x for x in p]
+            P = read_polylines(p, role="prediction", num_classes=self.num_classes, where=where, short="drop")
+            G = read_polylines(gts[b], role="GT", num_classes=self.num_classes, where=where, short="drop")
+            checked.append((P, G))
+        for b, (key, (P, G)) in enumerate(zip(keys, checked)):
             if key in self.records:
                 continue
-            g = [x for x in g if len(x["pts"]) >= 2]
+            p = [{"pts": x, "label": int(k), "score": float(s)} for x, k, s in zip(P.pts, P.labels, P.scores)]
+            g = [{"pts": x, "label": int(k)} for x, k in zip(G.pts, G.labels)]
             self.records[key] = {
                 "detected": detected_gt(p, g, self.threshold_m, self.detect_points, self.score_threshold),
-                "labels": np.array([x["label"] for x in g], dtype=np.int64),
-                "pts": resample_polylines([np.asarray(x["pts"], np.float64) for x in g], self.num_points),
+                "labels": G.labels.copy(),
+                "pts": resample_polylines(G.pts, self.num_points),
                 "pose": np.asarray(poses[b], dtype=np.float64),
             }
 
@@ -110,7 +197,22 @@ class FlickerMeter:
         return {"records": dict(self.records)}
 
     def merge(self, state: dict) -> None:
-        for key, rec in state["records"].items():
+        """Add another meter's ``state_dict()`` (a sample already here is kept once)."""
+        records = state.get("records") if isinstance(state, Mapping) else None
+        if isinstance(state, FlickerMeter) or not isinstance(records, Mapping) or not all(
+                isinstance(k, tuple) and len(k) == 2 and isinstance(r, Mapping)
+                and {"detected", "labels", "pts", "pose"} <= set(r) for k, r in records.items()):
+            hint = "; pass other.state_dict()" if isinstance(state, FlickerMeter) else ""
+            raise EvaluationInputError(
+                "FlickerMeter.merge takes another FlickerMeter's state_dict() ({'records': {(scene, frame): ...}}), "
+                f"got {type(state).__name__}{hint}")
+        bad = [k for k, r in records.items()
+               if len(r["labels"]) and not 0 <= int(np.max(r["labels"])) < self.num_classes]
+        if bad:
+            raise EvaluationInputError(f"FlickerMeter.merge: the state's sample (scene '{bad[0][0]}', frame "
+                                       f"{bad[0][1]}) has class ids beyond this meter's {self.num_classes} classes "
+                                       "(a state of a meter with other classes)")
+        for key, rec in records.items():
             self.records.setdefault(key, rec)
 
     def gather(self) -> None:
