@@ -3213,6 +3213,58 @@ def row_mapper_nan_ego_pose(env):
         mapper.stream().step(Frame(images=images, intrinsics=K, cam_to_ego=poses, ego_pose=pose))
 
 
+@row("S12", "Evaluator.merge of the same state twice (a notebook cell run again, a rank's state gathered twice) "
+            "doubled every count and changed the AP with no word; a state whose every sample token is already in "
+            "the evaluator is refused, samples in two merged states are a note, and merging states of other "
+            "thresholds says which")
+def row_evaluator_merge_of_the_same_state_twice(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+
+    gt = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    far = {"pts": np.array([[0.0, -9.0], [10.0, -9.0]]), "label": 0, "score": 0.9}
+    a, b = Evaluator(), Evaluator()
+    a.update([[{**gt, "score": 0.8}], [far]], [[gt], [gt]], tokens=["s1", "s2"])
+    b.update([[{**gt, "score": 0.7}]], [[gt]], tokens=["s3"])
+    ev = Evaluator()
+    ev.merge(a.state_dict())
+    ev.merge(b.state_dict())
+    expected = ev.compute()
+    with pytest.raises(EvaluationInputError, match="every one of this state's 2 sample tokens is already in the "
+                                                   "evaluator"):
+        ev.merge(a.state_dict())
+    assert ev.compute()["num_gt"] == expected["num_gt"] and ev.compute()["mAP"] == expected["mAP"]
+    c = Evaluator()
+    c.update([[{**gt, "score": 0.6}], [{**gt, "score": 0.6}]], [[gt], [gt]], tokens=["s3", "s4"])
+    ev.merge(c)  # s3 is in two states: counted twice, and said
+    metrics = ev.compute()
+    assert metrics["counters"]["samples_in_two_merged_states"] == 1
+    assert any("1 samples were in two merged states" in n for n in metrics["notes"])
+    with pytest.raises(EvaluationInputError, match=r"cannot merge a vector state at thresholds \[0.5, 1.0, 1.5\] "
+                                                   r"into a vector evaluator at \[1.0\]"):
+        Evaluator(thresholds=1.0).merge(a.state_dict())
+
+
+
+@row("S12", "Chamfer thresholds given in centimetres (evaluate-json --thresholds 50 100 150, eval.thresholds, "
+            "Evaluator(thresholds=...)) were taken as metres: every prediction of the right class within 1.5 m... "
+            "150 m a true positive, AP near 1 with exit 0; a threshold above 10 m is named")
+def row_thresholds_in_centimetres(env):
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+    from instagram_hdmap.evaluation.io import write_submission
+
+    gt = {"pts": np.array([[0.0, 2.0], [10.0, 2.0]]), "label": 0}
+    write_submission(env.tmp / "gt.json", {"a": [gt]}, meta={"ground_truth": True})
+    write_submission(env.tmp / "pred.json", {"a": [{**gt, "pts": gt["pts"] + [0, 5.0], "score": 0.9}]})
+    env.error(r"150 m would match elements that far apart: centimetres given\?", "evaluate-json", "--pred",
+              env.tmp / "pred.json", "--gt", env.tmp / "gt.json", "--thresholds", "50", "100", "150")
+    env.error(r"'eval\.thresholds\[0\]' must be in \(0, 10\] \(Chamfer thresholds in metres \(centimetres given\?\)\)",
+              "model-summary", env.yaml, "eval.thresholds=[50,100,150]")
+    with pytest.raises(EvaluationInputError, match="centimetres given"):
+        Evaluator(thresholds=(50, 100, 150))
+    assert Evaluator(thresholds=(2.0, 4.0, 6.0)).thresholds == (2.0, 4.0, 6.0)  # wide but metres: taken
+
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

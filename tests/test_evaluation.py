@@ -631,7 +631,7 @@ def test_also_protocols_score_the_same_predictions_and_merge_like_the_main_one()
 def test_bad_inputs_raise_clear_errors():
     with pytest.raises(EvaluationInputError, match="> 0"):
         Evaluator("vector", thresholds=(0.5, 0.0))
-    with pytest.raises(EvaluationInputError, match="< 100"):
+    with pytest.raises(EvaluationInputError, match="at most 10 m"):
         Evaluator("vector", thresholds=(150.0,))
     ev = Evaluator("vector")
     with pytest.raises(EvaluationInputError, match=r"sample 'a', prediction polyline 0: .*NaN"):

@@ -350,7 +350,8 @@ class TrainConfig:
 @dataclass
 class EvalConfig:
     protocol: Literal["vector", "raster"] = "vector"
-    thresholds: tuple[float, ...] = bounded((0.5, 1.0, 1.5), gt=0)
+    thresholds: tuple[float, ...] = bounded((0.5, 1.0, 1.5), gt=0, le=10,
+                                            note="Chamfer thresholds in metres (centimetres given?)")
     batch_size: int = bounded(4, ge=1)
     # raster protocol only: "ascending" reproduces the reference's PR curve order (a bug the
     # InstaGraM paper's numbers carry), "descending" fixes it

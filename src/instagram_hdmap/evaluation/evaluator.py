@@ -44,6 +44,9 @@ DESCRIPTIONS = {
 }
 
 
+MAX_THRESHOLD_M = 10.0  # a map patch spans 30-60 m: a Chamfer threshold beyond this matches anything nearby
+
+
 def check_thresholds(thresholds: Sequence[float]) -> tuple[float, ...]:
     """Thresholds in metres: a non-empty list of finite numbers > 0 (one number: that one threshold)."""
     if isinstance(thresholds, (int, float, np.integer, np.floating)) and not isinstance(thresholds, bool):
@@ -57,6 +60,10 @@ def check_thresholds(thresholds: Sequence[float]) -> tuple[float, ...]:
     bad = [t for t in out if not (math.isfinite(t) and t > 0)]
     if bad:
         raise EvaluationInputError(f"thresholds must be finite and > 0 metres; got {bad}")
+    if max(out) > MAX_THRESHOLD_M:  # 50 100 150 (centimetres): every element metres away a true positive, AP ~1
+        raise EvaluationInputError(f"thresholds are Chamfer distances in metres (the protocols: 0.5 1.0 1.5); "
+                                   f"{max(out):g} m would match elements that far apart: centimetres given? at most "
+                                   f"{MAX_THRESHOLD_M:g} m")
     if len(set(out)) != len(out):  # mAP averages over them: one given twice would count twice
         raise EvaluationInputError(f"thresholds: {list(out)} lists a threshold twice, which mAP (their mean) would "
                                    "count twice; give each once")
@@ -137,6 +144,7 @@ class Evaluator:
         classes = check_classes(classes)
         self._seen: set[str] = set()  # tokens scored so far (update)
         self.repeated = 0  # samples handed again and not scored twice
+        self.in_two_states = 0  # samples of merged states that another merged state held too (scored twice)
         self.classes = tuple(classes)
         if protocol == "vector":
             self.impl: VectorAP | RasterAP = VectorAP(self.thresholds, len(self.classes), num_sample_points,
@@ -198,13 +206,13 @@ class Evaluator:
 
     def reset(self) -> None:
         self.impl.reset()
-        self._seen, self.repeated = set(), 0
+        self._seen, self.repeated, self.in_two_states = set(), 0, 0
         for ev in self.also.values():
             ev.reset()
 
     def state_dict(self) -> dict:
         """Picklable accumulated state (NumPy arrays and numbers); the ``also`` protocols' under "also"."""
-        state = {**self.impl.state_dict(), "classes": list(self.classes)}
+        state = {**self.impl.state_dict(), "classes": list(self.classes), "tokens": sorted(self._seen)}
         if self.also:
             state = {**state, "also": {p: ev.state_dict() for p, ev in self.also.items()}}
         return state
@@ -227,7 +235,14 @@ class Evaluator:
             theirs = ", ".join(map(str, names)) if names is not None else f"{len(num_gt)} classes"
             raise EvaluationInputError(f"cannot merge an evaluation state of the classes {theirs} into an evaluator of "
                                        f"the classes {', '.join(self.classes)}; merge states of the same classes")
+        tokens = set(state.pop("tokens", None) or ())
+        if tokens and tokens <= self._seen:  # the same state merged twice: every AP count doubled, no word
+            raise EvaluationInputError(f"Evaluator.merge: every one of this state's {len(tokens)} sample tokens is "
+                                       "already in the evaluator (the same state merged twice?); merge each "
+                                       "process's state once")
         self.impl.merge_state(state)
+        self.in_two_states += len(tokens & self._seen)
+        self._seen.update(tokens)
         for p, ev in self.also.items():
             ev.merge(also[p])
 
@@ -259,6 +274,8 @@ class Evaluator:
             ap_class = ap.mean(1)  # evaluate_json.py:85
             m_ap = float(ap.mean())  # :86, NaN if any class is NaN
         counters = {**self.impl.counters, "repeated_samples": self.repeated}
+        if self.in_two_states:
+            counters["samples_in_two_merged_states"] = self.in_two_states
         out = {
             "protocol": self.protocol,
             "protocol_description": DESCRIPTIONS[self.protocol],
@@ -289,6 +306,9 @@ class Evaluator:
         if counters.get("repeated_samples"):
             notes.append(f"{counters['repeated_samples']} samples handed again (data.on_bad_sample=skip puts the next "
                          "good sample in place of a bad one) were scored once")
+        if counters.get("samples_in_two_merged_states"):
+            notes.append(f"{counters['samples_in_two_merged_states']} samples were in two merged states (two processes "
+                         "scored them: data.on_bad_sample=skip's replacement, or overlapping shares) and count twice")
         if counters["samples_without_predictions"]:
             notes.append(f"{counters['samples_without_predictions']} samples have no predictions (scored as such)")
         if counters["dropped_short_predictions"]:

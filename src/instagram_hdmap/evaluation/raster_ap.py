@@ -387,7 +387,9 @@ class RasterAP:
 
     def merge_state(self, state: dict) -> None:
         if state.get("protocol") != self.name or list(state["thresholds"]) != self.thresholds.tolist():
-            raise EvaluationInputError("cannot merge evaluation states of different protocols or thresholds")
+            raise EvaluationInputError(f"cannot merge a {state.get('protocol')} state at thresholds "
+                                       f"{list(state.get('thresholds', []))} into a {self.name} evaluator at "
+                                       f"{self.thresholds.tolist()}; merge states of the same protocol and thresholds")
         self.ap_sum += state["ap_sum"]
         self.count += state["count"]
         self.num_gt += state["num_gt"]

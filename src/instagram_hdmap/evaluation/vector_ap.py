@@ -463,7 +463,9 @@ class VectorAP:
 
     def merge_state(self, state: dict) -> None:
         if state.get("protocol") != self.name or list(state["thresholds"]) != self.thresholds.tolist():
-            raise EvaluationInputError("cannot merge evaluation states of different protocols or thresholds")
+            raise EvaluationInputError(f"cannot merge a {state.get('protocol')} state at thresholds "
+                                       f"{list(state.get('thresholds', []))} into a {self.name} evaluator at "
+                                       f"{self.thresholds.tolist()}; merge states of the same protocol and thresholds")
         for c in range(self.num_classes):
             self._ids[c].append(state["ids"][c])
             self._scores[c].append(state["scores"][c])
