@@ -125,7 +125,8 @@ class FlickerMeter:
     def update(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], scenes: Sequence[str],
                frames, poses) -> None:
         """B samples: polylines (metres, ego frame; predictions may be ``MapElement`` lists, what ``Mapper``
-        returns), their scene names, frame indices [B] and ego poses [B, 4, 4] (tensors or arrays). A
+        returns), their scene names, frame indices [B] (integers >= 0) and ego poses [B, 4, 4] (tensors or
+        arrays; finite rigid transforms [[R, t], [0, 0, 0, 1]], which compute inverts). A
         sample seen twice (streaming padding) counts once. A bad input is an ``EvaluationInputError`` naming
         the sample (scene, frame); nothing of the batch is kept then."""
         if isinstance(scenes, (str, bytes)):
