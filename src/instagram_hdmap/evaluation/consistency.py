@@ -37,6 +37,8 @@ import torch
 
 from ..geometry import BEVGrid
 from .chamfer import chamfer_pairs
+from .evaluator import _samples, check_classes
+from .inputs import EvaluationInputError, PolylineSet, _detached, check_grid, read_polylines, sample_name
 from .vector_ap import resample_polylines
 
 
@@ -64,6 +66,12 @@ def detected_gt(preds: Sequence[dict], gts: Sequence[dict], threshold_m: float, 
     return detected
 
 
+def _dicts(polylines: PolylineSet) -> list[dict]:
+    """Checked polylines (``read_polylines``) as the dicts of ``detected_gt``."""
+    return [{"pts": pts, "label": int(label), "score": float(score)}
+            for pts, label, score in zip(polylines.pts, polylines.labels, polylines.scores)]
+
+
 def _point_to_polyline(q: np.ndarray, line: np.ndarray) -> np.ndarray:
     """[Q, 2] points, [n, 2] polyline -> [Q] distance of each point to the polyline."""
     a, b = line[:-1], line[1:]
@@ -75,11 +83,19 @@ def _point_to_polyline(q: np.ndarray, line: np.ndarray) -> np.ndarray:
 class FlickerMeter:
     """Accumulates per-sample detection status and computes the flicker rate (module docstring)."""
 
-    def __init__(self, grid: BEVGrid, num_classes: int = 3, classes: Sequence[str] | None = None,
+    def __init__(self, grid: BEVGrid, num_classes: int | None = None, classes: Sequence[str] | None = None,
                  threshold_m: float = 1.0, score_threshold: float = 0.0, link_m: float = 0.5,
                  min_shared_points: int = 2, num_points: int = 20, detect_points: int = 100):
-        self.grid, self.num_classes = grid, num_classes
-        self.classes = tuple(classes) if classes is not None else tuple(str(k) for k in range(num_classes))
+        # checked here: a config given as the grid was a raw AttributeError at compute, and classes of another
+        # count than num_classes reported some classes' rates and averaged others into flicker_mean unseen
+        self.grid = check_grid(grid, "FlickerMeter")
+        if classes is not None:
+            classes = check_classes(classes)
+            if num_classes is not None and num_classes != len(classes):
+                raise EvaluationInputError(f"FlickerMeter: num_classes={num_classes} but {len(classes)} classes "
+                                           f"{list(classes)}; give one of them (labels index the classes)")
+        self.num_classes = num_classes if num_classes is not None else len(classes) if classes is not None else 3
+        self.classes = tuple(classes) if classes is not None else tuple(str(k) for k in range(self.num_classes))
         self.threshold_m, self.score_threshold = threshold_m, score_threshold
         self.link_m, self.min_shared_points, self.num_points = link_m, min_shared_points, num_points
         self.detect_points = detect_points
@@ -92,18 +108,47 @@ class FlickerMeter:
                frames, poses) -> None:
         """B samples: polylines (metres, ego frame), their scene names, frame indices [B] and ego poses
         [B, 4, 4] (tensors or arrays). A sample seen twice (streaming padding) counts once."""
-        frames = frames.tolist() if hasattr(frames, "tolist") else list(frames)
-        poses = poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
-        for b, (p, g) in enumerate(zip(preds, gts)):
+        who = "FlickerMeter.update"
+        preds, gts = _samples(preds, "predictions", who), _samples(gts, "GT", who)
+        n = len(preds)
+        if len(gts) != n:
+            raise EvaluationInputError(f"FlickerMeter.update: {n} prediction lists but {len(gts)} GT lists")
+        if isinstance(scenes, (str, bytes)) or not isinstance(scenes, (Sequence, np.ndarray)):
+            raise EvaluationInputError(f"FlickerMeter.update: scenes must be one scene name per sample, got "
+                                       f"{scenes!r:.60}")
+        frames = _detached(frames)
+        frames = np.asarray(frames).reshape(-1) if not isinstance(frames, (list, tuple)) else np.asarray(frames)
+        poses = _detached(poses)
+        try:
+            poses = np.asarray(poses.double() if isinstance(poses, torch.Tensor) else poses, dtype=np.float64)
+        except (TypeError, ValueError):  # None, strings, ragged lists: named below by their shape
+            poses = np.full((), np.nan)
+        if len(scenes) != n or frames.shape != (n,):
+            raise EvaluationInputError(f"FlickerMeter.update: {n} samples but {len(scenes)} scene names and "
+                                       f"{frames.size} frame indices; give one of each per sample")
+        if not (np.issubdtype(frames.dtype, np.integer) or (np.issubdtype(frames.dtype, np.floating)
+                                                             and np.all(frames == np.round(frames)))):
+            # int() truncated timestamps in seconds (0.0, 0.5 -> 0, 0): the second frame was dropped as a repeat
+            raise EvaluationInputError(f"FlickerMeter.update: frames must be integer frame indices in the scene "
+                                       f"(0, 1, 2, ...), got {frames.tolist()!r:.80}")
+        if poses.shape not in ((n, 4, 4), (n, 3, 4)) or not np.isfinite(poses).all():
+            raise EvaluationInputError(f"FlickerMeter.update: poses must be one finite 4x4 (or 3x4) ego -> world "
+                                       f"transform per sample, shape [{n}, 4, 4], got shape {list(poses.shape)}")
+        if poses.shape[1] == 3:
+            poses = np.concatenate([poses, np.broadcast_to([[[0.0, 0.0, 0.0, 1.0]]], (n, 1, 4))], axis=1)
+        for b in range(n):
             key = (str(scenes[b]), int(frames[b]))
             if key in self.records:
                 continue
-            g = [x for x in g if len(x["pts"]) >= 2]
+            where = sample_name(b, key[0] + f" frame {key[1]}")
+            p = _dicts(read_polylines(preds[b], role="prediction", num_classes=self.num_classes, where=where,
+                                      short="drop"))
+            g = _dicts(read_polylines(gts[b], role="GT", num_classes=self.num_classes, where=where, short="drop"))
             self.records[key] = {
                 "detected": detected_gt(p, g, self.threshold_m, self.detect_points, self.score_threshold),
                 "labels": np.array([x["label"] for x in g], dtype=np.int64),
-                "pts": resample_polylines([np.asarray(x["pts"], np.float64) for x in g], self.num_points),
-                "pose": np.asarray(poses[b], dtype=np.float64),
+                "pts": resample_polylines([x["pts"] for x in g], self.num_points),
+                "pose": poses[b],
             }
 
     def state_dict(self) -> dict:
