@@ -7,8 +7,8 @@ the case in issue 21 (``S`` marks a case found by the sweep that fixed them, ``S
 second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`` one found by a
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
-eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth; a ninth-, tenth- or
-eleventh-sweep row of a valid input that
+eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
+fourteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that
 was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a random
 tiny model: no training longer than a few steps.
 """
@@ -45,7 +45,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S13"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S14"
     what: str
     run: Callable
 
@@ -3169,7 +3169,8 @@ def row_flicker_meter_bad_arguments(env):
                             ({"detect_points": 2.5}, "detect_points must be an integer >= 2"),
                             ({"min_shared_points": 0}, "min_shared_points must be an integer >= 1"),
                             ({"num_classes": 0}, "num_classes must be an integer >= 1"),
-                            ({"classes": ("divider", "boundary")}, "classes must name the num_classes = 3 classes")):
+                            ({"num_classes": 3, "classes": ("divider", "boundary")},
+                                 "classes must name the num_classes = 3 classes")):
         with pytest.raises(EvaluationInputError, match=rf"FlickerMeter: {pattern}"):
             _flicker_meter(env, **kwargs)
     meter, gt, poses = _flicker_meter(env)
@@ -3263,6 +3264,167 @@ def row_thresholds_in_centimetres(env):
         Evaluator(thresholds=(50, 100, 150))
     assert Evaluator(thresholds=(2.0, 4.0, 6.0)).thresholds == (2.0, 4.0, 6.0)  # wide but metres: taken
 
+@row("S14", "Evaluator(protocol='raster', grid=cfg) (a config given as the canvas) crashed with a raw "
+            "\"'ExperimentConfig' object has no attribute 'xmin'\"; a config (or its grid section) is taken as the "
+            "grid it describes, another object is one line; and Evaluator.update refused the MapElement lists that "
+            "Mapper returns ('expected a dict with keys pts and label'): they are taken as their polylines")
+def row_evaluator_grid_of_a_config_and_map_elements(env):
+    from instagram_hdmap import MapElement
+    from instagram_hdmap.evaluation import EvaluationInputError, Evaluator
+    from instagram_hdmap.geometry import BEVGrid
+
+    cfg = env.cfg()
+    line = np.array([[0.0, 1.0], [5.0, 1.0]])
+    gt, pred = {"pts": line, "label": 0}, {"pts": line, "label": 0, "score": 0.9}
+    expected = Evaluator("raster", grid=BEVGrid.from_config(cfg.grid))
+    expected.update([[pred]], [[gt]])
+    for grid in (cfg, cfg.grid):
+        ev = Evaluator("raster", grid=grid)
+        ev.update([[pred]], [[gt]])
+        assert ev.options["grid"] == expected.options["grid"] and ev.compute()["AP"]["divider"] == [1.0, 1.0, 1.0]
+    with pytest.raises(EvaluationInputError, match="grid must be a BEVGrid .* got tuple"):
+        Evaluator("raster", grid=(-8, 8, -4, 4))
+    ev = Evaluator()
+    ev.update([[MapElement("divider", line, False, 0.9, 0)]], [[gt]])
+    assert ev.compute()["AP_class"]["divider"] == 1.0
+
+
+@row("S14", "FlickerMeter.update given scenes as one string, fewer frame indices or poses than samples, one pose "
+            "for all, poses None or a config as the grid crashed with raw IndexError / LinAlgError / AttributeError; "
+            "frames given as timestamps in seconds (0.0, 0.5) were truncated to one frame and the second dropped as "
+            "a repeat, and classes of another count than num_classes averaged a class unseen into flicker_mean "
+            "(exit 0); each is one line, MapElement lists, 3x4 poses and a config's grid are taken")
+def row_flicker_meter_inputs(env):
+    from instagram_hdmap import MapElement
+    from instagram_hdmap.evaluation import EvaluationInputError
+    from instagram_hdmap.evaluation.consistency import FlickerMeter
+    from instagram_hdmap.geometry import BEVGrid
+
+    cfg = env.cfg()
+    grid = BEVGrid.from_config(cfg.grid)
+    line = np.array([[0.0, 1.0], [5.0, 1.0], [6.0, 2.0]])
+    gt, pred = [{"pts": line, "label": 0}], [{"pts": line, "label": 0, "score": 0.9}]
+    poses = np.stack([np.eye(4)] * 2)
+
+    def meter_update(meter=None, **kw):
+        meter = meter or FlickerMeter(grid)
+        args = {"preds": [pred, []], "gts": [gt, gt], "scenes": ["s", "s"], "frames": [0, 1], "poses": poses, **kw}
+        meter.update(**args)
+        return meter.compute()
+
+    for kw, pattern in (({"scenes": "s"}, "scenes must be a list of B scene names, one per sample, got one string"),
+                        ({"frames": [0]}, "one entry per sample in each argument, got 2 preds, 2 gts, 2 scenes, 1 "
+                                          "frames"),
+                        ({"poses": np.eye(4)}, r"poses is one \[4, 4\] pose for a batch of 2 samples"),
+                        ({"poses": None}, r"poses must have shape \[B, 4, 4\] \(ego -> world\), got \[\]"),
+                        ({"frames": [0.0, 0.5]}, r"its frame index must be an integer >= 0 .*got 0.5"),
+                        ({"gts": [[{"pts": line, "label": 5}], gt]}, "unknown class id 5")):
+        with pytest.raises(EvaluationInputError, match=pattern):
+            meter_update(**kw)
+    with pytest.raises(EvaluationInputError, match=r"classes must name the num_classes = 3 classes"):
+        FlickerMeter(grid, 3, ["divider"])
+    with pytest.raises(EvaluationInputError, match="grid must be a BEVGrid"):
+        FlickerMeter("grid")
+    assert FlickerMeter(grid, classes=["divider"]).num_classes == 1
+    base = meter_update()
+    assert base["pairs"]["0"] == 1 and base["flips"]["0"] == 1  # detected in frame 0, missed in frame 1
+    element = [MapElement("divider", line, False, 0.9, 0)]
+    for same in (meter_update(FlickerMeter(cfg)), meter_update(poses=poses[:, :3]),
+                 meter_update(preds=[element, []]), meter_update(frames=torch.tensor([0, 1])),
+                 meter_update(frames=[0.0, 1.0])):
+        assert same["pairs"] == base["pairs"] and same["flips"] == base["flips"]
+    import instagram_hdmap.evaluation
+
+    assert instagram_hdmap.evaluation.FlickerMeter is FlickerMeter  # the package's own name for it, too
+
+
+@row("S14", "MapElement('boundary', pts, ..., class_index=0) (a name and a class id that disagree) was written as "
+            "a divider by to_hdmapnet, a name of no class ('lane') was kept, and points with NaN wrote NaN into the "
+            "submission (not JSON), all with no word; each is refused where the element is made")
+def row_map_element_class_and_points(env):
+    from instagram_hdmap import MapElement
+
+    pts = np.array([[0.0, 0.0], [1.0, 0.0]])
+    with pytest.raises(ValueError, match="label 'boundary' with class_index 0, which is 'divider'"):
+        MapElement("boundary", pts, False, 0.5, 0)
+    with pytest.raises(ValueError, match="label 'lane' with class_index 0"):
+        MapElement("lane", pts, False, 0.5, 0)
+    with pytest.raises(ValueError, match=r"class_index must be the class id 0..2 .* got 3"):
+        MapElement("divider", pts, False, 0.5, 3)
+    with pytest.raises(ValueError, match="points hold NaN or infinite coordinates"):
+        MapElement("divider", np.array([[0.0, 0.0], [np.nan, 1.0]]), False, 0.5, 0)
+    element = MapElement("boundary", pts, True, 0.5, torch.tensor(2))
+    assert element.class_index == 2 and element.to_hdmapnet()["type"] == 2
+    assert MapElement("ped_crossing", pts, True, 0.5, np.int64(1)).class_index == 1
+
+
+@row("S14", "to_hdmapnet(elements, meta='vector') / write_submission(..., meta=...) of a meta that is not a dict "
+            "crashed with Python's raw \"'str' object is not a mapping\"; it is a TypeError saying what meta is")
+def row_submission_meta_not_a_dict(env):
+    from instagram_hdmap import MapElement, to_hdmapnet
+    from instagram_hdmap.evaluation import write_submission
+
+    elements = {"tok": [MapElement("divider", np.array([[0.0, 0.0], [1.0, 0.0]]), False, 0.5, 0)]}
+    with pytest.raises(TypeError, match=r"a submission's meta is a dict of its settings .* got str 'vector'"):
+        to_hdmapnet(elements, meta="vector")
+    with pytest.raises(TypeError, match="a submission's meta is a dict"):
+        write_submission(env.tmp / "s.json", elements, meta=[("split", "val")])
+    assert not (env.tmp / "s.json").exists()
+    assert to_hdmapnet(elements, meta={"split": "val"})["meta"] == {"vector": True, "split": "val"}
+
+
+@row("S14", "a camera JPEG carrying an EXIF orientation tag (a phone or an editor: 3, rotated 180 degrees) was "
+            "decoded turned by OpenCV while its calibration and size check read the stored pixels: the model saw "
+            "the image upside down, exit 0 (a 90-degree tag was blamed on 'a resized or rotated copy'); the tag is "
+            "named, in the Mapper (predict-images) and in a dataset")
+def row_exif_orientation(env):
+    from PIL import Image
+
+    from instagram_hdmap.data.transforms import ImageError, read_image
+
+    src = next((env.world / "samples" / "CAM_FRONT").glob("*.jpg"))
+    for tag, what in ((3, "rotated 180 degrees"), (6, "rotated 90 degrees")):
+        exif = Image.Exif()
+        exif[0x0112] = tag
+        path = env.tmp / f"tag{tag}.jpg"
+        with Image.open(src) as im:
+            im.save(path, quality=95, exif=exif)
+        with pytest.raises(ImageError, match=rf"carries the EXIF orientation tag {tag} \({what}\)"):
+            read_image(path, 2)
+    exif = Image.Exif()
+    exif[0x0112] = 1  # the normal orientation (and a tag-less image, the datasets' own) decode as before
+    with Image.open(src) as im:
+        im.save(env.tmp / "tag1.jpg", quality=95, exif=exif)
+    assert read_image(env.tmp / "tag1.jpg", 2)[0].shape == read_image(src, 2)[0].shape
+    # a dataset copy whose camera images were re-saved with the tag: the sample names it
+    world = env.shadow_world(copy_samples=True)
+    for image in (world / "samples" / "CAM_BACK").glob("*.jpg"):
+        exif = Image.Exif()
+        exif[0x0112] = 3
+        with Image.open(image) as im:
+            im.load()
+            im.save(image, quality=95, exif=exif)
+    cfg = load_config(env.yaml, [f"data.dataroot={world}"])
+    with pytest.raises(UserError, match="EXIF orientation tag 3"):
+        val_dataset(cfg)[0]
+
+
+@row("S14", "predict --index 0 --fps 5 (the frame rate of a --scene video given to one sample's pictures) was "
+            "ignored with no word; it is one line before the model runs")
+def row_predict_fps_without_video(env):
+    forbid(env, "instagram_hdmap.cli.predict_sample", "the prediction")
+    env.error(r"--fps is the frame rate of a --scene video .* drop --fps", "predict", env.yaml, "--checkpoint",
+              env.ckpt, "--index", "0", "--fps", "5", "--out", env.tmp / "out")
+
+
+@row("S14", "train --resume CONFIG.yaml (or a GT JSON; a text file as the checkpoint to resume) said 'give a "
+            "checkpoint ... with --checkpoint', a flag train does not have; the line names no flag now")
+def row_text_file_as_resume_checkpoint(env):
+    gt = env.tmp / "gt.json"
+    gt.write_text('{"results": {}}')
+    line = env.error(r"gt.json is not a PyTorch checkpoint: it is a text file", "train", env.yaml,
+                     f"train.out_dir={env.tmp / 'run'}", "--resume", gt)
+    assert "--checkpoint" not in line
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -63,7 +63,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     elif head[:1] != b"\x80":  # neither a zip nor a pickle (torch's legacy format)
         what = "a text file (a config?)" if _is_text(path) else "not a PyTorch file"
         raise CheckpointError(f"{path} is not a PyTorch checkpoint: it is {what}; give a checkpoint written by "
-                              "instagram-hdmap train (e.g. OUT/best.pt) with --checkpoint")
+                              "instagram-hdmap train (e.g. OUT/best.pt)")  # (--checkpoint, --resume, init_from)
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:

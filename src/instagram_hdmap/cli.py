@@ -218,13 +218,16 @@ def _cmd_predict(args: argparse.Namespace) -> int:
                             "for one sample's pictures)")
         result = predict_video(_load(args), args.video, args.scene, checkpoint=args.checkpoint, onnx=args.onnx,
                                gt_as_prediction=args.gt_as_prediction, split=args.split, overrides=args.overrides,
-                               fps=args.fps, progress=sys.stderr.isatty())
+                               fps=args.fps if args.fps is not None else 2.0, progress=sys.stderr.isatty())
         _print_notes(result["notes"])
         print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames; "
               f"wrote {result['video']}")
         return 0
     if args.video is not None or args.out is None:
         raise UserError("--video needs --scene NAME; one sample's pictures need --out DIR")
+    if args.fps is not None:  # one sample's pictures: the frame rate was ignored with no word
+        raise UserError("--fps is the frame rate of a --scene video (--scene NAME --video OUT.mp4); one sample's "
+                        "pictures have none: drop --fps")
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
                             split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
                             onnx=args.onnx)
@@ -394,7 +397,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", help="split to take the sample from (default: data.val_split)")
     p.add_argument("--out", help="output folder (one sample's pictures)")
     p.add_argument("--video", help="MP4 file: with --scene, one frame per sample (BEV prediction and GT, cameras)")
-    p.add_argument("--fps", type=float, default=2.0, help="video frames per second (default 2: nuScenes' key frames)")
+    p.add_argument("--fps", type=float, help="video frames per second of --video (default 2: nuScenes' key frames)")
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")

@@ -38,6 +38,7 @@ from PIL import Image as PILImage
 from .assignment import assign, target_log_assignment
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import (
+    MAP_CLASSES,
     ExperimentConfig,
     UserError,
     config_from_dict,
@@ -508,7 +509,23 @@ class MapElement:
                              f"{list(points.shape)}")
         if not (math.isfinite(score) and -1e-4 <= score <= 1.0 + 1e-4):  # (a mean of float32 probabilities rounds)
             raise ValueError(f"MapElement: score must be in [0, 1], got {score}")
+        if not np.isfinite(points).all():  # to_hdmapnet wrote NaN, which is not JSON
+            raise ValueError("MapElement: points hold NaN or infinite coordinates")
+        # the class name and class_index (the submission's 'type') must agree: MapElement('boundary', ..., 0) was
+        # written as a divider, and a name of no class ('lane') was kept with no word
+        index = self.class_index
+        if getattr(index, "ndim", None) == 0 and hasattr(index, "item"):  # a 0-d tensor or numpy integer
+            index = index.item()
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or \
+                not 0 <= int(index) < len(MAP_CLASSES):
+            raise ValueError(f"MapElement: class_index must be the class id 0..{len(MAP_CLASSES) - 1} "
+                             f"({', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}), got {self.class_index!r}")
+        if self.label != MAP_CLASSES[int(index)]:
+            raise ValueError(f"MapElement: label {self.label!r} with class_index {int(index)}, which is "
+                             f"{MAP_CLASSES[int(index)]!r}; the classes are "
+                             f"{', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}")
         object.__setattr__(self, "points", points)
+        object.__setattr__(self, "class_index", int(index))
 
     def __eq__(self, other: object) -> bool:
         # the dataclass's own __eq__ compares the points arrays with ==: "The truth value of an array with more than

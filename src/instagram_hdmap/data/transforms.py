@@ -131,11 +131,39 @@ def read_image(path: str | Path, factor: int = 1) -> tuple[np.ndarray, int]:
     is_jpeg = len(buf) >= 4 and buf[0] == 0xFF and buf[1] == 0xD8
     if is_jpeg and not (buf[-2] == 0xFF and buf[-1] == 0xD9) and b"\xff\xd9" not in buf[-64:].tobytes():
         raise ImageError(f"camera image is truncated (no JPEG end marker): {path}")
+    if is_jpeg and b"Exif" in buf[:65536].tobytes():
+        orientation = _exif_orientation(buf)
+        if orientation not in (None, 1):
+            # OpenCV turns the pixels as the tag says (a 180-degree tag: the model saw the image upside down,
+            # exit 0); the header's size, and so the calibration's check, is that of the stored pixels
+            raise ImageError(f"camera image {path} carries the EXIF orientation tag {orientation} "
+                             f"({_ORIENTATIONS.get(orientation, 'unknown')}), which decoders apply: its pixels "
+                             "would be turned away from those the calibration describes; save the image without "
+                             "the tag (e.g. exiftool -Orientation= FILE), or turn the pixels for good "
+                             "(PIL.ImageOps.exif_transpose) with intrinsics of the turned image")
     factor = factor if is_jpeg else 1
     img = cv2.imdecode(buf, _REDUCED_FLAGS[factor]) if len(buf) else None
     if img is None:
         raise ImageError(f"camera image cannot be decoded (corrupt or not an image): {path}")
     return img, factor
+
+
+_ORIENTATIONS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped upside down", 5: "transposed",
+                 6: "rotated 90 degrees", 7: "transversed", 8: "rotated 270 degrees"}
+
+
+def _exif_orientation(buf: np.ndarray) -> int | None:
+    """The EXIF orientation tag (274) of a JPEG's bytes, or None (no tag, or a header PIL cannot read)."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(buf.tobytes())) as im:
+            value = im.getexif().get(0x0112)
+    except Exception:  # a damaged header: decoded (or named) as before
+        return None
+    return int(value) if isinstance(value, int) else None
 
 
 def _axis_scales(A: np.ndarray) -> tuple[float, float]:

@@ -5,6 +5,7 @@
     ev = Evaluator("vector"); ev.update(preds, gts); metrics = ev.compute()
 """
 
+from .consistency import FlickerMeter
 from .evaluator import CLASSES, PROTOCOLS, Evaluator, evaluate_files, format_table
 from .inputs import EvaluationInputError
 from .io import SubmissionError, read_submission, write_submission
@@ -14,6 +15,7 @@ __all__ = [
     "PROTOCOLS",
     "EvaluationInputError",
     "Evaluator",
+    "FlickerMeter",
     "SubmissionError",
     "evaluate_files",
     "format_table",

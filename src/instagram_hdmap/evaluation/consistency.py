@@ -38,7 +38,7 @@ import torch
 
 from ..geometry import BEVGrid
 from .chamfer import chamfer_pairs
-from .inputs import EvaluationInputError, read_polylines
+from .inputs import EvaluationInputError, check_grid, read_polylines
 from .vector_ap import resample_polylines
 
 
@@ -93,12 +93,14 @@ def _point_to_polyline(q: np.ndarray, line: np.ndarray) -> np.ndarray:
 class FlickerMeter:
     """Accumulates per-sample detection status and computes the flicker rate (module docstring)."""
 
-    def __init__(self, grid: BEVGrid, num_classes: int = 3, classes: Sequence[str] | None = None,
+    def __init__(self, grid: BEVGrid, num_classes: int | None = None, classes: Sequence[str] | None = None,
                  threshold_m: float = 1.0, score_threshold: float = 0.0, link_m: float = 0.5,
                  min_shared_points: int = 2, num_points: int = 20, detect_points: int = 100):
-        if not isinstance(grid, BEVGrid):
-            raise TypeError(f"FlickerMeter: grid must be a BEVGrid (BEVGrid.from_config(cfg.grid)), got "
-                            f"{type(grid).__name__}")
+        grid = check_grid(grid, "FlickerMeter")  # a config (or its grid section): the grid it describes
+        if isinstance(classes, (str, bytes)):
+            raise EvaluationInputError(f"FlickerMeter: classes must be a list of class names, got {classes!r:.80}")
+        if num_classes is None:  # classes=["divider"]: one class (num_classes 3 averaged two unseen ones)
+            num_classes = len(classes) if classes is not None else 3
         for name, value, least in (("num_classes", num_classes, 1), ("min_shared_points", min_shared_points, 1),
                                    ("num_points", num_points, 2), ("detect_points", detect_points, 2)):
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
@@ -149,6 +151,8 @@ class FlickerMeter:
         if poses.shape == (4, 4) and B != 1:
             raise EvaluationInputError(f"FlickerMeter.update: poses is one [4, 4] pose for a batch of {B} samples; "
                                        "give one pose per sample, [B, 4, 4]")
+        if poses.ndim == 3 and poses.shape[1:] == (3, 4):  # [R | t] without the last row (a 3x4 per sample)
+            poses = np.concatenate([poses, np.broadcast_to([[[0.0, 0.0, 0.0, 1.0]]], (len(poses), 1, 4))], axis=1)
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):
             if poses.shape != (4, 4):
                 raise EvaluationInputError(f"FlickerMeter.update: poses must have shape [B, 4, 4] (ego -> world), "

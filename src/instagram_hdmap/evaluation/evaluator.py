@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from ..config import ExperimentConfig, load_config
 from ..geometry import BEVGrid
-from .inputs import EvaluationInputError
+from .inputs import EvaluationInputError, check_grid
 from .io import SubmissionError, read_submission
 from .raster_ap import RasterAP
 from .vector_ap import VectorAP
@@ -85,15 +85,15 @@ def check_classes(classes: Sequence[str]) -> tuple[str, ...]:
     return out
 
 
-def _samples(value, what: str) -> list:
+def _samples(value, what: str, who: str = "Evaluator.update") -> list:
     """``preds`` / ``gts`` of ``Evaluator.update``: one list of polylines per sample, as a list (any iterable
     of them: a generator too). A dict {token: polylines} is named: its order and tokens belong in ``tokens``."""
     if isinstance(value, Mapping):
-        raise EvaluationInputError(f"Evaluator.update takes {what} as one list of polylines per sample, in order, "
+        raise EvaluationInputError(f"{who} takes {what} as one list of polylines per sample, in order, "
                                    "not a dict; for {token: polylines} pass [d[t] for t in tokens] with "
                                    "tokens=tokens")
     if value is None or isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
-        raise EvaluationInputError(f"Evaluator.update takes {what} as one list of polylines per sample, got "
+        raise EvaluationInputError(f"{who} takes {what} as one list of polylines per sample, got "
                                    f"{type(value).__name__}")
     return list(value)
 
@@ -151,7 +151,7 @@ class Evaluator:
                                                       resample_predictions)
             self.options = {"num_sample_points": num_sample_points, "resample_predictions": resample_predictions}
         else:
-            grid = grid if grid is not None else DEFAULT_RASTER_GRID
+            grid = check_grid(grid, "Evaluator") if grid is not None else DEFAULT_RASTER_GRID
             self.impl = RasterAP(self.thresholds, grid, len(self.classes), rank_by, fix_instance_ids, device=device)
             self.options = {"rank_by": rank_by, "fix_instance_ids": fix_instance_ids, "thickness_px": 5,
                             "grid": {"xbound": [grid.xmin, grid.xmax], "ybound": [grid.ymin, grid.ymax],

@@ -21,7 +21,8 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import UserError
+from ..config import ExperimentConfig, GridConfig, UserError
+from ..geometry import BEVGrid
 
 
 class EvaluationInputError(UserError, ValueError):
@@ -44,6 +45,19 @@ def _detached(value):
     return value.detach().cpu() if hasattr(value, "detach") and hasattr(value, "requires_grad") else value
 
 
+def check_grid(grid, who: str) -> BEVGrid:
+    """A ``BEVGrid``; a config's grid (an ``ExperimentConfig`` or its ``grid`` section) is taken as the grid it
+    describes (it was a raw "'ExperimentConfig' object has no attribute 'xmin'" deep in the evaluation)."""
+    if isinstance(grid, ExperimentConfig):
+        grid = grid.grid
+    if isinstance(grid, GridConfig):
+        return BEVGrid.from_config(grid)
+    if not isinstance(grid, BEVGrid):
+        raise EvaluationInputError(f"{who}: grid must be a BEVGrid (instagram_hdmap.geometry.BEVGrid."
+                                   f"from_config(cfg.grid)) or a config, got {type(grid).__name__}")
+    return grid
+
+
 def sample_name(index: int, token: str | None) -> str:
     return f"sample '{token}'" if token is not None else f"sample #{index}"
 
@@ -59,7 +73,8 @@ def read_polylines(
     """Check one sample's polyline dicts and return them as arrays.
 
     Args:
-        items: list of ``{"pts", "label"[, "score"]}`` dicts.
+        items: list of ``{"pts", "label"[, "score"]}`` dicts (or ``MapElement`` objects, taken as their
+            ``as_polyline()``).
         role: "prediction" (needs a finite ``score``) or "GT".
         num_classes: K; labels must lie in [0, K).
         where: the sample's name for error messages, e.g. ``"sample 'abc'"``.
@@ -73,6 +88,8 @@ def read_polylines(
     labels, scores = [], []
     for i, item in enumerate(items):
         what = f"{where}, {role} polyline {i}"
+        if hasattr(item, "as_polyline") and not isinstance(item, dict):  # a MapElement: what Mapper returns
+            item = item.as_polyline()
         if not isinstance(item, dict) or "pts" not in item or "label" not in item:
             raise EvaluationInputError(f"{what}: expected a dict with keys 'pts' and 'label', got {item!r:.120}")
         try:

@@ -258,6 +258,9 @@ def submission(samples: Mapping[str, list[dict]], meta: dict | None = None) -> d
         if bad is not None:
             raise TypeError(f"sample {token!r}: expected polyline dicts (pts, label, score) or MapElement objects, "
                             f"got {type(bad).__name__} in the list")
+    if meta is not None and not isinstance(meta, Mapping):  # ** of it: a raw "'str' object is not a mapping"
+        raise TypeError(f"a submission's meta is a dict of its settings (e.g. {{'split': 'val'}}), got "
+                        f"{type(meta).__name__} {meta!r:.60}")
     return {"meta": {"vector": True, **(meta or {})},
             "results": {str(token): polylines_to_vectors(polys) for token, polys in samples.items()}}
 
