@@ -3427,6 +3427,36 @@ def row_text_file_as_resume_checkpoint(env):
     assert "--checkpoint" not in line
 
 
+@row("S14", "mapper([frame0, frame1]) on a temporal model mapped every frame of the drive on its own, without the "
+            "memory the model was built for, with no word; it warns once that mapper.stream() carries the memory "
+            "(a single-frame model, or one frame, says nothing)")
+def row_mapper_list_of_frames_of_a_temporal_model(env):
+    import warnings
+
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import rig
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(env.yaml, ["model.temporal.memory=bev"])
+    torch.manual_seed(0)
+    mapper = Mapper(build_model(cfg).eval(), cfg)
+    calib = rig((64, 36))
+    images = np.zeros((len(mapper.cameras), 36, 64, 3), dtype=np.uint8)
+    frame = Frame(dict(zip(mapper.cameras, images)), {c: calib[c].intrinsic for c in mapper.cameras},
+                  {c: np.vstack([np.c_[calib[c].rot, calib[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras},
+                  ego_pose=np.eye(4))
+    with pytest.warns(UserWarning, match=r"temporal model: mapper\(\[frames\]\) maps each frame on its own.*"
+                                         r"mapper\.stream\(\)"):
+        assert len(mapper([frame, frame])) == 2
+    single = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mapper([frame, frame])  # said once
+        mapper(frame)
+        single([frame, frame])
+
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -25,6 +25,7 @@ import copy
 import hashlib
 import json
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, dataclass, replace
 from dataclasses import fields as dataclass_fields
@@ -749,6 +750,7 @@ class Mapper:
         self.classes = tuple(config.data.classes)
         self.decode_options = decode_options(config.model.gnn, self.grid)
         self.batch_size = 1 if isinstance(model, OnnxModel) else batch_size
+        self._warned_stream = False  # __call__ with several frames of a temporal model: said once
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
@@ -796,6 +798,12 @@ class Mapper:
             raise TypeError("pass a Frame (or a list of them) or the fields images=, intrinsics=, cam_to_ego=, "
                             "not both")
         frames = [frames] if single else list(frames)
+        if len(frames) > 1 and bool(getattr(self.model, "is_temporal", False)) and not self._warned_stream:
+            # a list of a drive's frames mapped as independent frames: the memory the model was built for unused
+            warnings.warn("this is a temporal model: mapper([frames]) maps each frame on its own, without the memory "
+                          "of the frames before it; for a drive, in order, use stream = mapper.stream() and "
+                          "stream.step(frame)", UserWarning, stacklevel=2)
+            self._warned_stream = True
         results: list[list[MapElement]] = []
         for start in range(0, len(frames), self.batch_size):
             results += self.decode(self.forward(self.batch(frames[start:start + self.batch_size])))
