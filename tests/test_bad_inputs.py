@@ -2467,7 +2467,7 @@ def row_sigterm_saves_last_pt(env):
             time.sleep(0.2)
         time.sleep(1.0)  # part-way through the next epoch
         os.killpg(p.pid, signal.SIGTERM)
-        out, err = p.communicate(timeout=120)
+        out, err = p.communicate(timeout=300)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
