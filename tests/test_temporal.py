@@ -906,3 +906,114 @@ def test_benchmark_names_a_temporal_variant_after_its_own_overrides(monkeypatch,
     single = load_config(bench.CONFIGS["single"])
     assert seen["temporal_synthetic"] == (10, 5, 0.001)
     assert seen[single.name] == (single.train.stream_frames, single.model.temporal.kernel, 0.001)
+
+
+# --- persistence: elements kept over missed frames (persistence.py) ----------------------------------------------
+
+
+def _pose(x: float, y: float, yaw_deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = [x, y]
+    return T
+
+
+def test_persistence_keeps_a_missed_element_moved_by_the_ego():
+    from instagram_hdmap.persistence import Persistence
+
+    grid = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15)
+    poses = [_pose(100.0, 50.0, 0.0), _pose(102.0, 50.5, 10.0), _pose(104.0, 51.5, 20.0)]
+    line = {"pts": np.array([[5.0, 3.0], [10.0, 3.0], [15.0, 3.0]]), "label": 2, "closed": False, "score": 0.8}
+    world = line["pts"] @ poses[0][:2, :2].T + poses[0][:2, 3]  # the element's place in the world
+
+    def in_frame(t: int) -> np.ndarray:  # the same world points in the ego frame of frame t (independently)
+        R, p = poses[t][:2, :2], poses[t][:2, 3]
+        return (world - p) @ R
+
+    for frames, expected_scores in ((1, [0.4]), (2, [0.4, 0.2])):
+        keep = Persistence(grid, frames=frames, decay=0.5)
+        assert keep.step([line], "scene-a", 0, poses[0]) == [line]
+        for t in (1, 2):
+            out = keep.step([], "scene-a", t, poses[t])
+            if t > len(expected_scores):
+                assert out == []  # missed more than `frames` times: gone
+                continue
+            (kept,) = out
+            np.testing.assert_allclose(kept["pts"], in_frame(t), atol=1e-9)
+            assert kept["score"] == pytest.approx(expected_scores[t - 1])
+            assert kept["label"] == 2 and not kept["closed"]
+
+    # found again (within match_m, same class): the model's element stands, nothing is added
+    keep = Persistence(grid, frames=1, match_m=1.0)
+    keep.step([line], "scene-a", 0, poses[0])
+    again = {**line, "pts": in_frame(1) + [0.0, 0.4], "score": 0.6}
+    assert keep.step([again], "scene-a", 1, poses[1]) == [again]
+    # of another class: not the same element, so the missed one is kept next to it
+    other = {**again, "label": 0}
+    assert len(keep.step([other], "scene-b", 0, poses[0])) == 1  # another scene starts on its own
+    keep = Persistence(grid, frames=1)
+    keep.step([line], "scene-a", 0, poses[0])
+    assert len(keep.step([other], "scene-a", 1, poses[1])) == 2
+
+
+def test_persistence_starts_anew_on_a_gap_a_repeat_or_a_jump_and_cuts_at_the_grid():
+    from instagram_hdmap.persistence import Persistence
+
+    grid = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15)
+    line = {"pts": np.array([[5.0, 3.0], [15.0, 3.0]]), "label": 0, "closed": False, "score": 0.9}
+    for frame, pose in ((2, _pose(1.0, 0.0, 0.0)),  # frame 1 is missing
+                        (0, _pose(1.0, 0.0, 0.0)),  # a repeat of frame 0 (streaming padding)
+                        (1, _pose(30.0, 0.0, 0.0))):  # a pose jump of 30 m > max_jump_m
+        keep = Persistence(grid, frames=1, max_jump_m=10.0)
+        keep.step([line], "s", 0, _pose(0.0, 0.0, 0.0))
+        assert keep.step([], "s", frame, pose) == []
+    # the ego drives 20 m on: of the points 25..35 m ahead only those inside the grid (x <= 30) stay
+    ahead = {**line, "pts": np.stack([np.linspace(25.0, 45.0, 11), np.full(11, 2.0)], 1)}
+    keep = Persistence(grid, frames=1)
+    keep.step([ahead], "s", 0, _pose(0.0, 0.0, 0.0))
+    (kept,) = keep.step([], "s", 1, _pose(8.0, 0.0, 0.0))
+    assert kept["pts"][:, 0].max() <= 30.0 and kept["pts"][:, 0].min() == pytest.approx(17.0)
+    # a closed polygon cut by the grid is no longer closed
+    square = {"pts": np.array([[26.0, 0.0], [34.0, 0.0], [34.0, 4.0], [26.0, 4.0], [26.0, 0.0]]), "label": 1,
+              "closed": True, "score": 0.9}
+    keep = Persistence(grid, frames=1)
+    keep.step([square], "s", 0, _pose(0.0, 0.0, 0.0))
+    assert keep.step([], "s", 1, _pose(0.0, 0.0, 0.0))[0]["closed"] is False
+    # a batch: interleaved scenes each keep their own state
+    keep = Persistence(grid, frames=1)
+    keep([[line], []], ["a", "b"], torch.tensor([0, 0]), torch.from_numpy(np.stack([np.eye(4)] * 2)))
+    out = keep([[], []], ["a", "b"], [1, 1], np.stack([np.eye(4)] * 2))
+    assert [len(o) for o in out] == [1, 0]
+    assert Persistence.from_config(load_config(None, [*TINY])) is None  # off by default
+
+
+def test_evaluation_with_persistence_only_adds_elements(tiny_world, tmp_path):
+    # the same single-frame checkpoint evaluated with and without model.temporal.persist_frames: every
+    # sample's predictions with it are those without it plus the kept ones, and the note counts them
+    from instagram_hdmap.checkpoint import save_checkpoint
+    from instagram_hdmap.config import config_to_dict
+    from instagram_hdmap.evaluation.io import read_submission
+    from instagram_hdmap.predict import run_evaluation
+
+    cfg = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",
+                     "model.gnn.match_threshold=0.01", "model.temporal.memory=none")
+    torch.manual_seed(3)
+    save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)}, tmp_path / "s.pt")
+    plain = run_evaluation(cfg, tmp_path / "s.pt", out=tmp_path / "plain")
+    kept = run_evaluation(cfg, tmp_path / "s.pt", out=tmp_path / "kept",
+                          overrides=["model.temporal.persist_frames=2", "model.temporal.persist_decay=0.5"])
+    a = read_submission(tmp_path / "plain" / "submission.json", "pred").samples
+    b = read_submission(tmp_path / "kept" / "submission.json", "pred").samples
+    assert list(a) == list(b)
+    extra = 0
+    for token in a:
+        assert len(b[token]) >= len(a[token])
+        for x, y in zip(a[token], b[token]):
+            np.testing.assert_allclose(x["pts"], y["pts"], atol=1e-5)
+            assert x["score"] == pytest.approx(y["score"])
+        extra += len(b[token]) - len(a[token])
+        assert all(y["score"] <= 0.5 for y in b[token][len(a[token]):])  # kept ones: decayed scores
+    assert extra > 0, "a random model's output changes from frame to frame: something must have been kept"
+    assert any(f"{extra} map elements found in earlier frames" in n for n in kept["notes"])
+    assert sum(kept["metrics"]["num_pred"].values()) == sum(plain["metrics"]["num_pred"].values()) + extra

@@ -264,6 +264,13 @@ class TemporalConfig:
     max_turn_deg: float = bounded(60.0, gt=0, le=180)
     # graph memory: points drawn along each predicted edge of the previous frame (models/temporal.py render_graph)
     edge_samples: int = bounded(8, ge=2, le=64)
+    # decoding over a drive (persistence.py, any model): a map element found in the previous frames and missed in
+    # this one is kept for up to persist_frames missed frames (0: off, the model's output as it is), moved by the
+    # ego motion, its score times persist_decay per missed frame; "found again" = an output of its class within
+    # persist_match_m (Chamfer). Applied by evaluate (and training's validation), predict and Mapper.stream()
+    persist_frames: int = bounded(0, ge=0, le=10)
+    persist_decay: float = bounded(0.5, gt=0, le=1)
+    persist_match_m: float = bounded(1.0, gt=0, le=10)
 
 
 @dataclass

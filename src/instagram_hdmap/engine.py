@@ -249,6 +249,7 @@ def evaluate(
     total: int | None = None,
     flicker=None,
     scored: set[str] | None = None,
+    persist=None,
 ) -> dict:
     """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
 
@@ -261,7 +262,9 @@ def evaluate(
     (fused, no_memory, pose_jump, missing_frame). A streaming loader's padding is not scored: only the
     samples its batch sampler ``owned()`` (or the tokens in ``scored``), once each. ``flicker``: a
     ``FlickerMeter`` updated with every batch's predictions (needs ``postprocess``);
-    ``result["consistency"]`` is its ``compute()``.
+    ``result["consistency"]`` is its ``compute()``. ``persist``: a ``persistence.Persistence`` applied to
+    every batch's predictions (each scene's samples in frame order) before they are scored;
+    ``result["persisted"]`` counts the elements it kept.
     """
     model.eval()
     streaming, memory = is_temporal(model), None
@@ -301,6 +304,8 @@ def evaluate(
         n_samples += batch["images"].shape[0]
         if postprocess is not None:
             preds = postprocess(outputs)
+            if persist is not None:  # every sample, padding too: a repeated frame starts its scene anew, unscored
+                preds = persist(preds, batch["scene"], batch["frame_index"], batch["ego_pose"])
             preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
                                                                                        for b in keep]
             if evaluator is not None:
@@ -318,6 +323,8 @@ def evaluate(
     if flicker is not None:
         flicker.gather()
         result["consistency"] = flicker.compute()
+    if persist is not None:
+        result["persisted"] = persist.kept
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
     if evaluator is not None:
         evaluator.gather()

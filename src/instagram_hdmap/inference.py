@@ -66,6 +66,7 @@ from .models import build_model
 from .models.temporal import MEMORY_KEYS, STATUS_NAMES
 from .models.vertices import vertex_heatmap
 from .models.view_transform import CALIBRATION_KEYS
+from .persistence import Persistence
 from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
 
 # Config keys that define a model: its weights and how its outputs are read.
@@ -80,7 +81,8 @@ DECODE_OPTIONS = tuple(key.rsplit(".", 1)[1] for key in DECODE_KEYS)
 # Of those, the keys an exported graph does not read (post-processing, training-only settings; the AV2 camera
 # order, which the export records in its inference metadata and check_export compares).
 NOT_BAKED = (*DECODE_KEYS, "data.av2_cameras", "model.backbone.weights", "model.backbone.from_scratch",
-             "model.backbone.grad_checkpoint", "model.temporal.drop_prob")
+             "model.backbone.grad_checkpoint", "model.temporal.drop_prob", "model.temporal.persist_frames",
+             "model.temporal.persist_decay", "model.temporal.persist_match_m")
 
 # The exported graph's interface (docs/deploy.md), in argument order.
 INPUT_NAMES = ("images", *CALIBRATION_KEYS)
@@ -899,13 +901,16 @@ class Mapper:
             if training:
                 self.model.train()
 
+    def elements(self, polylines: Sequence[dict]) -> list[MapElement]:
+        """One sample's polyline dicts (postprocess.py) as ``MapElement`` objects."""
+        return [MapElement(self.classes[p["label"]], p["pts"], p["closed"], p["score"], p["label"]) for p in polylines]
+
     def decode(self, outputs: dict[str, torch.Tensor]) -> list[list[MapElement]]:
         """Model outputs -> each sample's elements (postprocess.py, with the checkpoint's decoding)."""
         if not isinstance(outputs, Mapping):
             raise TypeError(f"Mapper.decode takes the model's outputs (the dict of Mapper.forward), got "
                             f"{type(outputs).__name__}; to map frames call mapper(frame)")
-        return [[MapElement(self.classes[p["label"]], p["pts"], p["closed"], p["score"], p["label"]) for p in sample]
-                for sample in postprocess_batch(outputs, self.grid, **self.decode_options)]
+        return [self.elements(sample) for sample in postprocess_batch(outputs, self.grid, **self.decode_options)]
 
     def __repr__(self) -> str:
         return (f"Mapper({self.source or type(self.model).__name__}; cameras {', '.join(self.cameras)}; images "
@@ -926,10 +931,13 @@ class MapStream:
     def __init__(self, mapper: Mapper):
         self.mapper = mapper
         self.counts: dict[str, int] = {}
+        self.persist = Persistence.from_config(mapper.config)  # model.temporal.persist_frames (persistence.py)
         self.reset()
 
     def reset(self) -> None:
         self.memory: dict | None = None
+        if self.persist is not None:
+            self.persist.reset()
         self.frame_index = 0
         self.status: str | None = None
         self.origin: np.ndarray | None = None  # the scene's first ego position (float64), see _local
@@ -968,6 +976,9 @@ class MapStream:
         if temporal and frame.ego_pose is None:
             raise RigError("a temporal model moves its memory with the ego: give every frame of a stream its "
                            "ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
+        if self.persist is not None and frame.ego_pose is None:
+            raise RigError("model.temporal.persist_frames moves the elements it keeps with the ego: give every frame "
+                           "of a stream its ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
         batch = self.mapper.batch([self._local(frame)])
         batch["scene_start"] = torch.tensor([self.frame_index == 0])
         batch["frame_index"] = torch.tensor([self.frame_index])
@@ -976,4 +987,7 @@ class MapStream:
         if "memory_status" in outputs:
             self.status = STATUS_NAMES[int(outputs["memory_status"][0])]
             self.counts[self.status] = self.counts.get(self.status, 0) + 1
-        return self.mapper.decode(outputs)[0]
+        polylines = postprocess_batch(outputs, self.mapper.grid, **self.mapper.decode_options)[0]
+        if self.persist is not None:
+            polylines = self.persist.step(polylines, "stream", self.frame_index - 1, batch["ego_pose"][0])
+        return self.mapper.elements(polylines)

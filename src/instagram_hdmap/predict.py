@@ -48,6 +48,7 @@ from .evaluation import Evaluator, write_submission
 from .files import OutputError, atomic_path, check_output_dir, check_output_file, write_json
 from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
+from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
 from .train import make_flicker_meter
 from .visualize import (
@@ -252,7 +253,9 @@ def predict_sample(
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
     sample = dataset.load_sample(i)
-    memory, walked = walk_scene(model, dataset, i) if is_temporal(model) else (None, 0)
+    persist = Persistence.from_config(cfg) if model is not None else None
+    memory, walked = (walk_scene(model, dataset, i, persist, cfg) if is_temporal(model) or persist is not None
+                      else (None, 0))
     if is_temporal(model):
         scene = dataset.scene_of(i)
         before = dataset.scene_indices(scene).index(i)
@@ -267,6 +270,12 @@ def predict_sample(
                          "walked in order" if before else
                          f"a temporal model: the first frame of scene {scene}, so no memory (as a single-frame model)")
     outputs, (preds,) = predict_batch(model, collate_fn([sample]), cfg, memory)
+    if persist is not None:
+        walked_kept = persist.kept
+        preds = persist.step(preds, dataset.scene_of(i), int(dataset.scenes.frame[i]), sample["ego_pose"])
+        notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames}: "
+                     f"{persist.kept - walked_kept} element(s) that the frames before it found and it missed are "
+                     "kept (persistence.py)")
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
     figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
                                  {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
@@ -285,17 +294,27 @@ def scene_memory(model, dataset, index: int) -> dict | None:
     return walk_scene(model, dataset, index)[0]
 
 
-def walk_scene(model, dataset, index: int) -> tuple[dict | None, int]:
+def walk_scene(model, dataset, index: int, persist: Persistence | None = None,
+               cfg: ExperimentConfig | None = None) -> tuple[dict | None, int]:
     """``scene_memory`` and how many frames it was walked over: fewer after a bad frame, which with
-    ``data.on_bad_sample=skip`` is a missing one (the memory starts anew after it)."""
+    ``data.on_bad_sample=skip`` is a missing one (the memory starts anew after it). With ``persist`` (and
+    ``cfg``), each walked frame is also decoded into it, so that the sample's output keeps what the frames
+    before it found (any model, a single-frame one too)."""
     run = dataset.scene_indices(dataset.scene_of(index))
+    temporal = is_temporal(model)
     memory, walked = None, 0
     for j in run[: run.index(index)]:
         sample = load_or_skip(dataset, j)
         if sample is None:
             memory, walked = None, 0
+            continue
+        batch = collate_fn([sample])
+        if persist is not None:
+            outputs, (preds,) = predict_batch(model, batch, cfg, memory)
+            persist.step(preds, dataset.scene_of(j), int(dataset.scenes.frame[j]), sample["ego_pose"])
         else:
-            memory, walked = run_model(model, collate_fn([sample]), memory)["memory"], walked + 1
+            outputs = run_model(model, batch, memory)
+        memory, walked = (outputs["memory"] if temporal else None), walked + 1
     return memory, walked
 
 
@@ -442,6 +461,7 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     indices = dataset.scene_indices(scene)
     grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
     memory, writer, size, skipped = None, None, None, 0
+    persist = Persistence.from_config(cfg) if not gt_as_prediction else None
     with atomic_path(video, keep_suffix=True) as tmp:
         try:
             for k, i in enumerate(tqdm(indices, desc=f"video {scene}", unit="frame", disable=not progress)):
@@ -452,6 +472,8 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
                 batch = collate_fn([sample])
                 batch["scene_start"] = torch.tensor([k == 0])
                 outputs, (preds,) = predict_batch(model, batch, cfg, memory)
+                if persist is not None:
+                    preds = persist.step(preds, scene, int(dataset.scenes.frame[i]), sample["ego_pose"])
                 memory = outputs.get("memory")
                 heading = f"{scene} {k + 1}/{len(indices)}: {sample['sample_token']} - {source}"
                 bev = figure_rgb(prediction_bev_figure(preds, sample["gt_polylines"], grid, classes, heading))
@@ -568,10 +590,16 @@ def run_evaluation(
                                [dataset.scenes.frame[i] for i in ids], torch.stack([dataset.ego_pose(i) for i in ids]))
 
     decode = decode_options(cfg.model.gnn, grid)
+    persist = Persistence.from_config(cfg)
     val = evaluate(model, None, tap(loader), device,
                    postprocess=lambda outputs: postprocess_batch(outputs, grid, **decode),
                    amp=amp, on_predictions=score, total=len(loader),
-                   scored=None if owned is None else {dataset.sample_tokens[i] for i in owned})
+                   scored=None if owned is None else {dataset.sample_tokens[i] for i in owned}, persist=persist)
+    if persist is not None:
+        notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames}: {val['persisted']} map "
+                     "elements found in earlier frames and missed later were kept (persistence.py)"
+                     + (" (under torchrun a single-frame model's ranks see no consecutive frames: none kept)"
+                        if world > 1 and owned is None else ""))
     evaluator.gather()
     if flicker is not None:
         flicker.gather()

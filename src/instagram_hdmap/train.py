@@ -57,6 +57,7 @@ from .inference import MODEL_KEYS, saved_config
 from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
+from .persistence import Persistence
 from .postprocess import decode_options, postprocess_batch
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
@@ -623,7 +624,7 @@ class TrainingRun:
             val = evaluate(self.net, self.criterion, self.val_loader, self.device,
                            postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
                            evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp,
-                           flicker=make_flicker_meter(self.cfg))
+                           flicker=make_flicker_meter(self.cfg), persist=Persistence.from_config(self.cfg))
         self.summary["val"] = val
         score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
         step = self.position.step
