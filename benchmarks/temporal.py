@@ -106,7 +106,8 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
         train_s = json.loads(trained[0].read_text()).get("train_s", 0.0) if trained else 0.0
     val_only = [] if args.val_dropout is None else [f"data.camera_dropout={args.val_dropout}"]
     val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common, *val_only])
-    metrics = run_evaluation(val_cfg, checkpoint, "vector", out / f"eval{result_name(args)[6:-5]}")["metrics"]
+    metrics = run_evaluation(val_cfg, checkpoint, "vector", out / f"eval{result_name(args)[6:-5]}",
+                             overrides=persist_overrides(args))["metrics"]
     result = {"config": name, "seed": seed, "steps": summary.get("step", 0), "train_s": round(train_s, 1),
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
@@ -139,7 +140,8 @@ def memory_off(results: list[dict], args, val_root) -> str:
             cfg = load_config(CONFIGS["temporal"], [*world_overrides(val_root), *args.override,
                                                     f"model.temporal.memory={args.memory}",
                                                     *args.temporal_override, *off])
-            metrics = run_evaluation(cfg, ckpt, "vector", out / "eval_memoff", overrides=off)["metrics"]
+            metrics = run_evaluation(cfg, ckpt, "vector", out / f"eval{result_name(args)[6:-5]}_memoff",
+                                     overrides=[*off, *persist_overrides(args)])["metrics"]
             write_json({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
                         "flicker_mean": metrics["consistency"]["flicker_mean"]}, done, indent=1)  # atomic
         off = json.loads(done.read_text())
@@ -168,7 +170,17 @@ def result_name(args) -> str:
         name += f"_occ{args.val_occluders:g}"
     if args.val_dropout is not None:
         name += f"_drop{args.val_dropout:g}"
+    if getattr(args, "persist", 0):
+        name += f"_persist{args.persist}" + (f"x{args.persist_decay:g}" if args.persist_decay != 0.5 else "")
     return name + ".json"
+
+
+def persist_overrides(args) -> list[str]:
+    """``--persist``: the evaluation's element persistence (persistence.py; a decoding setting, the checkpoint's
+    weights unchanged), as overrides that win over the checkpoint's saved config."""
+    if not getattr(args, "persist", 0):
+        return []
+    return [f"model.temporal.persist_frames={args.persist}", f"model.temporal.persist_decay={args.persist_decay}"]
 
 
 def table(results: list[dict]) -> str:
@@ -271,6 +283,10 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
         value = getattr(args, name)
         if value is not None and not 0 <= value <= 1:
             p.error(f"--{name.replace('_', '-')} must be a density in [0, 1], got {value}")
+    if not 0 <= args.persist <= 10:
+        p.error(f"--persist must be a number of frames in 0..10, got {args.persist}")
+    if not 0 < args.persist_decay <= 1:
+        p.error(f"--persist-decay must be in (0, 1], got {args.persist_decay}")
     if args.val_dropout is not None and args.val_dropout >= 1:  # data.camera_dropout's range: < 1
         p.error(f"--val-dropout must be below 1 (1 blanks every camera of every frame), got {args.val_dropout}")
     try:  # where every run writes (a file of that name, a folder without write permission): now, not after training
@@ -331,6 +347,12 @@ def main() -> None:
     p.add_argument("--val-occluders", type=float,
                    help="another occluder density for the validation world (default: --occluders); e.g. 0: what "
                         "do the occluders cost a model, the most a memory could win back")
+    p.add_argument("--persist", type=int, default=0, metavar="FRAMES",
+                   help="evaluate every run with element persistence (model.temporal.persist_frames=FRAMES: an "
+                        "element found and then missed is kept for up to FRAMES frames, persistence.py); its own "
+                        "result files, the training unchanged")
+    p.add_argument("--persist-decay", type=float, default=0.5,
+                   help="with --persist: a kept element's score factor per missed frame (model.temporal.persist_decay)")
     p.add_argument("--val-dropout", type=float,
                    help="evaluate with this data.camera_dropout instead of the training's (e.g. 0: every camera "
                         "works; the flicker a model has when no frame lacks anything)")

@@ -1017,3 +1017,39 @@ def test_evaluation_with_persistence_only_adds_elements(tiny_world, tmp_path):
     assert extra > 0, "a random model's output changes from frame to frame: something must have been kept"
     assert any(f"{extra} map elements found in earlier frames" in n for n in kept["notes"])
     assert sum(kept["metrics"]["num_pred"].values()) == sum(plain["metrics"]["num_pred"].values()) + extra
+
+
+def test_benchmark_persist_evaluates_the_trained_checkpoint_again(monkeypatch, tmp_path):
+    """benchmarks/temporal.py --persist: a finished run is evaluated again with the persistence overrides (which win
+    over the checkpoint's saved config), into its own result file; nothing is trained."""
+    import argparse
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_temporal", Path(__file__).resolve().parents[1] / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = argparse.Namespace(memory="bev+graph", temporal_override=[], out=str(tmp_path), steps=10, minutes=1.0,
+                              occluders=0.0, override=[], val_scenes=12, val_occluders=None, val_dropout=None,
+                              threads=None, persist=2, persist_decay=0.25)
+    assert bench.result_name(args) == "result_val12_persist2x0.25.json"
+    run = tmp_path / "single_seed0"
+    (run / "run").mkdir(parents=True)
+    (run / "result_val12.json").write_text(json.dumps({"steps": 10, "train_s": 1.0}))  # trained before
+    calls = []
+
+    def fake_evaluation(cfg, checkpoint, protocol, out, overrides=()):
+        calls.append((Path(checkpoint), list(overrides)))
+        return {"metrics": {"mAP": 0.5, "AP_class": {"divider": 0.5}, "consistency": {
+            "flicker": {}, "flicker_mean": 0.1, "flicker_detected": {}, "flicker_detected_mean": 0.2, "pairs": {},
+            "pairs_detected": {}}}}
+
+    monkeypatch.setattr("instagram_hdmap.train.train", lambda *a, **k: pytest.fail("trained again"))
+    monkeypatch.setattr("instagram_hdmap.predict.run_evaluation", fake_evaluation)
+    monkeypatch.setattr("instagram_hdmap.demo.world_overrides", lambda root: [])
+    result = bench.run_one("single", 0, args, (None, None), "single")
+    assert calls == [(run / "run" / "last.pt", ["model.temporal.persist_frames=2",
+                                                  "model.temporal.persist_decay=0.25"])]
+    assert result["steps"] == 10 and (run / "result_val12_persist2x0.25.json").is_file()
