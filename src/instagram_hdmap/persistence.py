@@ -55,9 +55,15 @@ def _resample(pts: np.ndarray, n: int) -> np.ndarray:
     return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
 
 
-def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    d = np.linalg.norm(a[:, None] - b[None], axis=-1)
-    return float((d.min(1).mean() + d.min(0).mean()) / 2)
+def _nearest_chamfer(a: np.ndarray, b: np.ndarray, chunk: int = 32) -> np.ndarray:
+    """[K, n, 2] against [M, n, 2] -> [K]: each of ``a``'s smallest symmetric Chamfer distance (mean nearest
+    distance both ways, halved) to any of ``b``; ``chunk`` rows of ``a`` at a time bound the [k, M, n, n] block."""
+    n = a.shape[1]
+    out = np.empty(len(a))
+    for s in range(0, len(a), chunk):
+        d = np.sqrt(((a[s:s + chunk, None, :, None] - b[None, :, None]) ** 2).sum(-1))  # [k, M, n, n]
+        out[s:s + chunk] = ((d.min(3).sum(2) + d.min(2).sum(2)) / (2 * n)).min(1)
+    return out
 
 
 def _inside_run(pts: np.ndarray, grid: BEVGrid) -> np.ndarray:
@@ -114,19 +120,28 @@ class Persistence:
         if (prev is not None and frame == prev.frame + 1
                 and np.linalg.norm(pose[:3, 3] - prev.pose[:3, 3]) <= self.max_jump_m):
             to_now = np.linalg.inv(pose) @ prev.pose  # previous ego frame -> this one
-            now = [(p["label"], _resample(np.asarray(p["pts"], np.float64), MATCH_POINTS)) for p in preds
-                   if len(p["pts"]) >= 2]
+            now: dict[int, list[np.ndarray]] = {}  # class -> resampled outputs of this frame
+            for p in preds:
+                if len(p["pts"]) >= 2:
+                    now.setdefault(int(p["label"]), []).append(_resample(np.asarray(p["pts"], np.float64),
+                                                                         MATCH_POINTS))
+            moved = []  # (element, missed, its points in this ego frame within the grid)
             for element, missed in prev.elements:
                 if missed >= self.frames:
                     continue
                 pts = np.asarray(element["pts"], np.float64)
                 pts = pts @ to_now[:2, :2].T + to_now[:2, 3]  # the map is the ground plane: x, y of the ego frame
                 pts = _inside_run(pts, self.grid)
-                if len(pts) < 2:
+                if len(pts) >= 2:
+                    moved.append((element, missed, pts))
+            found = np.zeros(len(moved), dtype=bool)
+            for label in {int(element["label"]) for element, _, _ in moved} & set(now):
+                rows = [i for i, (element, _, _) in enumerate(moved) if int(element["label"]) == label]
+                mine = np.stack([_resample(moved[i][2], MATCH_POINTS) for i in rows])
+                found[rows] = _nearest_chamfer(mine, np.stack(now[label])) <= self.match_m  # the model found it again
+            for (element, missed, pts), again in zip(moved, found):
+                if again:
                     continue
-                mine = _resample(pts, MATCH_POINTS)
-                if any(label == element["label"] and _chamfer(mine, other) <= self.match_m for label, other in now):
-                    continue  # the model found it again
                 closed = bool(element.get("closed", False)) and len(pts) == len(element["pts"])
                 carried.append(({**element, "pts": pts.astype(np.asarray(element["pts"]).dtype, copy=False),
                                  "closed": closed, "score": float(element["score"]) * self.decay}, missed + 1))
