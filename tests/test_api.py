@@ -6,6 +6,7 @@ frame per sample; bad input is one line naming the camera and the field."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -438,3 +439,31 @@ def test_a_misspelt_frame_field_lists_every_field():
     message = str(info.value)
     assert all(f.name in message for f in dataclasses.fields(Frame)), message
     assert "got ['images', 'intrinsic']" in message
+
+
+def test_stream_keeps_an_element_the_model_misses_with_persistence(checkpoint, sample, monkeypatch):
+    """model.temporal.persist_frames: MapStream.step keeps an element of the previous frame that this one's output
+    misses, moved by the ego motion between the frames' poses and with its score decayed; reset() forgets it;
+    a frame without an ego pose is named (the kept elements move with the ego)."""
+    import instagram_hdmap.inference as inference
+
+    mapper = Mapper.from_checkpoint(checkpoint, overrides=["model.temporal.persist_frames=1",
+                                                           "model.temporal.persist_decay=0.5"])
+    line = {"pts": np.array([[1.0, 2.0], [5.0, 2.0]], np.float32), "label": 0, "closed": False, "score": 0.8}
+    outputs = iter([[[line]], [[]], [[line]], [[]]])
+    monkeypatch.setattr(inference, "postprocess_batch", lambda *a, **k: next(outputs))
+    at = np.eye(4)
+    moved = np.eye(4)
+    moved[:3, 3] = [2.0, 0.0, 0.0]  # the ego drove 2 m forward
+    frame = Frame(sample["images"], sample["intrinsics"], sample["cam_to_ego"])
+    stream = mapper.stream()
+    with pytest.raises(RigError, match="persist_frames moves the elements it keeps with the ego"):
+        stream.step(frame)
+    assert len(stream.step(dataclasses.replace(frame, ego_pose=at))) == 1
+    (kept,) = stream.step(dataclasses.replace(frame, ego_pose=moved))
+    np.testing.assert_allclose(kept.points, [[-1.0, 2.0], [3.0, 2.0]], atol=1e-5)  # inside the tiny grid
+    assert kept.score == pytest.approx(0.4) and kept.label == "divider"
+    stream.reset()
+    assert len(stream.step(dataclasses.replace(frame, ego_pose=at))) == 1
+    stream.reset()
+    assert stream.step(dataclasses.replace(frame, ego_pose=moved)) == []  # a new scene: nothing remembered
