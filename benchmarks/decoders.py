@@ -83,6 +83,9 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], help="NAME=key=value,key=value (decoding keys)")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, threads=1)
     torch.set_num_threads(args.threads)
     variants = [(v.split("=", 1)[0], v.split("=", 1)[1].split(",")) for v in args.variant]
     print("| world | checkpoint | decoding | divider | ped crossing | boundary | mAP "
@@ -103,4 +106,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

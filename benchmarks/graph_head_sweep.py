@@ -141,6 +141,9 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=None, help="first training samples only")
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, steps=1, batch=1, limit=1, threads=1)
     if args.threads:
         torch.set_num_threads(args.threads)
     saved = config_from_dict(load_checkpoint(args.checkpoint)["config"])
@@ -168,4 +171,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -77,6 +77,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=1, help="also time the world with this many worker processes "
                     "(0: one per CPU core)")
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, scenes=1, samples_per_scene=1, workers=0)
     size = parse_image_size(args.image_size)
     default_threads = cv2.getNumThreads()
     n = args.scenes * args.samples_per_scene
@@ -110,4 +113,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)
