@@ -3459,8 +3459,9 @@ def row_mapper_list_of_frames_of_a_temporal_model(env):
 
 @row("S15", "benchmarks/*.py: a count flag of 0 (eval_speed --samples 0, sinkhorn_speed --runs 0) crashed with a "
             "ZeroDivisionError / StatisticsError after the setup, ped_crossing_diagnosis --limit 0 printed a table "
-            "of AP 0.000 for no samples with exit 0, and a missing checkpoint was a CheckpointError traceback; each is "
-            "one 'SCRIPT: error:' line, exit 2")
+            "of AP 0.000 for no samples with exit 0, a missing checkpoint was a CheckpointError traceback, decoders "
+            "--variant NAME (no '=') an IndexError and --device mps / cuda without CUDA a raw error; each is one "
+            "'SCRIPT: error:' line, exit 2")
 def row_benchmark_count_flags(env):
     def script(name, *args):
         p = subprocess.run([sys.executable, str(REPO / "benchmarks" / name), *map(str, args)], capture_output=True,
@@ -3475,6 +3476,9 @@ def row_benchmark_count_flags(env):
                                                    "--limit", "0")
     assert re.search(r"error: checkpoint not found: .*missing\.pt",
                      script("decoders.py", f"a={env.tmp / 'missing.pt'}", "--world", env.world))
+    assert "--variant 'novalue': expected NAME=key=value" in script("decoders.py", f"a={env.ckpt}", "--world",
+                                                                     env.world, "--variant", "novalue")
+    assert "--device=mps is not supported" in script("graph_speed.py", "--device", "mps", "--repeats", "1")
 
 
 @row("S15", "Mapper / MapStream: an ego_pose whose last row is not [0, 0, 0, 1] (a transposed pose, the translation in "

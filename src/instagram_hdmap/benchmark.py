@@ -53,12 +53,18 @@ def check_counts(parser: argparse.ArgumentParser, args: argparse.Namespace, **mi
     ``--runs 0`` (or any item of a list flag below its minimum) with argparse's one line and exit 2,
     before any work: a count of 0 left nothing to take a median or a mean of (a raw ZeroDivisionError
     or StatisticsError after the setup) or printed a table of zeros for no samples with exit 0.
-    A flag left at ``None`` (its default chosen later) is not checked."""
+    A flag left at ``None`` (its default chosen later) is not checked. A ``--device`` the script has is
+    checked too (``cuda`` on a machine without CUDA, a name that is no device)."""
     for name, minimum in minimums.items():
         value = getattr(args, name)
         for v in value if isinstance(value, (list, tuple)) else [value]:
             if v is not None and v < minimum:
                 parser.error(f"--{name.replace('_', '-')} must be >= {minimum}, got {v}")
+    if isinstance(getattr(args, "device", None), str):  # --device cuda without CUDA: a raw AssertionError later
+        try:
+            resolve_device(args.device, key="--device")
+        except UserError as e:
+            parser.error(str(e))
 
 
 def script_main(main: Callable[[], object]) -> None:
