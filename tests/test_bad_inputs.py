@@ -3540,6 +3540,18 @@ def row_nuscenes_dataset_on_an_av2_root(env):
               f"data.dataroot={av2}", "--out", env.tmp / "gt.json")
 
 
+@row("S15", "export-gt / show-gt without --split read the split named 'val' whatever data.val_split said (export-gt "
+            "CONFIG data.val_split=train wrote the val GT, exit 0: evaluate scores data.val_split); they take the "
+            "config's split now (--split still chooses)")
+def row_export_gt_follows_data_val_split(env):
+    rc, out, err = env.cli("export-gt", env.yaml, "data.val_split=train", "--out", env.tmp / "gt.json")
+    assert rc == 0, err
+    gt = json.loads((env.tmp / "gt.json").read_text())
+    assert gt["meta"]["split"] == "train" and len(gt["results"]) == len(val_dataset(env.cfg("data.val_split=train")))
+    rc, out, err = env.cli("export-gt", env.yaml, "data.val_split=train", "--split", "val", "--out", env.tmp / "v.json")
+    assert rc == 0 and json.loads((env.tmp / "v.json").read_text())["meta"]["split"] == "val"
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
