@@ -3524,9 +3524,12 @@ def row_onnx_given_a_checkpoint(env):
 
 
 @row("S15", "predict-images --rig RIG FOLDER (the folder of the camera images instead of the files) said '1 image(s) "
-            "for the 6 cameras'; the folder is named as a folder")
+            "for the 6 cameras'; the folder is named as a folder. --name '' (an unset shell variable) wrote the frame "
+            "under the key '' with exit 0; it is refused")
 def row_predict_images_folder(env):
     path, images = _rig_files(env)
+    env.error(r"--name '' is empty: give the frame's name in prediction\.json", "predict-images", "--checkpoint",
+              env.ckpt, "--rig", path, "--out", env.tmp / "out", "--device", "cpu", "--name", "", *images)
     env.error(r"is a folder: give the image files themselves, one per camera of rig file .*CAM_FRONT_LEFT",
               "predict-images", "--checkpoint", env.ckpt, "--rig", path, "--out", env.tmp / "out", "--device", "cpu",
               env.tmp)

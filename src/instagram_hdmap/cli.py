@@ -252,6 +252,9 @@ def _decode_options(items: list[str]) -> dict:
 
 
 def _cmd_predict_images(args: argparse.Namespace) -> int:
+    if not args.name.strip():  # `--name "$TOKEN"` of an unset variable: the frame was written under the key ""
+        raise UserError(f"--name {args.name!r} is empty: give the frame's name in prediction.json (e.g. its sample "
+                        "token), or leave --name out for 'frame'")
     result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
                             config=args.config, decode=_decode_options(args.decode), device=args.device,
                             name=args.name)
