@@ -3460,7 +3460,8 @@ def row_mapper_list_of_frames_of_a_temporal_model(env):
 @row("S15", "benchmarks/*.py: a count flag of 0 (eval_speed --samples 0, sinkhorn_speed --runs 0) crashed with a "
             "ZeroDivisionError / StatisticsError after the setup, ped_crossing_diagnosis --limit 0 printed a table "
             "of AP 0.000 for no samples with exit 0, a missing checkpoint was a CheckpointError traceback, decoders "
-            "--variant NAME (no '=') an IndexError and --device mps / cuda without CUDA a raw error; each is one "
+            "--variant NAME (no '=') an IndexError, a graph_head_sweep variant's unknown key failed after the outputs "
+            "were cached, and --device mps / cuda without CUDA was a raw error; each is one "
             "'SCRIPT: error:' line, exit 2")
 def row_benchmark_count_flags(env):
     def script(name, *args):
@@ -3479,6 +3480,9 @@ def row_benchmark_count_flags(env):
     assert "--variant 'novalue': expected NAME=key=value" in script("decoders.py", f"a={env.ckpt}", "--world",
                                                                      env.world, "--variant", "novalue")
     assert "--device=mps is not supported" in script("graph_speed.py", "--device", "mps", "--repeats", "1")
+    assert "variant a=model.gnn.nosuch=1: unknown config key 'model.gnn.nosuch'" in script(
+        "graph_head_sweep.py", "a=model.gnn.nosuch=1", "--checkpoint", env.ckpt, "--world", env.world, "--val-world",
+        env.world)
 
 
 @row("S15", "Mapper / MapStream: an ego_pose whose last row is not [0, 0, 0, 1] (a transposed pose, the translation in "
