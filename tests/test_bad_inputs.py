@@ -3559,6 +3559,29 @@ def row_export_gt_follows_data_val_split(env):
     assert rc == 0 and json.loads((env.tmp / "v.json").read_text())["meta"]["split"] == "val"
 
 
+@row("S15", "two synth runs of one --out started together (no --force): each found the folder absent at its start, "
+            "and the later one's final rename replaced the earlier one's world, both exit 0; the later one now "
+            "keeps the folder and says so")
+def row_synth_out_filled_while_generating(env):
+    from instagram_hdmap.data.synthetic.jobs import write_world
+
+    out = env.tmp / "world"
+
+    def write(tmp):  # the other run finishes while this one renders
+        out.mkdir()
+        (out / "world.json").write_text('{"seed": 1}')
+        (tmp / "world.json").write_text('{"seed": 2}')
+        return {"seed": 2}
+
+    with pytest.raises(UserError, match=r"the folder was filled while this world was generated .* pass --force"):
+        write_world(out, False, write)
+    assert json.loads((out / "world.json").read_text()) == {"seed": 1}
+    assert [p.name for p in env.tmp.iterdir()] == ["world"]  # this run's temporary folder is gone
+    out2 = env.tmp / "other"
+    assert write_world(out2, False, lambda tmp: (tmp / "world.json").write_text("{}") and {}) == {}  # alone: written
+    assert (out2 / "world.json").is_file()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
