@@ -3459,10 +3459,10 @@ def row_mapper_list_of_frames_of_a_temporal_model(env):
 
 @row("S15", "benchmarks/*.py: a count flag of 0 (eval_speed --samples 0, sinkhorn_speed --runs 0) crashed with a "
             "ZeroDivisionError / StatisticsError after the setup, ped_crossing_diagnosis --limit 0 printed a table "
-            "of AP 0.000 for no samples with exit 0, a missing checkpoint was a CheckpointError traceback, decoders "
-            "--variant NAME (no '=') an IndexError, a graph_head_sweep variant's unknown key failed after the outputs "
-            "were cached, and --device mps / cuda without CUDA was a raw error; each is one "
-            "'SCRIPT: error:' line, exit 2")
+            "of AP 0.000 for no samples with exit 0, synth_speed of a 1-sample world divided by 0 after rendering, "
+            "a missing checkpoint was a CheckpointError traceback, decoders --variant NAME (no '=') an IndexError, a "
+            "graph_head_sweep variant's unknown key failed after the outputs were cached, and --device mps / cuda "
+            "without CUDA was a raw error; each is one 'SCRIPT: error:' line, exit 2")
 def row_benchmark_count_flags(env):
     def script(name, *args):
         p = subprocess.run([sys.executable, str(REPO / "benchmarks" / name), *map(str, args)], capture_output=True,
@@ -3480,6 +3480,8 @@ def row_benchmark_count_flags(env):
     assert "--variant 'novalue': expected NAME=key=value" in script("decoders.py", f"a={env.ckpt}", "--world",
                                                                      env.world, "--variant", "novalue")
     assert "--device=mps is not supported" in script("graph_speed.py", "--device", "mps", "--repeats", "1")
+    assert "is one sample: the time per sample is measured against a 1-sample world" in script(
+        "synth_speed.py", "--scenes", "1", "--samples-per-scene", "1")
     assert "variant a=model.gnn.nosuch=1: unknown config key 'model.gnn.nosuch'" in script(
         "graph_head_sweep.py", "a=model.gnn.nosuch=1", "--checkpoint", env.ckpt, "--world", env.world, "--val-world",
         env.world)
