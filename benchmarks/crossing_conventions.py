@@ -145,6 +145,9 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=8, help="synthetic drives per seed (over the four road networks)")
     ap.add_argument("--samples", type=int, default=20, help="samples per synthetic drive (0.5 s apart)")
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, real_step=1, seeds=0, scenes=1, samples=1)
     for setting in SETTINGS:
         if REAL.is_dir():
             table(f"Real AV2 log ({REAL}), {setting} setting, every {args.real_step}-th pose",
@@ -158,4 +161,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -30,10 +30,18 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from instagram_hdmap.checkpoint import load_checkpoint
-from instagram_hdmap.config import config_from_dict, config_to_dict, deep_update, parse_overrides
+from instagram_hdmap.config import (
+    UserError,
+    config_from_dict,
+    config_to_dict,
+    deep_update,
+    load_config,
+    parse_overrides,
+)
 from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.demo import world_overrides
+from instagram_hdmap.errors import one_line
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.inference import load_model
@@ -58,7 +66,7 @@ def run_outputs(checkpoint: str, world: str) -> tuple[list[tuple[dict, list]], o
 def variant_config(cfg, overrides: list[str]):
     bad = [o for o in overrides if o.split("=", 1)[0] not in DECODE_KEYS]
     if bad:
-        raise SystemExit(f"--variant takes decoding keys only ({', '.join(DECODE_KEYS)}); got {bad}")
+        raise UserError(f"--variant takes decoding keys only ({', '.join(DECODE_KEYS)}); got {bad}")
     merged = config_to_dict(cfg)
     deep_update(merged, parse_overrides(overrides))
     return config_from_dict(merged)
@@ -83,8 +91,22 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], help="NAME=key=value,key=value (decoding keys)")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, threads=1)
     torch.set_num_threads(args.threads)
-    variants = [(v.split("=", 1)[0], v.split("=", 1)[1].split(",")) for v in args.variant]
+    variants = []  # checked before the checkpoints run (a malformed one was an IndexError, a bad value came after)
+    for v in args.variant:
+        name, _, rest = v.partition("=")
+        if not name or not rest:
+            ap.error(f"--variant {v!r}: expected NAME=key=value[,key=value...], e.g. "
+                     "t05=model.gnn.match_threshold=0.05")
+        overrides = [o if o.startswith("model.gnn.") else f"model.gnn.{o}" for o in rest.split(",")]
+        try:
+            variant_config(load_config(None), overrides)
+        except UserError as e:
+            ap.error(f"--variant {v}: {one_line(e)}")
+        variants.append((name, overrides))
     print("| world | checkpoint | decoding | divider | ped crossing | boundary | mAP "
           "| ped crossing at 0.5 / 1.0 / 1.5 m | instances |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -103,4 +125,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -31,6 +31,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads per variant")
     parser.add_argument("--variant", action="append", required=True, help="NAME=override,override,...")
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, steps=1, threads=1)
 
     root = Path(args.dataroot)
     common = [f"data.dataroot={root}", f"data.splits_file={root / 'splits.json'}", f"train.device={args.device}"]
@@ -72,4 +75,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -86,6 +86,9 @@ def main() -> None:
                         help="onnxruntime graph optimisation level")
     parser.add_argument("--onnx-dir", default=None, help="folder for the exported files (default: a temporary one)")
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, runs=1, warmup=0, threads=1)
     torch.set_num_threads(args.threads)
     if "eager" not in args.rows:
         args.rows.insert(0, "eager")  # the reference of the ratios
@@ -133,4 +136,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -97,6 +97,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, samples=1, raster_samples=0, chunk=1, threads=1)
     torch.set_num_threads(args.threads)
     preds, gts = make_dataset(max(args.samples, args.raster_samples), args.seed)
     n_gt = np.mean([len(g) for g in gts])
@@ -114,4 +117,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -32,6 +32,9 @@ def main() -> None:
     parser.add_argument("--amp", nargs="+", default=["none", "bf16"], choices=["none", "bf16", "fp16"])
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS))
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, runs=1, warmup=0)
 
     print(f"device {device_name(torch.device(args.device))}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, batch 1 x 6 cameras, random weights")
@@ -54,4 +57,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -25,11 +25,12 @@ import torch
 from tqdm import tqdm
 
 from instagram_hdmap.checkpoint import load_checkpoint
-from instagram_hdmap.config import config_from_dict, config_to_dict, deep_update, parse_overrides
+from instagram_hdmap.config import UserError, config_from_dict, config_to_dict, deep_update, parse_overrides
 from instagram_hdmap.data.base import collate_fn
 from instagram_hdmap.data.nuscenes import NuScenesMapDataset
 from instagram_hdmap.demo import world_overrides
 from instagram_hdmap.diagnostics import ClassDiagnostics, format_table
+from instagram_hdmap.errors import one_line
 from instagram_hdmap.evaluation import Evaluator
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.inference import load_model
@@ -141,9 +142,22 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=None, help="first training samples only")
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, steps=1, batch=1, limit=1, threads=1)
     if args.threads:
         torch.set_num_threads(args.threads)
     saved = config_from_dict(load_checkpoint(args.checkpoint)["config"])
+    for item in args.variants:  # checked before the outputs are cached (a typo failed after that work)
+        name, _, spec = item.partition("=")
+        if not name:  # a bare NAME (or NAME=) is the checkpoint's own config, retrained
+            ap.error(f"variant {item!r}: expected NAME=key=value[,key=value...], e.g. l3=model.gnn.layers=3")
+        d = config_to_dict(saved)
+        try:
+            deep_update(d, parse_overrides([s for s in spec.split(",") if s]))
+            config_from_dict(d)
+        except UserError as e:
+            ap.error(f"variant {item}: {one_line(e)}")
     model, cfg, _ = load_model(args.checkpoint, saved, ["train.device=cpu"], device=torch.device("cpu"))
     train = cache_outputs(model, cfg, args.world, cfg.data.train_split, args.limit)
     val = cache_outputs(model, cfg, args.val_world, cfg.data.val_split, None)
@@ -168,4 +182,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

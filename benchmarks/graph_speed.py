@@ -99,6 +99,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=10)
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, batch=1, vertices=1, threads=1, repeats=1)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -137,4 +140,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -195,6 +195,9 @@ def main() -> None:
     parser.add_argument("--official", metavar="DIR",
                         help="a local checkout of the official InstaGraM code: time its model too (CPU only)")
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, threads=1, runs=1)
     if args.device.startswith("cuda"):
         if args.official:
             parser.error("--official times on the CPU only (the official model's forward is compared on --device cpu)")
@@ -204,4 +207,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -68,6 +68,9 @@ def main() -> None:
     ap.add_argument("--graphs", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, graphs=1)
     vectorize_graph = official_vectorize_graph(args.official, args.commit)
     grid = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15, 8)  # the official export's metres: u * 0.15 - 29.925
     rng = np.random.default_rng(args.seed)
@@ -88,4 +91,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

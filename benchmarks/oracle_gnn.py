@@ -72,7 +72,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--target", type=float, default=0.90, help="PASS if the oracle's mAP reaches this")
     p.add_argument("--json", help="write the results (metrics, diagnostics, training curve) here")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(p, args, scenes_train=1, scenes_val=1, samples_per_scene=1, steps=1, batch_size=1, threads=1)
+    return args
 
 
 def synthetic_world(args, folder: Path) -> Path:

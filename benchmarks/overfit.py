@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -193,6 +192,9 @@ def main() -> int:
     parser.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's choice)")
     parser.add_argument("overrides", nargs="*", help="config key=value overrides")
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, samples=1, steps=1, every=1, threads=1)
     if args.threads:
         torch.set_num_threads(args.threads)
 
@@ -223,4 +225,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -81,6 +81,9 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="also write the results here")
     ap.add_argument("--decode", nargs="*", default=[], help="decoding overrides (key=value) for every checkpoint")
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, limit=1, threads=1)
     results = {}
     for item in args.checkpoints:
         name, _, path = item.partition("=")
@@ -98,4 +101,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -70,6 +70,9 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--threads", type=int, default=2)
     a = p.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(p, a, batch=1, vertices=1, iters=1, runs=1, threads=1)
     if not 0 < a.real <= a.vertices:
         p.error(f"--real {a.real} must be in 1..--vertices {a.vertices}")
     torch.set_num_threads(a.threads)
@@ -112,4 +115,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

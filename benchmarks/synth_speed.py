@@ -77,6 +77,12 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=1, help="also time the world with this many worker processes "
                     "(0: one per CPU core)")
     args = ap.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(ap, args, scenes=1, samples_per_scene=1, workers=0)
+    if args.scenes * args.samples_per_scene < 2:  # the per-sample time is (world - 1-sample world) / (n - 1)
+        ap.error(f"--scenes {args.scenes} x --samples-per-scene {args.samples_per_scene} is one sample: the time per "
+                 "sample is measured against a 1-sample world, so give a world of at least 2 samples")
     size = parse_image_size(args.image_size)
     default_threads = cv2.getNumThreads()
     n = args.scenes * args.samples_per_scene
@@ -110,4 +116,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -44,6 +44,9 @@ def main() -> None:
     p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     p.add_argument("override", nargs="*", help="config overrides (key=value)")
     args = p.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(p, args, runs=1, warmup=0, threads=1)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -103,4 +106,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -403,6 +403,9 @@ def main() -> int:
     parser.add_argument("--impl", choices=["ours", "official"], default="ours", help="with --one: whose step")
     parser.add_argument("--rounds", type=int, default=1, help="run every variant this many times in turn")
     args = parser.parse_args()
+    from instagram_hdmap.benchmark import check_counts
+
+    check_counts(parser, args, batch=1, steps=1, warmup=0, threads=1, timeout=1)
     if args.official and kind_of(args.device) != "cpu":
         parser.error("--official times the training step on the CPU only")
     if args.rounds < 1:
@@ -464,4 +467,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from instagram_hdmap.benchmark import script_main
+
+    script_main(main)

@@ -8,7 +8,7 @@ second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
-fourteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that
+fourteenth, ``S15`` one found by a fifteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that
 was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a random
 tiny model: no training longer than a few steps.
 """
@@ -45,7 +45,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S14"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S15"
     what: str
     run: Callable
 
@@ -3455,6 +3455,133 @@ def row_mapper_list_of_frames_of_a_temporal_model(env):
         mapper(frame)
         single([frame, frame])
 
+
+
+@row("S15", "benchmarks/*.py: a count flag of 0 (eval_speed --samples 0, sinkhorn_speed --runs 0) crashed with a "
+            "ZeroDivisionError / StatisticsError after the setup, ped_crossing_diagnosis --limit 0 printed a table "
+            "of AP 0.000 for no samples with exit 0, synth_speed of a 1-sample world divided by 0 after rendering, "
+            "a missing checkpoint was a CheckpointError traceback, decoders --variant NAME (no '=') an IndexError, a "
+            "graph_head_sweep variant's unknown key failed after the outputs were cached, and --device mps / cuda "
+            "without CUDA was a raw error; each is one 'SCRIPT: error:' line, exit 2")
+def row_benchmark_count_flags(env):
+    def script(name, *args):
+        p = subprocess.run([sys.executable, str(REPO / "benchmarks" / name), *map(str, args)], capture_output=True,
+                           text=True, timeout=300, cwd=REPO)
+        lines = [ln for ln in p.stderr.splitlines() if ln.startswith(name)]
+        assert p.returncode == 2 and "Traceback" not in p.stderr and len(lines) == 1, p.stderr[-2000:]
+        return lines[0]
+
+    assert "--samples must be >= 1, got 0" in script("eval_speed.py", "--samples", "0", "--raster-samples", "0")
+    assert "--runs must be >= 1, got 0" in script("sinkhorn_speed.py", "--runs", "0")
+    assert "--limit must be >= 1, got 0" in script("ped_crossing_diagnosis.py", f"a={env.ckpt}", "--world", env.world,
+                                                   "--limit", "0")
+    assert re.search(r"error: checkpoint not found: .*missing\.pt",
+                     script("decoders.py", f"a={env.tmp / 'missing.pt'}", "--world", env.world))
+    assert "--variant 'novalue': expected NAME=key=value" in script("decoders.py", f"a={env.ckpt}", "--world",
+                                                                     env.world, "--variant", "novalue")
+    assert "--device=mps is not supported" in script("graph_speed.py", "--device", "mps", "--repeats", "1")
+    assert "is one sample: the time per sample is measured against a 1-sample world" in script(
+        "synth_speed.py", "--scenes", "1", "--samples-per-scene", "1")
+    assert "variant a=model.gnn.nosuch=1: unknown config key 'model.gnn.nosuch'" in script(
+        "graph_head_sweep.py", "a=model.gnn.nosuch=1", "--checkpoint", env.ckpt, "--world", env.world, "--val-world",
+        env.world)
+
+
+@row("S15", "Mapper / MapStream: an ego_pose whose last row is not [0, 0, 0, 1] (a transposed pose, the translation in "
+            "the last row: its rotation part is still a rotation and its translation column 0, so a temporal model "
+            "fused its memory as if the ego stood still) was taken with no word; it is a RigError as cam_to_ego was. "
+            "MapStream.step(frame, images=...) dropped the fields with no word; it is a TypeError")
+def row_ego_pose_transposed(env):
+    from instagram_hdmap import Frame, Mapper
+    from instagram_hdmap.data.rig import RigError, rig
+
+    mapper = Mapper.from_checkpoint(env.ckpt, device="cpu")
+    calib = rig((64, 36))
+    images = dict(zip(mapper.cameras, np.zeros((len(mapper.cameras), 36, 64, 3), dtype=np.uint8)))
+    pose = np.eye(4)
+    pose[:3, 3] = [12.0, -3.0, 0.0]
+    frame = Frame(images, {c: calib[c].intrinsic for c in mapper.cameras},
+                  {c: np.vstack([np.c_[calib[c].rot, calib[c].trans], [0, 0, 0, 1]]) for c in mapper.cameras},
+                  ego_pose=pose)
+    mapper(frame)  # the right way round maps
+    with pytest.raises(RigError, match=r"ego_pose has the last row \[12.0, -3.0, 0.0, 1.0\], not \[0, 0, 0, 1\]: "
+                                       r"transposed"):
+        mapper(Frame(frame.images, frame.intrinsics, frame.cam_to_ego, ego_pose=pose.T.copy()))
+    with pytest.raises(TypeError, match="MapStream.step takes a Frame or the fields .* not both"):
+        mapper.stream().step(frame, images=images)
+
+
+@row("S15", "Mapper.from_onnx / predict --onnx of a PyTorch checkpoint said 'not a readable ONNX file (DecodeError: "
+            "... Wire format was corrupt)', of a folder 'ONNX file not found', and from_onnx(path, device='cuda') "
+            "'unknown decoding option(s) device'; each says what it is now (device='cpu' is taken)")
+def row_onnx_given_a_checkpoint(env):
+    pytest.importorskip("onnx")
+    from instagram_hdmap import Mapper
+    from instagram_hdmap.inference import DeployError
+
+    with pytest.raises(DeployError, match=r"random\.pt is a PyTorch checkpoint, not an ONNX file"):
+        Mapper.from_onnx(env.ckpt)
+    with pytest.raises(DeployError, match=r"ONNX file not found: .* \(it is a folder\)"):
+        Mapper.from_onnx(env.tmp)
+    with pytest.raises(TypeError, match=r"runs the ONNX file with onnxruntime on the CPU: device='cuda'"):
+        Mapper.from_onnx(env.tmp / "model.onnx", device="cuda")
+    env.error(r"random\.pt is a PyTorch checkpoint, not an ONNX file", "predict", env.yaml, "--onnx", env.ckpt,
+              "--index", "0", "--out", env.tmp / "out")
+
+
+@row("S15", "predict-images --rig RIG FOLDER (the folder of the camera images instead of the files) said '1 image(s) "
+            "for the 6 cameras'; the folder is named as a folder. --name '' (an unset shell variable) wrote the frame "
+            "under the key '' with exit 0; it is refused")
+def row_predict_images_folder(env):
+    path, images = _rig_files(env)
+    env.error(r"--name '' is empty: give the frame's name in prediction\.json", "predict-images", "--checkpoint",
+              env.ckpt, "--rig", path, "--out", env.tmp / "out", "--device", "cpu", "--name", "", *images)
+    env.error(r"is a folder: give the image files themselves, one per camera of rig file .*CAM_FRONT_LEFT",
+              "predict-images", "--checkpoint", env.ckpt, "--rig", path, "--out", env.tmp / "out", "--device", "cpu",
+              env.tmp)
+
+
+@row("S15", "an Argoverse 2 root read with data.dataset left at nuscenes said 'versions in ROOT: none (set "
+            "data.version)'; it says the root is an AV2 one: set data.dataset=av2")
+def row_nuscenes_dataset_on_an_av2_root(env):
+    av2 = env.request.getfixturevalue("av2_world")
+    env.error(r"it is an Argoverse 2 sensor-dataset root: set data\.dataset=av2", "export-gt", env.yaml,
+              f"data.dataroot={av2}", "--out", env.tmp / "gt.json")
+
+
+@row("S15", "export-gt / show-gt without --split read the split named 'val' whatever data.val_split said (export-gt "
+            "CONFIG data.val_split=train wrote the val GT, exit 0: evaluate scores data.val_split); they take the "
+            "config's split now (--split still chooses)")
+def row_export_gt_follows_data_val_split(env):
+    rc, out, err = env.cli("export-gt", env.yaml, "data.val_split=train", "--out", env.tmp / "gt.json")
+    assert rc == 0, err
+    gt = json.loads((env.tmp / "gt.json").read_text())
+    assert gt["meta"]["split"] == "train" and len(gt["results"]) == len(val_dataset(env.cfg("data.val_split=train")))
+    rc, out, err = env.cli("export-gt", env.yaml, "data.val_split=train", "--split", "val", "--out", env.tmp / "v.json")
+    assert rc == 0 and json.loads((env.tmp / "v.json").read_text())["meta"]["split"] == "val"
+
+
+@row("S15", "two synth runs of one --out started together (no --force): each found the folder absent at its start, "
+            "and the later one's final rename replaced the earlier one's world, both exit 0; the later one now "
+            "keeps the folder and says so")
+def row_synth_out_filled_while_generating(env):
+    from instagram_hdmap.data.synthetic.jobs import write_world
+
+    out = env.tmp / "world"
+
+    def write(tmp):  # the other run finishes while this one renders
+        out.mkdir()
+        (out / "world.json").write_text('{"seed": 1}')
+        (tmp / "world.json").write_text('{"seed": 2}')
+        return {"seed": 2}
+
+    with pytest.raises(UserError, match=r"the folder was filled while this world was generated .* pass --force"):
+        write_world(out, False, write)
+    assert json.loads((out / "world.json").read_text()) == {"seed": 1}
+    assert [p.name for p in env.tmp.iterdir()] == ["world"]  # this run's temporary folder is gone
+    out2 = env.tmp / "other"
+    assert write_world(out2, False, lambda tmp: (tmp / "world.json").write_text("{}") and {}) == {}  # alone: written
+    assert (out2 / "world.json").is_file()
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -18,7 +18,9 @@ faster than with a trained model: pass ``--checkpoint`` for a trained model's po
 
 from __future__ import annotations
 
+import argparse
 import platform
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +34,7 @@ from .data.rig import nuscenes_like_rig
 from .deploy import fast_forward
 from .distributed import resolve_device
 from .engine import autocast_context
+from .errors import one_line
 from .geometry import BEVGrid
 from .inference import load_model
 from .models import build_model
@@ -43,6 +46,37 @@ DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
 
 class BenchmarkError(UserError):
     """A device or precision that cannot be benchmarked here."""
+
+
+def check_counts(parser: argparse.ArgumentParser, args: argparse.Namespace, **minimums: int) -> None:
+    """A benchmarks/ script's count flags: ``check_counts(parser, args, runs=1, warmup=0)`` refuses
+    ``--runs 0`` (or any item of a list flag below its minimum) with argparse's one line and exit 2,
+    before any work: a count of 0 left nothing to take a median or a mean of (a raw ZeroDivisionError
+    or StatisticsError after the setup) or printed a table of zeros for no samples with exit 0.
+    A flag left at ``None`` (its default chosen later) is not checked. A ``--device`` the script has is
+    checked too (``cuda`` on a machine without CUDA, a name that is no device)."""
+    for name, minimum in minimums.items():
+        value = getattr(args, name)
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            if v is not None and v < minimum:
+                parser.error(f"--{name.replace('_', '-')} must be >= {minimum}, got {v}")
+    if isinstance(getattr(args, "device", None), str):  # --device cuda without CUDA: a raw AssertionError later
+        try:
+            resolve_device(args.device, key="--device")
+        except UserError as e:
+            parser.error(str(e))
+
+
+def script_main(main: Callable[[], object]) -> None:
+    """Run a benchmarks/ script's ``main()``: a ``UserError`` (a config, checkpoint, dataroot or size its
+    flags named that is wrong) is one line ``SCRIPT: error: MESSAGE`` and exit 2, as a wrong flag is,
+    not a traceback around the message; ``main``'s return value is the exit code."""
+    try:
+        code = main()
+    except UserError as e:
+        print(f"{Path(sys.argv[0]).name}: error: {one_line(e)}", file=sys.stderr)
+        raise SystemExit(2) from None
+    raise SystemExit(code)
 
 
 def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:

@@ -96,6 +96,8 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
     if out.is_file() and root in out.parents and (out.parent != root or out.name == "world.json" or out == splits):
         raise UserError(f"--out {args.out} is a file of the dataset the export reads (data.dataroot="
                         f"{cfg.data.dataroot}): writing the GT there would replace it; choose another output path")
+    # the config's split by default, as evaluate's (a literal 'val' ignored data.val_split with no word)
+    args.split = args.split or cfg.data.val_split
     dataset = build_dataset(cfg, args.split, augment=False)
     sub = gt_submission(dataset, progress=True)
     write_json(sub, args.out)
@@ -107,6 +109,7 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
 def _cmd_show_gt(args: argparse.Namespace) -> int:
     cfg = _load_data_cfg(args)
     check_output_dir(args.out, "--out")
+    args.split = args.split or cfg.data.val_split
     dataset = build_dataset(cfg, args.split, augment=args.augment)
     if not -len(dataset) <= args.index < len(dataset):
         raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
@@ -249,6 +252,9 @@ def _decode_options(items: list[str]) -> dict:
 
 
 def _cmd_predict_images(args: argparse.Namespace) -> int:
+    if not args.name.strip():  # `--name "$TOKEN"` of an unset variable: the frame was written under the key ""
+        raise UserError(f"--name {args.name!r} is empty: give the frame's name in prediction.json (e.g. its sample "
+                        "token), or leave --name out for 'frame'")
     result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
                             config=args.config, decode=_decode_options(args.decode), device=args.device,
                             name=args.name)
@@ -333,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_config_args(p)
         p.add_argument("--dataroot", help="dataset root (overrides data.dataroot)")
         p.add_argument("--version", help="version folder, e.g. v1.0-mini (overrides data.version)")
-        p.add_argument("--split", default="val", help="split name (default val)")
+        p.add_argument("--split", help="split name (default: data.val_split, the split evaluate scores)")
         p.add_argument("--out", required=True, help="output JSON file" if name == "export-gt" else "output folder")
         if name == "export-gt":
             p.set_defaults(func=_cmd_export_gt)

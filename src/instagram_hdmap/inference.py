@@ -304,10 +304,16 @@ def read_metadata(path: str | Path) -> dict[str, str]:
     onnx, _ = require_onnx()
     path = as_path(path, "ONNX file")
     if not path.is_file():
-        raise DeployError(f"ONNX file not found: {path}")
+        raise DeployError(f"ONNX file not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
     try:
         proto = onnx.load(str(path), load_external_data=False)
     except Exception as e:  # any unreadable file is a user error
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if head == b"PK\x03\x04" or head[:1] == b"\x80":  # torch.save's zip (or a legacy pickle): a checkpoint
+            raise DeployError(f"{path} is a PyTorch checkpoint, not an ONNX file: give it as a checkpoint "
+                              "(--checkpoint, Mapper.from_checkpoint), or export it with: instagram-hdmap export-onnx "
+                              "CONFIG --checkpoint CKPT --out FILE") from None
         raise DeployError(f"{path} is not a readable ONNX file ({type(e).__name__}: {str(e)[:200]})") from None
     meta = {p.key: p.value for p in proto.metadata_props}
     if META_GRAPH_SHA in meta and graph_sha256(proto) != meta[META_GRAPH_SHA]:
@@ -667,6 +673,11 @@ def _ego_pose(pose) -> torch.Tensor:
     if not bool(torch.isfinite(T).all()):  # the shape is right: say what is wrong (was "got shape [4, 4]")
         raise RigError(f"the frame's ego_pose has NaN or infinite values ({T.flatten().tolist()!s:.160}); give a "
                        "finite 4x4 (or 3x4) ego -> world transform")
+    if T.shape == (4, 4) and not torch.allclose(T[3].double(), torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64),
+                                                atol=1e-6):
+        # a transposed pose (the translation in the last row) kept a rotation and read as "no motion"
+        raise RigError(f"the frame's ego_pose has the last row {T[3].double().numpy().round(4).tolist()}, not "
+                       "[0, 0, 0, 1]: transposed (the translation in the last row)? give [[R, t], [0, 0, 0, 1]]")
     R = T[:3, :3].double()
     off, det = float((R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()), float(torch.linalg.det(R))
     if off > 1e-2 or det < 0:  # a temporal model would warp its memory by a non-rigid motion
@@ -776,7 +787,12 @@ class Mapper:
                   overrides: Sequence[str] = (), **decode_overrides) -> Mapper:
         """An ``export-onnx`` file run by onnxruntime. ``config`` (an ``ExperimentConfig`` or a YAML
         file; default: the config the export stamped in its metadata) and ``overrides`` must agree with
-        the graph's baked config (a ``DeployError`` names the keys that differ)."""
+        the graph's baked config (a ``DeployError`` names the keys that differ). It runs on the CPU."""
+        if "device" in decode_overrides:  # from_checkpoint's argument; here it was "an unknown decoding option"
+            device = decode_overrides.pop("device")
+            if device is not None and str(device).split(":")[0] != "cpu":
+                raise TypeError(f"Mapper.from_onnx runs the ONNX file with onnxruntime on the CPU: device={device!r} "
+                                "is not supported; for a GPU use Mapper.from_checkpoint(path, device=...)")
         meta = read_export(path)
         if config is None:
             cfg = exported_config(meta)
@@ -968,6 +984,9 @@ class MapStream:
         return replace(frame, ego_pose=T)
 
     def step(self, frame: Frame | None = None, /, **fields) -> list[MapElement]:
+        if frame is not None and fields:  # the fields were dropped with no word
+            raise TypeError("MapStream.step takes a Frame or the fields images=, intrinsics=, cam_to_ego=, "
+                            "ego_pose=, not both")
         frame = frame if frame is not None else Mapper._frame(fields)
         if not isinstance(frame, Frame):  # a list of frames: a stream takes them one step at a time
             raise TypeError(f"MapStream.step takes one Frame (or the fields images=, intrinsics=, cam_to_ego=, "

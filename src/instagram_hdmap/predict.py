@@ -345,6 +345,11 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
             [f"unknown to the model: {', '.join(extra)}"] if extra else [])
         raise RigError(f"rig file {rig_file}: its cameras do not match the model's ({', '.join(cameras)}): "
                        + "; ".join(parts))
+    folders = [str(p) for p in images if os.path.isdir(p)]
+    if folders:  # was "1 image(s) for the 6 cameras": the folder counted as one image
+        raise RigError(f"{folders[0]} is a folder: give the image files themselves, one per camera of rig file "
+                       f"{rig_file}, in its order ({', '.join(names)}), e.g. {os.path.join(folders[0], names[0])}.jpg "
+                       "...")
     if len(images) != len(rig):
         raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
                        f"({', '.join(names)}): give one image per camera, in the rig file's order")

@@ -60,9 +60,12 @@ def open_nuscenes(dataroot: str | Path, version: str):
     table_root = root / version
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
+        av2 = not found and any(root.glob("*/*/city_SE3_egovehicle.feather"))  # <split>/<log>/: an AV2 root
         raise DatasetError(
             f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; versions "
-            f"in {root}: {', '.join(found) or 'none'} (set data.version or --version)"
+            f"in {root}: {', '.join(found) or 'none'} "
+            + ("(it is an Argoverse 2 sensor-dataset root: set data.dataset=av2)" if av2 else
+               "(set data.version or --version)")
         )
     try:
         return NuScenes(version=version, dataroot=str(root), verbose=False)

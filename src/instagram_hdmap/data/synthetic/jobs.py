@@ -174,7 +174,13 @@ def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> di
         print(f"removed {stale}: a generation of this world that did not finish (its process is gone)", flush=True)
     with atomic_path(target, TMP_TAG) as tmp:
         _make_writable(tmp, out)
-        return write(tmp)
+        manifest = write(tmp)
+        if not force and out.is_dir() and any(out.iterdir()):  # filled while this world was rendered: the
+            # rename would replace it (another synth of the same --out, started after this one's check)
+            raise UserError(f"--out {out}: the folder was filled while this world was generated (another synth "
+                            "with the same --out?); it is kept as it is and this world is dropped: choose another "
+                            "--out, or pass --force to replace it")
+        return manifest
 
 
 # --- rendering ---------------------------------------------------------------------------------------
