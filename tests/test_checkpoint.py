@@ -72,3 +72,28 @@ def test_sampler_splits_over_ranks_like_distributed_sampler():
     shards = [list(ResumableSampler(7, seed=0, rank=r, world_size=2)) for r in range(2)]
     assert len(shards[0]) == len(shards[1]) == 4
     assert set(shards[0]) | set(shards[1]) == set(range(7))
+
+
+def test_a_signal_during_the_save_lands_after_it(tmp_path, monkeypatch):
+    """Ctrl-C (or a handler's exception) in the middle of torch.save left its zip writer half done, and the
+    writer's cleanup raised "unexpected pos" in place of the KeyboardInterrupt; the save is now whole and the
+    signal reaches its handler after it."""
+    import os
+    import signal
+
+    real_save = torch.save
+    calls = []
+
+    def save_with_a_signal(obj, f, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the checkpoint is being written
+        calls.append("saving")
+        return real_save(obj, f, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", save_with_a_signal)
+    state = {"model": {"w": torch.arange(1000.0)}, "step": 7}
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(state, tmp_path / "last.pt")
+    assert calls == ["saving"]
+    loaded = load_checkpoint(tmp_path / "last.pt")
+    assert loaded["step"] == 7 and torch.equal(loaded["model"]["w"], state["model"]["w"])
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler given back

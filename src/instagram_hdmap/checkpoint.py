@@ -33,12 +33,48 @@ class CheckpointError(UserError):
     """A checkpoint file that is missing, truncated, corrupt or from an incompatible config."""
 
 
+@contextlib.contextmanager
+def signals_deferred():
+    """SIGINT, SIGTERM, SIGHUP and SIGCHLD that arrive while the block runs are handled after it, by the handlers
+    they would have met (main thread only; elsewhere Python runs no handlers). An exception raised by a handler in
+    the middle of ``torch.save`` (Ctrl-C's KeyboardInterrupt, training's SIGTERM interrupt, torch's "data-loader
+    worker killed" on SIGCHLD when a scheduler's SIGTERM kills the process group) leaves its zip writer half
+    done, and its cleanup then raises "unexpected pos" in place of the interrupt: the run ended with exit 1
+    instead of saving (seen under load in S9-sigterm_saves_last_pt)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    names = ("SIGINT", "SIGTERM", "SIGHUP", "SIGCHLD")
+    got: list[int] = []
+
+    def later(signum, frame):
+        got.append(signum)
+
+    previous = {}
+    for sig in (getattr(signal, n) for n in names if hasattr(signal, n)):
+        handler = signal.getsignal(sig)
+        if handler is not signal.SIG_IGN and handler is not None:  # None: set outside Python, left alone
+            previous[sig] = signal.signal(sig, later)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(got):  # each once, in arrival order, to the handler it was meant for
+            signal.raise_signal(sig)
+
+
 def save_checkpoint(state: dict, path: str | Path) -> Path:
     """Write ``state`` to ``path`` atomically (``files.atomic_path``: a temporary file in the same
     folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one;
-    a full disk is a one-line ``files.OutputError`` naming the file, the old one intact."""
+    a full disk is a one-line ``files.OutputError`` naming the file, the old one intact. A signal that arrives
+    during the write is handled after it (``signals_deferred``): Ctrl-C or a scheduler's SIGTERM lands between
+    two whole checkpoints."""
     path = as_path(path, "checkpoint path")
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+    with signals_deferred(), atomic_path(path) as tmp, open(tmp, "wb") as f:
         torch.save(state, f)  # through Python's file object: a failed write (full disk) keeps its OSError
     return path
 
