@@ -3584,6 +3584,23 @@ def row_synth_out_filled_while_generating(env):
     assert (out2 / "world.json").is_file()
 
 
+@row("S15", "train --resume ANOTHER_RUN/last.pt into a new train.out_dir, of a run whose schedule was complete, "
+            "printed 'nothing left to train' and ended on 'outputs in NEW_DIR' with no checkpoint there; the note "
+            "says the outputs stay in the checkpoint's run and how to train on from it (train.init_from)")
+def row_resume_a_finished_run_into_another_folder(env):
+    first = env.tmp / "run"
+    _toy_run(env, [0.5], "train.epochs=1")
+    env.capsys.readouterr()
+    other = env.tmp / "other"
+    _toy_run(env, [], "train.epochs=1", f"train.out_dir={other}", resume=str(first / "last.pt"))
+    out, err = env.capsys.readouterr()
+    assert re.search(rf"completed its schedule: nothing left to train; its run's outputs stay in "
+                     rf"{re.escape(str(first))}, train\.out_dir={re.escape(str(other))} gets no checkpoint "
+                     r".*train\.init_from=", out + err)
+    assert not (other / "last.pt").exists()
+
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -486,7 +486,11 @@ class TrainingRun:
             raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
                             f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
                             "schedule: start a new run (another train.out_dir)")
-        du.print_main(f"checkpoint {path} completed its schedule: nothing left to train")
+        elsewhere = not _same_path(Path(path).parent, self.out_dir)
+        du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
+                      + (f"; its run's outputs stay in {Path(path).parent}, train.out_dir={self.out_dir} gets no "
+                         "checkpoint (to train on from it, start a new run with train.init_from=" + str(path) + ")"
+                         if elsewhere else ""))
 
     @contextlib.contextmanager
     def threads(self):
