@@ -8,9 +8,9 @@ second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
-fourteenth, ``S15`` one found by a fifteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that
-was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a random
-tiny model: no training longer than a few steps.
+fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth; a ninth-, tenth-, eleventh- or
+fourteenth-sweep row of a valid input that was refused checks that it runs). Everything runs on the tiny synthetic
+world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -3582,6 +3582,77 @@ def row_synth_out_filled_while_generating(env):
     out2 = env.tmp / "other"
     assert write_world(out2, False, lambda tmp: (tmp / "world.json").write_text("{}") and {}) == {}  # alone: written
     assert (out2 / "world.json").is_file()
+
+
+@row("S16", "persistence.Persistence (the element persistence of model.temporal.persist_frames, a documented API: "
+            "keep(preds, scenes, frames, poses)): scenes given as one string or fewer frames than samples silently "
+            "returned fewer outputs than samples (zip), frames as timestamps (0.0, 0.5) were truncated to one frame "
+            "(nothing kept, no word), one [4, 4] pose for a batch, poses None, a singular or NaN pose, 3-D pts, a "
+            "class name as label, an element without 'score' and Persistence(cfg) were raw IndexError / LinAlgError "
+            "/ KeyError / AttributeError or a silent restart; each is a PersistenceInputError (a ValueError) naming "
+            "the argument and sample (a config's grid, numpy integers and 3x4 poses are taken). A turn beyond "
+            "model.temporal.max_turn_deg (a pose in the wrong frame) carried the elements to the wrong place; it "
+            "starts the scene anew as the temporal memory does")
+def row_persistence_inputs(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.persistence import Persistence, PersistenceInputError
+
+    cfg = env.cfg("model.temporal.persist_frames=1")
+    grid = BEVGrid.from_config(cfg.grid)
+    el = {"pts": np.array([[-2.0, 1.0], [0.0, 1.0], [2.0, 1.0]], np.float32), "label": 0, "score": 0.9}
+    eye, moved = np.eye(4), np.eye(4)
+    moved[0, 3] = 1.0
+    two = np.stack([eye, moved])
+    for args, pattern in [
+        (([[el], [el]], "s", [0, 1], two), r"scenes must be a list of B scene names"),
+        (([[el], [el]], ["s", "s"], [0], two), r"one entry per sample in each argument, got 2 preds, 2 scenes, 1 "),
+        (([[el], []], ["s", "s"], [0.0, 0.5], two), r"sample 1 \(scene 's'\): its frame index must be an integer"),
+        (([[el], [el]], ["s", "s"], [0, 1], eye), r"poses must be B ego -> world transforms \[B, 4, 4\]"),
+        (([[el], [el]], ["s", "s"], [0, 1], None), r"poses must be B ego -> world transforms"),
+    ]:
+        keep = Persistence(grid, frames=1)
+        with pytest.raises(PersistenceInputError, match=pattern):
+            keep(*args)
+    bad_steps = [
+        ([el], np.full((4, 4), np.nan), r"frame 1: its ego pose has NaN or infinite values"),
+        ([el], np.zeros((4, 4)), r"frame 1: its ego pose is not a rigid transform"),
+        ([{**el, "pts": np.zeros((3, 3))}], moved, r"element 0's pts must be \[P, 2\]"),
+        ([{**el, "label": "divider"}], moved, r"element 0's label must be a class index"),
+        ([{"pts": el["pts"], "label": 0}], moved, r"element 0 has no 'score'"),
+    ]
+    for preds, pose, pattern in bad_steps:
+        keep = Persistence(grid, frames=1)
+        keep.step([el], "s", 0, eye)
+        with pytest.raises(ValueError, match=pattern):
+            keep.step(preds, "s", 1, pose)
+    keep = Persistence(cfg, frames=np.int64(1))  # a config's grid, a numpy integer
+    keep.step([el], "s", 0, eye[:3])  # a 3x4 pose
+    out = keep.step([], "s", 1, moved[:3])
+    assert len(out) == 1 and out[0]["score"] == pytest.approx(0.45)
+    turned = np.eye(4)
+    turned[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # 90 degrees in one frame
+    keep = Persistence.from_config(cfg)  # model.temporal.max_turn_deg = 60
+    keep.step([el], "s", 0, eye)
+    assert keep.step([], "s", 1, turned) == [] and keep.kept == 0
+
+
+@row("S16", "predict --gt-as-prediction model.temporal.persist_frames=2 dropped the persistence with no word; a note "
+            "says it is not applied to the GT")
+def row_persist_with_gt_as_prediction(env):
+    rc, out, err = env.cli("predict", env.yaml, "--gt-as-prediction", "--index", "0", "--out", env.tmp / "p",
+                           "model.temporal.persist_frames=2")
+    assert rc == 0, err
+    assert "model.temporal.persist_frames=2 is not applied to --gt-as-prediction" in out + err
+
+
+@row("S16", "benchmarks/temporal.py --persist-decay D without --persist trained and evaluated the runs without "
+            "persistence, the decay dropped with no word; it is one 'temporal.py: error:' line, exit 2")
+def row_benchmark_persist_decay_alone(env):
+    p = subprocess.run([sys.executable, str(REPO / "benchmarks" / "temporal.py"), "--persist-decay", "0.7", "--out",
+                        str(env.tmp / "b")], capture_output=True, text=True, timeout=120, cwd=REPO)
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("temporal.py")]
+    assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    assert "--persist-decay 0.7 needs --persist FRAMES" in lines[0] and not (env.tmp / "b").exists()
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
