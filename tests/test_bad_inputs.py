@@ -3655,6 +3655,70 @@ def row_benchmark_persist_decay_alone(env):
     assert "--persist-decay 0.7 needs --persist FRAMES" in lines[0] and not (env.tmp / "b").exists()
 
 
+@row("S16", "instagram_hdmap.data: collate_fn of samples of two image sizes was torch's raw 'stack expects each tensor "
+            "to be equal size' naming no key, of a sample without a key a raw KeyError, of [] 'max() arg is an empty "
+            "sequence', of one sample dict 'string indices must be integers'; build_dataset(path, ...) was "
+            "\"'str' object has no attribute 'data'\", split=['val'] 'unhashable type', split=None read the split "
+            "'None', augment='no' augmented. Each names the key / sample / argument (a YAML path is loaded)")
+def row_collate_and_build_dataset_arguments(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.data.base import collate_fn
+
+    ds = build_dataset(env.cfg(), "val", augment=False)
+    small = build_dataset(env.cfg("data.image_size=[32,96]"), "val", augment=False)
+    s0, s1 = ds[0], ds[1]
+    with pytest.raises(ValueError, match=r"'images' has shape \[6, 3, 64, 160\] in sample 0 .* and shape "
+                                         r"\[6, 3, 32, 96\] in sample 1"):
+        collate_fn([s0, small[0]])
+    with pytest.raises(ValueError, match=r"sample 1 \('\w+'\) has no 'ego_pose'"):
+        collate_fn([s0, {k: v for k, v in s1.items() if k != "ego_pose"}])
+    with pytest.raises(ValueError, match="no samples to batch"):
+        collate_fn([])
+    with pytest.raises(TypeError, match=r"for one sample: collate_fn\(\[sample\]\)"):
+        collate_fn(s0)
+    assert collate_fn((s0, s1))["images"].shape[0] == 2  # a tuple, as before
+    assert len(build_dataset(env.yaml, "val")) == len(ds)  # a YAML path is loaded
+    for split in (["val"], None):
+        with pytest.raises(TypeError, match="split must be one split name"):
+            build_dataset(env.cfg(), split)
+    with pytest.raises(TypeError, match="augment must be True, False or None"):
+        build_dataset(env.cfg(), "val", augment="no")
+
+
+@row("S16", "evaluate under torchrun with model.temporal.persist_frames: the note (and metrics.json) counted the "
+            "elements kept on rank 0 only (a temporal model's scenes are spread over the ranks: 8 of 16, exit 0); "
+            "the count is summed over the ranks")
+def row_persisted_count_under_torchrun(env):
+    import socket
+
+    from instagram_hdmap.models import build_model
+
+    torch.manual_seed(0)
+    cfg = env.cfg("model.temporal.memory=bev")
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    args = ["evaluate", str(env.yaml), "--checkpoint", str(ckpt), "model.temporal.persist_frames=2",
+            "model.gnn.conf_threshold=0.0", "model.gnn.match_threshold=0.01", "eval.batch_size=1",
+            "data.val_split=train"]
+
+    def kept(metrics: Path) -> int:
+        notes = json.loads(metrics.read_text())["meta"]["config_notes"]
+        return int(next(re.search(r"persist_frames=2: (\d+) map elements", n).group(1) for n in notes
+                        if "persist_frames=2:" in n))
+
+    rc, out, err = env.cli(*args, "--out", env.tmp / "one")
+    assert rc == 0, err
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    p = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                        str(port), "-m", "instagram_hdmap.cli", *args, "--out", str(env.tmp / "two")],
+                       capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert kept(env.tmp / "one" / "metrics.json") > 0
+    assert kept(env.tmp / "two" / "metrics.json") == kept(env.tmp / "one" / "metrics.json")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
