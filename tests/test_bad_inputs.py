@@ -3719,6 +3719,26 @@ def row_persisted_count_under_torchrun(env):
     assert kept(env.tmp / "two" / "metrics.json") == kept(env.tmp / "one" / "metrics.json")
 
 
+@row("S16", "torchrun --nproc_per_node 2 train with train.batch_size=3 (or 1): the README says it is the batch over "
+            "all processes, but each rank took 3 // 2 = 1 (at least 1), so it trained with a total of 2, exit 0, no "
+            "word; a batch the ranks do not divide is one 'train: error:' line per rank, exit 2, before the run folder")
+def row_train_batch_not_divided_by_ranks(env):
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = env.tmp / "run"
+    p = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                        str(port), "-m", "instagram_hdmap.cli", "train", str(env.yaml), f"train.out_dir={out}",
+                        "train.max_steps=1", "train.batch_size=3"],
+                       capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("instagram-hdmap train: error:")]
+    assert p.returncode != 0 and len(lines) == 2, p.stderr[-3000:]  # one per rank
+    assert "'train.batch_size'=3 is the batch over all 2 processes of torchrun" in lines[0]
+    assert not out.exists()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
