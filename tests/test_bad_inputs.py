@@ -3685,12 +3685,22 @@ def row_collate_and_build_dataset_arguments(env):
         build_dataset(env.cfg(), "val", augment="no")
 
 
+def _torchrun_cli(*argv) -> subprocess.CompletedProcess:
+    """``torchrun --nproc_per_node 2 -m instagram_hdmap.cli ARGV`` (gloo on the CPU) on a free port."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                           str(port), "-m", "instagram_hdmap.cli", *map(str, argv)],
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
 @row("S16", "evaluate under torchrun with model.temporal.persist_frames: the note (and metrics.json) counted the "
             "elements kept on rank 0 only (a temporal model's scenes are spread over the ranks: 8 of 16, exit 0); "
             "the count is summed over the ranks")
 def row_persisted_count_under_torchrun(env):
-    import socket
-
     from instagram_hdmap.models import build_model
 
     torch.manual_seed(0)
@@ -3708,12 +3718,7 @@ def row_persisted_count_under_torchrun(env):
 
     rc, out, err = env.cli(*args, "--out", env.tmp / "one")
     assert rc == 0, err
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    p = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                        str(port), "-m", "instagram_hdmap.cli", *args, "--out", str(env.tmp / "two")],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    p = _torchrun_cli(*args, "--out", env.tmp / "two")
     assert p.returncode == 0, p.stderr[-3000:]
     assert kept(env.tmp / "one" / "metrics.json") > 0
     assert kept(env.tmp / "two" / "metrics.json") == kept(env.tmp / "one" / "metrics.json")
@@ -3723,20 +3728,21 @@ def row_persisted_count_under_torchrun(env):
             "all processes, but each rank took 3 // 2 = 1 (at least 1), so it trained with a total of 2, exit 0, no "
             "word; a batch the ranks do not divide is one 'train: error:' line per rank, exit 2, before the run folder")
 def row_train_batch_not_divided_by_ranks(env):
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
     out = env.tmp / "run"
-    p = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                        str(port), "-m", "instagram_hdmap.cli", "train", str(env.yaml), f"train.out_dir={out}",
-                        "train.max_steps=1", "train.batch_size=3"],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    p = _torchrun_cli("train", env.yaml, f"train.out_dir={out}", "train.max_steps=1", "train.batch_size=3")
     lines = [ln for ln in p.stderr.splitlines() if ln.startswith("instagram-hdmap train: error:")]
     assert p.returncode != 0 and len(lines) == 2, p.stderr[-3000:]  # one per rank
     assert "'train.batch_size'=3 is the batch over all 2 processes of torchrun" in lines[0]
     assert not out.exists()
+
+
+@row("S16", "torchrun --nproc_per_node 2 train: every rank printed 'done: epoch E, step S; outputs in OUT' (the run's "
+            "other lines are rank 0's); it is printed once (and train.batch_size=2 over 2 ranks trains)")
+def row_train_done_printed_once_under_torchrun(env):
+    p = _torchrun_cli("train", env.yaml, f"train.out_dir={env.tmp / 'r'}", "train.max_steps=1", "train.batch_size=2")
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert [ln for ln in p.stdout.splitlines() if ln.startswith("done:")] == [
+        f"done: epoch 0, step 1; outputs in {env.tmp / 'r'}"], p.stdout
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
