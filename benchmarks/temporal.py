@@ -287,6 +287,8 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
         p.error(f"--persist must be a number of frames in 0..10, got {args.persist}")
     if not 0 < args.persist_decay <= 1:
         p.error(f"--persist-decay must be in (0, 1], got {args.persist_decay}")
+    if args.persist_decay != 0.5 and not args.persist:  # it was dropped with no word: the runs without persistence
+        p.error(f"--persist-decay {args.persist_decay:g} needs --persist FRAMES (the persistence it sets)")
     if args.val_dropout is not None and args.val_dropout >= 1:  # data.camera_dropout's range: < 1
         p.error(f"--val-dropout must be below 1 (1 blanks every camera of every frame), got {args.val_dropout}")
     try:  # where every run writes (a file of that name, a folder without write permission): now, not after training

@@ -8,9 +8,9 @@ second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
-fourteenth, ``S15`` one found by a fifteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that
-was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a random
-tiny model: no training longer than a few steps.
+fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth; a ninth-, tenth-, eleventh- or
+fourteenth-sweep row of a valid input that was refused checks that it runs). Everything runs on the tiny synthetic
+world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -3599,6 +3599,166 @@ def row_resume_a_finished_run_into_another_folder(env):
                      r".*train\.init_from=", out + err)
     assert not (other / "last.pt").exists()
 
+
+@row("S16", "persistence.Persistence (the element persistence of model.temporal.persist_frames, a documented API: "
+            "keep(preds, scenes, frames, poses)): scenes given as one string or fewer frames than samples silently "
+            "returned fewer outputs than samples (zip), frames as timestamps (0.0, 0.5) were truncated to one frame "
+            "(nothing kept, no word), one [4, 4] pose for a batch, poses None, a singular or NaN pose, 3-D pts, a "
+            "class name as label, an element without 'score' and Persistence(cfg) were raw IndexError / LinAlgError "
+            "/ KeyError / AttributeError or a silent restart; each is a PersistenceInputError (a ValueError) naming "
+            "the argument and sample (a config's grid, numpy integers and 3x4 poses are taken). A turn beyond "
+            "model.temporal.max_turn_deg (a pose in the wrong frame) carried the elements to the wrong place; it "
+            "starts the scene anew as the temporal memory does")
+def row_persistence_inputs(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.persistence import Persistence, PersistenceInputError
+
+    cfg = env.cfg("model.temporal.persist_frames=1")
+    grid = BEVGrid.from_config(cfg.grid)
+    el = {"pts": np.array([[-2.0, 1.0], [0.0, 1.0], [2.0, 1.0]], np.float32), "label": 0, "score": 0.9}
+    eye, moved = np.eye(4), np.eye(4)
+    moved[0, 3] = 1.0
+    two = np.stack([eye, moved])
+    for args, pattern in [
+        (([[el], [el]], "s", [0, 1], two), r"scenes must be a list of B scene names"),
+        (([[el], [el]], ["s", "s"], [0], two), r"one entry per sample in each argument, got 2 preds, 2 scenes, 1 "),
+        (([[el], []], ["s", "s"], [0.0, 0.5], two), r"sample 1 \(scene 's'\): its frame index must be an integer"),
+        (([[el], [el]], ["s", "s"], [0, 1], eye), r"poses must be B ego -> world transforms \[B, 4, 4\]"),
+        (([[el], [el]], ["s", "s"], [0, 1], None), r"poses must be B ego -> world transforms"),
+    ]:
+        keep = Persistence(grid, frames=1)
+        with pytest.raises(PersistenceInputError, match=pattern):
+            keep(*args)
+    bad_steps = [
+        ([el], np.full((4, 4), np.nan), r"frame 1: its ego pose has NaN or infinite values"),
+        ([el], np.zeros((4, 4)), r"frame 1: its ego pose is not a rigid transform"),
+        ([{**el, "pts": np.zeros((3, 3))}], moved, r"element 0's pts must be \[P, 2\]"),
+        ([{**el, "label": "divider"}], moved, r"element 0's label must be a class index"),
+        ([{"pts": el["pts"], "label": 0}], moved, r"element 0 has no 'score'"),
+    ]
+    for preds, pose, pattern in bad_steps:
+        keep = Persistence(grid, frames=1)
+        keep.step([el], "s", 0, eye)
+        with pytest.raises(ValueError, match=pattern):
+            keep.step(preds, "s", 1, pose)
+    keep = Persistence(cfg, frames=np.int64(1))  # a config's grid, a numpy integer
+    keep.step([el], "s", 0, eye[:3])  # a 3x4 pose
+    out = keep.step([], "s", 1, moved[:3])
+    assert len(out) == 1 and out[0]["score"] == pytest.approx(0.45)
+    turned = np.eye(4)
+    turned[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # 90 degrees in one frame
+    keep = Persistence.from_config(cfg)  # model.temporal.max_turn_deg = 60
+    keep.step([el], "s", 0, eye)
+    assert keep.step([], "s", 1, turned) == [] and keep.kept == 0
+
+
+@row("S16", "predict --gt-as-prediction model.temporal.persist_frames=2 dropped the persistence with no word; a note "
+            "says it is not applied to the GT")
+def row_persist_with_gt_as_prediction(env):
+    rc, out, err = env.cli("predict", env.yaml, "--gt-as-prediction", "--index", "0", "--out", env.tmp / "p",
+                           "model.temporal.persist_frames=2")
+    assert rc == 0, err
+    assert "model.temporal.persist_frames=2 is not applied to --gt-as-prediction" in out + err
+
+
+@row("S16", "benchmarks/temporal.py --persist-decay D without --persist trained and evaluated the runs without "
+            "persistence, the decay dropped with no word; it is one 'temporal.py: error:' line, exit 2")
+def row_benchmark_persist_decay_alone(env):
+    p = subprocess.run([sys.executable, str(REPO / "benchmarks" / "temporal.py"), "--persist-decay", "0.7", "--out",
+                        str(env.tmp / "b")], capture_output=True, text=True, timeout=120, cwd=REPO)
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("temporal.py")]
+    assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    assert "--persist-decay 0.7 needs --persist FRAMES" in lines[0] and not (env.tmp / "b").exists()
+
+
+@row("S16", "instagram_hdmap.data: collate_fn of samples of two image sizes was torch's raw 'stack expects each tensor "
+            "to be equal size' naming no key, of a sample without a key a raw KeyError, of [] 'max() arg is an empty "
+            "sequence', of one sample dict 'string indices must be integers'; build_dataset(path, ...) was "
+            "\"'str' object has no attribute 'data'\", split=['val'] 'unhashable type', split=None read the split "
+            "'None', augment='no' augmented. Each names the key / sample / argument (a YAML path is loaded)")
+def row_collate_and_build_dataset_arguments(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.data.base import collate_fn
+
+    ds = build_dataset(env.cfg(), "val", augment=False)
+    small = build_dataset(env.cfg("data.image_size=[32,96]"), "val", augment=False)
+    s0, s1 = ds[0], ds[1]
+    with pytest.raises(ValueError, match=r"'images' has shape \[6, 3, 64, 160\] in sample 0 .* and shape "
+                                         r"\[6, 3, 32, 96\] in sample 1"):
+        collate_fn([s0, small[0]])
+    with pytest.raises(ValueError, match=r"sample 1 \('\w+'\) has no 'ego_pose'"):
+        collate_fn([s0, {k: v for k, v in s1.items() if k != "ego_pose"}])
+    with pytest.raises(ValueError, match="no samples to batch"):
+        collate_fn([])
+    with pytest.raises(TypeError, match=r"for one sample: collate_fn\(\[sample\]\)"):
+        collate_fn(s0)
+    assert collate_fn((s0, s1))["images"].shape[0] == 2  # a tuple, as before
+    assert len(build_dataset(env.yaml, "val")) == len(ds)  # a YAML path is loaded
+    for split in (["val"], None):
+        with pytest.raises(TypeError, match="split must be one split name"):
+            build_dataset(env.cfg(), split)
+    with pytest.raises(TypeError, match="augment must be True, False or None"):
+        build_dataset(env.cfg(), "val", augment="no")
+
+
+def _torchrun_cli(*argv) -> subprocess.CompletedProcess:
+    """``torchrun --nproc_per_node 2 -m instagram_hdmap.cli ARGV`` (gloo on the CPU) on a free port."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                           str(port), "-m", "instagram_hdmap.cli", *map(str, argv)],
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+@row("S16", "evaluate under torchrun with model.temporal.persist_frames: the note (and metrics.json) counted the "
+            "elements kept on rank 0 only (a temporal model's scenes are spread over the ranks: 8 of 16, exit 0); "
+            "the count is summed over the ranks")
+def row_persisted_count_under_torchrun(env):
+    from instagram_hdmap.models import build_model
+
+    torch.manual_seed(0)
+    cfg = env.cfg("model.temporal.memory=bev")
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    args = ["evaluate", str(env.yaml), "--checkpoint", str(ckpt), "model.temporal.persist_frames=2",
+            "model.gnn.conf_threshold=0.0", "model.gnn.match_threshold=0.01", "eval.batch_size=1",
+            "data.val_split=train"]
+
+    def kept(metrics: Path) -> int:
+        notes = json.loads(metrics.read_text())["meta"]["config_notes"]
+        return int(next(re.search(r"persist_frames=2: (\d+) map elements", n).group(1) for n in notes
+                        if "persist_frames=2:" in n))
+
+    rc, out, err = env.cli(*args, "--out", env.tmp / "one")
+    assert rc == 0, err
+    p = _torchrun_cli(*args, "--out", env.tmp / "two")
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert kept(env.tmp / "one" / "metrics.json") > 0
+    assert kept(env.tmp / "two" / "metrics.json") == kept(env.tmp / "one" / "metrics.json")
+
+
+@row("S16", "torchrun --nproc_per_node 2 train with train.batch_size=3 (or 1): the README says it is the batch over "
+            "all processes, but each rank took 3 // 2 = 1 (at least 1), so it trained with a total of 2, exit 0, no "
+            "word; a batch the ranks do not divide is one 'train: error:' line per rank, exit 2, before the run folder")
+def row_train_batch_not_divided_by_ranks(env):
+    out = env.tmp / "run"
+    p = _torchrun_cli("train", env.yaml, f"train.out_dir={out}", "train.max_steps=1", "train.batch_size=3")
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("instagram-hdmap train: error:")]
+    assert p.returncode != 0 and len(lines) == 2, p.stderr[-3000:]  # one per rank
+    assert "'train.batch_size'=3 is the batch over all 2 processes of torchrun" in lines[0]
+    assert not out.exists()
+
+
+@row("S16", "torchrun --nproc_per_node 2 train: every rank printed 'done: epoch E, step S; outputs in OUT' (the run's "
+            "other lines are rank 0's); it is printed once (and train.batch_size=2 over 2 ranks trains)")
+def row_train_done_printed_once_under_torchrun(env):
+    p = _torchrun_cli("train", env.yaml, f"train.out_dir={env.tmp / 'r'}", "train.max_steps=1", "train.batch_size=2")
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert [ln for ln in p.stdout.splitlines() if ln.startswith("done:")] == [
+        f"done: epoch 0, step 1; outputs in {env.tmp / 'r'}"], p.stdout
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

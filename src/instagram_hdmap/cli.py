@@ -140,7 +140,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                         "removes it first): your file would be lost; keep the experiment YAML outside "
                         "train.out_dir or under another name")
     summary = train(cfg, resume=args.resume, force=args.force)
-    print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
+    if int(os.environ.get("RANK", "0")) == 0:  # under torchrun each rank returns here: one line, as the run's others
+        print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
     return 0
 
 

@@ -264,7 +264,7 @@ def evaluate(
     ``FlickerMeter`` updated with every batch's predictions (needs ``postprocess``);
     ``result["consistency"]`` is its ``compute()``. ``persist``: a ``persistence.Persistence`` applied to
     every batch's predictions (each scene's samples in frame order) before they are scored;
-    ``result["persisted"]`` counts the elements it kept.
+    ``result["persisted"]`` counts the elements it kept (on every rank).
     """
     model.eval()
     streaming, memory = is_temporal(model), None
@@ -323,8 +323,8 @@ def evaluate(
     if flicker is not None:
         flicker.gather()
         result["consistency"] = flicker.compute()
-    if persist is not None:
-        result["persisted"] = persist.kept
+    if persist is not None:  # summed over ranks (under torchrun a temporal model's scenes are spread over them)
+        result["persisted"] = sum(du.all_gather_object(persist.kept))
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
     if evaluator is not None:
         evaluator.gather()

@@ -17,7 +17,12 @@ tracking-by-detection, SORT's rule); this is that rule for map elements, with th
   added to the output with its score times ``decay`` (so it ranks below what the model sees now) and its miss
   count + 1; its points beyond the BEV grid are cut away (the longest run of points inside is kept; fewer
   than two: dropped).
-* Any other frame (a scene's first, a gap, a repeat, a pose jump) starts the scene anew.
+* Any other frame (a scene's first, a gap, a repeat, a pose jump: moved more than ``max_jump_m`` or turned more
+  than ``max_turn_deg``, as models/temporal.py's memory) starts the scene anew.
+
+A bad argument (a pose that is not a finite rigid 4x4, a frame index that is not an integer, arguments of
+different lengths, an element without ``pts`` [P, 2], ``label`` or ``score``) is a ``PersistenceInputError``
+naming it, before anything is remembered.
 
 ``frames = 0`` is off (the model's output unchanged). Samples of a scene must come in frame order; samples of
 several scenes may interleave (streams), each scene's state is its own. Under torchrun, a single-frame model's
@@ -27,15 +32,102 @@ then changes nothing (a temporal model's streams walk whole scenes on one rank).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+import numbers
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from .errors import UserError
 from .geometry import BEVGrid
 
 MATCH_POINTS = 20  # points per polyline for the "is it the same element" Chamfer test
+
+
+class PersistenceInputError(UserError, ValueError):
+    """An argument of ``Persistence`` or its call that it cannot use; the message names it (and the sample)."""
+
+
+def _real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _as_list(values, name: str, expected: str) -> list:
+    if isinstance(values, (str, bytes, Mapping)) or values is None:
+        raise PersistenceInputError(f"Persistence: {name} must be {expected}, got {values!r:.80}")
+    if hasattr(values, "tolist"):
+        values = values.tolist()
+    if not isinstance(values, Sequence):
+        raise PersistenceInputError(f"Persistence: {name} must be {expected}, got {values!r:.80}")
+    return list(values)
+
+
+def _check_frame(frame, where: str) -> int:
+    if not _real(frame) or not math.isfinite(frame) or frame != int(frame) or frame < 0:
+        raise PersistenceInputError(f"Persistence: {where}: its frame index must be an integer >= 0 (the frame's "
+                                    f"place in its scene, not a timestamp), got {frame!r}")
+    return int(frame)
+
+
+def _check_pose(pose, where: str) -> np.ndarray:
+    """A finite rigid [4, 4] ego -> world pose (a [3, 4] one gets its last row) as float64."""
+    try:
+        pose = np.array(pose.detach().cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise PersistenceInputError(f"Persistence: {where}: its ego pose must be a 4x4 ego -> world transform, got "
+                                    f"{pose!r:.80}") from None
+    if pose.shape == (3, 4):
+        pose = np.concatenate([pose, [[0.0, 0.0, 0.0, 1.0]]])
+    if pose.shape != (4, 4):
+        raise PersistenceInputError(f"Persistence: {where}: its ego pose must be a 4x4 ego -> world transform, got "
+                                    f"shape {list(pose.shape)}")
+    if not np.isfinite(pose).all():
+        raise PersistenceInputError(f"Persistence: {where}: its ego pose has NaN or infinite values; give a finite "
+                                    "4x4 ego -> world transform")
+    R = pose[:3, :3]
+    det, off = float(np.linalg.det(R)), float(np.abs(R @ R.T - np.eye(3)).max())
+    # Mapper's tolerance (inference.py): float16 poses round R by ~1e-3
+    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6) or off > 1e-2 or det <= 0:
+        raise PersistenceInputError(f"Persistence: {where}: its ego pose is not a rigid transform [[R, t], "
+                                    f"[0, 0, 0, 1]] (last row {pose[3].round(4).tolist()}, det(R) {det:.3g})")
+    return pose
+
+
+def _check_preds(preds, where: str) -> None:
+    """A sample's output: a list of polyline dicts, ``pts`` [P, 2] metres, an integer ``label``, a ``score``."""
+    if isinstance(preds, (str, bytes, Mapping)) or not isinstance(preds, Sequence):
+        raise PersistenceInputError(f"Persistence: {where}: its output must be a list of polyline dicts, got "
+                                    f"{type(preds).__name__}")
+    for k, p in enumerate(preds):
+        if not isinstance(p, Mapping):
+            hint = (" (MapElement.as_polyline() gives one; Mapper.stream() applies persistence to its elements "
+                    "itself)" if hasattr(p, "as_polyline") else "")
+            raise PersistenceInputError(f"Persistence: {where}: element {k} must be a polyline dict with 'pts', "
+                                        f"'label' and 'score', got {type(p).__name__}{hint}")
+        missing = [key for key in ("pts", "label", "score") if key not in p]
+        if missing:
+            raise PersistenceInputError(f"Persistence: {where}: element {k} has no {', '.join(map(repr, missing))} "
+                                        "(a polyline dict needs 'pts', 'label' and 'score': the model's output)")
+        try:
+            pts = np.asarray(p["pts"].detach().cpu() if isinstance(p["pts"], torch.Tensor) else p["pts"],
+                             dtype=np.float64)
+        except (TypeError, ValueError):
+            pts = None
+        if pts is None or pts.ndim != 2 or pts.shape[1] != 2:
+            got = f"shape {list(pts.shape)}" if pts is not None else f"{p['pts']!r:.60}"
+            raise PersistenceInputError(f"Persistence: {where}: element {k}'s pts must be [P, 2] (x, y in metres, "
+                                        f"ego frame), got {got}")
+        label, score = p["label"], p["score"]
+        label = label.item() if hasattr(label, "item") and np.size(label) == 1 else label
+        score = score.item() if hasattr(score, "item") and np.size(score) == 1 else score
+        if not _real(label) or label != int(label) or label < 0:
+            raise PersistenceInputError(f"Persistence: {where}: element {k}'s label must be a class index >= 0, got "
+                                        f"{p['label']!r:.40}")
+        if not _real(score) or not math.isfinite(score):
+            raise PersistenceInputError(f"Persistence: {where}: element {k}'s score must be a finite number, got "
+                                        f"{p['score']!r:.40}")
 
 
 @dataclass
@@ -85,13 +177,26 @@ class Persistence:
     """The rule of the module docstring; ``__call__`` takes a batch, ``step`` one sample."""
 
     def __init__(self, grid: BEVGrid, frames: int = 1, decay: float = 0.5, match_m: float = 1.0,
-                 max_jump_m: float = 10.0):
-        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
-            raise ValueError(f"Persistence: frames must be an integer >= 0, got {frames!r}")
-        if not (0 < decay <= 1) or not (match_m > 0) or not (max_jump_m > 0):
-            raise ValueError(f"Persistence: decay must be in (0, 1], match_m and max_jump_m > 0; got {decay}, "
-                             f"{match_m}, {max_jump_m}")
-        self.grid, self.frames, self.decay, self.match_m, self.max_jump_m = grid, frames, decay, match_m, max_jump_m
+                 max_jump_m: float = 10.0, max_turn_deg: float = 180.0):
+        from .config import ExperimentConfig, GridConfig
+
+        if isinstance(grid, ExperimentConfig):  # a config's grid: the grid it describes
+            grid = grid.grid
+        if isinstance(grid, GridConfig):
+            grid = BEVGrid.from_config(grid)
+        if not isinstance(grid, BEVGrid):
+            raise PersistenceInputError(f"Persistence: grid must be a BEVGrid (BEVGrid.from_config(cfg.grid)) or a "
+                                        f"config, got {type(grid).__name__}")
+        if not isinstance(frames, numbers.Integral) or isinstance(frames, (bool, np.bool_)) or frames < 0:
+            raise PersistenceInputError(f"Persistence: frames must be an integer >= 0, got {frames!r}")
+        values = {"decay": decay, "match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
+        bad = [k for k, v in values.items() if not _real(v) or not math.isfinite(v)]
+        if bad or not (0 < decay <= 1) or not (match_m > 0) or not (max_jump_m > 0) or not (0 < max_turn_deg <= 180):
+            raise PersistenceInputError("Persistence: decay must be in (0, 1], match_m and max_jump_m > 0, "
+                                        "max_turn_deg in (0, 180] (numbers); got "
+                                        + ", ".join(f"{k}={v!r}" for k, v in values.items()))
+        self.grid, self.frames, self.decay, self.match_m = grid, int(frames), float(decay), float(match_m)
+        self.max_jump_m, self.max_turn_deg = float(max_jump_m), float(max_turn_deg)
         self.kept = 0  # elements added to an output so far
         self.reset()
 
@@ -102,22 +207,46 @@ class Persistence:
         if t.persist_frames == 0:
             return None
         return cls(BEVGrid.from_config(cfg.grid), t.persist_frames, t.persist_decay, t.persist_match_m,
-                   t.max_jump_m)
+                   t.max_jump_m, t.max_turn_deg)
 
     def reset(self) -> None:
         self.scenes: dict[str, _Scene] = {}
 
     def __call__(self, preds: Sequence[list[dict]], scenes: Sequence[str], frames, poses) -> list[list[dict]]:
-        frames = frames.tolist() if hasattr(frames, "tolist") else list(frames)
-        poses = poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
+        preds = _as_list(preds, "preds", "a list of B samples' outputs, each a list of polyline dicts")
+        scenes = _as_list(scenes, "scenes", "a list of B scene names, one per sample (for one sample: [name])")
+        frames = _as_list(frames, "frames", "B frame indices (a list or a [B] tensor)")
+        try:
+            poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
+                     else np.asarray(poses, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise PersistenceInputError(f"Persistence: poses must be B ego -> world transforms [B, 4, 4], got "
+                                        f"{poses!r:.80}") from None
+        if poses.ndim != 3:
+            raise PersistenceInputError(f"Persistence: poses must be B ego -> world transforms [B, 4, 4], one per "
+                                        f"sample, got shape {list(poses.shape)}")
+        counts = {"preds": len(preds), "scenes": len(scenes), "frames": len(frames), "poses": len(poses)}
+        if len(set(counts.values())) > 1:  # zip would drop the samples past the shortest
+            raise PersistenceInputError("Persistence: one entry per sample in each argument, got "
+                                        + ", ".join(f"{v} {k}" for k, v in counts.items()))
+        for b, (p, s, f) in enumerate(zip(preds, scenes, frames)):  # all checked before any state changes
+            where = f"sample {b} (scene '{s}')"
+            _check_frame(f, where), _check_pose(poses[b], where), _check_preds(p, where)
         return [self.step(p, str(s), int(f), poses[b]) for b, (p, s, f) in enumerate(zip(preds, scenes, frames))]
 
     def step(self, preds: list[dict], scene: str, frame: int, pose) -> list[dict]:
         """One sample's output with the remembered elements the model missed added (module docstring)."""
-        pose = np.asarray(pose.detach().cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+        where = f"scene '{scene}', frame {frame!r}"
+        frame = _check_frame(frame, where)
+        pose = _check_pose(pose, where)
+        _check_preds(preds, where)
         prev = self.scenes.get(scene)
         carried: list[tuple[dict, int]] = []
-        if (prev is not None and frame == prev.frame + 1
+        # the angle of the relative rotation (as models/temporal.memory_status): a spin beyond max_turn_deg is a
+        # pose in the wrong unit or frame, which would move what is kept to the wrong place
+        turn = (0.0 if prev is None else
+                math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(prev.pose[:3, :3].T @ pose[:3, :3]) - 1) / 2)))))
+        if (prev is not None and frame == prev.frame + 1 and turn <= self.max_turn_deg
                 and np.linalg.norm(pose[:3, 3] - prev.pose[:3, 3]) <= self.max_jump_m):
             to_now = np.linalg.inv(pose) @ prev.pose  # previous ego frame -> this one
             now: dict[int, list[np.ndarray]] = {}  # class -> resampled outputs of this frame

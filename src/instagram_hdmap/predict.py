@@ -249,6 +249,7 @@ def predict_sample(
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
     notes += camera_dropout_notes(cfg, "the predictions")
+    notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
@@ -286,6 +287,14 @@ def predict_sample(
     paths.append(out / "prediction.json")
     return {"sample_token": sample["sample_token"], "index": i, "split": split, "predictions": preds,
             "paths": paths, "notes": notes}
+
+
+def gt_persist_notes(cfg: ExperimentConfig, gt_as_prediction: bool) -> list[str]:
+    """``model.temporal.persist_frames`` given with ``--gt-as-prediction`` (it was dropped with no word)."""
+    if gt_as_prediction and cfg.model.temporal.persist_frames:
+        return [f"model.temporal.persist_frames={cfg.model.temporal.persist_frames} is not applied to "
+                "--gt-as-prediction: the GT misses no element, so there is nothing to keep (persistence.py)"]
+    return []
 
 
 def scene_memory(model, dataset, index: int) -> dict | None:
@@ -461,6 +470,7 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
     notes += camera_dropout_notes(cfg, "the predictions")
+    notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)

@@ -193,6 +193,19 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
 
 
+def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
+    """``train.batch_size`` is the total over all processes (README, "Distributed"): each rank takes
+    ``batch_size / world``. One that the ranks do not divide trained with another total and no word (3 over 2
+    ranks: 2; 1 over 2 ranks: 2), the learning rate and schedule set for the other."""
+    b = cfg.train.batch_size
+    if world_size > 1 and b % world_size:
+        lower, upper = max(b // world_size, 1) * world_size, (b // world_size + 1) * world_size
+        raise UserError(f"config key 'train.batch_size'={b} is the batch over all {world_size} processes of torchrun, "
+                        f"which it does not divide (each would take {b / world_size:g} samples); use "
+                        + (f"{lower} or {upper}" if lower != upper and lower < b else f"{upper}")
+                        + f" ({world_size} processes), or run {b} process(es)")
+
+
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
     """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
     reads drives: each rank's batch rows are streams walking whole scenes in order
@@ -416,6 +429,7 @@ class TrainingRun:
         out_dir = Path(cfg.train.out_dir)
         check_init_from_outside(cfg, out_dir, resume)
         check_stream_schedule(cfg)
+        check_batch_over_ranks(cfg, du.get_world_size())
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
         state = load_resume_state(resume, cfg)

@@ -9,7 +9,22 @@ from .rig import CAMERAS
 
 def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     """The dataset of ``cfg.data.dataset`` for ``split``. ``like``: a dataset of the same config whose
-    loaded tables may be shared (nuScenes: its ``NuScenes``)."""
+    loaded tables may be shared (nuScenes: its ``NuScenes``). ``cfg``: an ``ExperimentConfig`` or a YAML file."""
+    from pathlib import Path
+
+    from ..config import ExperimentConfig, load_config
+
+    if isinstance(cfg, (str, Path)):  # a raw "'str' object has no attribute 'data'"
+        cfg = load_config(cfg)
+    if not isinstance(cfg, ExperimentConfig):
+        raise TypeError(f"build_dataset takes an ExperimentConfig (instagram_hdmap.config.load_config(path)) or a "
+                        f"YAML file, got {type(cfg).__name__}")
+    if not isinstance(split, str):  # a list was a raw "unhashable type", None read as the split 'None'
+        raise TypeError(f"build_dataset: split must be one split name (a str such as {cfg.data.val_split!r}), got "
+                        f"{split!r:.60}")
+    if augment is not None and not isinstance(augment, bool):  # augment="no" is truthy: it augmented
+        raise TypeError(f"build_dataset: augment must be True, False or None (the split's default), got "
+                        f"{augment!r:.40}")
     if cfg.data.dataset == "av2":
         return AV2MapDataset(cfg, split, augment=augment)
     return NuScenesMapDataset(cfg, split, nusc=getattr(like, "nusc", None), augment=augment)

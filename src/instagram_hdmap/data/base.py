@@ -413,10 +413,40 @@ def collate_fn(samples: list[dict]) -> dict:
     the per-vertex keys are padded to the batch's largest M: ``gt_vertices_px`` with 0,
     ``gt_vertex_mask`` with False, the integer keys (labels, instance, order, next, prev) with -1.
     """
+    if isinstance(samples, dict) or not hasattr(samples, "__iter__"):  # one sample: collate_fn([sample])
+        raise TypeError(f"collate_fn takes a list of sample dicts (dataset[i]), got {type(samples).__name__}"
+                        + ("; for one sample: collate_fn([sample])" if isinstance(samples, dict) else ""))
+    samples = list(samples)
+    if not samples:
+        raise ValueError("collate_fn: no samples to batch (an empty list)")
+    bad = [b for b, s in enumerate(samples) if not isinstance(s, dict)]
+    if bad:
+        raise TypeError(f"collate_fn takes a list of sample dicts (dataset[i]); sample {bad[0]} is a "
+                        f"{type(samples[bad[0]]).__name__}")
+
+    def name(b: int) -> str:
+        token = samples[b].get("sample_token")
+        return f"sample {b}" + (f" ('{token}')" if isinstance(token, str) else "")
+
     out: dict = {}
-    M = max(len(s["gt_vertices_px"]) for s in samples)
+    for key in samples[0]:
+        missing = [b for b, s in enumerate(samples) if key not in s]
+        if missing:  # a raw KeyError
+            raise ValueError(f"collate_fn: {name(missing[0])} has no '{key}', which {name(0)} has: the samples of "
+                             "a batch come from datasets of one kind and config")
+    M = max(len(s["gt_vertices_px"]) for s in samples) if "gt_vertices_px" in samples[0] else 0
     for key, first in samples[0].items():
         values = [s[key] for s in samples]
+        if isinstance(first, torch.Tensor):
+            tail = 1 if key in VERTEX_KEYS else 0  # the per-vertex keys are padded along their first dimension
+            other = next((b for b, v in enumerate(values)
+                          if not isinstance(v, torch.Tensor) or v.shape[tail:] != first.shape[tail:]), None)
+            if other is not None:  # torch.stack's raw "stack expects each tensor to be equal size"
+                got = (f"shape {list(values[other].shape)}" if isinstance(values[other], torch.Tensor)
+                       else type(values[other]).__name__)
+                raise ValueError(f"collate_fn: '{key}' has shape {list(first.shape)} in {name(0)} and {got} in "
+                                 f"{name(other)}: the samples of a batch come from one config (data.image_size, "
+                                 "grid, cameras)")
         if key in VERTEX_KEYS:
             pad = _VERTEX_PAD.get(key, -1)
             batch = first.new_full((len(samples), M, *first.shape[1:]), pad)
