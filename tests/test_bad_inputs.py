@@ -3454,6 +3454,10 @@ def row_mapper_list_of_frames_of_a_temporal_model(env):
         mapper([frame, frame])  # said once
         mapper(frame)
         single([frame, frame])
+    # a single-frame model whose config asks for persistence (sweep 16): the list keeps nothing either
+    persisting = Mapper.from_checkpoint(env.ckpt, device="cpu", overrides=["model.temporal.persist_frames=1"])
+    with pytest.warns(UserWarning, match=r"persist_frames is set: mapper\(\[frames\]\) maps each frame on its own"):
+        persisting([frame, frame])
 
 
 

@@ -816,11 +816,16 @@ class Mapper:
             raise TypeError("pass a Frame (or a list of them) or the fields images=, intrinsics=, cam_to_ego=, "
                             "not both")
         frames = [frames] if single else list(frames)
-        if len(frames) > 1 and bool(getattr(self.model, "is_temporal", False)) and not self._warned_stream:
-            # a list of a drive's frames mapped as independent frames: the memory the model was built for unused
-            warnings.warn("this is a temporal model: mapper([frames]) maps each frame on its own, without the memory "
-                          "of the frames before it; for a drive, in order, use stream = mapper.stream() and "
-                          "stream.step(frame)", UserWarning, stacklevel=2)
+        temporal = bool(getattr(self.model, "is_temporal", False))
+        persist = self.config.model.temporal.persist_frames > 0
+        if len(frames) > 1 and (temporal or persist) and not self._warned_stream:
+            # a list of a drive's frames mapped as independent frames: the memory the model was built for (or the
+            # persistence the config asks for) unused
+            what = ("this is a temporal model: mapper([frames]) maps each frame on its own, without the memory of the "
+                    "frames before it" if temporal else "model.temporal.persist_frames is set: mapper([frames]) maps "
+                    "each frame on its own, without keeping what the frames before it found")
+            warnings.warn(f"{what}; for a drive, in order, use stream = mapper.stream() and stream.step(frame)",
+                          UserWarning, stacklevel=2)
             self._warned_stream = True
         results: list[list[MapElement]] = []
         for start in range(0, len(frames), self.batch_size):
