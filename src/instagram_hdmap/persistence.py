@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .config import ExperimentConfig, GridConfig
 from .errors import UserError
 from .geometry import BEVGrid
 
@@ -178,8 +179,6 @@ class Persistence:
 
     def __init__(self, grid: BEVGrid, frames: int = 1, decay: float = 0.5, match_m: float = 1.0,
                  max_jump_m: float = 10.0, max_turn_deg: float = 180.0):
-        from .config import ExperimentConfig, GridConfig
-
         if isinstance(grid, ExperimentConfig):  # a config's grid: the grid it describes
             grid = grid.grid
         if isinstance(grid, GridConfig):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from ..config import ExperimentConfig, load_config
 from .av2 import AV2MapDataset
 from .nuscenes import NuScenesMapDataset
 from .rig import CAMERAS
@@ -10,10 +13,6 @@ from .rig import CAMERAS
 def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     """The dataset of ``cfg.data.dataset`` for ``split``. ``like``: a dataset of the same config whose
     loaded tables may be shared (nuScenes: its ``NuScenes``). ``cfg``: an ``ExperimentConfig`` or a YAML file."""
-    from pathlib import Path
-
-    from ..config import ExperimentConfig, load_config
-
     if isinstance(cfg, (str, Path)):  # a raw "'str' object has no attribute 'data'"
         cfg = load_config(cfg)
     if not isinstance(cfg, ExperimentConfig):
