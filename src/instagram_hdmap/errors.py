@@ -8,7 +8,9 @@ lowest floor so that every module, files.py included, can raise one; config.py r
 
 from __future__ import annotations
 
+import numbers
 import re
+from collections.abc import Mapping, Sequence
 
 
 class UserError(Exception):
@@ -42,3 +44,21 @@ def one_line(e: BaseException) -> str:
     quotes a library's multi-line explanation."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(e))
     return " ".join(text.split()) or type(e).__name__
+
+
+# --- argument checks shared by the Python API's batch-taking classes (FlickerMeter, Persistence) -------------
+
+
+def is_real(value) -> bool:
+    """A real number (int, float, a NumPy scalar), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and type(value).__name__ != "bool_"
+
+
+def as_batch_list(values, what: str, expected: str, error: type[UserError] = UserError) -> list:
+    """A batch argument (list, tuple, array or tensor) as a list; a string, a mapping, None or another object is
+    ``error`` saying ``what`` must be ``expected`` (a string's characters would be read as B entries)."""
+    if hasattr(values, "tolist") and not isinstance(values, (str, bytes)):
+        values = values.tolist()
+    if values is None or isinstance(values, (str, bytes, Mapping)) or not isinstance(values, Sequence):
+        raise error(f"{what} must be {expected}, got {values!r:.80}")
+    return list(values)

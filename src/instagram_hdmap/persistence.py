@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .config import ExperimentConfig, GridConfig
-from .errors import UserError
+from .errors import UserError, as_batch_list, is_real
 from .geometry import BEVGrid
 
 MATCH_POINTS = 20  # points per polyline for the "is it the same element" Chamfer test
@@ -51,22 +51,8 @@ class PersistenceInputError(UserError, ValueError):
     """An argument of ``Persistence`` or its call that it cannot use; the message names it (and the sample)."""
 
 
-def _real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-
-
-def _as_list(values, name: str, expected: str) -> list:
-    if isinstance(values, (str, bytes, Mapping)) or values is None:
-        raise PersistenceInputError(f"Persistence: {name} must be {expected}, got {values!r:.80}")
-    if hasattr(values, "tolist"):
-        values = values.tolist()
-    if not isinstance(values, Sequence):
-        raise PersistenceInputError(f"Persistence: {name} must be {expected}, got {values!r:.80}")
-    return list(values)
-
-
 def _check_frame(frame, where: str) -> int:
-    if not _real(frame) or not math.isfinite(frame) or frame != int(frame) or frame < 0:
+    if not is_real(frame) or not math.isfinite(frame) or frame != int(frame) or frame < 0:
         raise PersistenceInputError(f"Persistence: {where}: its frame index must be an integer >= 0 (the frame's "
                                     f"place in its scene, not a timestamp), got {frame!r}")
     return int(frame)
@@ -123,10 +109,10 @@ def _check_preds(preds, where: str) -> None:
         label, score = p["label"], p["score"]
         label = label.item() if hasattr(label, "item") and np.size(label) == 1 else label
         score = score.item() if hasattr(score, "item") and np.size(score) == 1 else score
-        if not _real(label) or label != int(label) or label < 0:
+        if not is_real(label) or label != int(label) or label < 0:
             raise PersistenceInputError(f"Persistence: {where}: element {k}'s label must be a class index >= 0, got "
                                         f"{p['label']!r:.40}")
-        if not _real(score) or not math.isfinite(score):
+        if not is_real(score) or not math.isfinite(score):
             raise PersistenceInputError(f"Persistence: {where}: element {k}'s score must be a finite number, got "
                                         f"{p['score']!r:.40}")
 
@@ -189,7 +175,7 @@ class Persistence:
         if not isinstance(frames, numbers.Integral) or isinstance(frames, (bool, np.bool_)) or frames < 0:
             raise PersistenceInputError(f"Persistence: frames must be an integer >= 0, got {frames!r}")
         values = {"decay": decay, "match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
-        bad = [k for k, v in values.items() if not _real(v) or not math.isfinite(v)]
+        bad = [k for k, v in values.items() if not is_real(v) or not math.isfinite(v)]
         if bad or not (0 < decay <= 1) or not (match_m > 0) or not (max_jump_m > 0) or not (0 < max_turn_deg <= 180):
             raise PersistenceInputError("Persistence: decay must be in (0, 1], match_m and max_jump_m > 0, "
                                         "max_turn_deg in (0, 180] (numbers); got "
@@ -212,9 +198,12 @@ class Persistence:
         self.scenes: dict[str, _Scene] = {}
 
     def __call__(self, preds: Sequence[list[dict]], scenes: Sequence[str], frames, poses) -> list[list[dict]]:
-        preds = _as_list(preds, "preds", "a list of B samples' outputs, each a list of polyline dicts")
-        scenes = _as_list(scenes, "scenes", "a list of B scene names, one per sample (for one sample: [name])")
-        frames = _as_list(frames, "frames", "B frame indices (a list or a [B] tensor)")
+        preds = as_batch_list(preds, "Persistence: preds", "a list of B samples' outputs, each a list of polyline "
+                              "dicts", PersistenceInputError)
+        scenes = as_batch_list(scenes, "Persistence: scenes", "a list of B scene names, one per sample (for one "
+                               "sample: [name])", PersistenceInputError)
+        frames = as_batch_list(frames, "Persistence: frames", "B frame indices (a list or a [B] tensor)",
+                               PersistenceInputError)
         try:
             poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
                      else np.asarray(poses, dtype=np.float64))

@@ -36,6 +36,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
+from ..errors import as_batch_list, is_real
 from ..geometry import BEVGrid
 from .chamfer import chamfer_pairs
 from .inputs import EvaluationInputError, check_grid, read_polylines
@@ -66,22 +67,6 @@ def detected_gt(preds: Sequence[dict], gts: Sequence[dict], threshold_m: float, 
     return detected
 
 
-def _real(value) -> bool:
-    """A real number (int, float, numpy scalar), not a bool."""
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-
-
-def _as_list(values, name: str, expected: str) -> list:
-    """A batch argument (list, tuple, array or tensor) as a list, or an error naming it."""
-    if isinstance(values, (str, bytes, Mapping)):
-        raise EvaluationInputError(f"FlickerMeter.update: {name} must be {expected}, got {type(values).__name__}")
-    if hasattr(values, "tolist"):
-        values = values.tolist()
-    if not isinstance(values, Sequence) or isinstance(values, (str, bytes)):
-        raise EvaluationInputError(f"FlickerMeter.update: {name} must be {expected}, got {values!r:.80}")
-    return list(values)
-
-
 def _point_to_polyline(q: np.ndarray, line: np.ndarray) -> np.ndarray:
     """[Q, 2] points, [n, 2] polyline -> [Q] distance of each point to the polyline."""
     a, b = line[:-1], line[1:]
@@ -106,10 +91,10 @@ class FlickerMeter:
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
                 raise EvaluationInputError(f"FlickerMeter: {name} must be an integer >= {least}, got {value!r}")
         for name, value in (("threshold_m", threshold_m), ("link_m", link_m)):
-            if not _real(value) or not (math.isfinite(value) and value > 0):
+            if not is_real(value) or not (math.isfinite(value) and value > 0):
                 raise EvaluationInputError(f"FlickerMeter: {name} must be a finite distance > 0 (metres), "
                                            f"got {value!r}")
-        if not _real(score_threshold) or math.isnan(score_threshold):
+        if not is_real(score_threshold) or math.isnan(score_threshold):
             raise EvaluationInputError(f"FlickerMeter: score_threshold must be a number, got {score_threshold!r}")
         if isinstance(classes, (str, bytes)) or (classes is not None and len(classes) != num_classes):
             raise EvaluationInputError(f"FlickerMeter: classes must name the num_classes = {num_classes} classes, "
@@ -134,8 +119,10 @@ class FlickerMeter:
         if isinstance(scenes, (str, bytes)):
             raise EvaluationInputError(f"FlickerMeter.update: scenes must be a list of B scene names, one per sample, "
                                        f"got one string {scenes!r:.80} (for one sample: [{scenes!r:.80}])")
-        scenes = _as_list(scenes, "scenes", "a list of B scene names, one per sample")
-        frames = _as_list(frames, "frames", "B frame indices (a list or a [B] tensor)")
+        scenes = as_batch_list(scenes, "FlickerMeter.update: scenes", "a list of B scene names, one per sample",
+                               EvaluationInputError)
+        frames = as_batch_list(frames, "FlickerMeter.update: frames", "B frame indices (a list or a [B] tensor)",
+                               EvaluationInputError)
         for name, value in (("preds", preds), ("gts", gts)):
             if isinstance(value, (dict, str, bytes)) or not isinstance(value, Sequence):
                 raise EvaluationInputError(f"FlickerMeter.update: {name} must be a list of B samples, each a list "
@@ -165,7 +152,7 @@ class FlickerMeter:
         keys = []
         for b in range(B):
             f = frames[b]
-            if isinstance(f, (bool, np.bool_)) or not _real(f) or not math.isfinite(f) or f != int(f) or f < 0:
+            if isinstance(f, (bool, np.bool_)) or not is_real(f) or not math.isfinite(f) or f != int(f) or f < 0:
                 raise EvaluationInputError(f"FlickerMeter.update: sample {b} (scene '{scenes[b]}'): its frame index "
                                            f"must be an integer >= 0 (the frame's place in its scene), got {f!r}")
             keys.append((str(scenes[b]), int(f)))
