@@ -50,8 +50,8 @@ def one_line(e: BaseException) -> str:
 
 
 def is_real(value) -> bool:
-    """A real number (int, float, a NumPy scalar), not a bool."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool) and type(value).__name__ != "bool_"
+    """A real number (int, float, a NumPy number), not a bool (NumPy's bool is no ``numbers.Real``)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def as_batch_list(values, what: str, expected: str, error: type[UserError] = UserError) -> list:
