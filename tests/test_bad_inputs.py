@@ -3765,6 +3765,60 @@ def row_train_done_printed_once_under_torchrun(env):
         f"done: epoch 0, step 1; outputs in {env.tmp / 'r'}"], p.stdout
 
 
+@row("S16", "a run saved part-way through an epoch by 2 torchrun processes and resumed by 1: the shuffled sampler "
+            "skipped samples of this rank's share (computed for the old number of ranks), so part of the epoch was "
+            "walked twice or not at all, no word; it goes on from the same sample of the epoch's order, and says so")
+def row_resume_under_another_number_of_processes(env):
+    out = env.tmp / "r"
+    p = _torchrun_cli("train", env.yaml, f"train.out_dir={out}", "train.max_steps=1", "train.batch_size=2")
+    assert p.returncode == 0, p.stderr[-3000:]
+    rc, stdout, err = env.cli("train", env.yaml, f"train.out_dir={out}", "--resume", out / "last.pt",
+                              "train.max_steps=2", "train.batch_size=2")
+    assert rc == 0, err
+    assert (f"note: {out / 'last.pt'} was saved by 2 process(es) at step 1 of epoch 0, resumed by 1: the epoch goes "
+            "on from the same sample") in stdout
+    assert load_checkpoint(out / "last.pt")["world"] == 1
+
+
+@row("S16", "evaluate of a temporal model with model.temporal.persist_frames and more streams than scenes: a stream's "
+            "padding walks a scene at the same time as the stream that owns it, and persistence was applied to it "
+            "too, so it replaced that scene's remembered elements between its frames (the scored output depended on "
+            "eval.batch_size; the note counted the padding's kept elements); only the scored samples persist now")
+def row_persistence_not_applied_to_padding(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.evaluation.io import read_submission
+    from instagram_hdmap.models import build_model
+    from instagram_hdmap.persistence import Persistence
+
+    torch.manual_seed(0)
+    cfg = env.cfg("model.temporal.memory=bev", "model.temporal.persist_frames=2")
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    subs, kept = {}, None
+    for persist in (0, 2):  # 3 streams over the split's 2 scenes: the third walks padding only
+        out = env.tmp / f"p{persist}"
+        rc, stdout, err = env.cli("evaluate", env.yaml, "--checkpoint", ckpt, "--out", out,
+                                  f"model.temporal.persist_frames={persist}", "model.gnn.conf_threshold=0.0",
+                                  "model.gnn.match_threshold=0.01", "eval.batch_size=3", "data.val_split=train")
+        assert rc == 0, err
+        subs[persist] = read_submission(out / "submission.json", "pred").samples
+        if persist:
+            notes = json.loads((out / "metrics.json").read_text())["meta"]["config_notes"]
+            kept = int(next(re.search(r"persist_frames=2: (\d+) map elements", n).group(1) for n in notes
+                            if "persist_frames=2:" in n))
+    # the reference: persistence applied by hand to the plain run's outputs, scene by scene in frame order
+    ds, reference = build_dataset(cfg, "train"), Persistence.from_config(cfg)
+    for scene in ds.scenes.names:
+        for i in ds.scene_indices(scene):
+            token = ds.sample_tokens[i]
+            expected = reference.step(subs[0][token], scene, int(ds.scenes.frame[i]), ds.ego_pose(i).double().numpy())
+            assert len(subs[2][token]) == len(expected), (scene, i)
+            for got, want in zip(subs[2][token], expected):
+                np.testing.assert_allclose(got["pts"], want["pts"], atol=1e-5)
+                assert got["label"] == want["label"] and got["score"] == pytest.approx(want["score"], abs=1e-6)
+    assert kept == reference.kept > 0
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

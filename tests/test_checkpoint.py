@@ -68,6 +68,36 @@ def test_sampler_is_a_function_of_seed_and_epoch_and_resumes_midway():
     assert list(s) != full
 
 
+def test_sampler_resumes_exactly_under_another_number_of_ranks():
+    # k steps of a batch of 4 over 2 ranks, then the rest of the epoch over 1 or 4 ranks: every sample of
+    # the epoch's order once, in the order of one process (the samples of step k are the same set)
+    n, batch, k = 23, 4, 3
+    one = ResumableSampler(n, seed=7, rank=0, world_size=1)
+    one.set_epoch(5)
+    order = list(one)
+    seen = []
+    for r in range(2):
+        s = ResumableSampler(n, seed=7, rank=r, world_size=2)
+        s.set_epoch(5)
+        seen += list(s)[: k * batch // 2]
+    assert sorted(seen) == sorted(order[: k * batch])
+    for world in (1, 4):
+        rest = []
+        for r in range(world):
+            s = ResumableSampler(n, seed=7, rank=r, world_size=world)
+            s.set_epoch(5, start=k * batch)
+            assert len(s) == len(list(s))
+            rest += list(s)
+        pad = order[: (-n) % world]  # as DistributedSampler: the order wrapped round to a multiple of the ranks
+        assert sorted(rest) == sorted(order[k * batch:] + pad)
+        assert sorted(seen + order[k * batch:]) == list(range(n))
+    s = ResumableSampler(n, seed=7, rank=1, world_size=2)
+    s.set_epoch(5, start=k * batch)  # the same world: this rank's share from step k, as before
+    full = ResumableSampler(n, seed=7, rank=1, world_size=2)
+    full.set_epoch(5)
+    assert list(s) == list(full)[k * batch // 2:]
+
+
 def test_sampler_splits_over_ranks_like_distributed_sampler():
     shards = [list(ResumableSampler(7, seed=0, rank=r, world_size=2)) for r in range(2)]
     assert len(shards[0]) == len(shards[1]) == 4

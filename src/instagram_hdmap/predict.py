@@ -518,7 +518,11 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     if skipped:
         notes.append(f"{skipped} bad frame(s) of scene {scene} left out (data.on_bad_sample=skip; the warnings name "
                      "them)")
-    return {"video": video, "frames": len(indices) - skipped, "scene": scene, "split": split, "notes": notes}
+    if persist is not None:  # as a single sample's note says it: what the frames show beyond the model's own output
+        notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames}: {persist.kept} element(s) "
+                     "that earlier frames found and later ones missed were kept in the video (persistence.py)")
+    return {"video": video, "frames": len(indices) - skipped, "scene": scene, "split": split, "notes": notes,
+            "persisted": None if persist is None else persist.kept}
 
 
 # --- a split: evaluate ---------------------------------------------------------------------------------

@@ -485,10 +485,31 @@ class TrainingRun:
         self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
         self.best = state.get("best", self.best)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
+        self.note_world_change(state.get("world"), path)
         on_disk = best_score_in(self.out_dir)  # saved after the checkpoint resumed from (a kill in between)
         if on_disk > self.best.get("score", -math.inf):
             self.best = {**self.best, "score": on_disk}
         set_rng_state(state["rng"])
+
+    def note_world_change(self, saved_world: int | None, path: Path | str) -> None:
+        """A checkpoint saved part-way through an epoch by another number of processes. The shuffled
+        sampler goes on exactly (``ResumableSampler.set_epoch``: its order does not depend on the ranks);
+        the streaming one deals the scenes over the streams of all ranks, so under another number its
+        epoch is another walk: said, not hidden. Checkpoints written before the world size was saved
+        (None) say nothing."""
+        p = self.position
+        if saved_world is None or saved_world == self.world or not p.step_in_epoch:
+            return
+        if isinstance(self.sampler, ResumableSampler):
+            du.print_main(f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
+                          f"{p.epoch}, resumed by {self.world}: the epoch goes on from the same sample (the batch "
+                          f"over all processes, train.batch_size={self.cfg.train.batch_size}, is the same)")
+        else:
+            du.print_main(f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
+                          f"{p.epoch}, resumed by {self.world}: the streams' scenes are dealt over the processes, so "
+                          f"the rest of epoch {p.epoch} follows the dealing of {self.world} (some of its frames are "
+                          "walked twice, some not at all) and the streams start without memory; exact from the next "
+                          "epoch on (to keep this epoch exact, resume with the same number of processes)")
 
     def check_not_finished(self, state: dict, path: Path) -> None:
         """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
@@ -608,7 +629,10 @@ class TrainingRun:
         ``last.pt`` at that step, after the final validation, and a resume continues the epoch), else the
         position moves to the next epoch."""
         p = self.position
-        self.sampler.set_epoch(p.epoch, start=p.step_in_epoch * self.batch_size)
+        # the shuffled sampler skips samples of the epoch over all ranks (exact under another world size),
+        # the streaming one whole batches of this rank's streams
+        over = self.world if isinstance(self.sampler, ResumableSampler) else 1
+        self.sampler.set_epoch(p.epoch, start=p.step_in_epoch * self.batch_size * over)
         if hasattr(self.train_loader.dataset, "set_epoch"):
             self.train_loader.dataset.set_epoch(p.epoch)  # augmentation draws follow (seed, epoch, index)
         result = train_one_epoch(
@@ -670,6 +694,7 @@ class TrainingRun:
             "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
             "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
             "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best, "memory": memories,
+            "world": self.world,
         }, self.out_dir / name)
 
     def log(self) -> None:
