@@ -3819,6 +3819,17 @@ def row_persistence_not_applied_to_padding(env):
     assert kept == reference.kept > 0
 
 
+@row("S16", "the same override given twice on the command line (train.lr=1e-3 ... train.lr=1e-2, a slip in a long "
+            "command): the last one won with no word; it still wins, and a note names both")
+def row_same_override_given_twice(env):
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=2", "model.gnn.layers=3")
+    assert rc == 0, err
+    assert ("model-summary: note: model.gnn.layers is given 2 times (model.gnn.layers=2, model.gnn.layers=3); the "
+            "last, model.gnn.layers=3, is used") in err
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=2", "model.gnn.heads=2")
+    assert rc == 0 and "given 2 times" not in err
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from .benchmark import format_benchmark, run_benchmark
-from .config import UserError, load_config, parse_overrides
+from .config import UserError, load_config, parse_overrides, repeated_overrides
 from .data import build_dataset
 from .data.base import gt_submission
 from .data.synthetic import generate_world
@@ -492,6 +492,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
+    if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
+        for note in repeated_overrides(getattr(args, "overrides", None) or []):
+            print(f"instagram-hdmap {args.command}: note: {note}", file=sys.stderr)
     _expand_home(args)
     try:
         return args.func(args) or 0

@@ -27,6 +27,7 @@ import os
 import re
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Union
@@ -609,6 +610,18 @@ def parse_overrides(overrides: list[str]) -> dict:
                 raise ConfigError(f"override '{item}' sets a sub-key of a value")
         node[parts[-1]] = value
     return nested
+
+
+def repeated_overrides(overrides: Sequence[str]) -> list[str]:
+    """A note per key given more than once in ``overrides`` (the last one wins, as a later YAML file's value
+    does; on a command line a key typed twice is most often a slip, so it is said)."""
+    values: dict[str, list[str]] = {}
+    for item in overrides:
+        if isinstance(item, str) and "=" in item:
+            key, raw = item.split("=", 1)
+            values.setdefault(key.strip(), []).append(raw)
+    return [f"{key} is given {len(raw)} times ({', '.join(f'{key}={r}' for r in raw)}); the last, {key}={raw[-1]}, "
+            "is used" for key, raw in values.items() if len(raw) > 1]
 
 
 def load_config(path: str | Path | dict | ExperimentConfig | None = None,
