@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -81,7 +82,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
             saved = json.loads(path.read_text()).get("options")
         except (OSError, ValueError, AttributeError):
             continue
-        if options is not None and saved is not None and saved != options:
+        if options is not None and saved is not None and same_paths(saved) != same_paths(options):
             raise SystemExit(f"temporal.py: error: {path} was trained with {saved}, this command asks for {options}: "
                              "use another --out (or the same options)")
     if done.is_file():
@@ -226,6 +227,14 @@ def memory_suffix(args) -> str:
         key, _, value = item.partition("=")
         suffix += "_" + "".join(c if c.isalnum() or c in "-." else "_" for c in key.rsplit(".", 1)[-1] + value)
     return suffix
+
+
+def same_paths(options: dict) -> dict:
+    """``options`` with its ``train.init_from`` checkpoint as a resolved path: the same base checkpoint named
+    relatively by one command and absolutely by another (or through a link) is the same option."""
+    train = [f"train.init_from={os.path.realpath(item.partition('=')[2])}" if item.startswith("train.init_from=")
+             else item for item in options.get("train", [])]
+    return {**options, "train": train}
 
 
 def finetune_runs(seed: int, args, roots) -> list[dict]:

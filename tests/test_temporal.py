@@ -1053,3 +1053,25 @@ def test_benchmark_persist_evaluates_the_trained_checkpoint_again(monkeypatch, t
     assert calls == [(run / "run" / "last.pt", ["model.temporal.persist_frames=2",
                                                   "model.temporal.persist_decay=0.25"])]
     assert result["steps"] == 10 and (run / "result_val12_persist2x0.25.json").is_file()
+
+
+def test_benchmark_takes_one_base_checkpoint_named_two_ways(tmp_path, monkeypatch):
+    """benchmarks/temporal.py refuses a result trained with other options in the same --out; the same base
+    checkpoint named relatively by one command and absolutely (or through a link) by another is the same option."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_temporal", Path(__file__).resolve().parents[1] / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "runs")
+    monkeypatch.chdir(tmp_path)
+    rel = {"occluders": 0.7, "train": ["train.max_steps=3", "train.init_from=runs/single_seed2/run/last.pt"]}
+    for other in (f"{tmp_path}/runs/single_seed2/run/last.pt", "link/single_seed2/run/last.pt"):
+        absolute = {"occluders": 0.7, "train": ["train.max_steps=3", f"train.init_from={other}"]}
+        assert bench.same_paths(rel) == bench.same_paths(absolute)
+    elsewhere = {"occluders": 0.7, "train": ["train.max_steps=3", "train.init_from=runs/single_seed3/run/last.pt"]}
+    assert bench.same_paths(rel) != bench.same_paths(elsewhere)
+    assert bench.same_paths({"occluders": 0.0}) == {"occluders": 0.0, "train": []}
