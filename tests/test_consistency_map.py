@@ -189,3 +189,28 @@ def test_bad_input_is_named():
         InstanceTracker(GRID)(preds, scenes[:1], frames, poses)
     with pytest.raises(PersistenceInputError, match=r"sample 0 \(scene 's'\): element 0 has no 'score'"):
         InstanceTracker(GRID)([[{"pts": gts[0][0]["pts"], "label": 0}]], scenes[:1], frames[:1], poses[:1])
+
+
+def test_evaluation_reports_c_map_behind_eval_cmap(tiny_world, tmp_path):
+    """``eval.cmap=true``: metrics.json holds ``cmap`` (a random single-frame model: C-mAP <= mAP, the meter's
+    per-frame mAP is the evaluator's); off by default."""
+    import json
+
+    from instagram_hdmap.checkpoint import save_checkpoint
+    from instagram_hdmap.config import config_to_dict
+    from instagram_hdmap.models import build_model
+    from instagram_hdmap.predict import run_evaluation
+    from test_temporal import _drive_cfg
+
+    cfg = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",
+                     "model.gnn.match_threshold=0.01", "model.temporal.memory=none")
+    assert cfg.eval.cmap is False
+    torch.manual_seed(3)
+    save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)}, tmp_path / "s.pt")
+    plain = run_evaluation(cfg, tmp_path / "s.pt", out=tmp_path / "plain")["metrics"]
+    assert "cmap" not in plain
+    metrics = run_evaluation(cfg, tmp_path / "s.pt", out=tmp_path / "c", overrides=["eval.cmap=true"])["metrics"]
+    c = json.loads((tmp_path / "c" / "metrics.json").read_text())["cmap"]
+    assert c["mAP"] == pytest.approx(metrics["mAP"], abs=1e-6) and c["C-mAP"] <= c["mAP"]
+    assert c["samples"] == metrics["meta"]["num_samples"] == 3 and c["thresholds"] == [0.5, 1.0, 1.5]
+    assert set(c["C-AP_class"]) == set(cfg.data.classes) and c["tracks"]["gt"] > 0

@@ -208,6 +208,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if empty:
             print(f"  (nan: no element of {', '.join(empty)} was seen in two consecutive frames of a scene, e.g. "
                   "scenes of one frame, so no flicker to count)")
+    if "cmap" in metrics:  # evaluation/consistency.py: ConsistentAPMeter (eval.cmap)
+        c = metrics["cmap"]
+        print(f"consistency-aware AP (MapTracker's C-mAP: a TP whose instance ID is not its GT element's first one "
+              f"is an FP), thresholds {c['thresholds']} m:")
+        for k in c["C-AP_class"]:
+            print(f"  {k:<14} C-AP {c['C-AP_class'][k]:.4f}  AP {c['AP_class'][k]:.4f}  TPs switched "
+                  f"{c['switched'][k]}")
+        print(f"  C-mAP {c['C-mAP']:.4f}  mAP {c['mAP']:.4f}  ({c['tracks']['pred']} predicted and "
+              f"{c['tracks']['gt']} GT instance tracks)")
     if "memory" in metrics:  # a temporal model: what each frame did with its memory
         print("memory: " + ", ".join(f"{k.removeprefix('memory_')} {v}" for k, v in metrics["memory"].items()))
     _print_notes([*result["notes"], *metrics.get("notes", [])])

@@ -370,6 +370,10 @@ class EvalConfig:
     # status (a prediction within flicker_threshold_m, Chamfer) flips
     flicker: bool = True
     flicker_threshold_m: float = bounded(1.0, gt=0)
+    # MapTracker's consistency-aware mAP next to the AP (evaluation/consistency.py: ConsistentAPMeter,
+    # docs/temporal.md) at eval.thresholds: a TP whose predicted instance ID (carried from frame to frame by
+    # the persistence matcher) differs from the first ID that matched its GT element counts as an FP
+    cmap: bool = False
     # protocols computed as well, on the same predictions, reported under metrics["also"][protocol]
     also_protocols: tuple[Literal["vector", "raster"], ...] = ()
 

@@ -250,6 +250,7 @@ def evaluate(
     flicker=None,
     scored: set[str] | None = None,
     persist=None,
+    cmap=None,
 ) -> dict:
     """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
 
@@ -264,7 +265,8 @@ def evaluate(
     ``FlickerMeter`` updated with every batch's predictions (needs ``postprocess``);
     ``result["consistency"]`` is its ``compute()``. ``persist``: a ``persistence.Persistence`` applied to
     the scored samples' predictions (each scene's samples in frame order; not a stream's padding) before
-    they are scored; ``result["persisted"]`` counts the elements it kept (summed over the ranks).
+    they are scored; ``result["persisted"]`` counts the elements it kept (summed over the ranks). ``cmap``: a
+    ``ConsistentAPMeter`` updated like ``flicker`` (after persistence); ``result["cmap"]`` is its ``compute()``.
     """
     model.eval()
     streaming, memory = is_temporal(model), None
@@ -318,9 +320,10 @@ def evaluate(
                 evaluator.update(preds, gts, tokens=tokens)
             if on_predictions is not None:
                 on_predictions(tokens, preds)
-            if flicker is not None:
-                flicker.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
-                               batch["ego_pose"][keep])
+            for meter in (flicker, cmap):
+                if meter is not None:
+                    meter.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
+                                 batch["ego_pose"][keep])
     result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                                        device if device.type == "cuda" else None)}
     if streaming:
@@ -329,6 +332,9 @@ def evaluate(
     if flicker is not None:
         flicker.gather()
         result["consistency"] = flicker.compute()
+    if cmap is not None:
+        cmap.gather()
+        result["cmap"] = cmap.compute()
     if persist is not None:  # summed over ranks (under torchrun a temporal model's scenes are spread over them)
         result["persisted"] = sum(du.all_gather_object(persisted))
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)

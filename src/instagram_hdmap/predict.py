@@ -50,7 +50,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .train import make_flicker_meter
+from .train import make_cmap_meter, make_flicker_meter
 from .visualize import (
     figure_rgb,
     intermediate_figure,
@@ -552,7 +552,8 @@ def run_evaluation(
     A temporal model walks the split's scenes in order, ``eval.batch_size`` streams (per rank; each
     rank owns whole scenes, data/streaming.py) with its memory; each sample is scored once, by the rank
     that owns it. ``metrics["consistency"]`` holds the flicker rate (``eval.flicker``,
-    evaluation/consistency.py) and, for a temporal model, ``metrics["memory"]`` the samples per memory
+    evaluation/consistency.py), ``metrics["cmap"]`` MapTracker's consistency-aware mAP (``eval.cmap``) and,
+    for a temporal model, ``metrics["memory"]`` the samples per memory
     status (fused, no memory, pose jump, missing frame).
     """
     check_output_dir(out, "--out")  # before the work that fills it
@@ -580,6 +581,7 @@ def run_evaluation(
                             num_workers=cfg.data.num_workers)
     evaluator = Evaluator.from_config(cfg)
     flicker = make_flicker_meter(cfg)
+    cmap = make_cmap_meter(cfg)
     results: dict[str, list[dict]] = {}
     pending_gt: dict[str, list[dict]] = {}
 
@@ -604,9 +606,11 @@ def run_evaluation(
             ids = [index_of[tokens[k]] for k in keep]
             evaluator.update([preds[k] for k in keep], [gts[k] for k in keep], sample_ids=ids,
                              tokens=[tokens[k] for k in keep])
-            if flicker is not None:
-                flicker.update([preds[k] for k in keep], [gts[k] for k in keep], [dataset.scene_of(i) for i in ids],
-                               [dataset.scenes.frame[i] for i in ids], torch.stack([dataset.ego_pose(i) for i in ids]))
+            for meter in (flicker, cmap):
+                if meter is not None:
+                    meter.update([preds[k] for k in keep], [gts[k] for k in keep], [dataset.scene_of(i) for i in ids],
+                                 [dataset.scenes.frame[i] for i in ids],
+                                 torch.stack([dataset.ego_pose(i) for i in ids]))
 
     decode = decode_options(cfg.model.gnn, grid)
     persist = Persistence.from_config(cfg)
@@ -622,6 +626,8 @@ def run_evaluation(
     evaluator.gather()
     if flicker is not None:
         flicker.gather()
+    if cmap is not None:
+        cmap.gather()
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
@@ -631,6 +637,8 @@ def run_evaluation(
     metrics = evaluator.compute()
     if flicker is not None:
         metrics["consistency"] = flicker.compute()
+    if cmap is not None:
+        metrics["cmap"] = cmap.compute()
     if "memory" in val:
         metrics["memory"] = val["memory"]
     samples_per_s = round(val["samples_per_s"] * world, 3)

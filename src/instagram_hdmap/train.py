@@ -50,7 +50,7 @@ from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
-from .evaluation.consistency import FlickerMeter
+from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .files import check_output_dir, remove_stale_temporaries
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, saved_config
@@ -260,6 +260,17 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
         return None
     return FlickerMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
                         threshold_m=cfg.eval.flicker_threshold_m)
+
+
+def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
+    """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
+    predicted instance IDs use ``model.temporal``'s persistence matcher settings (``persist_match_m``, pose jumps)."""
+    if not cfg.eval.cmap:
+        return None
+    t = cfg.model.temporal
+    return ConsistentAPMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
+                             thresholds=cfg.eval.thresholds, match_m=t.persist_match_m, max_jump_m=t.max_jump_m,
+                             max_turn_deg=t.max_turn_deg)
 
 
 def memory_state(memory: dict | None, gather: bool = True) -> list | None:
@@ -666,7 +677,8 @@ class TrainingRun:
             val = evaluate(self.net, self.criterion, self.val_loader, self.device,
                            postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
                            evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp,
-                           flicker=make_flicker_meter(self.cfg), persist=Persistence.from_config(self.cfg))
+                           flicker=make_flicker_meter(self.cfg), persist=Persistence.from_config(self.cfg),
+                           cmap=make_cmap_meter(self.cfg))
         self.summary["val"] = val
         score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
         step = self.position.step
@@ -677,6 +689,8 @@ class TrainingRun:
                 self.writer.add_scalar("val/mAP", val["metrics"]["mAP"], step)
             if "consistency" in val:
                 self.writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], step)
+            if "cmap" in val:
+                self.writer.add_scalar("val/C-mAP", val["cmap"]["C-mAP"], step)
         if not math.isnan(score) and score > self.best["score"]:
             self.best = {"score": score, "epoch": self.position.epoch, "step": step}
             self.save("best.pt", val.get("metrics"))
