@@ -1044,15 +1044,15 @@ def test_benchmark_persist_evaluates_the_trained_checkpoint_again(monkeypatch, t
         calls.append((Path(checkpoint), list(overrides)))
         return {"metrics": {"mAP": 0.5, "AP_class": {"divider": 0.5}, "consistency": {
             "flicker": {}, "flicker_mean": 0.1, "flicker_detected": {}, "flicker_detected_mean": 0.2, "pairs": {},
-            "pairs_detected": {}}}}
+            "pairs_detected": {}}, "cmap": {"C-mAP": 0.4, "C-AP_class": {"divider": 0.4}}}}
 
     monkeypatch.setattr("instagram_hdmap.train.train", lambda *a, **k: pytest.fail("trained again"))
     monkeypatch.setattr("instagram_hdmap.predict.run_evaluation", fake_evaluation)
     monkeypatch.setattr("instagram_hdmap.demo.world_overrides", lambda root: [])
     result = bench.run_one("single", 0, args, (None, None), "single")
     assert calls == [(run / "run" / "last.pt", ["model.temporal.persist_frames=2",
-                                                  "model.temporal.persist_decay=0.25"])]
-    assert result["steps"] == 10 and (run / "result_val12_persist2x0.25.json").is_file()
+                                                  "model.temporal.persist_decay=0.25", "eval.cmap=true"])]
+    assert result["steps"] == 10 and result["C-mAP"] == 0.4 and (run / "result_val12_persist2x0.25.json").is_file()
 
 
 def test_benchmark_takes_one_base_checkpoint_named_two_ways(tmp_path, monkeypatch):
