@@ -374,6 +374,10 @@ class EvalConfig:
     # docs/temporal.md) at eval.thresholds: a TP whose predicted instance ID (carried from frame to frame by
     # the persistence matcher) differs from the first ID that matched its GT element counts as an FP
     cmap: bool = False
+    # the Chamfer distance (m) within which an element of the previous frame, moved by the ego motion, passes its
+    # ID on (the persistence matcher's test). C-mAP measures the model and this tracker together: it rises with
+    # this distance, so compare models at one value
+    cmap_match_m: float = bounded(1.0, gt=0)
     # protocols computed as well, on the same predictions, reported under metrics["also"][protocol]
     also_protocols: tuple[Literal["vector", "raster"], ...] = ()
 

@@ -264,12 +264,12 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
 
 def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
     """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
-    predicted instance IDs use ``model.temporal``'s persistence matcher settings (``persist_match_m``, pose jumps)."""
+    predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
     if not cfg.eval.cmap:
         return None
     t = cfg.model.temporal
     return ConsistentAPMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
-                             thresholds=cfg.eval.thresholds, match_m=t.persist_match_m, max_jump_m=t.max_jump_m,
+                             thresholds=cfg.eval.thresholds, match_m=cfg.eval.cmap_match_m, max_jump_m=t.max_jump_m,
                              max_turn_deg=t.max_turn_deg)
 
 
