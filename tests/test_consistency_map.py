@@ -214,3 +214,32 @@ def test_evaluation_reports_c_map_behind_eval_cmap(tiny_world, tmp_path):
     assert c["mAP"] == pytest.approx(metrics["mAP"], abs=1e-6) and c["C-mAP"] <= c["mAP"]
     assert c["samples"] == metrics["meta"]["num_samples"] == 3 and c["thresholds"] == [0.5, 1.0, 1.5]
     assert set(c["C-AP_class"]) == set(cfg.data.classes) and c["tracks"]["gt"] > 0
+
+
+def _gather_worker(rank: int, world: int, init_file: str, out: str) -> None:
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    preds, gts, scenes, frames, poses = _drive(frames=8)
+    preds = [p if f != 3 else [] for f, p in enumerate(preds)]
+    meter = ConsistentAPMeter(GRID, classes=ONE)
+    mine = [i for i in range(8) if i % world == rank]  # a single-frame model's split: no consecutive frames
+    meter.update([preds[i] for i in mine], [gts[i] for i in mine], [scenes[i] for i in mine],
+                 [frames[i] for i in mine], poses[mine])
+    meter.gather()
+    if rank == 0:
+        torch.save(meter.compute(), out)
+    dist.destroy_process_group()
+
+
+def test_gather_over_two_gloo_ranks_tracks_over_the_whole_scene(tmp_path):
+    """Under torchrun each rank of a single-frame model sees every other frame; the IDs are given after gathering,
+    so the result is the single process's."""
+    out = tmp_path / "out.pt"
+    torch.multiprocessing.spawn(_gather_worker, args=(2, str(tmp_path / "init"), str(out)), nprocs=2)
+    preds, gts, scenes, frames, poses = _drive(frames=8)
+    preds = [p if f != 3 else [] for f, p in enumerate(preds)]
+    single = ConsistentAPMeter(GRID, classes=ONE)
+    single.update(preds, gts, scenes, frames, poses)
+    got = torch.load(out, weights_only=False)
+    assert got == single.compute() and got["switched"]["divider"] == [4, 4, 4]
