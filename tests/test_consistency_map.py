@@ -44,7 +44,7 @@ def test_a_perfect_tracker_has_c_map_equal_to_map():
     assert res["mAP"] == 1.0 and res["C-mAP"] == res["mAP"] and res["switched"] == {"divider": [0, 0, 0]}
     assert res["tracks"] == {"pred": 1, "gt": 1} and res["definition"]["ids"] == "tracked"
     given = ConsistentAPMeter(GRID, classes=ONE)
-    given.update(preds, gts, scenes, frames, poses, ids=[[7]] * 6)  # a model that tracks: one ID throughout
+    given.update(preds, gts, scenes, frames, poses, ids=[torch.tensor([7])] * 6)  # a model that tracks: one ID
     assert given.compute()["C-mAP"] == 1.0 and given.compute()["definition"]["ids"] == "given"
     # three classes, two without GT: those count 0 in both means (the vector protocol's rule), C-mAP == mAP
     three = ConsistentAPMeter(GRID, classes=("divider", "ped_crossing", "boundary"))

@@ -326,7 +326,12 @@ class InstanceTracker:
                                "sample: [name])", PersistenceInputError)
         frames = as_batch_list(frames, "InstanceTracker: frames", "B frame indices (a list or a [B] tensor)",
                                PersistenceInputError)
-        poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses))
+        try:
+            poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
+                     else np.asarray(poses, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise PersistenceInputError(f"InstanceTracker: poses must be B ego -> world transforms [B, 4, 4], got "
+                                        f"{poses!r:.80}") from None
         if poses.ndim != 3 or len({len(preds), len(scenes), len(frames), len(poses)}) > 1:
             raise PersistenceInputError(f"InstanceTracker: one entry per sample in each argument and poses [B, 4, 4], "
                                         f"got {len(preds)} preds, {len(scenes)} scenes, {len(frames)} frames, poses "

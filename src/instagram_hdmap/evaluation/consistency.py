@@ -1,4 +1,5 @@
-"""Temporal consistency of a map model's output over drives: the **flicker rate** (docs/temporal.md).
+"""Temporal consistency of a map model's output over drives: the **flicker rate** (docs/temporal.md) and
+MapTracker's **consistency-aware mAP** (``ConsistentAPMeter``, at the end of this module).
 
     meter = FlickerMeter(grid)
     meter.update(preds, gts, scenes=batch["scene"], frames=batch["frame_index"], poses=batch["ego_pose"])
@@ -24,7 +25,7 @@ detecting less.
 
 Order-free: every sample's detection status, GT (resampled to ``num_points`` = 20 points) and pose are kept, grouped by
 scene and sorted by frame at ``compute``; samples may arrive in any order, from any process.
-(MapTracker's consistency-aware mAP needs predicted instance IDs carried across frames; not built.)
+MapTracker's consistency-aware mAP, which needs instance IDs carried across frames: ``ConsistentAPMeter`` below.
 """
 
 from __future__ import annotations
@@ -372,6 +373,7 @@ class ConsistentAPMeter:
             if isinstance(ids, (str, bytes, Mapping)) or not isinstance(ids, Sequence) or len(ids) != len(checked):
                 raise EvaluationInputError(f"ConsistentAPMeter.update: ids must be a list of B = {len(checked)} "
                                            f"lists, one integer ID per prediction, got {ids!r:.80}")
+            ids = [i.tolist() if isinstance(i, (torch.Tensor, np.ndarray)) else i for i in ids]
             for (key, _, _, _), p, i in zip(checked, preds, ids):
                 if (isinstance(i, (str, bytes)) or not isinstance(i, Sequence) or len(i) != len(p)
                         or not all(is_real(x) and x == int(x) for x in i)):
