@@ -3824,7 +3824,8 @@ def row_nuscenes_broken_sample_chain(env):
 
 @row("S18", "nuScenes map expansion: a node with NaN coordinates or a polygon naming a node the file lacks was a raw "
             "GEOSException / KeyError naming nothing; a divider line of one point was a raw GEOSException. The "
-            "first two name the file and the record; one-point lines are skipped and reported once per map")
+            "first two name the file and the record; one-point lines are skipped and reported once per map; a file "
+            "holding a list or an empty object is said to be no map expansion (was 'an outdated map version (%s)')")
 def row_map_expansion_bad_records(env):
     from instagram_hdmap.data.local_map import MapError
 
@@ -3867,6 +3868,12 @@ def row_map_expansion_bad_records(env):
     with pytest.warns(UserWarning, match=r"expansion/[\w-]+\.json: \d+ divider line\(s\) of one point skipped"):
         ds = _s18_dataset(env, with_maps(one_point))
     assert all(p["label"] != 0 for p in ds.gt_polylines(0))
+
+    root = with_maps(lambda m: None)
+    for path in (root / "maps" / "expansion").glob("*.json"):
+        path.write_text("[]")  # the devkit: "You are using an outdated map version (%s)!"
+    with pytest.raises(MapError, match=r"expansion/[\w-]+\.json: it holds a JSON list, not a map expansion"):
+        _s18_dataset(env, root)
 
 
 @row("S18", "AV2 log files: a NaN drivable-area point was a raw GEOSException and a NaN lane marking silently dropped; "

@@ -216,7 +216,8 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
     try:
         nmap = NuScenesMap(dataroot=str(dataroot), map_name=location)
     except Exception as e:  # the devkit raises bare Exceptions / KeyErrors on bad files
-        raise MapError(f"cannot read map expansion file {path}: {type(e).__name__}: {e}") from None
+        raise MapError(f"cannot read map expansion file {path}: {_map_file_problem(path) or f'{type(e).__name__}: {e}'}"
+                       ) from None
 
     def record(table: str, token, layer: str, rtoken) -> dict:
         try:
@@ -273,6 +274,26 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
                 areas.append(Polygon(ring, holes))
     areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
     return _LocationMap(dividers, peds, ped_edges, areas, crossing_report=report)
+
+
+def _map_file_problem(path: Path) -> str | None:
+    """Why a map expansion file the devkit refused is not one, in words (an empty object or a list was "an outdated
+    map version (%s)", a missing layer a bare KeyError); None when it looks like one."""
+    import json
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        return f"not valid JSON ({type(e).__name__}: {e})"
+    if not isinstance(data, dict):
+        return (f"it holds a JSON {type(data).__name__}, not a map expansion (an object of layers: node, line, "
+                "polygon, ...)")
+    missing = [k for k in ("version", "node", "line", "polygon", *DIVIDER_LAYERS, PED_LAYER, *AREA_LAYERS)
+               if k not in data]
+    if missing:
+        return (f"it has no {', '.join(repr(k) for k in missing[:6])} (a map expansion v1.3 file has them): the file "
+                "is incomplete or not a map expansion (re-download the map expansion)")
+    return None
 
 
 def resample_line(line: LineString, sample_dist: float, closed: bool = False) -> np.ndarray:
