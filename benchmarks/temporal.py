@@ -181,10 +181,11 @@ def result_name(args) -> str:
 
 def persist_overrides(args) -> list[str]:
     """``--persist``: the evaluation's element persistence (persistence.py; a decoding setting, the checkpoint's
-    weights unchanged), as overrides that win over the checkpoint's saved config."""
-    if not getattr(args, "persist", 0):
-        return []
-    return [f"model.temporal.persist_frames={args.persist}", f"model.temporal.persist_decay={args.persist_decay}"]
+    weights unchanged), as overrides that win over the checkpoint's saved config. Always given, 0 (off) too:
+    configs/temporal/synthetic.yaml ships persistence on, and a result's name must say what was evaluated
+    whatever config a checkpoint was trained with (no ``_persist`` in the name: none, for both models)."""
+    frames = getattr(args, "persist", 0)
+    return [f"model.temporal.persist_frames={frames}", f"model.temporal.persist_decay={args.persist_decay}"]
 
 
 def table(results: list[dict]) -> str:

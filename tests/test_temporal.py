@@ -1053,6 +1053,16 @@ def test_benchmark_persist_evaluates_the_trained_checkpoint_again(monkeypatch, t
     assert calls == [(run / "run" / "last.pt", ["model.temporal.persist_frames=2",
                                                   "model.temporal.persist_decay=0.25", "eval.cmap=true"])]
     assert result["steps"] == 10 and result["C-mAP"] == 0.4 and (run / "result_val12_persist2x0.25.json").is_file()
+    # without --persist the evaluation pins persistence off (configs/temporal/synthetic.yaml ships it on): a result
+    # named without _persist is of the plain decoding whatever config the checkpoint was trained with
+    calls.clear()
+    (run / "result_val12_drop0.json").unlink(missing_ok=True)
+    args.persist, args.persist_decay, args.val_dropout = 0, 0.5, 0.0
+    bench.run_one("single", 0, args, (None, None), "single")
+    assert calls[0][1][:2] == ["model.temporal.persist_frames=0", "model.temporal.persist_decay=0.5"]
+    from instagram_hdmap.config import load_config
+
+    assert load_config(bench.CONFIGS["temporal"]).model.temporal.persist_frames == 2
 
 
 def test_benchmark_takes_one_base_checkpoint_named_two_ways(tmp_path, monkeypatch):
