@@ -3765,6 +3765,124 @@ def row_train_done_printed_once_under_torchrun(env):
         f"done: epoch 0, step 1; outputs in {env.tmp / 'r'}"], p.stdout
 
 
+# ==================================================================================================
+# Sweep 17: faults, killed runs, the file system
+# ==================================================================================================
+
+
+@row("S17", "Ctrl-C (or a SIGTERM) during a training's validation: last.pt was saved with the epoch counted as "
+            "done, so the resume skipped that validation; after the final epoch it said 'completed its schedule: "
+            "nothing left to train', exit 0, with the run never validated and no best.pt. last.pt records the cut "
+            "validation and the resume runs it first")
+def row_interrupted_validation_runs_on_resume(env):
+    from instagram_hdmap import train as train_module
+
+    real, calls = train_module.evaluate, []
+
+    def ctrl_c_in_the_first(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    env.monkeypatch.setattr(train_module, "evaluate", ctrl_c_in_the_first)
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}")
+    assert rc == 130 and (run / "last.pt").is_file() and not (run / "best.pt").exists(), (rc, err[-2000:])
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    assert len(calls) == 2, "the interrupted validation was not run again"
+    assert re.search(r"validation after step \d+ was interrupted; running it first", out), out
+    assert (run / "best.pt").is_file() and not load_checkpoint(run / "last.pt")["validation_pending"]
+    assert len((run / "log.jsonl").read_text().splitlines()) == 1  # the epoch's line, written once
+
+
+@row("S17", "train --resume after the training split changed (a scene removed from data.splits_file, another "
+            "data.dataroot): the schedule was recounted over the new split, so a run of 6 samples resumed on 3 said "
+            "'done' after no step, exit 0, and the saved position skipped or repeated samples; the checkpoint keeps "
+            "the split's sample count and token hash, and another split is named (the same data moved elsewhere "
+            "resumes)")
+def row_resume_with_another_training_split(env):
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    splits = json.loads((env.world / "splits.json").read_text())
+    fewer = env.tmp / "fewer.json"
+    fewer.write_text(json.dumps({**splits, "train": splits["train"][:1]}))
+    env.error(r"last\.pt was trained on another training split \(\d+ samples then, \d+ now.*train\.init_from=",
+              "train", env.yaml, f"train.out_dir={run}", "train.epochs=2", f"data.splits_file={fewer}",
+              "--resume", run / "last.pt")
+    moved = env.tmp / "moved"
+    moved.symlink_to(env.world)
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=2",
+                           f"data.dataroot={moved}", "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+
+
+@row("S17", "evaluate --out OLD killed between its two writes (submission.json, then metrics.json): OLD held the new "
+            "checkpoint's submission beside the metrics of the evaluation before, a pair that looked whole; both are "
+            "written to temporaries and renamed together, so the earlier pair stays as it was")
+def row_evaluate_killed_between_its_two_files(env):
+    from instagram_hdmap import predict as predict_module
+
+    out = env.tmp / "e"
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
+    assert rc == 0 and (out / "metrics.json").is_file(), err[-2000:]
+    before = {name: (out / name).read_bytes() for name in ("submission.json", "metrics.json")}
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    env.monkeypatch.setattr(predict_module, "write_json", killed)
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out, "data.val_split=train")
+    assert rc == 130, err[-2000:]
+    assert {name: (out / name).read_bytes() for name in before} == before  # the earlier pair, whole
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "submission.json"]  # no temporaries
+
+
+@row("S17", "an output path on a read-only file system (a read-only mount or snapshot) was 'no permission to write "
+            "in DIR', which sends the user to chmod; it is named as a read-only file system")
+def row_read_only_file_system_named(env):
+    from types import SimpleNamespace
+
+    from instagram_hdmap import files
+
+    ro = env.tmp / "ro"
+    ro.mkdir()
+    real_access, real_statvfs = os.access, os.statvfs
+    env.monkeypatch.setattr(files.os, "access", lambda p, mode, *a, **k: False if Path(p) == ro else
+                            real_access(p, mode, *a, **k))
+    env.monkeypatch.setattr(files.os, "statvfs", lambda p: SimpleNamespace(f_flag=os.ST_RDONLY) if Path(p) == ro
+                            else real_statvfs(p))
+    env.error(r"--out .*gt\.json: .*ro is on a read-only file system", "export-gt", env.yaml, "--out", ro / "gt.json")
+    env.error(r"--out .*ro: is on a read-only file system", "evaluate", env.yaml, "--checkpoint", env.ckpt,
+              "--out", ro)
+
+
+@row("S17", "train --resume DIR/last.pt where DIR holds no run at all (a wrong folder): 'the run in DIR stopped before "
+            "its first checkpoint ... run the same command without --resume', a run that never was; it says DIR "
+            "holds no training run")
+def row_resume_from_a_folder_without_a_run(env):
+    empty = env.tmp / "elsewhere"
+    empty.mkdir()
+    env.error(r"checkpoint not found: .*elsewhere/last\.pt; .*elsewhere holds no training run", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}", "--resume", empty / "last.pt")
+
+
+@row("S17", "synth --out WORLD --force where WORLD also holds a training run or an evaluation (train.out_dir or "
+            "evaluate --out inside the dataset root): the run was deleted with the old world, exit 0; such entries are "
+            "named and nothing is generated")
+def row_synth_force_over_a_world_holding_a_run(env):
+    world = env.tmp / "w"
+    (world / "run").mkdir(parents=True)
+    (world / "world.json").write_text("{}")
+    (world / "run" / "last.pt").write_bytes(b"a checkpoint")
+    env.error(r"--out .*w: besides the synthetic world it holds run, which --force would delete", "synth", "--out",
+              world, "--force", "--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1",
+              "--image-size", "320x180")
+    assert (world / "run" / "last.pt").read_bytes() == b"a checkpoint"
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

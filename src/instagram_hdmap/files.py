@@ -86,12 +86,23 @@ def check_no_broken_link(path: str | Path, flag: str = "output path") -> None:
         probe = probe.parent
 
 
+def read_only_file_system(path: Path) -> bool:
+    """Whether ``path`` lies on a file system mounted read-only (a read-only bind mount, a snapshot, a CD): no
+    permission of the user's would help there, so the message says that instead of "no permission"."""
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):  # no statvfs (Windows)
+        return False
+
+
 def _check_parent(path: Path, flag: str) -> None:
     check_no_broken_link(path, flag)
     base = _first_existing(path.parent)
     if not base.is_dir():
         raise OutputError(f"{flag} {path}: {base} is a file, so nothing can be written below it; choose another path")
     if not os.access(base, os.W_OK | os.X_OK):
+        if read_only_file_system(base):
+            raise OutputError(f"{flag} {path}: {base} is on a read-only file system; choose a folder on a writable one")
         raise OutputError(f"{flag} {path}: no permission to write in {base}; choose a writable folder")
 
 
@@ -115,6 +126,8 @@ def check_output_file(path: str | Path, flag: str = "output file",
     if path.is_dir():
         raise OutputError(f"{flag} {path}: is a folder; give a file name (e.g. {path / 'out.json'})")
     if path.exists() and not os.access(path, os.W_OK):
+        if read_only_file_system(path):
+            raise OutputError(f"{flag} {path}: the file is on a read-only file system; choose a path on a writable one")
         raise OutputError(f"{flag} {path}: the file is not writable; choose another path")
     _check_parent(path, flag)
     return path
@@ -129,6 +142,8 @@ def check_output_dir(path: str | Path, flag: str = "output folder") -> Path:
         raise OutputError(f"{flag} {path}: is a file, not a folder; choose another path")
     if path.is_dir():
         if not os.access(path, os.W_OK | os.X_OK):
+            if read_only_file_system(path):
+                raise OutputError(f"{flag} {path}: is on a read-only file system; choose a folder on a writable one")
             raise OutputError(f"{flag} {path}: no permission to write in it; choose a writable folder")
     else:
         _check_parent(path, flag)

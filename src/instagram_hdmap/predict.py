@@ -637,7 +637,12 @@ def run_evaluation(
     out = Path(out)
     paths = []
     if du.is_main_process():
-        write_submission(out / "submission.json", results, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
-        paths = [out / "submission.json", write_json(metrics, out / "metrics.json")]
+        # both files are written to temporaries first and renamed together at the end: a kill or a full disk while
+        # either is written leaves the folder's earlier pair as it was, not this submission beside the metrics of
+        # another evaluation (a pair that looked whole)
+        with atomic_path(out / "submission.json") as sub_tmp, atomic_path(out / "metrics.json") as met_tmp:
+            write_submission(sub_tmp, results, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
+            write_json(metrics, met_tmp)
+        paths = [out / "submission.json", out / "metrics.json"]
     return {"metrics": metrics, "paths": paths, "notes": notes, "num_samples": len(dataset),
             "samples_per_s": samples_per_s}

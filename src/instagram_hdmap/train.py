@@ -22,6 +22,7 @@ history, as at a scene start (``memory_status`` no_memory), until their next sce
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
@@ -70,6 +71,32 @@ RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "tra
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
+
+
+def train_set_fingerprint(loader) -> dict | None:
+    """The training split a run walks, as its sample count and a hash of its sample tokens in order (None for
+    a dataset without tokens). A checkpoint keeps it: its position and schedule count batches of that split."""
+    tokens = getattr(getattr(loader, "dataset", None), "sample_tokens", None)
+    if not isinstance(tokens, list) or not all(isinstance(t, str) for t in tokens):
+        return None
+    return {"samples": len(tokens), "sha256": hashlib.sha256("\n".join(tokens).encode()).hexdigest()[:16]}
+
+
+def check_same_train_set(saved: dict | None, now: dict | None, path: Path | str) -> None:
+    """A resume walks the training split its checkpoint counted batches of (``train_set_fingerprint``): another
+    one (scenes added or removed, another ``data.splits_file`` or ``data.dataroot``) ended the schedule early
+    ("done" after no step when the split shrank) or late, and the saved position skipped or repeated samples,
+    with exit 0 and no word."""
+    if not isinstance(saved, dict) or now is None or saved == now:
+        return
+    before, after = saved.get("samples"), now["samples"]
+    what = (f"{before} samples then, {after} now" if before != after else
+            f"{after} samples then and now, but other samples or another order")
+    raise CheckpointError(f"checkpoint {path} was trained on another training split ({what}: data.dataroot, "
+                          "data.splits_file or the split's scenes changed); its position and schedule count "
+                          "batches of that split, so a resume would skip or repeat samples and end the schedule "
+                          "early or late: resume with the data it was trained on, or start a new run from its "
+                          f"weights (train.init_from={path})")
 
 
 def seed_everything(seed: int) -> None:
@@ -418,6 +445,9 @@ class TrainingRun:
         self.net: torch.nn.Module = self.model
         self.writer = self.log_file = None
         self.summary: dict = {}
+        # a validation that a Ctrl-C / SIGTERM cut short: last.pt records it and the resumed run runs it first (its
+        # epoch counted as done, it was skipped, and after the final epoch the run ended never validated, no best.pt)
+        self.validation_pending = False
         # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
 
@@ -484,6 +514,8 @@ class TrainingRun:
             self.scaler.load_state_dict(state["scaler"])
         self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
         self.best = state.get("best", self.best)
+        self.validation_pending = bool(state.get("validation_pending", False))
+        check_same_train_set(state.get("train_set"), train_set_fingerprint(self.train_loader), path)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
         on_disk = best_score_in(self.out_dir)  # saved after the checkpoint resumed from (a kill in between)
         if on_disk > self.best.get("score", -math.inf):
@@ -502,6 +534,7 @@ class TrainingRun:
                             "schedule: start a new run (another train.out_dir)")
         elsewhere = not _same_path(Path(path).parent, self.out_dir)
         du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
+                      + (" but its final validation, which was interrupted" if self.validation_pending else "")
                       + (f"; its run's outputs stay in {Path(path).parent}, train.out_dir={self.out_dir} gets no "
                          "checkpoint (to train on from it, start a new run with train.init_from=" + str(path) + ")"
                          if elsewhere else ""))
@@ -588,11 +621,17 @@ class TrainingRun:
             if max_steps is not None and self.position.step >= max_steps:  # a resume past it: say why nothing runs
                 du.print_main(f"train.max_steps={max_steps} is reached already (the checkpoint is at step "
                               f"{self.position.step}): nothing to train; raise train.max_steps to continue")
+            if self.validation_pending and self.validating and self.val_loader is not None:
+                du.print_main(f"the validation after step {self.position.step} was interrupted; running it first")
+                self.validate()
+                self.save("last.pt", self.summary.get("val", {}).get("metrics"))
+                self.log()
             while not finished:
                 stopped = self.train_epoch()
                 finished = stopped or self.should_stop(self.position.step)  # also refreshes the clock saved below
                 if self.validating and self.val_loader is not None and (
                         finished or self.position.epoch % self.cfg.train.val_every == 0):
+                    self.validation_pending = True  # until it ends: an interrupt's last.pt says so
                     self.validate()
                 # after the validation, so that it carries the best score (a stop part-way too)
                 self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
@@ -653,6 +692,7 @@ class TrainingRun:
                 self.writer.add_scalar("val/mAP", val["metrics"]["mAP"], step)
             if "consistency" in val:
                 self.writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], step)
+        self.validation_pending = False
         if not math.isnan(score) and score > self.best["score"]:
             self.best = {"score": score, "epoch": self.position.epoch, "step": step}
             self.save("best.pt", val.get("metrics"))
@@ -670,6 +710,7 @@ class TrainingRun:
             "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
             "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
             "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best, "memory": memories,
+            "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
         }, self.out_dir / name)
 
     def log(self) -> None:
@@ -819,6 +860,10 @@ def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
     if resume is None:
         return None
     path = Path(resume)
+    if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in RUN_FILES):
+        raise CheckpointError(f"checkpoint not found: {path}; {path.parent} holds no training run (no checkpoint, "
+                              "config.yaml or log.jsonl): check the path (a run's checkpoints are OUT/last.pt and "
+                              "OUT/best.pt, OUT its train.out_dir)")
     if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in CHECKPOINTS):
         raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before its first "
                               "checkpoint, so there is nothing to resume: run the same command without --resume")
