@@ -8,9 +8,10 @@ second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
-fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth; a ninth-, tenth-, eleventh- or
-fourteenth-sweep row of a valid input that was refused checks that it runs). Everything runs on the tiny synthetic
-world of conftest.py and a random tiny model: no training longer than a few steps.
+fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S17`` one found by a
+seventeenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that was refused checks that it
+runs). Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a
+few steps.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S15"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S17"
     what: str
     run: Callable
 
@@ -3881,6 +3882,27 @@ def row_synth_force_over_a_world_holding_a_run(env):
               world, "--force", "--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1",
               "--image-size", "320x180")
     assert (world / "run" / "last.pt").read_bytes() == b"a checkpoint"
+
+
+@row("S17", "a config's relative data.dataroot / data.splits_file, the run started from another folder than the "
+            "config's: 'dataroot not found: world', which reads as if the world were gone; it says that a relative "
+            "path is read from the current folder and names it")
+def row_relative_dataroot_from_another_folder(env):
+    env.error(r"dataroot not found: world .*a relative path is read from the current folder, .+", "export-gt",
+              env.yaml, "data.dataroot=world", "--out", env.tmp / "gt.json")
+    env.error(r"splits file not found: nowhere/splits\.json .*a relative path is read from the current folder",
+              "export-gt", env.yaml, "data.splits_file=nowhere/splits.json", "--out", env.tmp / "gt.json")
+
+
+@row("S17", "train.out_dir a folder of other files (train.out_dir=. in a project folder): refused, but told to 'pass "
+            "--resume ./last.pt to continue it' (no such checkpoint: a second error); it says what to do instead")
+def row_out_dir_of_other_files(env):
+    out = env.tmp / "project"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    line = env.error(r"holds files that are not a run's \(notes\.txt\); choose another train\.out_dir", "train",
+                     env.yaml, f"train.out_dir={out}")
+    assert "--resume" not in line
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

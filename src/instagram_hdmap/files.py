@@ -62,6 +62,13 @@ def os_error_in(e: BaseException) -> OSError | None:
     return None
 
 
+def relative_path_note(path: str | Path) -> str:
+    """For a message about a path not found: where a relative one was looked for (the current folder, not the
+    config file's, which a run started from another folder is easily taken for); "" for an absolute path."""
+    path = Path(path)
+    return "" if path.is_absolute() else f"; a relative path is read from the current folder, {Path.cwd()}"
+
+
 def _first_existing(path: Path) -> Path:
     while not path.exists() and path != path.parent:
         path = path.parent

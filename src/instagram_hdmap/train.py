@@ -138,12 +138,14 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
         has_checkpoint = any(name in content for name in CHECKPOINTS)
         only_run_files = all(name in RUN_FILES for name in content)
         if content and not (resume or force):
-            if has_checkpoint or not only_run_files:
-                what = ("already holds a run" if has_checkpoint else
-                        f"holds files that are not a run's ({', '.join(sorted(content)[:5])})")
+            if not has_checkpoint and not only_run_files:  # no run to continue: --resume of a checkpoint not there
+                raise UserError(f"output folder {out_dir} holds files that are not a run's "
+                                f"({', '.join(sorted(content)[:5])}); choose another train.out_dir (a new or empty "
+                                "folder), or pass --force to train among them (it removes only a run's own files)")
+            if has_checkpoint:
                 # a save that failed after best.pt (a full disk) leaves no last.pt; best.pt resumes as well
-                ckpt = out_dir / ("last.pt" if "last.pt" in content or not has_checkpoint else "best.pt")
-                raise UserError(f"output folder {out_dir} {what}; pass --resume {ckpt} to continue it, "
+                ckpt = out_dir / ("last.pt" if "last.pt" in content else "best.pt")
+                raise UserError(f"output folder {out_dir} already holds a run; pass --resume {ckpt} to continue it, "
                                 "--force to start over in it, or choose another train.out_dir")
             du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
             force = True
