@@ -3905,6 +3905,91 @@ def row_out_dir_of_other_files(env):
     assert "--resume" not in line
 
 
+@row("S17", "synth --out W --force over an existing world, Ctrl-C (or a kill) while the old world was being removed "
+            "(seconds for a large world): W was left half-deleted but looking whole (world.json, tables and maps, "
+            "part of its images) and the new world was removed with the temporaries; the old world is renamed aside "
+            "and removed only once the new one is in place")
+def row_synth_force_interrupted_while_removing_the_old_world(env):
+    import shutil as shutil_module
+
+    world = env.tmp / "w"
+    small = ["--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1", "--image-size", "320x180"]
+    rc, _, err = env.cli("synth", "--out", world, *small)
+    assert rc == 0, err[-2000:]
+    real = shutil_module.rmtree
+
+    def ctrl_c_half_way(path, *args, **kwargs):  # the removal of the old world, cut after its images
+        name = Path(path).name
+        if name == "w" or name.startswith(".w.old-"):
+            real(Path(path) / "samples")
+            raise KeyboardInterrupt
+        return real(path, *args, **kwargs)
+
+    env.monkeypatch.setattr(shutil_module, "rmtree", ctrl_c_half_way)
+    rc, _, err = env.cli("synth", "--out", world, "--force", "--seed", "1", *small)
+    env.monkeypatch.setattr(shutil_module, "rmtree", real)
+    assert rc == 130, err[-2000:]
+    assert json.loads((world / "world.json").read_text())["seed"] == 1, "the new world is not in place"
+    assert any((world / "samples").rglob("*.jpg")), "the world at --out lost its images"
+
+
+@row("S17", "a low limit on open files (ulimit -n 40) with data.num_workers=1: the workers pass each tensor through a "
+            "file descriptor, which ran out; the run hung for good, a thread printing 'OSError: [Errno 24] Too many "
+            "open files' tracebacks without end. The soft limit is raised towards the hard one, and below 4096 the "
+            "tensors go through named shared memory: the run works")
+def row_open_file_limit_with_data_workers(env):
+    import resource
+
+    def low_limit():
+        resource.setrlimit(resource.RLIMIT_NOFILE, (40, 40))
+
+    run = env.tmp / "run"
+    try:
+        p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "train", str(env.yaml), f"train.out_dir={run}",
+                            "train.max_steps=1", "data.num_workers=1"], capture_output=True, text=True, timeout=150,
+                           preexec_fn=low_limit, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path),
+                                                      "OMP_NUM_THREADS": "1"})
+    except subprocess.TimeoutExpired as e:
+        raise AssertionError("the training hung (too many open files)") from e
+    assert p.returncode == 0 and "Too many open files" not in p.stderr, p.stderr[-3000:]
+    assert (run / "last.pt").is_file()
+
+
+@row("S17", "a training killed after its last checkpoint (kill -9, a power cut) and resumed: the steps it had trained "
+            "since were logged to TensorBoard twice, the killed run's and the resumed run's (a second curve over "
+            "them, other values where the resume changed train.lr); the resumed run purges the killed one's events "
+            "after its checkpoint")
+def row_tensorboard_after_a_kill_and_resume(env):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from instagram_hdmap.train import TrainingRun
+
+    class Killed(BaseException):  # not an exception the run handles: no save at the kill, as with kill -9
+        pass
+
+    on_step = TrainingRun.on_step
+
+    def killed_after_step_3(self, info):
+        on_step(self, info)
+        if info.step == 3:
+            raise Killed
+
+    env.monkeypatch.setattr(TrainingRun, "on_step", killed_after_step_3)
+    run = env.tmp / "run"
+    args = ["train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.checkpoint_every=2",
+            "train.val_every=100"]
+    with pytest.raises(Killed):
+        env.cli(*args)
+    assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
+    env.monkeypatch.setattr(TrainingRun, "on_step", on_step)
+    rc, _, err = env.cli(*args, "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    events = EventAccumulator(str(run / "tb"))
+    events.Reload()
+    steps = [e.step for e in events.Scalars("train/lr")]
+    assert steps == sorted(set(steps)) and 3 in steps, steps
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -208,6 +208,25 @@ def _replace(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
+OLD_TAG = "old"  # .NAME.old-PID: a folder being replaced, renamed aside until the new one is in place
+
+
+def _replace_folder(tmp: Path, path: Path) -> None:
+    """``tmp`` over the folder ``path`` (os.replace renames a folder only over an empty one): the old folder is
+    renamed aside, the new one renamed in, and only then is the old one removed. Removing it first (a large
+    synthetic world takes seconds) left, on a Ctrl-C or a kill during the removal, a half-deleted folder at
+    ``path`` that still looked whole (its manifest, tables and maps, part of its images), and the new one was
+    removed with the temporaries. A kill now leaves ``.NAME.old-PID``, which the next writer removes."""
+    old = temporary_sibling(path, OLD_TAG)
+    os.replace(path, old)
+    try:
+        _replace(tmp, path)
+    except BaseException:
+        os.replace(old, path)
+        raise
+    _remove(old)
+
+
 @contextmanager
 def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
@@ -224,15 +243,17 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
         check_no_broken_link(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(path, tag)
+        remove_stale_temporaries(path, OLD_TAG)
         yield tmp
         if tmp.is_file():
             if path.is_dir() and not path.is_symlink():
                 raise OutputError(f"{path}: is a folder, so a file cannot be written there; choose another path")
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
-        elif tmp.is_dir() and path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)  # os.replace renames a folder only over an empty one
-        _replace(tmp, path)
+        if tmp.is_dir() and path.is_dir() and not path.is_symlink():
+            _replace_folder(tmp, path)
+        else:
+            _replace(tmp, path)
     except Exception as e:  # a full disk or an unwritable place, named (Ctrl-C passes through)
         cause = os_error_in(e)
         if cause is None or isinstance(e, UserError):

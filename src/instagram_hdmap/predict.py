@@ -50,7 +50,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .train import make_flicker_meter
+from .train import make_flicker_meter, open_files_for_workers
 from .visualize import (
     figure_rgb,
     intermediate_figure,
@@ -565,6 +565,7 @@ def run_evaluation(
     index_of = {t: i for i, t in enumerate(dataset.sample_tokens)}
     rank, world = du.get_rank(), du.get_world_size()
     owned = None  # streaming: the samples this rank scores
+    open_files_for_workers(cfg.data.num_workers)
     if is_temporal(model):
         sampler = StreamingBatchSampler(dataset.scenes.runs, cfg.eval.batch_size, shuffle=False, rank=rank,
                                         world_size=world)

@@ -235,6 +235,35 @@ def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
                         + f" ({world_size} processes), or run {b} process(es)")
 
 
+OPEN_FILES_FOR_WORKERS = 4096  # the open-file limit under which data-loader workers hand tensors over by name
+
+
+def open_files_for_workers(num_workers: int) -> None:
+    """Data-loader workers hand each batch's tensors to this process through file descriptors (torch's
+    sharing strategy ``file_descriptor``: one per tensor in flight, received over a socket). Under a low
+    limit on open files (``ulimit -n``) they ran out: the run hung for good, a thread printing "OSError:
+    [Errno 24] Too many open files" tracebacks without end. The soft limit is raised towards the hard one (up
+    to ``OPEN_FILES_FOR_WORKERS``); where it stays below that, the tensors go through named shared memory
+    (``file_system``), which holds no descriptor."""
+    if num_workers <= 0:
+        return
+    try:
+        import resource
+    except ImportError:  # not POSIX: torch's default there needs no descriptors
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    unlimited = resource.RLIM_INFINITY
+    if soft == unlimited or soft >= OPEN_FILES_FOR_WORKERS:
+        return
+    raised = OPEN_FILES_FOR_WORKERS if hard == unlimited else min(hard, OPEN_FILES_FOR_WORKERS)
+    if raised > soft:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (raised, hard))
+            soft = raised
+    if soft < OPEN_FILES_FOR_WORKERS and torch.multiprocessing.get_sharing_strategy() == "file_descriptor":
+        torch.multiprocessing.set_sharing_strategy("file_system")
+
+
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
     """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
     reads drives: each rank's batch rows are streams walking whole scenes in order
@@ -242,6 +271,7 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     of ``train.stream_frames``, after ``train.stream_warmup`` of the epochs on shuffled single frames;
     the validation loader ``eval.batch_size`` streams of whole scenes)."""
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
+    open_files_for_workers(cfg.data.num_workers)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     streaming = cfg.model.temporal.memory != "none"
     common = {"collate_fn": collate_fn, "num_workers": cfg.data.num_workers, "worker_init_fn": _worker_init,
@@ -562,7 +592,10 @@ class TrainingRun:
             save_config(self.cfg, self.out_dir / "config.yaml")
             from torch.utils.tensorboard import SummaryWriter  # slow to import; training only
 
-            self.writer = SummaryWriter(str(self.out_dir / "tb"))
+            # a resumed run hides the events its killed predecessor wrote after the checkpoint (TensorBoard's
+            # purge_step): they showed as a second curve over the steps the resume trains again
+            purge = self.position.step + 1 if self.position.step else None
+            self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=purge)
             self.log_file = (self.out_dir / "log.jsonl").open("a")
         try:
             yield
