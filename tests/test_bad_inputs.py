@@ -3990,6 +3990,53 @@ def row_tensorboard_after_a_kill_and_resume(env):
     assert steps == sorted(set(steps)) and 3 in steps, steps
 
 
+@row("S17", "predict --out DIR over an earlier predict of another sample, killed part-way (Ctrl-C, kill -9, a full "
+            "disk): DIR mixed the new sample's first pictures with the old one's last picture and prediction.json, a "
+            "set that looked whole; the pictures and prediction.json are written to temporaries and renamed together")
+def row_predict_killed_part_way_over_an_earlier_set(env):
+    from instagram_hdmap import predict as predict_module
+
+    out = env.tmp / "p"
+    rc, _, err = env.cli("predict", env.yaml, "--checkpoint", env.ckpt, "--index", "0", "--out", out)
+    assert rc == 0, err[-2000:]
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = predict_module.save_figure, []
+
+    def killed_at_the_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    env.monkeypatch.setattr(predict_module, "save_figure", killed_at_the_second)
+    rc, _, err = env.cli("predict", env.yaml, "--checkpoint", env.ckpt, "--index", "2", "--out", out)
+    assert rc == 130, err[-2000:]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@row("S17", "show-gt --out DIR over an earlier show-gt of another sample, killed part-way: DIR mixed both samples' "
+            "pictures (only bev_polylines.png names its sample); the pictures are renamed together")
+def row_show_gt_killed_part_way_over_an_earlier_set(env):
+    from instagram_hdmap import visualize
+
+    out = env.tmp / "g"
+    rc, _, err = env.cli("show-gt", env.yaml, "--index", "0", "--out", out)
+    assert rc == 0, err[-2000:]
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = visualize.save_figure, []
+
+    def killed_at_the_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    env.monkeypatch.setattr(visualize, "save_figure", killed_at_the_third)
+    rc, _, err = env.cli("show-gt", env.yaml, "--index", "1", "--out", out)
+    assert rc == 130, err[-2000:]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -24,6 +24,7 @@ frame, x forward, y left; a closed shape repeats its first point).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import warnings
@@ -217,6 +218,19 @@ def prediction_figures(outputs: dict, predictions: list[dict], ground_truth: lis
     }
 
 
+def write_together(out: Path, figures: dict, predictions: dict, meta: dict) -> list[Path]:
+    """``predict``'s pictures and ``out/prediction.json``, written to temporaries and renamed together at the
+    end: a kill or a full disk part-way leaves the folder's earlier set whole (written one by one, a set over
+    an earlier ``predict`` of another sample mixed both samples' pictures and the other's prediction.json)."""
+    names = [*figures, "prediction.json"]
+    with contextlib.ExitStack() as stack:
+        tmp = {n: stack.enter_context(atomic_path(out / n, keep_suffix=n != "prediction.json")) for n in names}
+        for name, fig in figures.items():
+            save_figure(fig, tmp[name])
+        write_submission(tmp["prediction.json"], predictions, meta)
+    return [out / n for n in names]
+
+
 def predict_sample(
     cfg: ExperimentConfig,
     out: str | Path,
@@ -281,10 +295,7 @@ def predict_sample(
     figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
                                  {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
                                  heading, dataset.camera_names, float(sample["ground_height"]))
-    out = Path(out)
-    paths = [save_figure(fig, out / name) for name, fig in figures.items()]
-    write_submission(out / "prediction.json", {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
-    paths.append(out / "prediction.json")
+    paths = write_together(Path(out), figures, {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
     return {"sample_token": sample["sample_token"], "index": i, "split": split, "predictions": preds,
             "paths": paths, "notes": notes}
 
@@ -409,12 +420,10 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     figures = prediction_figures(outputs, preds, None, display,
                                  {k: batch[k][0] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")},
                                  mapper.config, f"{name} - {mapper.source}", mapper.cameras)
-    out = Path(out)
-    paths = [save_figure(fig, out / file) for file, fig in figures.items()]
     meta = {**submission_meta(mapper.config, "", mapper.source), "rig": str(rig_file),
             "images": [str(p) for p in images]}
-    write_submission(out / "prediction.json", {name: preds}, meta)
-    return {"name": name, "elements": elements, "paths": [*paths, out / "prediction.json"], "source": mapper.source}
+    paths = write_together(Path(out), figures, {name: preds}, meta)
+    return {"name": name, "elements": elements, "paths": paths, "source": mapper.source}
 
 
 # --- a scene as a video: predict --scene --video -------------------------------------------------------
