@@ -4037,6 +4037,35 @@ def row_show_gt_killed_part_way_over_an_earlier_set(env):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+@row("S17", "a data-loader worker killed during a training (the out-of-memory killer's choice, a kill -9): torch's "
+            "'DataLoader worker (pid N) is killed by signal: Killed.' ended the run in two chained tracebacks, the "
+            "steps since the last checkpoint lost; last.pt is saved at the last completed step and one line says so "
+            "(evaluate: one line, nothing written)")
+def row_data_worker_killed(env):
+    from instagram_hdmap import predict as predict_module
+    from instagram_hdmap.train import TrainingRun
+
+    on_step = TrainingRun.on_step
+
+    def worker_killed_after_step_2(self, info):
+        on_step(self, info)
+        if info.step == 2:
+            raise RuntimeError("DataLoader worker (pid 4242) is killed by signal: Killed. ")
+
+    env.monkeypatch.setattr(TrainingRun, "on_step", worker_killed_after_step_2)
+    run = env.tmp / "run"
+    env.error(r"DataLoader worker \(pid 4242\) is killed by signal: Killed .*saved .*last\.pt at step 2: resume with "
+              r"--resume", "train", env.yaml, f"train.out_dir={run}", "train.epochs=2")
+    assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
+
+    def worker_died(*args, **kwargs):
+        raise RuntimeError("DataLoader worker (pid(s) 4243) exited unexpectedly")
+
+    env.monkeypatch.setattr(predict_module, "evaluate", worker_died)
+    env.error(r"evaluate: error: DataLoader worker .*exited unexpectedly .*nothing was written", "evaluate", env.yaml,
+              "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -26,7 +26,7 @@ from .files import NO_ROOM, check_output_dir, check_output_file, os_error_in, wr
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
-from .train import train
+from .train import data_worker_died, train
 from .visualize import write_sample_pngs
 
 
@@ -503,6 +503,12 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
         cause = os_error_in(e)
+        died = data_worker_died(e)
+        if died is not None:  # evaluate, predict: nothing was written (a training saves last.pt first)
+            print(f"instagram-hdmap {args.command}: error: {died.rstrip('. ')} (the out-of-memory killer, or a "
+                  "kill); nothing was written: run it again (with a lower data.num_workers or eval.batch_size if "
+                  "memory ran out)", file=sys.stderr)
+            return 2
         if cause is None and out_of_memory(e):
             first = " ".join(str(e).split())[:300]
             print(f"instagram-hdmap {args.command}: error: out of memory ({type(e).__name__}: {first}); make the job "

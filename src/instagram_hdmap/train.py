@@ -27,6 +27,7 @@ import json
 import math
 import os
 import random
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -97,6 +98,20 @@ def check_same_train_set(saved: dict | None, now: dict | None, path: Path | str)
                           "batches of that split, so a resume would skip or repeat samples and end the schedule "
                           "early or late: resume with the data it was trained on, or start a new run from its "
                           f"weights (train.init_from={path})")
+
+
+WORKER_DIED = re.compile(r"DataLoader worker \(pids?\(?s?\)? ?[\d, ]+\)? (is killed by signal|exited unexpectedly)")
+
+
+def data_worker_died(e: BaseException) -> str | None:
+    """torch's message when a data-loader worker process died (the out-of-memory killer's choice, a ``kill -9``),
+    first line only; None for another exception."""
+    text = str(e).strip()
+    return text.splitlines()[0] if isinstance(e, RuntimeError) and WORKER_DIED.search(text) else None
+
+
+class DataWorkerError(UserError):
+    """A data-loader worker died during a training: ``last.pt`` was saved at the last completed step."""
 
 
 def seed_everything(seed: int) -> None:
@@ -676,6 +691,15 @@ class TrainingRun:
             du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
                           f"{self.out_dir / 'last.pt'})")
             raise
+        except RuntimeError as e:  # a data-loader worker killed (the OOM killer): saved as for Ctrl-C, one line
+            died = data_worker_died(e)
+            if died is None:
+                raise
+            self.save("last.pt", gather=False)
+            last = self.out_dir / "last.pt"
+            raise DataWorkerError(f"{died.rstrip('. ')} (the out-of-memory killer, or a kill); saved {last} at step "
+                                  f"{self.position.step}: resume with --resume {last} (with a lower "
+                                  "data.num_workers or train.batch_size if memory ran out)") from None
 
     def train_epoch(self) -> bool:
         """The rest of the epoch in progress; returns whether it stopped part-way (then ``fit`` saves
