@@ -4066,6 +4066,23 @@ def row_data_worker_killed(env):
               "--checkpoint", env.ckpt, "--out", env.tmp / "e")
 
 
+@row("S17", "train.out_dir on a file system that takes no file lock (NFS without lockd, some FUSE mounts: flock fails "
+            "with ENOLCK): 'another training is running in OUT (process ?)', so no training could run there at all; "
+            "it trains without the lock, with a note")
+def row_out_dir_without_file_locks(env):
+    import errno
+    import fcntl
+
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    env.monkeypatch.setattr(fcntl, "flock", no_locks)
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    assert "takes no file lock (No locks available)" in out and (run / "last.pt").is_file()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

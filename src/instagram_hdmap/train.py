@@ -197,11 +197,18 @@ def lock_out_dir(out_dir: Path) -> None:
     handle = os.fdopen(os.open(out_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except BlockingIOError:  # EWOULDBLOCK: another process holds it
         owner = handle.read().strip()
         handle.close()
         raise UserError(f"another training is running in {out_dir} (process {owner or '?'}); wait for it to end "
                         "(or stop it), or choose another train.out_dir") from None
+    except OSError as e:  # a file system without locks (NFS without lockd, some FUSE mounts): was "another training"
+        handle.close()
+        with contextlib.suppress(OSError):
+            (out_dir / LOCK_FILE).unlink()
+        du.print_main(f"note: {out_dir} takes no file lock ({e.strerror or e}): a second training started in it "
+                      "while this one runs is not refused there")
+        return
     handle.seek(0)
     handle.truncate()
     handle.write(f"{os.getpid()}\n")
