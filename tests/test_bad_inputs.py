@@ -4083,6 +4083,24 @@ def row_out_dir_without_file_locks(env):
     assert "takes no file lock (No locks available)" in out and (run / "last.pt").is_file()
 
 
+@row("S17", "train --resume into a run folder whose tb is a file or whose log.jsonl is a folder: a raw "
+            "FileExistsError (TensorBoard's makedirs) or IsADirectoryError (open) traceback once the model and the "
+            "loaders were built; one line names the entry before the work")
+def row_run_files_of_the_wrong_kind(env):
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    shutil.rmtree(run / "tb")
+    (run / "tb").write_text("")
+    env.error(r"tb is a file, where the run keeps its TensorBoard events in a folder", "train", env.yaml,
+              f"train.out_dir={run}", "train.epochs=2", "--resume", run / "last.pt")
+    (run / "tb").unlink()
+    (run / "log.jsonl").unlink()
+    (run / "log.jsonl").mkdir()
+    env.error(r"log\.jsonl is a folder, where the run keeps its log in a file", "train", env.yaml,
+              f"train.out_dir={run}", "train.epochs=2", "--resume", run / "last.pt")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

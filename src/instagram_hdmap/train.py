@@ -176,6 +176,15 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                     shutil.rmtree(target)
                 elif target.exists() or target.is_symlink():
                     target.unlink()
+        # what the run appends to or writes in must be of its kind (they raised a raw FileExistsError from
+        # TensorBoard or an IsADirectoryError from open() once the model and loaders were built)
+        for name, folder, what in (("tb", True, "TensorBoard events"), ("log.jsonl", False, "log"),
+                                   ("config.yaml", False, "resolved config")):
+            target = out_dir / name
+            if target.exists() and target.is_dir() != folder:
+                raise UserError(f"train.out_dir {out_dir}: {name} is a {'folder' if target.is_dir() else 'file'}, "
+                                f"where the run keeps its {what} in a {'folder' if folder else 'file'}; move it away "
+                                "(or pass --force to start the run over)")
 
 
 LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process training in the folder
