@@ -4101,6 +4101,20 @@ def row_run_files_of_the_wrong_kind(env):
               f"train.out_dir={run}", "train.epochs=2", "--resume", run / "last.pt")
 
 
+@row("S17", "train --resume latest.pt, a symbolic link to OUT/last.pt (kept beside the runs), with train.out_dir=OUT: "
+            "refused as 'continues the run of ., but OUT holds a run of its own ... set train.out_dir=.' (the link's "
+            "folder, where following the advice would split the run); the checkpoint's own folder is its run")
+def row_resume_through_a_symbolic_link(env):
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    (env.tmp / "latest.pt").symlink_to(run / "last.pt")
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=2",
+                         "--resume", env.tmp / "latest.pt")
+    assert rc == 0, err[-2000:]
+    assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -164,7 +164,8 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                                 "--force to start over in it, or choose another train.out_dir")
             du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
             force = True
-        source = Path(resume).parent if resume and Path(resume).is_file() else None
+        # the folder of the checkpoint itself: a symbolic link to it (latest.pt -> run/last.pt) names the run it is in
+        source = Path(resume).resolve().parent if resume and Path(resume).is_file() else None
         if source is not None and has_checkpoint and source.resolve() != out_dir.resolve():
             raise UserError(f"--resume {resume} continues the run of {source}, but train.out_dir={out_dir} holds a "
                             "run of its own, whose checkpoints and log it would overwrite; set "
@@ -595,10 +596,11 @@ class TrainingRun:
             raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
                             f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
                             "schedule: start a new run (another train.out_dir)")
-        elsewhere = not _same_path(Path(path).parent, self.out_dir)
+        run_dir = Path(path).resolve().parent  # a symbolic link to the checkpoint: the run it is in
+        elsewhere = not _same_path(run_dir, self.out_dir)
         du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
                       + (" but its final validation, which was interrupted" if self.validation_pending else "")
-                      + (f"; its run's outputs stay in {Path(path).parent}, train.out_dir={self.out_dir} gets no "
+                      + (f"; its run's outputs stay in {run_dir}, train.out_dir={self.out_dir} gets no "
                          "checkpoint (to train on from it, start a new run with train.init_from=" + str(path) + ")"
                          if elsewhere else ""))
 
