@@ -4115,6 +4115,21 @@ def row_resume_through_a_symbolic_link(env):
     assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
 
 
+@row("S17", "long file names: export-gt --out of a valid 250-byte name failed after the work with a raw ENAMETOOLONG "
+            "(its temporary .NAME.tmp-PID was longer than a file name may be); a name over 255 bytes in "
+            "train.out_dir or evaluate --out was a raw OSError from the first stat. The temporary's name is cut to "
+            "fit, and a name too long is one line")
+def row_long_file_names(env):
+    name = "g" * 245 + ".json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", env.tmp / name)
+    assert rc == 0 and (env.tmp / name).is_file(), err[-2000:]
+    too_long = env.tmp / ("a" * 300)
+    env.error(r"train\.out_dir .*: the name a+\.\.\. is 300 bytes long, more than a file name can be \(255\)", "train",
+              env.yaml, f"train.out_dir={too_long}")
+    env.error(r"--out .*: the name a+\.\.\. is 300 bytes long", "evaluate", env.yaml, "--checkpoint", env.ckpt,
+              "--out", too_long)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

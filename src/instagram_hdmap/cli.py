@@ -22,7 +22,7 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .evaluation import evaluate_files, format_table
-from .files import NO_ROOM, check_output_dir, check_output_file, os_error_in, write_json
+from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
@@ -134,6 +134,7 @@ def _cmd_model_summary(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     cfg = _load(args)
+    check_name_lengths(Path(cfg.train.out_dir), "train.out_dir")  # before the stat below
     written = Path(cfg.train.out_dir) / "config.yaml"  # the run writes its resolved config there
     if not args.resume and written.is_file() and written.resolve() == Path(args.config).resolve():
         raise UserError(f"CONFIG {args.config} is {written}, where the run writes its resolved config (starting over "

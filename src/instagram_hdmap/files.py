@@ -102,6 +102,16 @@ def read_only_file_system(path: Path) -> bool:
         return False
 
 
+def check_name_lengths(path: Path, flag: str) -> None:
+    """Each name in ``path`` fits in a file name (``NAME_MAX`` bytes): a longer one raised a raw ENAMETOOLONG
+    from the first ``stat``."""
+    for part in path.parts:
+        size = len(os.fsencode(part))
+        if size > NAME_MAX:
+            raise OutputError(f"{flag} {path}: the name {part[:40]}... is {size} bytes long, more than a file name "
+                              f"can be ({NAME_MAX}); choose a shorter one")
+
+
 def _check_parent(path: Path, flag: str) -> None:
     check_no_broken_link(path, flag)
     base = _first_existing(path.parent)
@@ -126,6 +136,7 @@ def check_output_file(path: str | Path, flag: str = "output file",
     existing folder above it is writable). ``flag`` names the option in the message (``--out``).
     ``inputs``: (path, option) pairs of the job's input files, which the output must not replace."""
     path = Path(path)
+    check_name_lengths(path, flag)
     for source, option in inputs:
         if source is not None and _same_file(path, Path(source)):
             raise OutputError(f"{flag} {path} is the {option} file the job reads; writing the result there would "
@@ -144,6 +155,7 @@ def check_output_dir(path: str | Path, flag: str = "output folder") -> Path:
     """Before the work: ``path`` can be an output folder (it is not a file, and it or the first
     existing folder above it is writable)."""
     path = Path(path)
+    check_name_lengths(path, flag)
     check_no_broken_link(path, flag)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{flag} {path}: is a file, not a folder; choose another path")
@@ -177,7 +189,8 @@ def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
     if not path.parent.is_dir():
         return removed
     # .NAME.TAG-PID, and .STEM.TAG-PID.SUFFIX (keep_suffix)
-    for prefix, suffix in ((f".{path.name}.{tag}-", ""), (f".{path.stem}.{tag}-", path.suffix)):
+    for prefix, suffix in ((f".{_fitted(path.name, tag)}.{tag}-", ""),
+                           (f".{_fitted(path.stem, tag, path.suffix)}.{tag}-", path.suffix)):
         for tmp in path.parent.glob(prefix + "*"):
             pid = tmp.name[len(prefix):len(tmp.name) - len(suffix)]
             if (tmp.name.endswith(suffix) and pid.isdigit() and int(pid) != os.getpid()
@@ -187,13 +200,26 @@ def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
     return removed
 
 
+NAME_MAX = 255  # bytes in one file name (ext4, XFS, Btrfs, tmpfs, NFS)
+
+
+def _fitted(name: str, tag: str, suffix: str = "") -> str:
+    """``name`` cut (on a character) so that ``.NAME.TAG-PID{suffix}`` fits in ``NAME_MAX`` bytes for any PID: a
+    valid file name of 240 bytes had a temporary name too long to create (a raw ENAMETOOLONG after the work)."""
+    room = NAME_MAX - len(f"..{tag}-{suffix}".encode()) - 10  # a PID has at most 10 digits
+    while len(name.encode()) > room:
+        name = name[:-1]
+    return name
+
+
 def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Path:
     """``.NAME.TAG-PID`` next to ``path``: where ``atomic_path`` writes before the rename
-    (``.STEM.TAG-PID.SUFFIX`` with ``keep_suffix``, for writers that choose a format by the suffix)."""
+    (``.STEM.TAG-PID.SUFFIX`` with ``keep_suffix``, for writers that choose a format by the suffix); a long NAME
+    is cut to keep it a valid file name (``_fitted``)."""
     path = Path(path)
     if keep_suffix:
-        return path.with_name(f".{path.stem}.{tag}-{os.getpid()}{path.suffix}")
-    return path.with_name(f".{path.name}.{tag}-{os.getpid()}")
+        return path.with_name(f".{_fitted(path.stem, tag, path.suffix)}.{tag}-{os.getpid()}{path.suffix}")
+    return path.with_name(f".{_fitted(path.name, tag)}.{tag}-{os.getpid()}")
 
 
 def _remove(path: Path) -> None:
