@@ -234,6 +234,7 @@ def _replace(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
+_TARGET_OF: dict[Path, Path] = {}  # a live temporary -> the file it becomes (named in the errors of writes into it)
 OLD_TAG = "old"  # .NAME.old-PID: a folder being replaced, renamed aside until the new one is in place
 
 
@@ -265,6 +266,8 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
     if path.is_symlink() and path.exists():
         path = Path(os.path.realpath(path))
     tmp = temporary_sibling(path, tag, keep_suffix)
+    shown = _TARGET_OF.get(path, path)  # a set written together writes each file through a temporary of its own
+    _TARGET_OF[tmp] = shown
     try:
         check_no_broken_link(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -285,17 +288,18 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
         if cause is None or isinstance(e, UserError):
             raise
         if cause.errno in NO_ROOM:
-            raise OutputError(f"cannot write {path}: {cause.strerror or cause} (the disk is full or a file-size "
-                              f"limit is reached); {path.name} is as it was before; free some space and run "
+            raise OutputError(f"cannot write {shown}: {cause.strerror or cause} (the disk is full or a file-size "
+                              f"limit is reached); {shown.name} is as it was before; free some space and run "
                               "again") from e
         if cause.errno in (errno.EACCES, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EPERM):
-            raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose a writable path") from e
+            raise OutputError(f"cannot write {shown}: {cause.strerror or cause}; choose a writable path") from e
         if cause.filename is not None and str(cause.filename) in (str(tmp), str(path), str(path.parent)):
             # another failure of the write itself (a file system that takes no new files, such as /proc, or a
             # folder removed while the job ran): named, not a traceback
-            raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose another path") from e
+            raise OutputError(f"cannot write {shown}: {cause.strerror or cause}; choose another path") from e
         raise
     finally:
+        _TARGET_OF.pop(tmp, None)
         _remove(tmp)
 
 
