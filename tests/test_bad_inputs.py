@@ -4130,6 +4130,20 @@ def row_long_file_names(env):
               "--out", too_long)
 
 
+@row("S17", "train --resume with another eval.protocol (or data.val_split, eval.thresholds): the run compared its "
+            "raster mAP with the vector mAP best.pt was kept for, to decide whether to replace best.pt, with no word; "
+            "a note names the difference")
+def row_resume_with_another_validation(env):
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0 and (run / "best.pt").is_file(), err[-2000:]
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=2",
+                           "eval.protocol=raster", "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    assert re.search(r"note: the best score so far .* was measured with another validation \(eval\.protocol: "
+                     r"checkpoint 'vector' vs now 'raster'\)", out), out
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -72,6 +72,9 @@ RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "tra
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
+# what the validation score that picks best.pt measures: a resume may change them, but its scores are then of another
+# kind than the best score it carries (a raster mAP compared with a vector one, another split's), which a note says
+SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split")
 
 
 def train_set_fingerprint(loader) -> dict | None:
@@ -555,6 +558,12 @@ class TrainingRun:
                 du.print_main(f"note: {out_dir / 'last.pt'} is at step {later}, later than {resume}; this run goes on "
                               f"from step {run.position.step} and its next save replaces that last.pt (to continue "
                               f"from step {later} instead, stop now and pass --resume {out_dir / 'last.pt'})")
+            best = run.best.get("score", -math.inf)
+            measured = config_differences(saved_config(state["config"], f"checkpoint {resume}"), cfg, SCORE_KEYS)
+            if measured and math.isfinite(best):
+                du.print_main(f"note: the best score so far ({best:.4g}, best.pt's) was measured with another "
+                              f"validation ({measured}); this run's scores replace best.pt only where they exceed it, "
+                              "a number of another kind")
             if cfg.train.init_from:
                 du.print_main(f"note: train.init_from={cfg.train.init_from} is not read on a resume: the weights are "
                               f"{resume}'s (the run's own checkpoint)")
