@@ -8,10 +8,10 @@ BEV memory) trains on the training world (``demo.WORLD`` with ``--occluders``) f
 time (``train.time_budget_min``: the schedule completes within it, demo.py's rule) or, with ``--steps N``,
 for N steps of the same schedule (a fair comparison on a loaded machine, where wall time depends on the
 neighbours); then it is evaluated on the validation world (``demo.VAL_WORLD`` with ``--occluders``: a world
-of another seed, road networks never seen in training), vector protocol, with the flicker rate
-(evaluation/consistency.py). Printed: one row per run, the mean per config, and the temporal / single
-ratios of mAP and flicker. ``OUT/results.json`` holds everything; a finished run is reused (delete its
-folder to redo it).
+of another seed, road networks never seen in training), vector protocol, with the flicker rate and
+MapTracker's consistency-aware mAP (evaluation/consistency.py; ``C-mAP`` in each result). Printed: one row
+per run, the mean per config, and the temporal / single ratios of mAP and flicker. ``OUT/results.json`` holds
+everything; a finished run is reused (delete its folder to redo it).
 
 With ``--finetune STEPS`` (after the runs above, whose single-frame checkpoints are the start), both models
 continue from each seed's trained single-frame model for STEPS steps at ``--finetune-lr``: the single-frame
@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -81,7 +82,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
             saved = json.loads(path.read_text()).get("options")
         except (OSError, ValueError, AttributeError):
             continue
-        if options is not None and saved is not None and saved != options:
+        if options is not None and saved is not None and same_paths(saved) != same_paths(options):
             raise SystemExit(f"temporal.py: error: {path} was trained with {saved}, this command asks for {options}: "
                              "use another --out (or the same options)")
     if done.is_file():
@@ -107,9 +108,12 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     val_only = [] if args.val_dropout is None else [f"data.camera_dropout={args.val_dropout}"]
     val_cfg = load_config(CONFIGS[config], [*world_overrides(val_root), *common, *val_only])
     metrics = run_evaluation(val_cfg, checkpoint, "vector", out / f"eval{result_name(args)[6:-5]}",
-                             overrides=persist_overrides(args))["metrics"]
+                             overrides=[*persist_overrides(args), "eval.cmap=true"])["metrics"]
     result = {"config": name, "seed": seed, "steps": summary.get("step", 0), "train_s": round(train_s, 1),
               "mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
+              # MapTracker's consistency-aware mAP (evaluation/consistency.py: ConsistentAPMeter), a few % of the
+              # evaluation's time on the CPU
+              "C-mAP": metrics["cmap"]["C-mAP"], "C-AP_class": metrics["cmap"]["C-AP_class"],
               **{k: metrics["consistency"][k] for k in ("flicker", "flicker_mean", "flicker_detected",
                                                         "flicker_detected_mean", "pairs", "pairs_detected")},
               "memory": metrics.get("memory"), **({"options": options} if options is not None else {})}
@@ -226,6 +230,14 @@ def memory_suffix(args) -> str:
         key, _, value = item.partition("=")
         suffix += "_" + "".join(c if c.isalnum() or c in "-." else "_" for c in key.rsplit(".", 1)[-1] + value)
     return suffix
+
+
+def same_paths(options: dict) -> dict:
+    """``options`` with its ``train.init_from`` checkpoint as a resolved path: the same base checkpoint named
+    relatively by one command and absolutely by another (or through a link) is the same option."""
+    train = [f"train.init_from={os.path.realpath(item.partition('=')[2])}" if item.startswith("train.init_from=")
+             else item for item in options.get("train", [])]
+    return {**options, "train": train}
 
 
 def finetune_runs(seed: int, args, roots) -> list[dict]:

@@ -9,9 +9,9 @@ fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one fou
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
 fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S17`` one found by a
-seventeenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that was refused checks that it
-runs). Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a
-few steps.
+seventeenth, ``S18`` one found by an eighteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid
+input that was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a
+random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -4142,6 +4142,366 @@ def row_resume_with_another_validation(env):
     assert rc == 0, err[-2000:]
     assert re.search(r"note: the best score so far .* was measured with another validation \(eval\.protocol: "
                      r"checkpoint 'vector' vs now 'raster'\)", out), out
+@row("S16", "a run saved part-way through an epoch by 2 torchrun processes and resumed by 1: the shuffled sampler "
+            "skipped samples of this rank's share (computed for the old number of ranks), so part of the epoch was "
+            "walked twice or not at all, no word; it goes on from the same sample of the epoch's order, and says so")
+def row_resume_under_another_number_of_processes(env):
+    out = env.tmp / "r"
+    p = _torchrun_cli("train", env.yaml, f"train.out_dir={out}", "train.max_steps=1", "train.batch_size=2")
+    assert p.returncode == 0, p.stderr[-3000:]
+    rc, stdout, err = env.cli("train", env.yaml, f"train.out_dir={out}", "--resume", out / "last.pt",
+                              "train.max_steps=2", "train.batch_size=2")
+    assert rc == 0, err
+    assert (f"note: {out / 'last.pt'} was saved by 2 process(es) at step 1 of epoch 0, resumed by 1: the epoch goes "
+            "on from the same sample") in stdout
+    assert load_checkpoint(out / "last.pt")["world"] == 1
+
+
+@row("S16", "evaluate of a temporal model with model.temporal.persist_frames and more streams than scenes: a stream's "
+            "padding walks a scene at the same time as the stream that owns it, and persistence was applied to it "
+            "too, so it replaced that scene's remembered elements between its frames (the scored output depended on "
+            "eval.batch_size; the note counted the padding's kept elements); only the scored samples persist now")
+def row_persistence_not_applied_to_padding(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.evaluation.io import read_submission
+    from instagram_hdmap.models import build_model
+    from instagram_hdmap.persistence import Persistence
+
+    torch.manual_seed(0)
+    cfg = env.cfg("model.temporal.memory=bev", "model.temporal.persist_frames=2")
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    subs, kept = {}, None
+    for persist in (0, 2):  # 3 streams over the split's 2 scenes: the third walks padding only
+        out = env.tmp / f"p{persist}"
+        rc, stdout, err = env.cli("evaluate", env.yaml, "--checkpoint", ckpt, "--out", out,
+                                  f"model.temporal.persist_frames={persist}", "model.gnn.conf_threshold=0.0",
+                                  "model.gnn.match_threshold=0.01", "eval.batch_size=3", "data.val_split=train")
+        assert rc == 0, err
+        subs[persist] = read_submission(out / "submission.json", "pred").samples
+        if persist:
+            notes = json.loads((out / "metrics.json").read_text())["meta"]["config_notes"]
+            kept = int(next(re.search(r"persist_frames=2: (\d+) map elements", n).group(1) for n in notes
+                            if "persist_frames=2:" in n))
+    # the reference: persistence applied by hand to the plain run's outputs, scene by scene in frame order
+    ds, reference = build_dataset(cfg, "train"), Persistence.from_config(cfg)
+    for scene in ds.scenes.names:
+        for i in ds.scene_indices(scene):
+            token = ds.sample_tokens[i]
+            expected = reference.step(subs[0][token], scene, int(ds.scenes.frame[i]), ds.ego_pose(i).double().numpy())
+            assert len(subs[2][token]) == len(expected), (scene, i)
+            for got, want in zip(subs[2][token], expected):
+                np.testing.assert_allclose(got["pts"], want["pts"], atol=1e-5)
+                assert got["label"] == want["label"] and got["score"] == pytest.approx(want["score"], abs=1e-6)
+    assert kept == reference.kept > 0
+
+
+@row("S16", "the same override given twice on the command line (train.lr=1e-3 ... train.lr=1e-2, a slip in a long "
+            "command): the last one won with no word; it still wins, and a note names both")
+def row_same_override_given_twice(env):
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=2", "model.gnn.layers=3")
+    assert rc == 0, err
+    assert ("model-summary: note: model.gnn.layers is given 2 times (model.gnn.layers=2, model.gnn.layers=3); the "
+            "last, model.gnn.layers=3, is used") in err
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=2", "model.gnn.heads=2")
+    assert rc == 0 and "given 2 times" not in err
+
+
+def _s18_dataset(env, root: Path, split: str = "train"):
+    from instagram_hdmap.data import build_dataset
+
+    return build_dataset(env.cfg(f"data.dataroot={root}"), split, augment=False)
+
+
+@row("S18", "nuScenes tables: a duplicate token (two sample records of one token, the second with its chain cut) "
+            "silently kept the last (a scene read short), and two scenes of one name were read as one drive; both "
+            "are named at load, as is a duplicate scene record")
+def row_nuscenes_duplicate_tokens_and_scene_names(env):
+    from instagram_hdmap.data.base import DatasetError
+
+    def dup_sample(tables):
+        tables["sample"].append(dict(tables["sample"][1], next=""))
+
+    with pytest.raises(DatasetError, match=r"sample\.json holds two records with token \w+ \(records 1 and \d+\)"):
+        _s18_dataset(env, env.shadow_world(dup_sample))
+    shutil.rmtree(env.tmp / "world")
+
+    def same_name(tables):
+        tables["scene"][0]["name"] = tables["scene"][1]["name"]
+
+    with pytest.raises(DatasetError, match=r"scene\.json names two scenes 'scene-\d+' \(records 0 and 1"):
+        _s18_dataset(env, env.shadow_world(same_name))
+
+
+@row("S18", "nuScenes sample chains: a 'next' cut short dropped the scene's later samples with no word; a chain "
+            "that ran into another scene's samples (or a first_sample_token of another scene) was blamed on time "
+            "order; a scene's log_token naming no log was a raw KeyError. Each is named")
+def row_nuscenes_broken_sample_chain(env):
+    from instagram_hdmap.data.base import DatasetError
+
+    def cut(tables):
+        first(tables["sample"], prev="")["next"] = ""
+
+    with pytest.raises(DatasetError, match=r"scene scene-\d+: 2 of its samples .* are not on its chain"):
+        _s18_dataset(env, env.shadow_world(cut))
+    shutil.rmtree(env.tmp / "world")
+
+    def into_other_scene(tables):
+        scenes = tables["scene"]
+        scenes[0]["first_sample_token"] = scenes[1]["first_sample_token"]
+
+    with pytest.raises(DatasetError, match=r"its samples' chain .* reaches sample \w+, whose scene_token is \w+, "
+                                           r"not this scene's"):
+        _s18_dataset(env, env.shadow_world(into_other_scene))
+    shutil.rmtree(env.tmp / "world")
+
+    def no_log(tables):
+        for scene in tables["scene"]:
+            scene["log_token"] = "0" * 32
+
+    with pytest.raises(DatasetError, match=r"log\.json in .* has no record 0{32}"):
+        _s18_dataset(env, env.shadow_world(no_log))
+
+
+@row("S18", "nuScenes map expansion: a node with NaN coordinates or a polygon naming a node the file lacks was a raw "
+            "GEOSException / KeyError naming nothing; a divider line of one point was a raw GEOSException. The "
+            "first two name the file and the record; one-point lines are skipped and reported once per map; a file "
+            "holding a list or an empty object is said to be no map expansion (was 'an outdated map version (%s)')")
+def row_map_expansion_bad_records(env):
+    from instagram_hdmap.data.local_map import MapError
+
+    def with_maps(edit):
+        root = env.tmp / "world"
+        if root.exists():
+            shutil.rmtree(root)
+        root = env.shadow_world()
+        (root / "maps").unlink()
+        shutil.copytree(env.world / "maps", root / "maps")
+        for path in (root / "maps" / "expansion").glob("*.json"):
+            m = json.loads(path.read_text())
+            edit(m)
+            path.write_text(json.dumps(m))
+        return root
+
+    def nan_nodes(m):
+        lines = {ln["token"]: ln for ln in m["line"]}
+        ids = {t for d in m["road_divider"] + m["lane_divider"] for t in lines[d["line_token"]]["node_tokens"]}
+        for node in m["node"]:
+            if node["token"] in ids:
+                node["x"] = float("nan")
+
+    with pytest.raises(MapError, match=r"expansion/[\w-]+\.json: (road|lane)_divider record \w+: its nodes hold NaN"):
+        _s18_dataset(env, with_maps(nan_nodes))
+
+    def missing_node(m):
+        polygons = {p["token"]: p for p in m["polygon"]}
+        for r in m["road_segment"]:
+            polygons[r["polygon_token"]]["exterior_node_tokens"].append("0" * 32)
+
+    with pytest.raises(MapError, match=r"road_segment record \w+ names node 0{32}, which the file's node table"):
+        _s18_dataset(env, with_maps(missing_node))
+
+    def one_point(m):
+        lines = {ln["token"]: ln for ln in m["line"]}
+        for d in m["road_divider"] + m["lane_divider"]:
+            lines[d["line_token"]]["node_tokens"] = lines[d["line_token"]]["node_tokens"][:1]
+
+    with pytest.warns(UserWarning, match=r"expansion/[\w-]+\.json: \d+ divider line\(s\) of one point skipped"):
+        ds = _s18_dataset(env, with_maps(one_point))
+    assert all(p["label"] != 0 for p in ds.gt_polylines(0))
+
+    root = with_maps(lambda m: None)
+    for path in (root / "maps" / "expansion").glob("*.json"):
+        path.write_text("[]")  # the devkit: "You are using an outdated map version (%s)!"
+    with pytest.raises(MapError, match=r"expansion/[\w-]+\.json: it holds a JSON list, not a map expansion"):
+        _s18_dataset(env, root)
+
+
+@row("S18", "AV2 log files: a NaN drivable-area point was a raw GEOSException and a NaN lane marking silently dropped; "
+            "two pose rows of one timestamp_ns or two calibration rows of one camera silently kept one; a "
+            "ground-height Sim2 of scale 0 was a raw ZeroDivisionError; a non-timestamp file in sensors/lidar a "
+            "raw 'invalid literal for int()'; a crossing edge of one point lost the crossing with no word. Each is "
+            "named")
+def row_av2_log_file_damage(env):
+    import pandas as pd
+
+    from instagram_hdmap.data.base import DatasetError
+    from instagram_hdmap.data.local_map import MapError
+
+    def copy():
+        if (env.tmp / "av2").exists():
+            shutil.rmtree(env.tmp / "av2")
+        return _av2_copy(env)
+
+    def edit_map(log, edit):
+        path = next((log / "map").glob("log_map_archive_*.json"))
+        m = json.loads(path.read_text())
+        edit(m)
+        path.write_text(json.dumps(m))
+
+    def nan_area(m):
+        for area in m["drivable_areas"].values():
+            area["area_boundary"][0]["x"] = float("nan")
+
+    root, log = copy()
+    edit_map(log, nan_area)
+    with pytest.raises(MapError, match=r"map archive .*: drivable area \w+ has NaN or infinite coordinates"):
+        _av2_dataset(env, "train", root).gt_polylines(0)
+
+    def nan_marking(m):
+        for ls in m["lane_segments"].values():
+            ls["left_lane_boundary"][0]["y"] = float("nan")
+
+    root, log = copy()
+    edit_map(log, nan_marking)
+    with pytest.raises(MapError, match=r"lane segment \w+ has NaN or infinite coordinates"):
+        _av2_dataset(env, "train", root).gt_polylines(0)
+
+    def short_edge(m):
+        for crossing in m["pedestrian_crossings"].values():
+            crossing["edge1"] = crossing["edge1"][:1]
+
+    root, log = copy()
+    edit_map(log, short_edge)
+    if json.loads(next((log / "map").glob("log_map_archive_*.json")).read_text())["pedestrian_crossings"]:
+        with pytest.warns(UserWarning, match=r"crossing\(s\) with an edge of fewer than 2 points"):
+            ds = _av2_dataset(env, "train", root)
+            for i in range(len(ds)):
+                ds.gt_polylines(i)
+
+    root, log = copy()
+    poses = pd.read_feather(log / "city_SE3_egovehicle.feather")
+    ts = int(sorted(p.stem for p in (log / "sensors" / "lidar").glob("*.feather"))[0])
+    extra = poses[poses.timestamp_ns == ts].copy()
+    extra["tx_m"] += 100.0
+    pd.concat([poses, extra]).reset_index(drop=True).to_feather(log / "city_SE3_egovehicle.feather")
+    with pytest.raises(DatasetError, match=rf"holds 2 rows of other ego poses for timestamp_ns {ts}"):
+        _av2_dataset(env, "train", root).ego_pose(0)
+
+    root, log = copy()
+    calib = pd.read_feather(log / "calibration" / "egovehicle_SE3_sensor.feather")
+    extra = calib[calib.sensor_name == calib.sensor_name.iloc[0]].copy()
+    extra["tx_m"] += 5.0
+    pd.concat([calib, extra]).reset_index(drop=True).to_feather(log / "calibration" / "egovehicle_SE3_sensor.feather")
+    with pytest.raises(DatasetError, match=r"holds 2 rows of other calibrations for sensor_name \w+"):
+        _av2_dataset(env, "train", root)[0]
+
+    root, log = copy()
+    sim2 = next((log / "map").glob("*___img_Sim2_city.json"))
+    sim2.write_text(json.dumps({**json.loads(sim2.read_text()), "s": 0}))
+    with pytest.raises(MapError, match=r"cannot read the ground-height raster .*ZeroDivisionError"):
+        _av2_dataset(env, "train", root).ground_height(0)
+
+    root, log = copy()
+    (log / "sensors" / "lidar" / "notes.feather").write_bytes(b"")
+    with pytest.raises(DatasetError, match=r"lidar/notes\.feather is not named <timestamp_ns>\.feather"):
+        _av2_dataset(env, "train", root)
+
+
+@row("S18", "targets.build_targets / vertex_graph / distance_transform of bad polylines: a label of 5 was a raw "
+            "IndexError, -1 drawn into the last class, 1.5 truncated, a class name a raw int() error, NaN points a "
+            "vertex at a grid corner, [P, 3] points a raw broadcast error, a dict for the list a raw TypeError; "
+            "each is a TypeError / ValueError naming the polyline")
+def row_targets_of_bad_polylines(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.targets import build_targets, vertex_graph
+
+    grid = BEVGrid(-8.0, 8.0, -4.0, 4.0, 0.25, 4)
+
+    def line(pts=((0.0, 0.0), (3.0, 1.0)), label=0):
+        return {"pts": np.asarray(pts, dtype=np.float64), "label": label, "closed": False}
+
+    assert build_targets([line()], grid)["gt_vertices_px"].shape == (2, 2)
+    assert build_targets([line(label=np.int64(2)), line(label=torch.tensor(1))], grid)["gt_distance"].shape[0] == 3
+    for label in (5, -1, 1.5, "divider", float("nan")):
+        with pytest.raises(ValueError, match=r"polyline 0: 'label' must be a class index"):
+            build_targets([line(label=label)], grid)
+    with pytest.raises(ValueError, match=r"polyline 1: 'pts' holds NaN"):
+        build_targets([line(), line(pts=((0.0, 0.0), (np.nan, 1.0)))], grid)
+    with pytest.raises(ValueError, match=r"polyline 0: 'pts' must be \[P, 2\] .* got shape \[2, 3\]"):
+        build_targets([line(pts=((0.0, 0.0, 0.0), (3.0, 1.0, 0.0)))], grid)
+    with pytest.raises(TypeError, match=r"vertex_graph: polylines must be a list of dicts"):
+        vertex_graph(line(), grid)
+
+
+@row("S18", "BEVGrid of resolution 0, NaN, xmax < xmin (a grid of -64 columns, no word) or cell_size 0 was a raw "
+            "ZeroDivisionError / ValueError or nothing: a ValueError naming the field; BEVGrid.from_config, "
+            "RasterFrame, Criterion, decode_options and postprocess_batch take a whole config where they took its "
+            "grid / part (raw AttributeErrors); grid.m_to_px of a list is a TypeError; rasterize_instances of a list "
+            "of labels drew nothing")
+def row_bev_grid_and_config_arguments(env):
+    from instagram_hdmap.evaluation.raster_ap import RasterFrame, rasterize_instances
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.losses import Criterion
+    from instagram_hdmap.postprocess import decode_options
+
+    for args, pattern in (((-8, 8, -4, 4, 0), "the resolution .* must be > 0"), ((8, -8, -4, 4, 0.25), "upper bounds"),
+                          ((-8, 8, -4, 4, float("nan")), "resolution must be a finite number"),
+                          ((-8, 8, -4, 4, 0.25, 0), "cell_size must be a whole number of pixels >= 1")):
+        with pytest.raises(ValueError, match=pattern):
+            BEVGrid(*args)
+    cfg = env.cfg()
+    grid = BEVGrid.from_config(cfg)
+    assert grid == BEVGrid.from_config(cfg.grid)
+    with pytest.raises(TypeError, match=r"points must be a NumPy array or a torch tensor"):
+        grid.m_to_px([[1.0, 2.0]])
+    frame = RasterFrame(cfg)
+    assert (frame.W, frame.H) == (grid.W, grid.H)
+    pts = [np.array([[0.0, 0.0], [3.0, 1.0]]), np.array([[-2.0, -1.0], [2.0, 2.0]])]
+    masks, _ = rasterize_instances(pts, [0, 1], None, frame)
+    assert masks[0].any() and masks[1].any()
+    assert Criterion(cfg, cfg).grid == grid
+    assert decode_options(cfg, cfg) == decode_options(cfg.model.gnn, grid)
+
+
+@row("S18", "InstaGraM.forward of a batch of other shapes or dtypes: one sample's images without the batch "
+            "dimension, channels last, another image size, float64 or uint8 images, an empty batch were raw torch "
+            "errors from deep inside; intrinsics of another batch size were broadcast with no word; a list of "
+            "samples read as 'lacks images'. postprocess_batch of one sample's outputs was a raw unpack error and a "
+            "NaN match_threshold decoded nothing with no word. Each is a TypeError / ValueError naming the key")
+def row_model_forward_batch_checked(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.data.base import collate_fn
+    from instagram_hdmap.models import build_model
+    from instagram_hdmap.postprocess import decode_options, postprocess_batch
+
+    cfg = env.cfg()
+    model = build_model(cfg).eval()
+    ds = build_dataset(cfg, "val", augment=False)
+    batch = collate_fn([ds[0], ds[1]])
+
+    def run(**change):
+        with torch.no_grad():
+            return model({**batch, **change})
+
+    out = run()
+    images = batch["images"]
+    for change, error, pattern in (
+        ({"images": images[0]}, ValueError, r"'images' must be a tensor \[B, V, 3, h, w\].*images\[None\]"),
+        ({"images": images.permute(0, 1, 3, 4, 2)}, ValueError, r"channels last"),
+        ({"images": images[..., ::2, ::2]}, ValueError, r"the model was built for data.image_size"),
+        ({"images": images.double()}, TypeError, r"'images' are torch.float64, the model's weights torch.float32"),
+        ({"images": images.to(torch.uint8)}, TypeError, r"'images' are torch.uint8"),
+        ({"images": images[:0]}, ValueError, r"an empty batch"),
+        ({"intrinsics": batch["intrinsics"][:1]}, ValueError, r"'intrinsics' must be a tensor \[B=2, V=\d+, \.\.\.\]"),
+    ):
+        with pytest.raises(error, match=pattern):
+            run(**change)
+    with pytest.raises(TypeError, match=r"takes one batch dict .* got list"):
+        model([ds[0]])
+    grid = _s18_grid(cfg)
+    options = decode_options(cfg.model.gnn, grid)
+    assert len(postprocess_batch(out, cfg, **options)) == 2
+    with pytest.raises(ValueError, match=r"outputs must be batched"):
+        postprocess_batch({k: v[0] for k, v in out.items() if isinstance(v, torch.Tensor)}, grid, **options)
+    with pytest.raises(ValueError, match=r"match_threshold is an adjacency probability"):
+        postprocess_batch(out, grid, **{**options, "match_threshold": float("nan")})
+
+
+def _s18_grid(cfg):
+    from instagram_hdmap.geometry import BEVGrid
+
+    return BEVGrid.from_config(cfg.grid)
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -1044,12 +1044,34 @@ def test_benchmark_persist_evaluates_the_trained_checkpoint_again(monkeypatch, t
         calls.append((Path(checkpoint), list(overrides)))
         return {"metrics": {"mAP": 0.5, "AP_class": {"divider": 0.5}, "consistency": {
             "flicker": {}, "flicker_mean": 0.1, "flicker_detected": {}, "flicker_detected_mean": 0.2, "pairs": {},
-            "pairs_detected": {}}}}
+            "pairs_detected": {}}, "cmap": {"C-mAP": 0.4, "C-AP_class": {"divider": 0.4}}}}
 
     monkeypatch.setattr("instagram_hdmap.train.train", lambda *a, **k: pytest.fail("trained again"))
     monkeypatch.setattr("instagram_hdmap.predict.run_evaluation", fake_evaluation)
     monkeypatch.setattr("instagram_hdmap.demo.world_overrides", lambda root: [])
     result = bench.run_one("single", 0, args, (None, None), "single")
     assert calls == [(run / "run" / "last.pt", ["model.temporal.persist_frames=2",
-                                                  "model.temporal.persist_decay=0.25"])]
-    assert result["steps"] == 10 and (run / "result_val12_persist2x0.25.json").is_file()
+                                                  "model.temporal.persist_decay=0.25", "eval.cmap=true"])]
+    assert result["steps"] == 10 and result["C-mAP"] == 0.4 and (run / "result_val12_persist2x0.25.json").is_file()
+
+
+def test_benchmark_takes_one_base_checkpoint_named_two_ways(tmp_path, monkeypatch):
+    """benchmarks/temporal.py refuses a result trained with other options in the same --out; the same base
+    checkpoint named relatively by one command and absolutely (or through a link) by another is the same option."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_temporal", Path(__file__).resolve().parents[1] / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "runs")
+    monkeypatch.chdir(tmp_path)
+    rel = {"occluders": 0.7, "train": ["train.max_steps=3", "train.init_from=runs/single_seed2/run/last.pt"]}
+    for other in (f"{tmp_path}/runs/single_seed2/run/last.pt", "link/single_seed2/run/last.pt"):
+        absolute = {"occluders": 0.7, "train": ["train.max_steps=3", f"train.init_from={other}"]}
+        assert bench.same_paths(rel) == bench.same_paths(absolute)
+    elsewhere = {"occluders": 0.7, "train": ["train.max_steps=3", "train.init_from=runs/single_seed3/run/last.pt"]}
+    assert bench.same_paths(rel) != bench.same_paths(elsewhere)
+    assert bench.same_paths({"occluders": 0.0}) == {"occluders": 0.0, "train": []}

@@ -183,11 +183,13 @@ def test_training_with_validation_on_the_synthetic_world(tiny_world, tmp_path):
     from instagram_hdmap.train import build_loaders
 
     cfg = load_config(None, [*TINY, f"train.out_dir={tmp_path / 'run'}", f"data.dataroot={tiny_world}",
-                             "data.version=v1.0-trainval", "train.epochs=1", "train.max_steps=2"])
+                             "data.version=v1.0-trainval", "train.epochs=1", "train.max_steps=2", "eval.cmap=true"])
     summary = train(cfg, loaders=build_loaders(cfg, 1), validate=True)
     metrics = summary["val"]["metrics"]
     assert metrics["protocol"] == "vector" and set(metrics["AP"]) == {"divider", "ped_crossing", "boundary"}
     assert 0.0 <= metrics["mAP"] <= 1.0
+    cmap = summary["val"]["cmap"]  # eval.cmap: MapTracker's consistency-aware mAP in the validation too
+    assert cmap["mAP"] == pytest.approx(metrics["mAP"], abs=1e-6) and cmap["C-mAP"] <= cmap["mAP"]
     assert (tmp_path / "run" / "best.pt").is_file() and (tmp_path / "run" / "config.yaml").is_file()
 
 

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from .benchmark import format_benchmark, run_benchmark
-from .config import UserError, load_config, parse_overrides
+from .config import UserError, load_config, parse_overrides, repeated_overrides
 from .data import build_dataset
 from .data.base import gt_submission
 from .data.synthetic import generate_world
@@ -209,6 +209,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if empty:
             print(f"  (nan: no element of {', '.join(empty)} was seen in two consecutive frames of a scene, e.g. "
                   "scenes of one frame, so no flicker to count)")
+    if "cmap" in metrics:  # evaluation/consistency.py: ConsistentAPMeter (eval.cmap)
+        c = metrics["cmap"]
+        print(f"consistency-aware AP (MapTracker's C-mAP: a TP whose instance ID is not its GT element's first one "
+              f"is an FP), thresholds {c['thresholds']} m:")
+        for k in c["C-AP_class"]:
+            print(f"  {k:<14} C-AP {c['C-AP_class'][k]:.4f}  AP {c['AP_class'][k]:.4f}  TPs switched "
+                  f"{c['switched'][k]}")
+        print(f"  C-mAP {c['C-mAP']:.4f}  mAP {c['mAP']:.4f}  ({c['tracks']['pred']} predicted and "
+              f"{c['tracks']['gt']} GT instance tracks)")
     if "memory" in metrics:  # a temporal model: what each frame did with its memory
         print("memory: " + ", ".join(f"{k.removeprefix('memory_')} {v}" for k, v in metrics["memory"].items()))
     _print_notes([*result["notes"], *metrics.get("notes", [])])
@@ -493,6 +502,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
+    if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
+        for note in repeated_overrides(getattr(args, "overrides", None) or []):
+            print(f"instagram-hdmap {args.command}: note: {note}", file=sys.stderr)
     _expand_home(args)
     try:
         return args.func(args) or 0

@@ -27,6 +27,7 @@ import os
 import re
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Union
@@ -369,6 +370,14 @@ class EvalConfig:
     # status (a prediction within flicker_threshold_m, Chamfer) flips
     flicker: bool = True
     flicker_threshold_m: float = bounded(1.0, gt=0)
+    # MapTracker's consistency-aware mAP next to the AP (evaluation/consistency.py: ConsistentAPMeter,
+    # docs/temporal.md) at eval.thresholds: a TP whose predicted instance ID (carried from frame to frame by
+    # the persistence matcher) differs from the first ID that matched its GT element counts as an FP
+    cmap: bool = False
+    # the Chamfer distance (m) within which an element of the previous frame, moved by the ego motion, passes its
+    # ID on (the persistence matcher's test). C-mAP measures the model and this tracker together: it rises with
+    # this distance, so compare models at one value
+    cmap_match_m: float = bounded(1.0, gt=0)
     # protocols computed as well, on the same predictions, reported under metrics["also"][protocol]
     also_protocols: tuple[Literal["vector", "raster"], ...] = ()
 
@@ -609,6 +618,18 @@ def parse_overrides(overrides: list[str]) -> dict:
                 raise ConfigError(f"override '{item}' sets a sub-key of a value")
         node[parts[-1]] = value
     return nested
+
+
+def repeated_overrides(overrides: Sequence[str]) -> list[str]:
+    """A note per key given more than once in ``overrides`` (the last one wins, as a later YAML file's value
+    does; on a command line a key typed twice is most often a slip, so it is said)."""
+    values: dict[str, list[str]] = {}
+    for item in overrides:
+        if isinstance(item, str) and "=" in item:
+            key, raw = item.split("=", 1)
+            values.setdefault(key.strip(), []).append(raw)
+    return [f"{key} is given {len(raw)} times ({', '.join(f'{key}={r}' for r in raw)}); the last, {key}={raw[-1]}, "
+            "is used" for key, raw in values.items() if len(raw) > 1]
 
 
 def load_config(path: str | Path | dict | ExperimentConfig | None = None,

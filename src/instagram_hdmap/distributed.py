@@ -125,10 +125,15 @@ class ResumableSampler(Sampler[int]):
         self.rank = get_rank() if rank is None else rank
         self.world_size = get_world_size() if world_size is None else world_size
         self.epoch = 0
-        self.start = 0  # samples of this rank's share to skip (set by the trainer on resume)
+        self.start = 0  # samples of the epoch's order, over all ranks, to skip (set by the trainer on resume)
         self.num_samples = -(-self.n // self.world_size)
 
     def set_epoch(self, epoch: int, start: int = 0) -> None:
+        """Select ``epoch``'s order and skip its first ``start`` samples *over all ranks* (a resumed run:
+        steps done x the batch of all ranks). Rank r's share of step k is positions ``k * B + r :: world``
+        of the epoch's order, so the samples of the first k steps are its first ``k * B`` positions whatever
+        the number of ranks: a run saved part-way by N processes resumes exactly under M (each sample of the
+        epoch once, none skipped), as long as the batch over all ranks is the same."""
         self.epoch, self.start = epoch, start
 
     def indices(self) -> list[int]:
@@ -141,10 +146,10 @@ class ResumableSampler(Sampler[int]):
         order += order[: total - len(order)] if total > len(order) else []
         while len(order) < total:  # tiny datasets with many ranks
             order += order[: total - len(order)]
-        return order[self.rank : total : self.world_size]
+        return order[self.start + self.rank : total : self.world_size]
 
     def __iter__(self) -> Iterator[int]:
-        return iter(self.indices()[self.start :])
+        return iter(self.indices())
 
     def __len__(self) -> int:
-        return self.num_samples - self.start
+        return len(range(self.start + self.rank, self.num_samples * self.world_size, self.world_size))

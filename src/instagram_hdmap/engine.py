@@ -250,6 +250,7 @@ def evaluate(
     flicker=None,
     scored: set[str] | None = None,
     persist=None,
+    cmap=None,
 ) -> dict:
     """Validation pass: mean losses and, with ``postprocess`` + ``evaluator``, the AP metrics.
 
@@ -263,15 +264,16 @@ def evaluate(
     samples its batch sampler ``owned()`` (or the tokens in ``scored``), once each. ``flicker``: a
     ``FlickerMeter`` updated with every batch's predictions (needs ``postprocess``);
     ``result["consistency"]`` is its ``compute()``. ``persist``: a ``persistence.Persistence`` applied to
-    every batch's predictions (each scene's samples in frame order) before they are scored;
-    ``result["persisted"]`` counts the elements it kept (on every rank).
+    the scored samples' predictions (each scene's samples in frame order; not a stream's padding) before
+    they are scored; ``result["persisted"]`` counts the elements it kept (summed over the ranks). ``cmap``: a
+    ``ConsistentAPMeter`` updated like ``flicker`` (after persistence); ``result["cmap"]`` is its ``compute()``.
     """
     model.eval()
     streaming, memory = is_temporal(model), None
     owned = set(scored) if scored is not None else scored_tokens(loader)
     sums: dict[str, float] = defaultdict(float)
     status_counts: dict[str, float] = defaultdict(float)
-    count = 0
+    count = persisted = 0
     t0 = time.perf_counter()
     n_samples = 0
     for batch in tqdm(loader, total=total, desc="eval", dynamic_ncols=True, disable=not du.is_main_process(),
@@ -304,17 +306,24 @@ def evaluate(
         n_samples += batch["images"].shape[0]
         if postprocess is not None:
             preds = postprocess(outputs)
-            if persist is not None:  # every sample, padding too: a repeated frame starts its scene anew, unscored
-                preds = persist(preds, batch["scene"], batch["frame_index"], batch["ego_pose"])
+            if persist is not None and keep:  # the scored samples only: a stream's padding walks a scene again
+                # (at the same time as the stream that owns it, when there are more streams than scenes) and would
+                # overwrite that scene's remembered elements between its frames
+                with_kept = persist([preds[b] for b in keep], [batch["scene"][b] for b in keep],
+                                    batch["frame_index"][keep], batch["ego_pose"][keep])
+                for b, p in zip(keep, with_kept):
+                    persisted += len(p) - len(preds[b])  # the kept ones come last
+                    preds[b] = p
             preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
                                                                                        for b in keep]
             if evaluator is not None:
                 evaluator.update(preds, gts, tokens=tokens)
             if on_predictions is not None:
                 on_predictions(tokens, preds)
-            if flicker is not None:
-                flicker.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
-                               batch["ego_pose"][keep])
+            for meter in (flicker, cmap):
+                if meter is not None:
+                    meter.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
+                                 batch["ego_pose"][keep])
     result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                                        device if device.type == "cuda" else None)}
     if streaming:
@@ -323,8 +332,11 @@ def evaluate(
     if flicker is not None:
         flicker.gather()
         result["consistency"] = flicker.compute()
+    if cmap is not None:
+        cmap.gather()
+        result["cmap"] = cmap.compute()
     if persist is not None:  # summed over ranks (under torchrun a temporal model's scenes are spread over them)
-        result["persisted"] = sum(du.all_gather_object(persist.kept))
+        result["persisted"] = sum(du.all_gather_object(persisted))
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
     if evaluator is not None:
         evaluator.gather()

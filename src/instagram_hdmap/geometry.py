@@ -17,12 +17,14 @@ Long range: 100 m x 100 m at 0.25 m -> 400 x 400.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from .config import ConfigError, GridConfig
+from .errors import is_real
 
 ArrayLike = np.ndarray | torch.Tensor
 
@@ -42,8 +44,25 @@ class BEVGrid:
     resolution: float
     cell_size: int = 8
 
+    def __post_init__(self) -> None:
+        # a resolution of 0 was a raw ZeroDivisionError at .W, NaN a raw "cannot convert float NaN to integer", and
+        # xmax < xmin a grid of -64 columns with no word
+        vals = {"xmin": self.xmin, "xmax": self.xmax, "ymin": self.ymin, "ymax": self.ymax,
+                "resolution": self.resolution}
+        bad = next((k for k, v in vals.items() if not (is_real(v) and math.isfinite(v))), None)
+        if bad is not None:
+            raise ValueError(f"BEVGrid: {bad} must be a finite number (metres), got {vals[bad]!r:.40}")
+        if not (self.xmax > self.xmin and self.ymax > self.ymin and self.resolution > 0):
+            raise ValueError(f"BEVGrid(xmin={self.xmin}, xmax={self.xmax}, ymin={self.ymin}, ymax={self.ymax}, "
+                             f"resolution={self.resolution}): the upper bounds must exceed the lower ones and the "
+                             "resolution (metres per pixel) must be > 0")
+        if not (is_real(self.cell_size) and self.cell_size == int(self.cell_size) and self.cell_size >= 1):
+            raise ValueError(f"BEVGrid: cell_size must be a whole number of pixels >= 1, got {self.cell_size!r:.40}")
+
     @classmethod
     def from_config(cls, cfg: GridConfig) -> BEVGrid:
+        if hasattr(cfg, "grid") and not hasattr(cfg, "xbound"):  # a whole ExperimentConfig: a raw AttributeError
+            cfg = cfg.grid
         grid = cls(cfg.xbound[0], cfg.xbound[1], cfg.ybound[0], cfg.ybound[1], cfg.resolution, cfg.cell_size)
         grid.check()
         return grid
@@ -90,6 +109,9 @@ class BEVGrid:
 
     # --- conversions (numpy arrays or tensors, [..., 2] with (x, y) / (u, v) last) -------------
     def _origin_scale(self, like: ArrayLike):
+        if not isinstance(like, (torch.Tensor, np.ndarray)):  # a list was a raw "'list' object has no attribute"
+            raise TypeError(f"BEVGrid: points must be a NumPy array or a torch tensor [..., 2], got "
+                            f"{type(like).__name__} (wrap it in np.asarray)")
         lo = [self.xmin, self.ymin]
         if isinstance(like, torch.Tensor):
             return pair_like(like, *lo), self.resolution
@@ -135,3 +157,17 @@ class BEVGrid:
         """Metre coordinates of every BEV pixel centre, [H, W, 2]."""
         u, v = np.meshgrid(np.arange(self.W), np.arange(self.H))
         return self.px_to_m(np.stack([u, v], -1).astype(np.float64))
+
+
+def as_grid(grid, where: str) -> BEVGrid:
+    """``grid`` as a BEVGrid: a BEVGrid, a ``GridConfig`` (``cfg.grid``) or a whole config (its ``grid``); another
+    object is a TypeError naming ``where`` (a config given as the grid was a raw AttributeError 'xmin' deep inside)."""
+    if isinstance(grid, BEVGrid):
+        return grid
+    if hasattr(grid, "grid") and hasattr(grid.grid, "xbound"):
+        grid = grid.grid
+    if isinstance(grid, GridConfig):
+        return BEVGrid.from_config(grid)
+    raise TypeError(f"{where}: grid must be a BEVGrid (geometry.BEVGrid.from_config(cfg.grid)) or a config, got "
+                    f"{type(grid).__name__}")
+

@@ -51,7 +51,7 @@ from torch import nn
 
 from .assignment import IGNORE_INDEX, assign_batch
 from .config import LossConfig
-from .geometry import BEVGrid
+from .geometry import BEVGrid, as_grid
 
 REQUIRED_OUTPUTS = (
     "pred_vertex_logits", "pred_distance", "pred_vertices_px", "pred_vertex_mask",
@@ -111,8 +111,12 @@ class Criterion(nn.Module):
 
     def __init__(self, cfg: LossConfig, grid: BEVGrid, *, with_distance: bool = True):
         super().__init__()
+        if not isinstance(cfg, LossConfig) and isinstance(getattr(cfg, "loss", None), LossConfig):
+            cfg = cfg.loss  # a whole config: a raw AttributeError 'vertex_weight'
+        if not isinstance(cfg, LossConfig):
+            raise TypeError(f"Criterion takes cfg.loss (a LossConfig) or a config, got {type(cfg).__name__}")
         self.cfg = cfg
-        self.grid = grid
+        self.grid = as_grid(grid, "Criterion")
         # with_distance=False (model.bev_heads.distance_head=false): no loss_distance term at all
         self.with_distance = with_distance
         self.weight_dict = {

@@ -134,14 +134,14 @@ def _resample(pts: np.ndarray, n: int) -> np.ndarray:
     return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
 
 
-def _nearest_chamfer(a: np.ndarray, b: np.ndarray, chunk: int = 32) -> np.ndarray:
-    """[K, n, 2] against [M, n, 2] -> [K]: each of ``a``'s smallest symmetric Chamfer distance (mean nearest
-    distance both ways, halved) to any of ``b``; ``chunk`` rows of ``a`` at a time bound the [k, M, n, n] block."""
+def _chamfer_matrix(a: np.ndarray, b: np.ndarray, chunk: int = 32) -> np.ndarray:
+    """[K, n, 2] against [M, n, 2] -> [K, M]: symmetric Chamfer distances (mean nearest distance both ways,
+    halved); ``chunk`` rows of ``a`` at a time bound the [k, M, n, n] block."""
     n = a.shape[1]
-    out = np.empty(len(a))
+    out = np.empty((len(a), len(b)))
     for s in range(0, len(a), chunk):
         d = np.sqrt(((a[s:s + chunk, None, :, None] - b[None, :, None]) ** 2).sum(-1))  # [k, M, n, n]
-        out[s:s + chunk] = ((d.min(3).sum(2) + d.min(2).sum(2)) / (2 * n)).min(1)
+        out[s:s + chunk] = (d.min(3).sum(2) + d.min(2).sum(2)) / (2 * n)
     return out
 
 
@@ -158,6 +158,46 @@ def _inside_run(pts: np.ndarray, grid: BEVGrid) -> np.ndarray:
                 best_span = (start, i)
             start = None
     return pts[best_span[0]:best_span[1]]
+
+
+def _continues(prev: _Scene | None, frame: int, pose: np.ndarray, max_jump_m: float, max_turn_deg: float) -> bool:
+    """Frame ``frame`` (ego pose ``pose``) is the next one of ``prev``'s scene: the next frame index, the ego moved
+    at most ``max_jump_m`` and turned at most ``max_turn_deg`` (the angle of the relative rotation, as
+    models/temporal.memory_status: a spin beyond it is a pose in the wrong unit or frame, which would move what is
+    remembered to the wrong place). Anything else starts the scene anew."""
+    if prev is None or frame != prev.frame + 1:
+        return False
+    turn = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(prev.pose[:3, :3].T @ pose[:3, :3]) - 1) / 2))))
+    return turn <= max_turn_deg and float(np.linalg.norm(pose[:3, 3] - prev.pose[:3, 3])) <= max_jump_m
+
+
+def match_previous(prev_pose: np.ndarray, prev_elements: Sequence[dict], pose: np.ndarray, preds: Sequence[dict],
+                   grid: BEVGrid) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The matching of a frame's output elements to the previous frame's (the one ``Persistence`` and
+    ``InstanceTracker`` share): each previous element (polyline dict, previous ego frame) is moved into this ego
+    frame by the two ego poses (ego -> world, [4, 4]) and cut to the grid (the longest run of points inside);
+    returns ``D`` [len(prev_elements), len(preds)], the symmetric Chamfer distance (both resampled to
+    ``MATCH_POINTS``) of each moved previous element to each output element of its class (inf for another
+    class, an element with fewer than two points, or a previous one that left the grid), and the moved points."""
+    to_now = np.linalg.inv(pose) @ prev_pose  # previous ego frame -> this one
+    D = np.full((len(prev_elements), len(preds)), np.inf)
+    moved = []
+    for element in prev_elements:
+        pts = np.asarray(element["pts"], np.float64)
+        pts = pts @ to_now[:2, :2].T + to_now[:2, 3]  # the map is the ground plane: x, y of the ego frame
+        moved.append(_inside_run(pts, grid))
+    now: dict[int, list[int]] = {}  # class -> indices of this frame's outputs
+    for j, p in enumerate(preds):
+        if len(p["pts"]) >= 2:
+            now.setdefault(int(p["label"]), []).append(j)
+    for label, cols in now.items():
+        rows = [i for i, (e, m) in enumerate(zip(prev_elements, moved)) if int(e["label"]) == label and len(m) >= 2]
+        if not rows:
+            continue
+        mine = np.stack([_resample(moved[i], MATCH_POINTS) for i in rows])
+        theirs = np.stack([_resample(np.asarray(preds[j]["pts"], np.float64), MATCH_POINTS) for j in cols])
+        D[np.ix_(rows, cols)] = _chamfer_matrix(mine, theirs)
+    return D, moved
 
 
 class Persistence:
@@ -230,34 +270,12 @@ class Persistence:
         _check_preds(preds, where)
         prev = self.scenes.get(scene)
         carried: list[tuple[dict, int]] = []
-        # the angle of the relative rotation (as models/temporal.memory_status): a spin beyond max_turn_deg is a
-        # pose in the wrong unit or frame, which would move what is kept to the wrong place
-        turn = (0.0 if prev is None else
-                math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(prev.pose[:3, :3].T @ pose[:3, :3]) - 1) / 2)))))
-        if (prev is not None and frame == prev.frame + 1 and turn <= self.max_turn_deg
-                and np.linalg.norm(pose[:3, 3] - prev.pose[:3, 3]) <= self.max_jump_m):
-            to_now = np.linalg.inv(pose) @ prev.pose  # previous ego frame -> this one
-            now: dict[int, list[np.ndarray]] = {}  # class -> resampled outputs of this frame
-            for p in preds:
-                if len(p["pts"]) >= 2:
-                    now.setdefault(int(p["label"]), []).append(_resample(np.asarray(p["pts"], np.float64),
-                                                                         MATCH_POINTS))
-            moved = []  # (element, missed, its points in this ego frame within the grid)
-            for element, missed in prev.elements:
-                if missed >= self.frames:
-                    continue
-                pts = np.asarray(element["pts"], np.float64)
-                pts = pts @ to_now[:2, :2].T + to_now[:2, 3]  # the map is the ground plane: x, y of the ego frame
-                pts = _inside_run(pts, self.grid)
-                if len(pts) >= 2:
-                    moved.append((element, missed, pts))
-            found = np.zeros(len(moved), dtype=bool)
-            for label in {int(element["label"]) for element, _, _ in moved} & set(now):
-                rows = [i for i, (element, _, _) in enumerate(moved) if int(element["label"]) == label]
-                mine = np.stack([_resample(moved[i][2], MATCH_POINTS) for i in rows])
-                found[rows] = _nearest_chamfer(mine, np.stack(now[label])) <= self.match_m  # the model found it again
-            for (element, missed, pts), again in zip(moved, found):
-                if again:
+        if _continues(prev, frame, pose, self.max_jump_m, self.max_turn_deg):
+            alive = [(element, missed) for element, missed in prev.elements if missed < self.frames]
+            D, moved = match_previous(prev.pose, [element for element, _ in alive], pose, preds, self.grid)
+            found = D.min(1) <= self.match_m if D.shape[1] else np.zeros(len(alive), dtype=bool)
+            for (element, missed), pts, again in zip(alive, moved, found):
+                if again or len(pts) < 2:  # the model found it again / it left the grid
                     continue
                 closed = bool(element.get("closed", False)) and len(pts) == len(element["pts"])
                 carried.append(({**element, "pts": pts.astype(np.asarray(element["pts"]).dtype, copy=False),
@@ -265,3 +283,85 @@ class Persistence:
         self.scenes[scene] = _Scene(frame, pose, [(p, 0) for p in preds] + carried)
         self.kept += len(carried)
         return list(preds) + [element for element, _ in carried]
+
+
+class InstanceTracker:
+    """Instance IDs across the frames of a drive, by the persistence matcher (``match_previous``).
+
+        track = InstanceTracker.from_config(cfg)         # or InstanceTracker(grid, match_m=1.0)
+        ids = track(preds, scenes, frames, poses)        # per sample, one integer ID per output element
+
+    At the next frame of a scene (``_continues``: the next frame index, no pose jump, as ``Persistence``), the
+    previous frame's output elements are moved into this ego frame and matched to this frame's, one to one: the
+    (previous, current) pairs of one class in increasing Chamfer distance (``match_previous``, ties by index),
+    each pair taken while both are free and ``D <= match_m``. A matched element takes the previous one's ID; any
+    other (and every element of a scene's first frame, of a frame after a gap or a pose jump) takes a new one.
+    IDs are per scene, counted from 0 and never reused in it (a reset after a pose jump gives new IDs). Only the
+    previous frame is looked at (MapTracker's ``prepare_pred_tracks.py`` looks back up to 5 frames; an element
+    the model missed for a frame comes back with a new ID unless ``Persistence`` kept it: a kept element matches
+    its previous self and keeps its ID). Samples of a scene must come in frame order (scenes may interleave);
+    bad input is a ``PersistenceInputError`` naming the sample, as ``Persistence``.
+    """
+
+    def __init__(self, grid: BEVGrid, match_m: float = 1.0, max_jump_m: float = 10.0, max_turn_deg: float = 180.0):
+        self._checker = Persistence(grid, 1, 0.5, match_m, max_jump_m, max_turn_deg)  # the same argument checks
+        self.grid, self.match_m = self._checker.grid, float(match_m)
+        self.max_jump_m, self.max_turn_deg = float(max_jump_m), float(max_turn_deg)
+        self.reset()
+
+    @classmethod
+    def from_config(cls, cfg) -> InstanceTracker:
+        """``model.temporal``'s ``persist_match_m``, ``max_jump_m``, ``max_turn_deg`` and the config's grid."""
+        t = cfg.model.temporal
+        return cls(BEVGrid.from_config(cfg.grid), t.persist_match_m, t.max_jump_m, t.max_turn_deg)
+
+    def reset(self) -> None:
+        self.scenes: dict[str, _Scene] = {}  # elements: (polyline dict, its ID)
+        self.next_id: dict[str, int] = {}
+
+    def __call__(self, preds: Sequence[list[dict]], scenes: Sequence[str], frames, poses) -> list[list[int]]:
+        preds = as_batch_list(preds, "InstanceTracker: preds", "a list of B samples' outputs, each a list of "
+                              "polyline dicts", PersistenceInputError)
+        scenes = as_batch_list(scenes, "InstanceTracker: scenes", "a list of B scene names, one per sample (for one "
+                               "sample: [name])", PersistenceInputError)
+        frames = as_batch_list(frames, "InstanceTracker: frames", "B frame indices (a list or a [B] tensor)",
+                               PersistenceInputError)
+        try:
+            poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
+                     else np.asarray(poses, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise PersistenceInputError(f"InstanceTracker: poses must be B ego -> world transforms [B, 4, 4], got "
+                                        f"{poses!r:.80}") from None
+        if poses.ndim != 3 or len({len(preds), len(scenes), len(frames), len(poses)}) > 1:
+            raise PersistenceInputError(f"InstanceTracker: one entry per sample in each argument and poses [B, 4, 4], "
+                                        f"got {len(preds)} preds, {len(scenes)} scenes, {len(frames)} frames, poses "
+                                        f"of shape {list(poses.shape)}")
+        for b, (p, s, f) in enumerate(zip(preds, scenes, frames)):  # all checked before any state changes
+            where = f"sample {b} (scene '{s}')"
+            _check_frame(f, where), _check_pose(poses[b], where), _check_preds(p, where)
+        return [self.step(p, str(s), int(f), poses[b]) for b, (p, s, f) in enumerate(zip(preds, scenes, frames))]
+
+    def step(self, preds: list[dict], scene: str, frame: int, pose) -> list[int]:
+        """One sample's element IDs (class docstring), in the order of ``preds``."""
+        where = f"scene '{scene}', frame {frame!r}"
+        frame = _check_frame(frame, where)
+        pose = _check_pose(pose, where)
+        _check_preds(preds, where)
+        prev = self.scenes.get(scene)
+        ids = [-1] * len(preds)
+        if _continues(prev, frame, pose, self.max_jump_m, self.max_turn_deg) and prev.elements and len(preds):
+            D, _ = match_previous(prev.pose, [e for e, _ in prev.elements], pose, preds, self.grid)
+            rows, cols = np.nonzero(D <= self.match_m)
+            used = set()
+            for k in np.lexsort((cols, rows, D[rows, cols])):
+                i, j = int(rows[k]), int(cols[k])
+                if i not in used and ids[j] < 0:
+                    used.add(i)
+                    ids[j] = prev.elements[i][1]
+        n = self.next_id.get(scene, 0)
+        for j in range(len(ids)):
+            if ids[j] < 0:
+                ids[j], n = n, n + 1
+        self.next_id[scene] = n
+        self.scenes[scene] = _Scene(frame, pose, list(zip(preds, ids)))
+        return ids

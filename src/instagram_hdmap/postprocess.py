@@ -71,7 +71,8 @@ import math
 import numpy as np
 import torch
 
-from .geometry import BEVGrid
+from .errors import is_real
+from .geometry import BEVGrid, as_grid
 
 REQUIRED_OUTPUTS = ("pred_log_assignment", "pred_vertices_px", "pred_vertex_mask", "pred_vertex_scores",
                     "pred_class_log_probs")
@@ -87,6 +88,9 @@ def decode_options(gnn_cfg, grid: BEVGrid) -> dict:
     """The keyword arguments of ``postprocess_batch`` from ``model.gnn`` (config.py, ``DECODE_KEYS``):
     ``postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))``; ``graph_options`` of
     them for ``neighbours``."""
+    if not hasattr(gnn_cfg, "max_edge_m") and hasattr(getattr(gnn_cfg, "model", None), "gnn"):
+        gnn_cfg = gnn_cfg.model.gnn  # a whole config: a raw AttributeError 'max_edge_m'
+    grid = as_grid(grid, "decode_options")
     max_edge_m = gnn_cfg.max_edge_m
     return {"match_threshold": gnn_cfg.match_threshold, "decoder": gnn_cfg.decoder,
             "same_class_edges": gnn_cfg.same_class_edges, "class_min_prob": gnn_cfg.class_min_prob,
@@ -498,6 +502,14 @@ def postprocess_batch(
     missing = [k for k in REQUIRED_OUTPUTS if k not in outputs]
     if missing:
         raise KeyError(f"post-processing needs {missing}, missing from the model output (docs/conventions.md)")
+    grid = as_grid(grid, "postprocess_batch")
+    if not (is_real(match_threshold) and 0 < match_threshold < 1):  # NaN or 5: nothing decoded, no word
+        raise ValueError(f"postprocess_batch: match_threshold is an adjacency probability in (0, 1) "
+                         f"(model.gnn.match_threshold), got {match_threshold!r:.40}")
+    shape = list(getattr(outputs["pred_vertices_px"], "shape", ()))
+    if len(shape) != 3 or shape[2] != 2:  # one sample's outputs: a raw "not enough values to unpack"
+        raise ValueError(f"postprocess_batch: outputs must be batched, 'pred_vertices_px' [B, N, 2], got shape {shape} "
+                         "(one sample's outputs: add the batch dimension, v[None])")
     if decoder == "official":
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")

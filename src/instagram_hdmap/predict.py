@@ -51,7 +51,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .train import make_flicker_meter, open_files_for_workers
+from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers
 from .visualize import (
     figure_rgb,
     intermediate_figure,
@@ -527,7 +527,11 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     if skipped:
         notes.append(f"{skipped} bad frame(s) of scene {scene} left out (data.on_bad_sample=skip; the warnings name "
                      "them)")
-    return {"video": video, "frames": len(indices) - skipped, "scene": scene, "split": split, "notes": notes}
+    if persist is not None:  # as a single sample's note says it: what the frames show beyond the model's own output
+        notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames}: {persist.kept} element(s) "
+                     "that earlier frames found and later ones missed were kept in the video (persistence.py)")
+    return {"video": video, "frames": len(indices) - skipped, "scene": scene, "split": split, "notes": notes,
+            "persisted": None if persist is None else persist.kept}
 
 
 # --- a split: evaluate ---------------------------------------------------------------------------------
@@ -557,7 +561,8 @@ def run_evaluation(
     A temporal model walks the split's scenes in order, ``eval.batch_size`` streams (per rank; each
     rank owns whole scenes, data/streaming.py) with its memory; each sample is scored once, by the rank
     that owns it. ``metrics["consistency"]`` holds the flicker rate (``eval.flicker``,
-    evaluation/consistency.py) and, for a temporal model, ``metrics["memory"]`` the samples per memory
+    evaluation/consistency.py), ``metrics["cmap"]`` MapTracker's consistency-aware mAP (``eval.cmap``) and,
+    for a temporal model, ``metrics["memory"]`` the samples per memory
     status (fused, no memory, pose jump, missing frame).
     """
     check_output_dir(out, "--out")  # before the work that fills it
@@ -586,6 +591,7 @@ def run_evaluation(
                             num_workers=cfg.data.num_workers)
     evaluator = Evaluator.from_config(cfg)
     flicker = make_flicker_meter(cfg)
+    cmap = make_cmap_meter(cfg)
     results: dict[str, list[dict]] = {}
     pending_gt: dict[str, list[dict]] = {}
 
@@ -610,9 +616,11 @@ def run_evaluation(
             ids = [index_of[tokens[k]] for k in keep]
             evaluator.update([preds[k] for k in keep], [gts[k] for k in keep], sample_ids=ids,
                              tokens=[tokens[k] for k in keep])
-            if flicker is not None:
-                flicker.update([preds[k] for k in keep], [gts[k] for k in keep], [dataset.scene_of(i) for i in ids],
-                               [dataset.scenes.frame[i] for i in ids], torch.stack([dataset.ego_pose(i) for i in ids]))
+            for meter in (flicker, cmap):
+                if meter is not None:
+                    meter.update([preds[k] for k in keep], [gts[k] for k in keep], [dataset.scene_of(i) for i in ids],
+                                 [dataset.scenes.frame[i] for i in ids],
+                                 torch.stack([dataset.ego_pose(i) for i in ids]))
 
     decode = decode_options(cfg.model.gnn, grid)
     persist = Persistence.from_config(cfg)
@@ -628,6 +636,8 @@ def run_evaluation(
     evaluator.gather()
     if flicker is not None:
         flicker.gather()
+    if cmap is not None:
+        cmap.gather()
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
@@ -637,6 +647,8 @@ def run_evaluation(
     metrics = evaluator.compute()
     if flicker is not None:
         metrics["consistency"] = flicker.compute()
+    if cmap is not None:
+        metrics["cmap"] = cmap.compute()
     if "memory" in val:
         metrics["memory"] = val["memory"]
     samples_per_s = round(val["samples_per_s"] * world, 3)

@@ -53,6 +53,32 @@ def _as_numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
+def check_polylines(polylines: Sequence[dict], num_classes: int | None = None, where: str = "targets") -> None:
+    """A TypeError / ValueError naming the polyline unless ``polylines`` is a list of dicts with ``pts`` [P, 2] finite
+    metres and an integer ``label`` in [0, ``num_classes``): a label of 5 was a raw IndexError, -1 drawn into the last
+    class, NaN points a vertex at a grid corner, [P, 3] points reshaped into other points."""
+    if isinstance(polylines, (dict, str, bytes)) or not isinstance(polylines, Sequence):
+        raise TypeError(f"{where}: polylines must be a list of dicts {{'pts': [P, 2] metres, 'label': int, 'closed': "
+                        f"bool}}, got {type(polylines).__name__}")
+    for i, p in enumerate(polylines):
+        if not isinstance(p, dict) or "pts" not in p or "label" not in p:
+            raise TypeError(f"{where}: polyline {i} must be a dict with keys 'pts' and 'label', got {p!r:.80}")
+        try:
+            pts = _as_numpy(p["pts"]).astype(np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(f"{where}: polyline {i}: 'pts' must be numbers [P, 2], got {p['pts']!r:.80}") from None
+        if pts.size and (pts.ndim != 2 or pts.shape[1] != 2):
+            raise ValueError(f"{where}: polyline {i}: 'pts' must be [P, 2] (x, y metres, ego frame), got shape "
+                             f"{list(pts.shape)}")
+        if not np.isfinite(pts).all():
+            raise ValueError(f"{where}: polyline {i}: 'pts' holds NaN or infinite values")
+        label = _as_numpy(p["label"])
+        ok = label.ndim == 0 and label.dtype.kind in "iuf" and bool(np.isfinite(label)) and float(label) == int(label)
+        if not ok or int(label) < 0 or (num_classes is not None and int(label) >= num_classes):
+            classes = f"0..{num_classes - 1}" if num_classes is not None else ">= 0"
+            raise ValueError(f"{where}: polyline {i}: 'label' must be a class index {classes}, got {p['label']!r:.40}")
+
+
 def _polyline_pixels(polylines: Sequence[dict], grid: BEVGrid) -> tuple[np.ndarray, np.ndarray]:
     """Integer BEV pixels (u, v) of all points of all polylines, concatenated: [Q, 2] int64 clamped to
     the grid, and the number of points of each polyline [n]."""
@@ -77,6 +103,7 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
     ``gt_vertices_m`` [M, 2] float32 (the same vertices in metres), ``gt_vertex_labels``,
     ``gt_vertex_instance``, ``gt_vertex_order``, ``gt_vertex_next``, ``gt_vertex_prev`` [M] int64.
     """
+    check_polylines(polylines, where="vertex_graph")
     S, Wc = grid.cell_size, grid.Wc
     uv, counts = _polyline_pixels(polylines, grid)  # [Q, 2] all candidates, in (instance, order) order
     closed = np.array([bool(p.get("closed", False)) for p in polylines], dtype=bool)
@@ -164,6 +191,7 @@ def distance_transform(
     polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
 ) -> torch.Tensor:
     """Per-class distance transform [K, H, W] float32 in [0, dt_clip] BEV pixels (see module docstring)."""
+    check_polylines(polylines, num_classes, where="distance_transform")
     canvas = np.full((num_classes, grid.H, grid.W), 255, dtype=np.uint8)
     uv, counts = _polyline_pixels(polylines, grid)
     pieces = np.split(uv.astype(np.int32).reshape(-1, 1, 2), np.cumsum(counts)[:-1])

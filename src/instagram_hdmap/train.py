@@ -52,7 +52,7 @@ from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
-from .evaluation.consistency import FlickerMeter
+from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .files import check_output_dir, remove_stale_temporaries
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, saved_config
@@ -356,6 +356,17 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
                         threshold_m=cfg.eval.flicker_threshold_m)
 
 
+def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
+    """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
+    predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
+    if not cfg.eval.cmap:
+        return None
+    t = cfg.model.temporal
+    return ConsistentAPMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
+                             thresholds=cfg.eval.thresholds, match_m=cfg.eval.cmap_match_m, max_jump_m=t.max_jump_m,
+                             max_turn_deg=t.max_turn_deg)
+
+
 def memory_state(memory: dict | None, gather: bool = True) -> list | None:
     """A temporal model's memory for a checkpoint: one CPU dict per rank (rank order), or None. Under
     torchrun ``gather`` collects every rank's (a collective); without it only a single process's is kept."""
@@ -590,10 +601,31 @@ class TrainingRun:
         self.validation_pending = bool(state.get("validation_pending", False))
         check_same_train_set(state.get("train_set"), train_set_fingerprint(self.train_loader), path)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
+        self.note_world_change(state.get("world"), path)
         on_disk = best_score_in(self.out_dir)  # saved after the checkpoint resumed from (a kill in between)
         if on_disk > self.best.get("score", -math.inf):
             self.best = {**self.best, "score": on_disk}
         set_rng_state(state["rng"])
+
+    def note_world_change(self, saved_world: int | None, path: Path | str) -> None:
+        """A checkpoint saved part-way through an epoch by another number of processes. The shuffled
+        sampler goes on exactly (``ResumableSampler.set_epoch``: its order does not depend on the ranks);
+        the streaming one deals the scenes over the streams of all ranks, so under another number its
+        epoch is another walk: said, not hidden. Checkpoints written before the world size was saved
+        (None) say nothing."""
+        p = self.position
+        if saved_world is None or saved_world == self.world or not p.step_in_epoch:
+            return
+        if isinstance(self.sampler, ResumableSampler):
+            du.print_main(f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
+                          f"{p.epoch}, resumed by {self.world}: the epoch goes on from the same sample (the batch "
+                          f"over all processes, train.batch_size={self.cfg.train.batch_size}, is the same)")
+        else:
+            du.print_main(f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
+                          f"{p.epoch}, resumed by {self.world}: the streams' scenes are dealt over the processes, so "
+                          f"the rest of epoch {p.epoch} follows the dealing of {self.world} (some of its frames are "
+                          "walked twice, some not at all) and the streams start without memory; exact from the next "
+                          "epoch on (to keep this epoch exact, resume with the same number of processes)")
 
     def check_not_finished(self, state: dict, path: Path) -> None:
         """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
@@ -733,7 +765,10 @@ class TrainingRun:
         ``last.pt`` at that step, after the final validation, and a resume continues the epoch), else the
         position moves to the next epoch."""
         p = self.position
-        self.sampler.set_epoch(p.epoch, start=p.step_in_epoch * self.batch_size)
+        # the shuffled sampler skips samples of the epoch over all ranks (exact under another world size),
+        # the streaming one whole batches of this rank's streams
+        over = self.world if isinstance(self.sampler, ResumableSampler) else 1
+        self.sampler.set_epoch(p.epoch, start=p.step_in_epoch * self.batch_size * over)
         if hasattr(self.train_loader.dataset, "set_epoch"):
             self.train_loader.dataset.set_epoch(p.epoch)  # augmentation draws follow (seed, epoch, index)
         result = train_one_epoch(
@@ -767,7 +802,8 @@ class TrainingRun:
             val = evaluate(self.net, self.criterion, self.val_loader, self.device,
                            postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
                            evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp,
-                           flicker=make_flicker_meter(self.cfg), persist=Persistence.from_config(self.cfg))
+                           flicker=make_flicker_meter(self.cfg), persist=Persistence.from_config(self.cfg),
+                           cmap=make_cmap_meter(self.cfg))
         self.summary["val"] = val
         score = val["metrics"]["mAP"] if "metrics" in val else -val["losses"].get("loss_total", math.inf)
         step = self.position.step
@@ -778,6 +814,8 @@ class TrainingRun:
                 self.writer.add_scalar("val/mAP", val["metrics"]["mAP"], step)
             if "consistency" in val:
                 self.writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], step)
+            if "cmap" in val:
+                self.writer.add_scalar("val/C-mAP", val["cmap"]["C-mAP"], step)
         self.validation_pending = False
         if not math.isnan(score) and score > self.best["score"]:
             self.best = {"score": score, "epoch": self.position.epoch, "step": step}
@@ -797,6 +835,7 @@ class TrainingRun:
             "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
             "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best, "memory": memories,
             "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
+            "world": self.world,
         }, self.out_dir / name)
 
     def log(self) -> None:

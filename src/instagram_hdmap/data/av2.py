@@ -150,6 +150,13 @@ def load_log_map(log_dir: Path) -> _LocationMap:
         avm = ArgoverseStaticMap.from_json(files[0])
     except (KeyError, ValueError, TypeError, AttributeError, OSError, json.JSONDecodeError) as e:
         raise MapError(f"log {log_dir.name}: cannot read map archive {files[0]}: {type(e).__name__}: {e}") from None
+    for what, items in (("drivable area", [(da.id, da.xyz) for da in avm.get_scenario_vector_drivable_areas()]),
+                        ("lane segment", [(ls.id, m.polyline) for ls in avm.get_scenario_lane_segments()
+                                          for m in (ls.left_lane_marking, ls.right_lane_marking)])):
+        bad = next((rid for rid, xyz in items if not np.isfinite(np.asarray(xyz, dtype=np.float64)).all()), None)
+        if bad is not None:  # a NaN area was a raw GEOSException, a NaN lane marking silently dropped
+            raise MapError(f"log {log_dir.name}: map archive {files[0]}: {what} {bad} has NaN or infinite "
+                           "coordinates; the file is corrupt (re-extract it from the AV2 sensor dataset)")
     areas = [Polygon(np.asarray(da.xyz)[:, :2]) for da in avm.get_scenario_vector_drivable_areas()]
     areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
     edges = shapely.union_all(areas).boundary if len(areas) else LineString()
@@ -168,7 +175,7 @@ def load_ground_height(log_dir: Path):
     map_dir = log_dir / "map"
     try:
         return GroundHeightLayer.from_file(map_dir)
-    except (RuntimeError, KeyError, ValueError, OSError, json.JSONDecodeError) as e:
+    except (RuntimeError, KeyError, ValueError, OSError, ZeroDivisionError, json.JSONDecodeError) as e:
         raise MapError(f"log {log_dir.name}: cannot read the ground-height raster in {map_dir} "
                        f"(*_ground_height_surface____*.npy and *___img_Sim2_city.json): {type(e).__name__}: {e}; "
                        "the log folder is incomplete (re-extract it from the AV2 sensor dataset)") from None
@@ -189,6 +196,21 @@ def ego_ground_height(layer, city_SE3_ego) -> float:
     if not len(points):
         return math.nan
     return float(np.median(city_SE3_ego.inverse().transform_point_cloud(points)[:, 2]))
+
+
+def _unique_rows(path: Path, key: str, where: str, what: str) -> None:
+    """A DatasetError if two rows of the feather table ``path`` share ``key`` with other values: av2's readers keep one
+    of them (a dict by ``key``) with no word."""
+    import pandas as pd
+
+    table = pd.read_feather(path)
+    if key not in table.columns or table[key].dtype.kind == "f":
+        return  # av2's reader names a missing column; _pose says what a float64 timestamp column did
+    clash = table.drop_duplicates().duplicated(key, keep=False)
+    if clash.any():
+        value = table[key][clash].iloc[0]
+        raise DatasetError(f"{where}: {path} holds {int(clash.sum())} rows of other {what} for {key} {value} (rows "
+                           f"{', '.join(map(str, table.index[clash][:4]))}): one row per {key}; the file is corrupt")
 
 
 class AV2LocalMapBuilder(LocalMapBuilder):
@@ -260,6 +282,10 @@ class AV2MapDataset(MapDataset):
             if not (log / "sensors").is_dir():
                 raise DatasetError(f"{split_dir} is not an AV2 split folder: {log.name} has no sensors/ folder "
                                    f"(expected {log}/sensors/lidar, sensors/cameras, calibration/, map/)")
+            odd = next((p for p in sorted((log / "sensors" / "lidar").glob("*.feather")) if not p.stem.isdigit()), None)
+            if odd is not None:  # av2's loader: a raw "invalid literal for int()"
+                raise DatasetError(f"log {log.name}: {odd} is not named <timestamp_ns>.feather, as every lidar sweep "
+                                   "of an AV2 log is; move it out of the sensors/lidar folder")
 
     # --- per log, cached ------------------------------------------------------------------------
     def _log_poses(self, log: str) -> dict:
@@ -271,6 +297,7 @@ class AV2MapDataset(MapDataset):
                 raise DatasetError(f"log {log}: ego poses not found: {path}")
             try:
                 self._poses[log] = read_city_SE3_ego(self.split_dir / log)
+                _unique_rows(path, "timestamp_ns", f"log {log}", "ego poses")
             except (KeyError, ValueError, OSError) as e:
                 raise DatasetError(f"log {log}: cannot read {path}: {type(e).__name__}: {e}") from None
         return self._poses[log]
@@ -288,6 +315,8 @@ class AV2MapDataset(MapDataset):
                 if not path.is_file():
                     raise DatasetError(f"log {log}: calibration file not found: {path}")
             try:
+                for path in (intr_path, extr_path):
+                    _unique_rows(path, "sensor_name", f"log {log}", "calibrations")
                 intr_names = set(read_feather(intr_path)["sensor_name"])
                 extr_names = set(read_ego_SE3_sensor(log_dir))
                 cams = {}

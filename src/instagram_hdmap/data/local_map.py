@@ -162,6 +162,8 @@ def crossing_geometry(ring_xy: np.ndarray, edges: Sequence[np.ndarray] | None = 
         lines = longest_edges(ring_xy)
     else:
         lines = [LineString(e) for e in (np.asarray(e, dtype=np.float64)[:, :2] for e in edges) if len(e) >= 2]
+        if len(lines) < len(edges) and status == "ok":  # an edge of < 2 points: the crossing lost an edge
+            status = "short edge"
     return polys, [ln for ln in lines if ln.length > MIN_LENGTH_M], status
 
 
@@ -171,7 +173,7 @@ def collect_crossings(crossings, source: str) -> tuple[np.ndarray, np.ndarray, s
     counted and reported in one ``UserWarning`` naming ``source`` (the map file); good ones are kept
     whatever their neighbours are."""
     polys, lines = [], []
-    bad: dict[str, list[str]] = {"repaired": [], "skipped": []}
+    bad: dict[str, list[str]] = {"repaired": [], "skipped": [], "short edge": []}
     for cid, ring, edges in crossings:
         p, e, status = crossing_geometry(ring, edges) if ring is not None else ([], [], "skipped")
         polys += p
@@ -179,7 +181,7 @@ def collect_crossings(crossings, source: str) -> tuple[np.ndarray, np.ndarray, s
         if status != "ok":
             bad[status].append(str(cid))
     report = ""
-    if bad["repaired"] or bad["skipped"]:
+    if bad["repaired"] or bad["skipped"] or bad["short edge"]:
         def ids(v: list[str]) -> str:
             return ", ".join(v[:5]) + (f" and {len(v) - 5} more" if len(v) > 5 else "")
 
@@ -190,6 +192,10 @@ def collect_crossings(crossings, source: str) -> tuple[np.ndarray, np.ndarray, s
         if bad["skipped"]:
             parts.append(f"{len(bad['skipped'])} degenerate crossing polygon(s) (< 3 distinct points) skipped "
                          f"({ids(bad['skipped'])})")
+        if bad["short edge"]:
+            parts.append(f"{len(bad['short edge'])} crossing(s) with an edge of fewer than 2 points, that edge not "
+                         "drawn "
+                         f"({ids(bad['short edge'])})")
         report = f"{source}: " + "; ".join(parts)
         warnings.warn(report, stacklevel=3)
     return np.array(polys, dtype=object), np.array(lines, dtype=object), report
@@ -210,23 +216,84 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
     try:
         nmap = NuScenesMap(dataroot=str(dataroot), map_name=location)
     except Exception as e:  # the devkit raises bare Exceptions / KeyErrors on bad files
-        raise MapError(f"cannot read map expansion file {path}: {type(e).__name__}: {e}") from None
-    ex = nmap.explorer
+        raise MapError(f"cannot read map expansion file {path}: {_map_file_problem(path) or f'{type(e).__name__}: {e}'}"
+                       ) from None
 
-    dividers = [ex.extract_line(r["line_token"]) for layer in DIVIDER_LAYERS for r in getattr(nmap, layer)]
+    def record(table: str, token, layer: str, rtoken) -> dict:
+        try:
+            return nmap.get(table, token)
+        except (KeyError, TypeError):
+            raise MapError(f"map expansion file {path}: {layer} record {rtoken} names {table} {token}, which the "
+                           f"file's {table} table does not hold; the file is corrupt (re-download the map expansion)"
+                           ) from None
+
+    def nodes(tokens, layer: str, rtoken, finite: bool = True) -> np.ndarray:
+        """[P, 2] of the nodes ``tokens`` (the devkit's extract_line / extract_polygon read them the same way), a
+        MapError naming the record for a missing node, a coordinate that is no number or (``finite``) NaN."""
+        try:
+            xy = np.array([[float(record("node", t, layer, rtoken)[k]) for k in ("x", "y")] for t in tokens],
+                          dtype=np.float64).reshape(-1, 2)
+        except (KeyError, TypeError, ValueError) as e:  # a GEOS / NumPy error named nothing of the file's
+            raise MapError(f"map expansion file {path}: {layer} record {rtoken}: a node has no number x / y "
+                           f"({type(e).__name__}: {e}); the file is corrupt") from None
+        if finite and not np.isfinite(xy).all():
+            raise MapError(f"map expansion file {path}: {layer} record {rtoken}: its nodes hold NaN or infinite "
+                           "coordinates; the file is corrupt (re-download the map expansion)")
+        return xy
+
+    dividers, short = [], []
+    for layer in DIVIDER_LAYERS:
+        for r in getattr(nmap, layer):
+            line = record("line", r.get("line_token"), layer, r.get("token"))
+            xy = nodes(line.get("node_tokens", ()), layer, r.get("token"))
+            if len(xy) == 1:  # GEOS refused a one-point line with an error naming nothing of the map's
+                short.append(str(r.get("token")))
+            elif len(xy):
+                dividers.append(LineString(xy))
+    if short:
+        warnings.warn(f"{path}: {len(short)} divider line(s) of one point skipped ({', '.join(short[:5])}"
+                      f"{f' and {len(short) - 5} more' if len(short) > 5 else ''})", stacklevel=2)
     dividers = np.array([g for g in dividers if not g.is_empty], dtype=object)
 
     def crossing_rings():
         for r in getattr(nmap, PED_LAYER):
-            # the exterior nodes as stored (the devkit's extract_polygon would raise on < 4 coordinates)
-            poly = nmap.get("polygon", r["polygon_token"])
-            ring = np.array([[nmap.get("node", t)[k] for k in ("x", "y")] for t in poly["exterior_node_tokens"]])
-            yield r["token"], ring, None
+            # the exterior nodes as stored (the devkit's extract_polygon would raise on < 4 coordinates); a NaN
+            # node makes the crossing degenerate (skipped and reported by collect_crossings)
+            poly = record("polygon", r.get("polygon_token"), PED_LAYER, r.get("token"))
+            yield r["token"], nodes(poly.get("exterior_node_tokens", ()), PED_LAYER, r["token"], finite=False), None
 
     peds, ped_edges, report = collect_crossings(crossing_rings(), str(path))
-    areas = [ex.extract_polygon(r["polygon_token"]) for layer in AREA_LAYERS for r in getattr(nmap, layer)]
+    areas = []
+    for layer in AREA_LAYERS:
+        for r in getattr(nmap, layer):
+            poly = record("polygon", r.get("polygon_token"), layer, r.get("token"))
+            ring = nodes(poly.get("exterior_node_tokens", ()), layer, r.get("token"))
+            holes = [h for h in (nodes(h.get("node_tokens", ()), layer, r.get("token")) for h in poly.get("holes", ()))
+                     if len(h)]
+            if len(ring) >= 3 and all(len(h) >= 3 for h in holes):  # fewer: no area (GEOS would raise)
+                areas.append(Polygon(ring, holes))
     areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
     return _LocationMap(dividers, peds, ped_edges, areas, crossing_report=report)
+
+
+def _map_file_problem(path: Path) -> str | None:
+    """Why a map expansion file the devkit refused is not one, in words (an empty object or a list was "an outdated
+    map version (%s)", a missing layer a bare KeyError); None when it looks like one."""
+    import json
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        return f"not valid JSON ({type(e).__name__}: {e})"
+    if not isinstance(data, dict):
+        return (f"it holds a JSON {type(data).__name__}, not a map expansion (an object of layers: node, line, "
+                "polygon, ...)")
+    missing = [k for k in ("version", "node", "line", "polygon", *DIVIDER_LAYERS, PED_LAYER, *AREA_LAYERS)
+               if k not in data]
+    if missing:
+        return (f"it has no {', '.join(repr(k) for k in missing[:6])} (a map expansion v1.3 file has them): the file "
+                "is incomplete or not a map expansion (re-download the map expansion)")
+    return None
 
 
 def resample_line(line: LineString, sample_dist: float, closed: bool = False) -> np.ndarray:

@@ -70,7 +70,7 @@ def open_nuscenes(dataroot: str | Path, version: str):
                "(set data.version or --version)")
         )
     try:
-        return NuScenes(version=version, dataroot=str(root), verbose=False)
+        nusc = NuScenes(version=version, dataroot=str(root), verbose=False)
     except KeyError as e:  # the devkit's reverse index: a record names a token that its table does not hold
         raise DatasetError(f"cannot load nuScenes tables from {table_root}: a record refers to token {e} that no "
                            "record of the table it points into holds (a record removed from one table but still named "
@@ -82,6 +82,33 @@ def open_nuscenes(dataroot: str | Path, version: str):
     except Exception as e:  # the devkit indexes records without checking them (TypeError, IndexError, ...)
         raise DatasetError(f"cannot load nuScenes tables from {table_root}: "
                            f"{_malformed_table(table_root) or f'{type(e).__name__}: {e}'}") from None
+    check_unique_tokens(nusc, table_root)
+    return nusc
+
+
+def check_unique_tokens(nusc, table_root: Path) -> None:
+    """Every record's token once in its table, every scene name once: the devkit's index keeps the last record of a
+    token (``nusc.get``), so a duplicate silently shadowed the first (a scene's chain cut short, another image), and
+    two scenes of one name were read as one drive."""
+    for name in nusc.table_names:
+        records = getattr(nusc, name, None) or ()
+        index = getattr(nusc, "_token2ind", {}).get(name)  # the devkit's token -> index: shorter with a duplicate
+        if index is not None and len(index) == len(records):
+            continue
+        seen: dict[str, int] = {}
+        for i, record in enumerate(records):
+            j = seen.setdefault(record["token"], i)
+            if j != i:
+                raise DatasetError(f"cannot load nuScenes tables from {table_root}: {name}.json holds two records "
+                                   f"with token {record['token']} (records {j} and {i}); a token names one record: "
+                                   "remove or re-token the copy")
+    seen = {}
+    for i, scene in enumerate(nusc.scene):
+        j = seen.setdefault(scene.get("name"), i)
+        if j != i:
+            raise DatasetError(f"cannot load nuScenes tables from {table_root}: scene.json names two scenes "
+                               f"{scene.get('name')!r} (records {j} and {i}, tokens {nusc.scene[j]['token']} and "
+                               f"{scene['token']}); splits and temporal models tell scenes apart by name: rename one")
 
 
 def _unparsable_table(table_root: Path) -> str | None:
@@ -230,18 +257,34 @@ class NuScenesMapDataset(MapDataset):
         names = set(split_scene_names(self.nusc, d.version, split, d.splits_file))
         self.sample_tokens: list[str] = []
         self._scene_of: dict[str, dict] = {}
+        table = self.dataroot / d.version / "sample.json"
+        per_scene: dict[str, list[str]] = {}  # the samples of each scene by their scene_token, in table order
+        for s in self.nusc.sample:
+            per_scene.setdefault(s.get("scene_token"), []).append(s["token"])
         for scene in self.nusc.scene:
             if scene["name"] not in names:
                 continue
-            token, seen = scene["first_sample_token"], set()
+            token, seen, last = scene["first_sample_token"], set(), None
             while token:
                 if token in seen:  # a corrupt chain would be walked forever
                     raise DatasetError(f"scene {scene['name']}: its samples' 'next' links loop back to sample {token} "
-                                       f"in {self.dataroot / d.version}/sample.json; the table is corrupt")
+                                       f"in {table}; the table is corrupt")
+                sample = self._get("sample", token)
+                if sample.get("scene_token", scene["token"]) != scene["token"]:  # a chain run into another scene
+                    raise DatasetError(
+                        f"scene {scene['name']}: its samples' chain (first_sample_token, then 'next') reaches sample "
+                        f"{token}, whose scene_token is {sample['scene_token']}, not this scene's {scene['token']}, "
+                        f"in {table}; the chain is corrupt")
                 seen.add(token)
                 self.sample_tokens.append(token)
                 self._scene_of[token] = scene
-                token = _field(self._get("sample", token), "next", "sample")
+                last, token = token, _field(sample, "next", "sample")
+            lost = [t for t in per_scene.get(scene["token"], []) if t not in seen]
+            if lost:  # a chain cut short: its other samples were silently left out of the split
+                raise DatasetError(
+                    f"scene {scene['name']}: {len(lost)} of its samples in {table} (scene_token {scene['token']}, "
+                    f"e.g. {lost[0]}) are not on its chain, which ends at sample {last} ('next' empty); the chain is "
+                    "broken: fix the 'next' links")
         if not self.sample_tokens:
             raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
         self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist, d.ped_crossing)
@@ -258,7 +301,8 @@ class NuScenesMapDataset(MapDataset):
                 self._map_errors[loc] = e
 
     def _location(self, token: str) -> str:
-        return self.nusc.get("log", self._scene_of[token]["log_token"])["location"]
+        scene = self._scene_of[token]
+        return _field(self._get("log", _field(scene, "log_token", "scene")), "location", "log")
 
     def _get(self, table: str, token: str) -> dict:
         """``nusc.get(table, token)``, or a DatasetError naming the table and the missing token."""

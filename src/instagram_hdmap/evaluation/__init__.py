@@ -5,7 +5,7 @@
     ev = Evaluator("vector"); ev.update(preds, gts); metrics = ev.compute()
 """
 
-from .consistency import FlickerMeter
+from .consistency import ConsistentAPMeter, FlickerMeter
 from .evaluator import CLASSES, PROTOCOLS, Evaluator, evaluate_files, format_table
 from .inputs import EvaluationInputError
 from .io import SubmissionError, read_submission, write_submission
@@ -15,6 +15,7 @@ __all__ = [
     "PROTOCOLS",
     "EvaluationInputError",
     "Evaluator",
+    "ConsistentAPMeter",
     "FlickerMeter",
     "SubmissionError",
     "evaluate_files",

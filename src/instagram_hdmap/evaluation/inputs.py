@@ -37,6 +37,7 @@ class PolylineSet:
     labels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [n]
     scores: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # [n] (predictions)
     num_short: int = 0  # polylines dropped because they had fewer than two points
+    kept: list[int] = field(default_factory=list)  # [n] each polyline's index in the input list
 
 
 def _detached(value):
@@ -131,6 +132,7 @@ def read_polylines(
             out.num_short += 1
             continue
         out.pts.append(pts)
+        out.kept.append(i)
         labels.append(int(label))
         scores.append(score)
     out.labels = np.asarray(labels, dtype=np.int64)

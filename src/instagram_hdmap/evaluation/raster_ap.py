@@ -56,7 +56,7 @@ import numpy as np
 import shapely
 import torch
 
-from ..geometry import BEVGrid
+from ..geometry import BEVGrid, as_grid
 from .chamfer import cloud_chamfer, mean_dist_to_box
 from .inputs import EvaluationInputError, read_polylines, sample_name
 
@@ -87,6 +87,7 @@ class RasterFrame:
     """
 
     def __init__(self, grid: BEVGrid) -> None:
+        grid = as_grid(grid, "RasterFrame")
         patch_x, patch_y = (grid.xmin + grid.xmax) / 2.0, (grid.ymin + grid.ymax) / 2.0
         patch_w, patch_h = grid.xmax - grid.xmin, grid.ymax - grid.ymin
         self.H, self.W = grid.H, grid.W
@@ -121,6 +122,7 @@ def rasterize_instances(
         confidence: [I] float32, the confidence of instance id i at index i (index 0 = -1); in the
             reference's misaligned way unless ``fix_instance_ids``.
     """
+    labels = np.asarray(labels)  # a list: `labels == c` was False, nothing drawn, no word
     dtype = np.int32 if fix_instance_ids else np.uint8
     masks = np.zeros((num_classes, frame.H, frame.W), dtype=dtype)
     confidence = [-1.0]

@@ -312,6 +312,23 @@ class VectorAP:
         if len(gts) != B:
             raise EvaluationInputError(f"vector AP update: {B} prediction lists but {len(gts)} GT lists")
         ids = self._take_ids(B, sample_ids)
+        m = self.match(preds, gts, ids, tokens)
+        self.num_gt += np.bincount(m["gt_label"], minlength=self.num_classes)
+        self.counters["samples"] += B
+        for c in range(self.num_classes):
+            k = m["label"] == c  # keeps sample order, and input order within a sample
+            self._ids[c].append(ids[m["sample"][k]])
+            self._scores[c].append(m["score"][k])
+            self._tp[c].append(m["tp"][k])
+
+    def match(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], ids: np.ndarray,
+              tokens: Sequence[str] | None = None) -> dict:
+        """The protocol's decisions for B samples, without accumulating them: per detection (predictions with
+        >= 2 points, in sample order, input order within a sample) ``label``, ``score``, ``sample`` (0..B-1),
+        ``tp`` [Np, T] and ``gt`` [Np] (the GT it is compared with, an index into that sample's GT list, -1 for
+        none: a TP at threshold t matched it); per GT ``gt_label`` and ``gt_sample``. Updates ``counters``
+        except ``samples``. ``ids`` only name the samples in error messages."""
+        B = len(preds)
         K, S = self.num_classes, self.num_sample_points
         p_pts, p_lab, p_score, p_smp, g_pts, g_lab, g_smp = [], [], [], [], [], [], []
         for b in range(B):
@@ -334,12 +351,14 @@ class VectorAP:
             g_pts += G.pts
             g_lab.append(G.labels)
             g_smp.append(np.full(len(G.pts), b))
-            self.num_gt += np.bincount(G.labels, minlength=K)
-        self.counters["samples"] += B
+        g_lab = np.concatenate(g_lab).astype(np.int64) if g_lab else np.zeros(0, np.int64)
+        g_smp = np.concatenate(g_smp).astype(np.int64) if g_smp else np.zeros(0, np.int64)
+        out = {"gt_label": g_lab, "gt_sample": g_smp}
         if not p_pts:
-            return
+            T = len(self.thresholds)
+            return {**out, "label": np.zeros(0, np.int64), "score": np.zeros(0), "sample": np.zeros(0, np.int64),
+                    "tp": np.zeros((0, T), bool), "gt": np.zeros(0, np.int64)}
         p_lab, p_score, p_smp = np.concatenate(p_lab), np.concatenate(p_score), np.concatenate(p_smp)
-        g_lab, g_smp = np.concatenate(g_lab), np.concatenate(g_smp)
 
         if self.resample_predictions:
             # The reference keeps a prediction's raw points when it already has exactly S of them.
@@ -356,11 +375,9 @@ class VectorAP:
 
         best_d, best_j = self._nearest_gt(pred, gt, p_smp * K + p_lab, g_smp * K + g_lab)
         tp = self._assign(best_d, best_j, p_score, p_smp * K + p_lab)
-        for c in range(K):
-            m = p_lab == c  # keeps sample order, and input order within a sample
-            self._ids[c].append(ids[p_smp[m]])
-            self._scores[c].append(p_score[m])
-            self._tp[c].append(tp[m])
+        first = np.searchsorted(g_smp, np.arange(B))  # each sample's first GT (g_smp is sorted)
+        local = np.where(best_j >= 0, best_j - first[p_smp], -1)
+        return {**out, "label": p_lab, "score": p_score, "sample": p_smp, "tp": tp, "gt": local}
 
     def _take_ids(self, B: int, sample_ids: Sequence[int] | None) -> np.ndarray:
         if sample_ids is None:

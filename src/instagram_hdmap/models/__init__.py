@@ -151,7 +151,9 @@ def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=Non
         temporal = BEVMemoryFusion(bh.stage_channels[0], grid, (grid.H // 2, grid.W // 2), tc.fusion, tc.kernel,
                                    tc.drop_prob, tc.max_jump_m, tc.memory, num_classes, tc.edge_samples,
                                    tc.max_turn_deg)
-    return InstaGraM(backbone, view_transform, bev_heads, graph_head, temporal)
+    model = InstaGraM(backbone, view_transform, bev_heads, graph_head, temporal)
+    model.image_size = image_size  # forward checks the images' size against it (the view transform assumes it)
+    return model
 
 
 def random_init_warning(cfg: ExperimentConfig) -> str | None:

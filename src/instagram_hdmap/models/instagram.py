@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from torch import nn
 
@@ -64,11 +66,52 @@ class InstaGraM(nn.Module):
             raise ValueError("a single-frame model (model.temporal.memory=none) has no memory")
         return self.temporal.initial_memory(batch_size, like)
 
+    image_size: tuple[int, int] | None = None  # (h, w) of data.image_size, set by build_model
+
+    def _check_batch(self, batch) -> None:
+        """A TypeError / ValueError naming the key for a batch of other shapes or dtypes than docs/conventions.md's:
+        they were raw torch errors from deep inside (a conv's channel count, an index_add_ size, a reshape of 0
+        elements) or, for a calibration of another batch size, broadcast over the images with no word."""
+        if not isinstance(batch, Mapping):
+            raise TypeError(f"InstaGraM.forward takes one batch dict (data.base.collate_fn of sample dicts), got "
+                            f"{type(batch).__name__}")
+        images = batch["images"]
+        shape = list(getattr(images, "shape", ()))
+        if not isinstance(images, torch.Tensor) or images.dim() != 5 or shape[2] != 3:
+            hint = (" (one sample without the batch dimension: images[None])" if len(shape) == 4 and shape[1] == 3 else
+                    " (channels last: images.permute(0, 1, 4, 2, 3))" if len(shape) == 5 and shape[-1] == 3 else "")
+            raise ValueError(f"InstaGraM.forward: 'images' must be a tensor [B, V, 3, h, w], got "
+                             f"{type(images).__name__} of shape {shape}{hint}")
+        B, V = shape[:2]
+        if B == 0 or V == 0:
+            raise ValueError(f"InstaGraM.forward: an empty batch ('images' of shape {shape}): give at least one sample "
+                             "of at least one camera")
+        weight = next(self.parameters(), None)
+        if weight is not None and images.dtype != weight.dtype:
+            raise TypeError(f"InstaGraM.forward: 'images' are {images.dtype}, the model's weights "
+                            f"{weight.dtype}: give normalised float images of the weights' dtype (as the datasets and "
+                            "Mapper do), e.g. images.to(model dtype)")
+        if self.image_size is not None and tuple(shape[-2:]) != tuple(self.image_size):
+            raise ValueError(f"InstaGraM.forward: 'images' are {shape[-2]}x{shape[-1]} (h x w), the model was built "
+                             f"for data.image_size {list(self.image_size)}: resize them (data.transforms.load_image, "
+                             "Mapper do) or build the model for that size")
+        for key in CALIBRATION_KEYS:
+            value = batch[key]
+            lead = [B] if key == "ground_height" else [B, V]  # ground_height: one per sample, [B]
+            if not isinstance(value, torch.Tensor) or list(value.shape[:len(lead)]) != lead:
+                want = f"[B={B}]" if key == "ground_height" else f"[B={B}, V={V}, ...]"
+                raise ValueError(f"InstaGraM.forward: {key!r} must be a tensor {want} like 'images', got "
+                                 f"{type(value).__name__} of shape {list(getattr(value, 'shape', ()))}")
+
     def forward(self, batch: dict, memory: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        if not isinstance(batch, Mapping):
+            self._check_batch(batch)
         required = INPUT_KEYS if self.temporal is None else (*INPUT_KEYS, "ego_pose")
         missing = [k for k in required if k not in batch]
         if missing:
             raise KeyError(f"InstaGraM.forward: the batch lacks {missing} (see docs/conventions.md)")
+        if not (torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()):
+            self._check_batch(batch)  # shapes only: nothing to trace or export, no device sync
         images = batch["images"]
         B, V = images.shape[:2]
         features = self.backbone(images.flatten(0, 1)).unflatten(0, (B, V))  # [B, V, C, h/16, w/16]

@@ -1,0 +1,59 @@
+"""MapTracker's consistency-aware mAP of finished evaluations, from their ``submission.json`` (no model run).
+
+    python benchmarks/cmap_of_submissions.py --config configs/temporal/synthetic.yaml \\
+        --dataroot ~/.cache/instagram_hdmap/synthetic-5e288385e0 runs/temporal_dropout_long/*/eval_val12*
+
+Each submission's predictions are scored against the split's GT with ``ConsistentAPMeter`` (predicted instance
+IDs from the persistence matcher, GT tracks from the flicker meter's geometric link; docs/temporal.md), and the
+meter's own time per sample is printed: the cost of ``eval.cmap=true``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from instagram_hdmap.config import load_config
+from instagram_hdmap.data import build_dataset
+from instagram_hdmap.demo import world_overrides
+from instagram_hdmap.evaluation.io import read_submission
+from instagram_hdmap.train import make_cmap_meter
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("evals", nargs="+", help="evaluation folders holding submission.json")
+    parser.add_argument("--config", required=True)
+    parser.add_argument("--dataroot", required=True, help="the world the evaluations ran on")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--match-m", type=float, default=None,
+                        help="the tracker's match distance (default: the config's eval.cmap_match_m, 1.0 m)")
+    args = parser.parse_args()
+    cfg = load_config(args.config, [*world_overrides(Path(args.dataroot).expanduser()), "eval.cmap=true",
+                                    *([f"eval.cmap_match_m={args.match_m}"] if args.match_m else [])])
+    ds = build_dataset(cfg, args.split, augment=False)
+    index = {t: i for i, t in enumerate(ds.sample_tokens)}
+    gts = {t: ds.gt_polylines(i) for t, i in index.items()}
+    print(f"{'evaluation':<60}{'mAP':>8}{'C-mAP':>8}  C-AP per class; switched TPs at 1.0 m; ms/sample")
+    for folder in args.evals:
+        preds = read_submission(Path(folder) / "submission.json", "pred", len(cfg.data.classes)).samples
+        meter = make_cmap_meter(cfg)
+        t0 = time.perf_counter()
+        tokens = [t for t in ds.sample_tokens if t in preds]
+        for s in range(0, len(tokens), 8):
+            part = tokens[s:s + 8]
+            ids = [index[t] for t in part]
+            meter.update([preds[t] for t in part], [gts[t] for t in part], [ds.scene_of(i) for i in ids],
+                         [ds.scenes.frame[i] for i in ids], torch.stack([ds.ego_pose(i) for i in ids]))
+        res = meter.compute()
+        ms = (time.perf_counter() - t0) / max(len(tokens), 1) * 1000
+        per = ", ".join(f"{k} {v:.3f}" for k, v in res["C-AP_class"].items())
+        switched = sum(v[1] for v in res["switched"].values())
+        print(f"{folder[-60:]:<60}{res['mAP']:>8.3f}{res['C-mAP']:>8.3f}  {per}; {switched}; {ms:.0f}")
+
+
+if __name__ == "__main__":
+    main()
