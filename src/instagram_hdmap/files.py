@@ -66,7 +66,10 @@ def relative_path_note(path: str | Path) -> str:
     """For a message about a path not found: where a relative one was looked for (the current folder, not the
     config file's, which a run started from another folder is easily taken for); "" for an absolute path."""
     path = Path(path)
-    return "" if path.is_absolute() else f"; a relative path is read from the current folder, {Path.cwd()}"
+    try:
+        return "" if path.is_absolute() else f"; a relative path is read from the current folder, {Path.cwd()}"
+    except OSError:  # the current folder was removed
+        return "; a relative path is read from the current folder, which no longer exists"
 
 
 def _first_existing(path: Path) -> Path:
@@ -245,6 +248,7 @@ def _replace_folder(tmp: Path, path: Path) -> None:
     ``path`` that still looked whole (its manifest, tables and maps, part of its images), and the new one was
     removed with the temporaries. A kill now leaves ``.NAME.old-PID``, which the next writer removes."""
     old = temporary_sibling(path, OLD_TAG)
+    _remove(old)  # left by an earlier write of this very process id
     os.replace(path, old)
     try:
         _replace(tmp, path)
