@@ -8,10 +8,10 @@ second sweep of the same kind after it, ``S3`` one found by a third sweep, ``S4`
 fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one found by a seventh, ``S8`` one
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
-fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S18`` one found by an
-eighteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid input that was refused checks that it
-runs). Everything runs on the tiny synthetic
-world of conftest.py and a random tiny model: no training longer than a few steps.
+fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S17`` one found by a
+seventeenth, ``S18`` one found by an eighteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid
+input that was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a
+random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S15"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S17"
     what: str
     run: Callable
 
@@ -3766,6 +3766,382 @@ def row_train_done_printed_once_under_torchrun(env):
         f"done: epoch 0, step 1; outputs in {env.tmp / 'r'}"], p.stdout
 
 
+# ==================================================================================================
+# Sweep 17: faults, killed runs, the file system
+# ==================================================================================================
+
+
+@row("S17", "Ctrl-C (or a SIGTERM) during a training's validation: last.pt was saved with the epoch counted as "
+            "done, so the resume skipped that validation; after the final epoch it said 'completed its schedule: "
+            "nothing left to train', exit 0, with the run never validated and no best.pt. last.pt records the cut "
+            "validation and the resume runs it first")
+def row_interrupted_validation_runs_on_resume(env):
+    from instagram_hdmap import train as train_module
+
+    real, calls = train_module.evaluate, []
+
+    def ctrl_c_in_the_first(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    env.monkeypatch.setattr(train_module, "evaluate", ctrl_c_in_the_first)
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}")
+    assert rc == 130 and (run / "last.pt").is_file() and not (run / "best.pt").exists(), (rc, err[-2000:])
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    assert len(calls) == 2, "the interrupted validation was not run again"
+    assert re.search(r"validation after step \d+ was interrupted; running it first", out), out
+    assert (run / "best.pt").is_file() and not load_checkpoint(run / "last.pt")["validation_pending"]
+    assert len((run / "log.jsonl").read_text().splitlines()) == 1  # the epoch's line, written once
+
+
+@row("S17", "train --resume after the training split changed (a scene removed from data.splits_file, another "
+            "data.dataroot): the schedule was recounted over the new split, so a run of 6 samples resumed on 3 said "
+            "'done' after no step, exit 0, and the saved position skipped or repeated samples; the checkpoint keeps "
+            "the split's sample count and token hash, and another split is named (the same data moved elsewhere "
+            "resumes)")
+def row_resume_with_another_training_split(env):
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    splits = json.loads((env.world / "splits.json").read_text())
+    fewer = env.tmp / "fewer.json"
+    fewer.write_text(json.dumps({**splits, "train": splits["train"][:1]}))
+    env.error(r"last\.pt was trained on another training split \(\d+ samples then, \d+ now.*train\.init_from=",
+              "train", env.yaml, f"train.out_dir={run}", "train.epochs=2", f"data.splits_file={fewer}",
+              "--resume", run / "last.pt")
+    moved = env.tmp / "moved"
+    moved.symlink_to(env.world)
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=2",
+                           f"data.dataroot={moved}", "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+
+
+@row("S17", "evaluate --out OLD killed between its two writes (submission.json, then metrics.json): OLD held the new "
+            "checkpoint's submission beside the metrics of the evaluation before, a pair that looked whole; both are "
+            "written to temporaries and renamed together, so the earlier pair stays as it was")
+def row_evaluate_killed_between_its_two_files(env):
+    from instagram_hdmap import predict as predict_module
+
+    out = env.tmp / "e"
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
+    assert rc == 0 and (out / "metrics.json").is_file(), err[-2000:]
+    before = {name: (out / name).read_bytes() for name in ("submission.json", "metrics.json")}
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    env.monkeypatch.setattr(predict_module, "write_json", killed)
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out, "data.val_split=train")
+    assert rc == 130, err[-2000:]
+    assert {name: (out / name).read_bytes() for name in before} == before  # the earlier pair, whole
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "submission.json"]  # no temporaries
+
+
+@row("S17", "an output path on a read-only file system (a read-only mount or snapshot) was 'no permission to write "
+            "in DIR', which sends the user to chmod; it is named as a read-only file system")
+def row_read_only_file_system_named(env):
+    from types import SimpleNamespace
+
+    from instagram_hdmap import files
+
+    ro = env.tmp / "ro"
+    ro.mkdir()
+    real_access, real_statvfs = os.access, os.statvfs
+    env.monkeypatch.setattr(files.os, "access", lambda p, mode, *a, **k: False if Path(p) == ro else
+                            real_access(p, mode, *a, **k))
+    env.monkeypatch.setattr(files.os, "statvfs", lambda p: SimpleNamespace(f_flag=os.ST_RDONLY) if Path(p) == ro
+                            else real_statvfs(p))
+    env.error(r"--out .*gt\.json: .*ro is on a read-only file system", "export-gt", env.yaml, "--out", ro / "gt.json")
+    env.error(r"--out .*ro: is on a read-only file system", "evaluate", env.yaml, "--checkpoint", env.ckpt,
+              "--out", ro)
+
+
+@row("S17", "train --resume DIR/last.pt where DIR holds no run at all (a wrong folder): 'the run in DIR stopped before "
+            "its first checkpoint ... run the same command without --resume', a run that never was; it says DIR "
+            "holds no training run")
+def row_resume_from_a_folder_without_a_run(env):
+    empty = env.tmp / "elsewhere"
+    empty.mkdir()
+    env.error(r"checkpoint not found: .*elsewhere/last\.pt; .*elsewhere holds no training run", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}", "--resume", empty / "last.pt")
+
+
+@row("S17", "synth --out WORLD --force where WORLD also holds a training run or an evaluation (train.out_dir or "
+            "evaluate --out inside the dataset root): the run was deleted with the old world, exit 0; such entries are "
+            "named and nothing is generated")
+def row_synth_force_over_a_world_holding_a_run(env):
+    world = env.tmp / "w"
+    (world / "run").mkdir(parents=True)
+    (world / "world.json").write_text("{}")
+    (world / "run" / "last.pt").write_bytes(b"a checkpoint")
+    env.error(r"--out .*w: besides the synthetic world it holds run, which --force would delete", "synth", "--out",
+              world, "--force", "--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1",
+              "--image-size", "320x180")
+    assert (world / "run" / "last.pt").read_bytes() == b"a checkpoint"
+
+
+@row("S17", "a config's relative data.dataroot / data.splits_file, the run started from another folder than the "
+            "config's: 'dataroot not found: world', which reads as if the world were gone; it says that a relative "
+            "path is read from the current folder and names it")
+def row_relative_dataroot_from_another_folder(env):
+    env.error(r"dataroot not found: world .*a relative path is read from the current folder, .+", "export-gt",
+              env.yaml, "data.dataroot=world", "--out", env.tmp / "gt.json")
+    env.error(r"splits file not found: nowhere/splits\.json .*a relative path is read from the current folder",
+              "export-gt", env.yaml, "data.splits_file=nowhere/splits.json", "--out", env.tmp / "gt.json")
+
+
+@row("S17", "train.out_dir a folder of other files (train.out_dir=. in a project folder): refused, but told to 'pass "
+            "--resume ./last.pt to continue it' (no such checkpoint: a second error); it says what to do instead")
+def row_out_dir_of_other_files(env):
+    out = env.tmp / "project"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    line = env.error(r"holds files that are not a run's \(notes\.txt\); choose another train\.out_dir", "train",
+                     env.yaml, f"train.out_dir={out}")
+    assert "--resume" not in line
+
+
+@row("S17", "synth --out W --force over an existing world, Ctrl-C (or a kill) while the old world was being removed "
+            "(seconds for a large world): W was left half-deleted but looking whole (world.json, tables and maps, "
+            "part of its images) and the new world was removed with the temporaries; the old world is renamed aside "
+            "and removed only once the new one is in place")
+def row_synth_force_interrupted_while_removing_the_old_world(env):
+    import shutil as shutil_module
+
+    world = env.tmp / "w"
+    small = ["--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1", "--image-size", "320x180"]
+    rc, _, err = env.cli("synth", "--out", world, *small)
+    assert rc == 0, err[-2000:]
+    real = shutil_module.rmtree
+
+    def ctrl_c_half_way(path, *args, **kwargs):  # the removal of the old world, cut after its images
+        name = Path(path).name
+        if name == "w" or name.startswith(".w.old-"):
+            real(Path(path) / "samples")
+            raise KeyboardInterrupt
+        return real(path, *args, **kwargs)
+
+    env.monkeypatch.setattr(shutil_module, "rmtree", ctrl_c_half_way)
+    rc, _, err = env.cli("synth", "--out", world, "--force", "--seed", "1", *small)
+    env.monkeypatch.setattr(shutil_module, "rmtree", real)
+    assert rc == 130, err[-2000:]
+    assert json.loads((world / "world.json").read_text())["seed"] == 1, "the new world is not in place"
+    assert any((world / "samples").rglob("*.jpg")), "the world at --out lost its images"
+
+
+@row("S17", "a low limit on open files (ulimit -n 40) with data.num_workers=1: the workers pass each tensor through a "
+            "file descriptor, which ran out; the run hung for good, a thread printing 'OSError: [Errno 24] Too many "
+            "open files' tracebacks without end. The soft limit is raised towards the hard one, and below 4096 the "
+            "tensors go through named shared memory: the run works")
+def row_open_file_limit_with_data_workers(env):
+    import resource
+
+    def low_limit():
+        resource.setrlimit(resource.RLIMIT_NOFILE, (40, 40))
+
+    run = env.tmp / "run"
+    try:
+        p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "train", str(env.yaml), f"train.out_dir={run}",
+                            "train.max_steps=1", "data.num_workers=1"], capture_output=True, text=True, timeout=150,
+                           preexec_fn=low_limit, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path),
+                                                      "OMP_NUM_THREADS": "1"})
+    except subprocess.TimeoutExpired as e:
+        raise AssertionError("the training hung (too many open files)") from e
+    assert p.returncode == 0 and "Too many open files" not in p.stderr, p.stderr[-3000:]
+    assert (run / "last.pt").is_file()
+
+
+@row("S17", "a training killed after its last checkpoint (kill -9, a power cut) and resumed: the steps it had trained "
+            "since were logged to TensorBoard twice, the killed run's and the resumed run's (a second curve over "
+            "them, other values where the resume changed train.lr); the resumed run purges the killed one's events "
+            "after its checkpoint")
+def row_tensorboard_after_a_kill_and_resume(env):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from instagram_hdmap.train import TrainingRun
+
+    class Killed(BaseException):  # not an exception the run handles: no save at the kill, as with kill -9
+        pass
+
+    on_step = TrainingRun.on_step
+
+    def killed_after_step_3(self, info):
+        on_step(self, info)
+        if info.step == 3:
+            raise Killed
+
+    env.monkeypatch.setattr(TrainingRun, "on_step", killed_after_step_3)
+    run = env.tmp / "run"
+    args = ["train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.checkpoint_every=2",
+            "train.val_every=100"]
+    with pytest.raises(Killed):
+        env.cli(*args)
+    assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
+    env.monkeypatch.setattr(TrainingRun, "on_step", on_step)
+    rc, _, err = env.cli(*args, "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    events = EventAccumulator(str(run / "tb"))
+    events.Reload()
+    steps = [e.step for e in events.Scalars("train/lr")]
+    assert steps == sorted(set(steps)) and 3 in steps, steps
+
+
+@row("S17", "predict --out DIR over an earlier predict of another sample, killed part-way (Ctrl-C, kill -9, a full "
+            "disk): DIR mixed the new sample's first pictures with the old one's last picture and prediction.json, a "
+            "set that looked whole; the pictures and prediction.json are written to temporaries and renamed together")
+def row_predict_killed_part_way_over_an_earlier_set(env):
+    from instagram_hdmap import predict as predict_module
+
+    out = env.tmp / "p"
+    rc, _, err = env.cli("predict", env.yaml, "--checkpoint", env.ckpt, "--index", "0", "--out", out)
+    assert rc == 0, err[-2000:]
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = predict_module.save_figure, []
+
+    def killed_at_the_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    env.monkeypatch.setattr(predict_module, "save_figure", killed_at_the_second)
+    rc, _, err = env.cli("predict", env.yaml, "--checkpoint", env.ckpt, "--index", "2", "--out", out)
+    assert rc == 130, err[-2000:]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@row("S17", "show-gt --out DIR over an earlier show-gt of another sample, killed part-way: DIR mixed both samples' "
+            "pictures (only bev_polylines.png names its sample); the pictures are renamed together")
+def row_show_gt_killed_part_way_over_an_earlier_set(env):
+    from instagram_hdmap import visualize
+
+    out = env.tmp / "g"
+    rc, _, err = env.cli("show-gt", env.yaml, "--index", "0", "--out", out)
+    assert rc == 0, err[-2000:]
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = visualize.save_figure, []
+
+    def killed_at_the_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    env.monkeypatch.setattr(visualize, "save_figure", killed_at_the_third)
+    rc, _, err = env.cli("show-gt", env.yaml, "--index", "1", "--out", out)
+    assert rc == 130, err[-2000:]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@row("S17", "a data-loader worker killed during a training (the out-of-memory killer's choice, a kill -9): torch's "
+            "'DataLoader worker (pid N) is killed by signal: Killed.' ended the run in two chained tracebacks, the "
+            "steps since the last checkpoint lost; last.pt is saved at the last completed step and one line says so "
+            "(evaluate: one line, nothing written)")
+def row_data_worker_killed(env):
+    from instagram_hdmap import predict as predict_module
+    from instagram_hdmap.train import TrainingRun
+
+    on_step = TrainingRun.on_step
+
+    def worker_killed_after_step_2(self, info):
+        on_step(self, info)
+        if info.step == 2:
+            raise RuntimeError("DataLoader worker (pid 4242) is killed by signal: Killed. ")
+
+    env.monkeypatch.setattr(TrainingRun, "on_step", worker_killed_after_step_2)
+    run = env.tmp / "run"
+    env.error(r"DataLoader worker \(pid 4242\) is killed by signal: Killed .*saved .*last\.pt at step 2: resume with "
+              r"--resume", "train", env.yaml, f"train.out_dir={run}", "train.epochs=2")
+    assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
+
+    def worker_died(*args, **kwargs):
+        raise RuntimeError("DataLoader worker (pid(s) 4243) exited unexpectedly")
+
+    env.monkeypatch.setattr(predict_module, "evaluate", worker_died)
+    env.error(r"evaluate: error: DataLoader worker .*exited unexpectedly .*nothing was written", "evaluate", env.yaml,
+              "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+
+
+@row("S17", "train.out_dir on a file system that takes no file lock (NFS without lockd, some FUSE mounts: flock fails "
+            "with ENOLCK): 'another training is running in OUT (process ?)', so no training could run there at all; "
+            "it trains without the lock, with a note")
+def row_out_dir_without_file_locks(env):
+    import errno
+    import fcntl
+
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    env.monkeypatch.setattr(fcntl, "flock", no_locks)
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    assert "takes no file lock (No locks available)" in out and (run / "last.pt").is_file()
+
+
+@row("S17", "train --resume into a run folder whose tb is a file or whose log.jsonl is a folder: a raw "
+            "FileExistsError (TensorBoard's makedirs) or IsADirectoryError (open) traceback once the model and the "
+            "loaders were built; one line names the entry before the work")
+def row_run_files_of_the_wrong_kind(env):
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    shutil.rmtree(run / "tb")
+    (run / "tb").write_text("")
+    env.error(r"tb is a file, where the run keeps its TensorBoard events in a folder", "train", env.yaml,
+              f"train.out_dir={run}", "train.epochs=2", "--resume", run / "last.pt")
+    (run / "tb").unlink()
+    (run / "log.jsonl").unlink()
+    (run / "log.jsonl").mkdir()
+    env.error(r"log\.jsonl is a folder, where the run keeps its log in a file", "train", env.yaml,
+              f"train.out_dir={run}", "train.epochs=2", "--resume", run / "last.pt")
+
+
+@row("S17", "train --resume latest.pt, a symbolic link to OUT/last.pt (kept beside the runs), with train.out_dir=OUT: "
+            "refused as 'continues the run of ., but OUT holds a run of its own ... set train.out_dir=.' (the link's "
+            "folder, where following the advice would split the run); the checkpoint's own folder is its run")
+def row_resume_through_a_symbolic_link(env):
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0, err[-2000:]
+    (env.tmp / "latest.pt").symlink_to(run / "last.pt")
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=2",
+                         "--resume", env.tmp / "latest.pt")
+    assert rc == 0, err[-2000:]
+    assert torch.load(run / "last.pt", weights_only=True)["step"] == 2
+
+
+@row("S17", "long file names: export-gt --out of a valid 250-byte name failed after the work with a raw ENAMETOOLONG "
+            "(its temporary .NAME.tmp-PID was longer than a file name may be); a name over 255 bytes in "
+            "train.out_dir or evaluate --out was a raw OSError from the first stat. The temporary's name is cut to "
+            "fit, and a name too long is one line")
+def row_long_file_names(env):
+    name = "g" * 245 + ".json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", env.tmp / name)
+    assert rc == 0 and (env.tmp / name).is_file(), err[-2000:]
+    too_long = env.tmp / ("a" * 300)
+    env.error(r"train\.out_dir .*: the name a+\.\.\. is 300 bytes long, more than a file name can be \(255\)", "train",
+              env.yaml, f"train.out_dir={too_long}")
+    env.error(r"--out .*: the name a+\.\.\. is 300 bytes long", "evaluate", env.yaml, "--checkpoint", env.ckpt,
+              "--out", too_long)
+
+
+@row("S17", "train --resume with another eval.protocol (or data.val_split, eval.thresholds): the run compared its "
+            "raster mAP with the vector mAP best.pt was kept for, to decide whether to replace best.pt, with no word; "
+            "a note names the difference")
+def row_resume_with_another_validation(env):
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=1")
+    assert rc == 0 and (run / "best.pt").is_file(), err[-2000:]
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.max_steps=2",
+                           "eval.protocol=raster", "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    assert re.search(r"note: the best score so far .* was measured with another validation \(eval\.protocol: "
+                     r"checkpoint 'vector' vs now 'raster'\)", out), out
 @row("S16", "a run saved part-way through an epoch by 2 torchrun processes and resumed by 1: the shuffled sampler "
             "skipped samples of this rank's share (computed for the old number of ranks), so part of the epoch was "
             "walked twice or not at all, no word; it goes on from the same sample of the epoch's order, and says so")

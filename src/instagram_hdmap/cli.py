@@ -22,11 +22,11 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .evaluation import evaluate_files, format_table
-from .files import NO_ROOM, check_output_dir, check_output_file, os_error_in, write_json
+from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
-from .train import train
+from .train import data_worker_died, train
 from .visualize import write_sample_pngs
 
 
@@ -134,6 +134,7 @@ def _cmd_model_summary(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     cfg = _load(args)
+    check_name_lengths(Path(cfg.train.out_dir), "train.out_dir")  # before the stat below
     written = Path(cfg.train.out_dir) / "config.yaml"  # the run writes its resolved config there
     if not args.resume and written.is_file() and written.resolve() == Path(args.config).resolve():
         raise UserError(f"CONFIG {args.config} is {written}, where the run writes its resolved config (starting over "
@@ -515,6 +516,12 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
         cause = os_error_in(e)
+        died = data_worker_died(e)
+        if died is not None:  # evaluate, predict: nothing was written (a training saves last.pt first)
+            print(f"instagram-hdmap {args.command}: error: {died.rstrip('. ')} (the out-of-memory killer, or a "
+                  "kill); nothing was written: run it again (with a lower data.num_workers or eval.batch_size if "
+                  "memory ran out)", file=sys.stderr)
+            return 2
         if cause is None and out_of_memory(e):
             first = " ".join(str(e).split())[:300]
             print(f"instagram-hdmap {args.command}: error: out of memory ({type(e).__name__}: {first}); make the job "

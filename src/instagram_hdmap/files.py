@@ -62,6 +62,16 @@ def os_error_in(e: BaseException) -> OSError | None:
     return None
 
 
+def relative_path_note(path: str | Path) -> str:
+    """For a message about a path not found: where a relative one was looked for (the current folder, not the
+    config file's, which a run started from another folder is easily taken for); "" for an absolute path."""
+    path = Path(path)
+    try:
+        return "" if path.is_absolute() else f"; a relative path is read from the current folder, {Path.cwd()}"
+    except OSError:  # the current folder was removed
+        return "; a relative path is read from the current folder, which no longer exists"
+
+
 def _first_existing(path: Path) -> Path:
     while not path.exists() and path != path.parent:
         path = path.parent
@@ -86,12 +96,33 @@ def check_no_broken_link(path: str | Path, flag: str = "output path") -> None:
         probe = probe.parent
 
 
+def read_only_file_system(path: Path) -> bool:
+    """Whether ``path`` lies on a file system mounted read-only (a read-only bind mount, a snapshot, a CD): no
+    permission of the user's would help there, so the message says that instead of "no permission"."""
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):  # no statvfs (Windows)
+        return False
+
+
+def check_name_lengths(path: Path, flag: str) -> None:
+    """Each name in ``path`` fits in a file name (``NAME_MAX`` bytes): a longer one raised a raw ENAMETOOLONG
+    from the first ``stat``."""
+    for part in path.parts:
+        size = len(os.fsencode(part))
+        if size > NAME_MAX:
+            raise OutputError(f"{flag} {path}: the name {part[:40]}... is {size} bytes long, more than a file name "
+                              f"can be ({NAME_MAX}); choose a shorter one")
+
+
 def _check_parent(path: Path, flag: str) -> None:
     check_no_broken_link(path, flag)
     base = _first_existing(path.parent)
     if not base.is_dir():
         raise OutputError(f"{flag} {path}: {base} is a file, so nothing can be written below it; choose another path")
     if not os.access(base, os.W_OK | os.X_OK):
+        if read_only_file_system(base):
+            raise OutputError(f"{flag} {path}: {base} is on a read-only file system; choose a folder on a writable one")
         raise OutputError(f"{flag} {path}: no permission to write in {base}; choose a writable folder")
 
 
@@ -108,6 +139,7 @@ def check_output_file(path: str | Path, flag: str = "output file",
     existing folder above it is writable). ``flag`` names the option in the message (``--out``).
     ``inputs``: (path, option) pairs of the job's input files, which the output must not replace."""
     path = Path(path)
+    check_name_lengths(path, flag)
     for source, option in inputs:
         if source is not None and _same_file(path, Path(source)):
             raise OutputError(f"{flag} {path} is the {option} file the job reads; writing the result there would "
@@ -115,6 +147,8 @@ def check_output_file(path: str | Path, flag: str = "output file",
     if path.is_dir():
         raise OutputError(f"{flag} {path}: is a folder; give a file name (e.g. {path / 'out.json'})")
     if path.exists() and not os.access(path, os.W_OK):
+        if read_only_file_system(path):
+            raise OutputError(f"{flag} {path}: the file is on a read-only file system; choose a path on a writable one")
         raise OutputError(f"{flag} {path}: the file is not writable; choose another path")
     _check_parent(path, flag)
     return path
@@ -124,11 +158,14 @@ def check_output_dir(path: str | Path, flag: str = "output folder") -> Path:
     """Before the work: ``path`` can be an output folder (it is not a file, and it or the first
     existing folder above it is writable)."""
     path = Path(path)
+    check_name_lengths(path, flag)
     check_no_broken_link(path, flag)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{flag} {path}: is a file, not a folder; choose another path")
     if path.is_dir():
         if not os.access(path, os.W_OK | os.X_OK):
+            if read_only_file_system(path):
+                raise OutputError(f"{flag} {path}: is on a read-only file system; choose a folder on a writable one")
             raise OutputError(f"{flag} {path}: no permission to write in it; choose a writable folder")
     else:
         _check_parent(path, flag)
@@ -155,7 +192,8 @@ def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
     if not path.parent.is_dir():
         return removed
     # .NAME.TAG-PID, and .STEM.TAG-PID.SUFFIX (keep_suffix)
-    for prefix, suffix in ((f".{path.name}.{tag}-", ""), (f".{path.stem}.{tag}-", path.suffix)):
+    for prefix, suffix in ((f".{_fitted(path.name, tag)}.{tag}-", ""),
+                           (f".{_fitted(path.stem, tag, path.suffix)}.{tag}-", path.suffix)):
         for tmp in path.parent.glob(prefix + "*"):
             pid = tmp.name[len(prefix):len(tmp.name) - len(suffix)]
             if (tmp.name.endswith(suffix) and pid.isdigit() and int(pid) != os.getpid()
@@ -165,13 +203,26 @@ def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
     return removed
 
 
+NAME_MAX = 255  # bytes in one file name (ext4, XFS, Btrfs, tmpfs, NFS)
+
+
+def _fitted(name: str, tag: str, suffix: str = "") -> str:
+    """``name`` cut (on a character) so that ``.NAME.TAG-PID{suffix}`` fits in ``NAME_MAX`` bytes for any PID: a
+    valid file name of 240 bytes had a temporary name too long to create (a raw ENAMETOOLONG after the work)."""
+    room = NAME_MAX - len(f"..{tag}-{suffix}".encode()) - 10  # a PID has at most 10 digits
+    while len(name.encode()) > room:
+        name = name[:-1]
+    return name
+
+
 def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Path:
     """``.NAME.TAG-PID`` next to ``path``: where ``atomic_path`` writes before the rename
-    (``.STEM.TAG-PID.SUFFIX`` with ``keep_suffix``, for writers that choose a format by the suffix)."""
+    (``.STEM.TAG-PID.SUFFIX`` with ``keep_suffix``, for writers that choose a format by the suffix); a long NAME
+    is cut to keep it a valid file name (``_fitted``)."""
     path = Path(path)
     if keep_suffix:
-        return path.with_name(f".{path.stem}.{tag}-{os.getpid()}{path.suffix}")
-    return path.with_name(f".{path.name}.{tag}-{os.getpid()}")
+        return path.with_name(f".{_fitted(path.stem, tag, path.suffix)}.{tag}-{os.getpid()}{path.suffix}")
+    return path.with_name(f".{_fitted(path.name, tag)}.{tag}-{os.getpid()}")
 
 
 def _remove(path: Path) -> None:
@@ -186,6 +237,27 @@ def _replace(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
+_TARGET_OF: dict[Path, Path] = {}  # a live temporary -> the file it becomes (named in the errors of writes into it)
+OLD_TAG = "old"  # .NAME.old-PID: a folder being replaced, renamed aside until the new one is in place
+
+
+def _replace_folder(tmp: Path, path: Path) -> None:
+    """``tmp`` over the folder ``path`` (os.replace renames a folder only over an empty one): the old folder is
+    renamed aside, the new one renamed in, and only then is the old one removed. Removing it first (a large
+    synthetic world takes seconds) left, on a Ctrl-C or a kill during the removal, a half-deleted folder at
+    ``path`` that still looked whole (its manifest, tables and maps, part of its images), and the new one was
+    removed with the temporaries. A kill now leaves ``.NAME.old-PID``, which the next writer removes."""
+    old = temporary_sibling(path, OLD_TAG)
+    _remove(old)  # left by an earlier write of this very process id
+    os.replace(path, old)
+    try:
+        _replace(tmp, path)
+    except BaseException:
+        os.replace(old, path)
+        raise
+    _remove(old)
+
+
 @contextmanager
 def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
@@ -198,35 +270,40 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
     if path.is_symlink() and path.exists():
         path = Path(os.path.realpath(path))
     tmp = temporary_sibling(path, tag, keep_suffix)
+    shown = _TARGET_OF.get(path, path)  # a set written together writes each file through a temporary of its own
+    _TARGET_OF[tmp] = shown
     try:
         check_no_broken_link(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(path, tag)
+        remove_stale_temporaries(path, OLD_TAG)
         yield tmp
         if tmp.is_file():
             if path.is_dir() and not path.is_symlink():
                 raise OutputError(f"{path}: is a folder, so a file cannot be written there; choose another path")
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
-        elif tmp.is_dir() and path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)  # os.replace renames a folder only over an empty one
-        _replace(tmp, path)
+        if tmp.is_dir() and path.is_dir() and not path.is_symlink():
+            _replace_folder(tmp, path)
+        else:
+            _replace(tmp, path)
     except Exception as e:  # a full disk or an unwritable place, named (Ctrl-C passes through)
         cause = os_error_in(e)
         if cause is None or isinstance(e, UserError):
             raise
         if cause.errno in NO_ROOM:
-            raise OutputError(f"cannot write {path}: {cause.strerror or cause} (the disk is full or a file-size "
-                              f"limit is reached); {path.name} is as it was before; free some space and run "
+            raise OutputError(f"cannot write {shown}: {cause.strerror or cause} (the disk is full or a file-size "
+                              f"limit is reached); {shown.name} is as it was before; free some space and run "
                               "again") from e
         if cause.errno in (errno.EACCES, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EPERM):
-            raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose a writable path") from e
+            raise OutputError(f"cannot write {shown}: {cause.strerror or cause}; choose a writable path") from e
         if cause.filename is not None and str(cause.filename) in (str(tmp), str(path), str(path.parent)):
             # another failure of the write itself (a file system that takes no new files, such as /proc, or a
             # folder removed while the job ran): named, not a traceback
-            raise OutputError(f"cannot write {path}: {cause.strerror or cause}; choose another path") from e
+            raise OutputError(f"cannot write {shown}: {cause.strerror or cause}; choose another path") from e
         raise
     finally:
+        _TARGET_OF.pop(tmp, None)
         _remove(tmp)
 
 

@@ -24,6 +24,7 @@ frame, x forward, y left; a closed shape repeats its first point).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import warnings
@@ -50,7 +51,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .train import make_cmap_meter, make_flicker_meter
+from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers
 from .visualize import (
     figure_rgb,
     intermediate_figure,
@@ -217,6 +218,19 @@ def prediction_figures(outputs: dict, predictions: list[dict], ground_truth: lis
     }
 
 
+def write_together(out: Path, figures: dict, predictions: dict, meta: dict) -> list[Path]:
+    """``predict``'s pictures and ``out/prediction.json``, written to temporaries and renamed together at the
+    end: a kill or a full disk part-way leaves the folder's earlier set whole (written one by one, a set over
+    an earlier ``predict`` of another sample mixed both samples' pictures and the other's prediction.json)."""
+    names = [*figures, "prediction.json"]
+    with contextlib.ExitStack() as stack:
+        tmp = {n: stack.enter_context(atomic_path(out / n, keep_suffix=n != "prediction.json")) for n in names}
+        for name, fig in figures.items():
+            save_figure(fig, tmp[name])
+        write_submission(tmp["prediction.json"], predictions, meta)
+    return [out / n for n in names]
+
+
 def predict_sample(
     cfg: ExperimentConfig,
     out: str | Path,
@@ -281,10 +295,7 @@ def predict_sample(
     figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
                                  {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
                                  heading, dataset.camera_names, float(sample["ground_height"]))
-    out = Path(out)
-    paths = [save_figure(fig, out / name) for name, fig in figures.items()]
-    write_submission(out / "prediction.json", {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
-    paths.append(out / "prediction.json")
+    paths = write_together(Path(out), figures, {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
     return {"sample_token": sample["sample_token"], "index": i, "split": split, "predictions": preds,
             "paths": paths, "notes": notes}
 
@@ -409,12 +420,10 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     figures = prediction_figures(outputs, preds, None, display,
                                  {k: batch[k][0] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")},
                                  mapper.config, f"{name} - {mapper.source}", mapper.cameras)
-    out = Path(out)
-    paths = [save_figure(fig, out / file) for file, fig in figures.items()]
     meta = {**submission_meta(mapper.config, "", mapper.source), "rig": str(rig_file),
             "images": [str(p) for p in images]}
-    write_submission(out / "prediction.json", {name: preds}, meta)
-    return {"name": name, "elements": elements, "paths": [*paths, out / "prediction.json"], "source": mapper.source}
+    paths = write_together(Path(out), figures, {name: preds}, meta)
+    return {"name": name, "elements": elements, "paths": paths, "source": mapper.source}
 
 
 # --- a scene as a video: predict --scene --video -------------------------------------------------------
@@ -570,6 +579,7 @@ def run_evaluation(
     index_of = {t: i for i, t in enumerate(dataset.sample_tokens)}
     rank, world = du.get_rank(), du.get_world_size()
     owned = None  # streaming: the samples this rank scores
+    open_files_for_workers(cfg.data.num_workers)
     if is_temporal(model):
         sampler = StreamingBatchSampler(dataset.scenes.runs, cfg.eval.batch_size, shuffle=False, rank=rank,
                                         world_size=world)
@@ -649,7 +659,12 @@ def run_evaluation(
     out = Path(out)
     paths = []
     if du.is_main_process():
-        write_submission(out / "submission.json", results, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
-        paths = [out / "submission.json", write_json(metrics, out / "metrics.json")]
+        # both files are written to temporaries first and renamed together at the end: a kill or a full disk while
+        # either is written leaves the folder's earlier pair as it was, not this submission beside the metrics of
+        # another evaluation (a pair that looked whole)
+        with atomic_path(out / "submission.json") as sub_tmp, atomic_path(out / "metrics.json") as met_tmp:
+            write_submission(sub_tmp, results, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
+            write_json(metrics, met_tmp)
+        paths = [out / "submission.json", out / "metrics.json"]
     return {"metrics": metrics, "paths": paths, "notes": notes, "num_samples": len(dataset),
             "samples_per_s": samples_per_s}

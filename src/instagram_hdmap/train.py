@@ -22,10 +22,12 @@ history, as at a scene start (``memory_status`` no_memory), until their next sce
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
 import random
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -70,6 +72,49 @@ RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "tra
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
+# what the validation score that picks best.pt measures: a resume may change them, but its scores are then of another
+# kind than the best score it carries (a raster mAP compared with a vector one, another split's), which a note says
+SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split")
+
+
+def train_set_fingerprint(loader) -> dict | None:
+    """The training split a run walks, as its sample count and a hash of its sample tokens in order (None for
+    a dataset without tokens). A checkpoint keeps it: its position and schedule count batches of that split."""
+    tokens = getattr(getattr(loader, "dataset", None), "sample_tokens", None)
+    if not isinstance(tokens, list) or not all(isinstance(t, str) for t in tokens):
+        return None
+    return {"samples": len(tokens), "sha256": hashlib.sha256("\n".join(tokens).encode()).hexdigest()[:16]}
+
+
+def check_same_train_set(saved: dict | None, now: dict | None, path: Path | str) -> None:
+    """A resume walks the training split its checkpoint counted batches of (``train_set_fingerprint``): another
+    one (scenes added or removed, another ``data.splits_file`` or ``data.dataroot``) ended the schedule early
+    ("done" after no step when the split shrank) or late, and the saved position skipped or repeated samples,
+    with exit 0 and no word."""
+    if not isinstance(saved, dict) or now is None or saved == now:
+        return
+    before, after = saved.get("samples"), now["samples"]
+    what = (f"{before} samples then, {after} now" if before != after else
+            f"{after} samples then and now, but other samples or another order")
+    raise CheckpointError(f"checkpoint {path} was trained on another training split ({what}: data.dataroot, "
+                          "data.splits_file or the split's scenes changed); its position and schedule count "
+                          "batches of that split, so a resume would skip or repeat samples and end the schedule "
+                          "early or late: resume with the data it was trained on, or start a new run from its "
+                          f"weights (train.init_from={path})")
+
+
+WORKER_DIED = re.compile(r"DataLoader worker \(pids?\(?s?\)? ?[\d, ]+\)? (is killed by signal|exited unexpectedly)")
+
+
+def data_worker_died(e: BaseException) -> str | None:
+    """torch's message when a data-loader worker process died (the out-of-memory killer's choice, a ``kill -9``),
+    first line only; None for another exception."""
+    text = str(e).strip()
+    return text.splitlines()[0] if isinstance(e, RuntimeError) and WORKER_DIED.search(text) else None
+
+
+class DataWorkerError(UserError):
+    """A data-loader worker died during a training: ``last.pt`` was saved at the last completed step."""
 
 
 def seed_everything(seed: int) -> None:
@@ -111,16 +156,19 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
         has_checkpoint = any(name in content for name in CHECKPOINTS)
         only_run_files = all(name in RUN_FILES for name in content)
         if content and not (resume or force):
-            if has_checkpoint or not only_run_files:
-                what = ("already holds a run" if has_checkpoint else
-                        f"holds files that are not a run's ({', '.join(sorted(content)[:5])})")
+            if not has_checkpoint and not only_run_files:  # no run to continue: --resume of a checkpoint not there
+                raise UserError(f"output folder {out_dir} holds files that are not a run's "
+                                f"({', '.join(sorted(content)[:5])}); choose another train.out_dir (a new or empty "
+                                "folder), or pass --force to train among them (it removes only a run's own files)")
+            if has_checkpoint:
                 # a save that failed after best.pt (a full disk) leaves no last.pt; best.pt resumes as well
-                ckpt = out_dir / ("last.pt" if "last.pt" in content or not has_checkpoint else "best.pt")
-                raise UserError(f"output folder {out_dir} {what}; pass --resume {ckpt} to continue it, "
+                ckpt = out_dir / ("last.pt" if "last.pt" in content else "best.pt")
+                raise UserError(f"output folder {out_dir} already holds a run; pass --resume {ckpt} to continue it, "
                                 "--force to start over in it, or choose another train.out_dir")
             du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
             force = True
-        source = Path(resume).parent if resume and Path(resume).is_file() else None
+        # the folder of the checkpoint itself: a symbolic link to it (latest.pt -> run/last.pt) names the run it is in
+        source = Path(resume).resolve().parent if resume and Path(resume).is_file() else None
         if source is not None and has_checkpoint and source.resolve() != out_dir.resolve():
             raise UserError(f"--resume {resume} continues the run of {source}, but train.out_dir={out_dir} holds a "
                             "run of its own, whose checkpoints and log it would overwrite; set "
@@ -132,6 +180,15 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                     shutil.rmtree(target)
                 elif target.exists() or target.is_symlink():
                     target.unlink()
+        # what the run appends to or writes in must be of its kind (they raised a raw FileExistsError from
+        # TensorBoard or an IsADirectoryError from open() once the model and loaders were built)
+        for name, folder, what in (("tb", True, "TensorBoard events"), ("log.jsonl", False, "log"),
+                                   ("config.yaml", False, "resolved config")):
+            target = out_dir / name
+            if target.exists() and target.is_dir() != folder:
+                raise UserError(f"train.out_dir {out_dir}: {name} is a {'folder' if target.is_dir() else 'file'}, "
+                                f"where the run keeps its {what} in a {'folder' if folder else 'file'}; move it away "
+                                "(or pass --force to start the run over)")
 
 
 LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process training in the folder
@@ -153,11 +210,18 @@ def lock_out_dir(out_dir: Path) -> None:
     handle = os.fdopen(os.open(out_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except BlockingIOError:  # EWOULDBLOCK: another process holds it
         owner = handle.read().strip()
         handle.close()
         raise UserError(f"another training is running in {out_dir} (process {owner or '?'}); wait for it to end "
                         "(or stop it), or choose another train.out_dir") from None
+    except OSError as e:  # a file system without locks (NFS without lockd, some FUSE mounts): was "another training"
+        handle.close()
+        with contextlib.suppress(OSError):
+            (out_dir / LOCK_FILE).unlink()
+        du.print_main(f"note: {out_dir} takes no file lock ({e.strerror or e}): a second training started in it "
+                      "while this one runs is not refused there")
+        return
     handle.seek(0)
     handle.truncate()
     handle.write(f"{os.getpid()}\n")
@@ -206,6 +270,35 @@ def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
                         + f" ({world_size} processes), or run {b} process(es)")
 
 
+OPEN_FILES_FOR_WORKERS = 4096  # the open-file limit under which data-loader workers hand tensors over by name
+
+
+def open_files_for_workers(num_workers: int) -> None:
+    """Data-loader workers hand each batch's tensors to this process through file descriptors (torch's
+    sharing strategy ``file_descriptor``: one per tensor in flight, received over a socket). Under a low
+    limit on open files (``ulimit -n``) they ran out: the run hung for good, a thread printing "OSError:
+    [Errno 24] Too many open files" tracebacks without end. The soft limit is raised towards the hard one (up
+    to ``OPEN_FILES_FOR_WORKERS``); where it stays below that, the tensors go through named shared memory
+    (``file_system``), which holds no descriptor."""
+    if num_workers <= 0:
+        return
+    try:
+        import resource
+    except ImportError:  # not POSIX: torch's default there needs no descriptors
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    unlimited = resource.RLIM_INFINITY
+    if soft == unlimited or soft >= OPEN_FILES_FOR_WORKERS:
+        return
+    raised = OPEN_FILES_FOR_WORKERS if hard == unlimited else min(hard, OPEN_FILES_FOR_WORKERS)
+    if raised > soft:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (raised, hard))
+            soft = raised
+    if soft < OPEN_FILES_FOR_WORKERS and torch.multiprocessing.get_sharing_strategy() == "file_descriptor":
+        torch.multiprocessing.set_sharing_strategy("file_system")
+
+
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
     """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
     reads drives: each rank's batch rows are streams walking whole scenes in order
@@ -213,6 +306,7 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     of ``train.stream_frames``, after ``train.stream_warmup`` of the epochs on shuffled single frames;
     the validation loader ``eval.batch_size`` streams of whole scenes)."""
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
+    open_files_for_workers(cfg.data.num_workers)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     streaming = cfg.model.temporal.memory != "none"
     common = {"collate_fn": collate_fn, "num_workers": cfg.data.num_workers, "worker_init_fn": _worker_init,
@@ -429,6 +523,9 @@ class TrainingRun:
         self.net: torch.nn.Module = self.model
         self.writer = self.log_file = None
         self.summary: dict = {}
+        # a validation that a Ctrl-C / SIGTERM cut short: last.pt records it and the resumed run runs it first (its
+        # epoch counted as done, it was skipped, and after the final epoch the run ended never validated, no best.pt)
+        self.validation_pending = False
         # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
 
@@ -472,6 +569,12 @@ class TrainingRun:
                 du.print_main(f"note: {out_dir / 'last.pt'} is at step {later}, later than {resume}; this run goes on "
                               f"from step {run.position.step} and its next save replaces that last.pt (to continue "
                               f"from step {later} instead, stop now and pass --resume {out_dir / 'last.pt'})")
+            best = run.best.get("score", -math.inf)
+            measured = config_differences(saved_config(state["config"], f"checkpoint {resume}"), cfg, SCORE_KEYS)
+            if measured and math.isfinite(best):
+                du.print_main(f"note: the best score so far ({best:.4g}, best.pt's) was measured with another "
+                              f"validation ({measured}); this run's scores replace best.pt only where they exceed it, "
+                              "a number of another kind")
             if cfg.train.init_from:
                 du.print_main(f"note: train.init_from={cfg.train.init_from} is not read on a resume: the weights are "
                               f"{resume}'s (the run's own checkpoint)")
@@ -495,6 +598,8 @@ class TrainingRun:
             self.scaler.load_state_dict(state["scaler"])
         self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
         self.best = state.get("best", self.best)
+        self.validation_pending = bool(state.get("validation_pending", False))
+        check_same_train_set(state.get("train_set"), train_set_fingerprint(self.train_loader), path)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
         self.note_world_change(state.get("world"), path)
         on_disk = best_score_in(self.out_dir)  # saved after the checkpoint resumed from (a kill in between)
@@ -532,9 +637,11 @@ class TrainingRun:
             raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
                             f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
                             "schedule: start a new run (another train.out_dir)")
-        elsewhere = not _same_path(Path(path).parent, self.out_dir)
+        run_dir = Path(path).resolve().parent  # a symbolic link to the checkpoint: the run it is in
+        elsewhere = not _same_path(run_dir, self.out_dir)
         du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
-                      + (f"; its run's outputs stay in {Path(path).parent}, train.out_dir={self.out_dir} gets no "
+                      + (" but its final validation, which was interrupted" if self.validation_pending else "")
+                      + (f"; its run's outputs stay in {run_dir}, train.out_dir={self.out_dir} gets no "
                          "checkpoint (to train on from it, start a new run with train.init_from=" + str(path) + ")"
                          if elsewhere else ""))
 
@@ -559,7 +666,10 @@ class TrainingRun:
             save_config(self.cfg, self.out_dir / "config.yaml")
             from torch.utils.tensorboard import SummaryWriter  # slow to import; training only
 
-            self.writer = SummaryWriter(str(self.out_dir / "tb"))
+            # a resumed run hides the events its killed predecessor wrote after the checkpoint (TensorBoard's
+            # purge_step): they showed as a second curve over the steps the resume trains again
+            purge = self.position.step + 1 if self.position.step else None
+            self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=purge)
             self.log_file = (self.out_dir / "log.jsonl").open("a")
         try:
             yield
@@ -620,11 +730,17 @@ class TrainingRun:
             if max_steps is not None and self.position.step >= max_steps:  # a resume past it: say why nothing runs
                 du.print_main(f"train.max_steps={max_steps} is reached already (the checkpoint is at step "
                               f"{self.position.step}): nothing to train; raise train.max_steps to continue")
+            if self.validation_pending and self.validating and self.val_loader is not None:
+                du.print_main(f"the validation after step {self.position.step} was interrupted; running it first")
+                self.validate()
+                self.save("last.pt", self.summary.get("val", {}).get("metrics"))
+                self.log()
             while not finished:
                 stopped = self.train_epoch()
                 finished = stopped or self.should_stop(self.position.step)  # also refreshes the clock saved below
                 if self.validating and self.val_loader is not None and (
                         finished or self.position.epoch % self.cfg.train.val_every == 0):
+                    self.validation_pending = True  # until it ends: an interrupt's last.pt says so
                     self.validate()
                 # after the validation, so that it carries the best score (a stop part-way too)
                 self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
@@ -634,6 +750,15 @@ class TrainingRun:
             du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
                           f"{self.out_dir / 'last.pt'})")
             raise
+        except RuntimeError as e:  # a data-loader worker killed (the OOM killer): saved as for Ctrl-C, one line
+            died = data_worker_died(e)
+            if died is None:
+                raise
+            self.save("last.pt", gather=False)
+            last = self.out_dir / "last.pt"
+            raise DataWorkerError(f"{died.rstrip('. ')} (the out-of-memory killer, or a kill); saved {last} at step "
+                                  f"{self.position.step}: resume with --resume {last} (with a lower "
+                                  "data.num_workers or train.batch_size if memory ran out)") from None
 
     def train_epoch(self) -> bool:
         """The rest of the epoch in progress; returns whether it stopped part-way (then ``fit`` saves
@@ -691,6 +816,7 @@ class TrainingRun:
                 self.writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], step)
             if "cmap" in val:
                 self.writer.add_scalar("val/C-mAP", val["cmap"]["C-mAP"], step)
+        self.validation_pending = False
         if not math.isnan(score) and score > self.best["score"]:
             self.best = {"score": score, "epoch": self.position.epoch, "step": step}
             self.save("best.pt", val.get("metrics"))
@@ -708,6 +834,7 @@ class TrainingRun:
             "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
             "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
             "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best, "memory": memories,
+            "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
             "world": self.world,
         }, self.out_dir / name)
 
@@ -858,6 +985,10 @@ def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
     if resume is None:
         return None
     path = Path(resume)
+    if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in RUN_FILES):
+        raise CheckpointError(f"checkpoint not found: {path}; {path.parent} holds no training run (no checkpoint, "
+                              "config.yaml or log.jsonl): check the path (a run's checkpoints are OUT/last.pt and "
+                              "OUT/best.pt, OUT its train.out_dir)")
     if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in CHECKPOINTS):
         raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before its first "
                               "checkpoint, so there is nothing to resume: run the same command without --resume")

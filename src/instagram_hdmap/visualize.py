@@ -7,6 +7,7 @@ and y (left) up; a BEV tensor [H, W] is shown with row 0 (ymin) at the bottom.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Sequence
 from pathlib import Path
@@ -197,7 +198,12 @@ def write_sample_pngs(
                                       sample["cam_to_ego_trans"], sample["post_rot"], sample["post_tran"],
                                       sample["gt_polylines"], camera_names, float(sample["ground_height"])),
     }
-    return [save_figure(fig, out / name) for name, fig in figs.items()]
+    # written to temporaries and renamed together: a kill part-way over an earlier show-gt of another sample mixed
+    # both samples' pictures (only bev_polylines.png names its sample)
+    with contextlib.ExitStack() as stack:
+        for name, fig in figs.items():
+            save_figure(fig, stack.enter_context(atomic_path(out / name, keep_suffix=True)))
+    return [out / name for name in figs]
 
 
 # --- predictions (``instagram-hdmap predict``) -----------------------------------------------------

@@ -61,6 +61,7 @@ import torch
 from shapely.geometry import LineString, Polygon
 
 from ..config import ExperimentConfig, UserError
+from ..files import relative_path_note
 from .base import (
     DatasetError,
     MapDataset,
@@ -267,7 +268,7 @@ class AV2MapDataset(MapDataset):
     def _check_root(self) -> None:
         root, split_dir = self.dataroot, self.split_dir
         if not root.is_dir():
-            raise DatasetError(f"AV2 dataroot not found: {root} (set data.dataroot)")
+            raise DatasetError(f"AV2 dataroot not found: {root} (set data.dataroot{relative_path_note(root)})")
         if not split_dir.is_dir():
             found = sorted(p.name for p in root.iterdir() if p.is_dir())
             raise DatasetError(f"{root} is not an AV2 sensor-dataset root: it has no split folder '{split_dir.name}' "

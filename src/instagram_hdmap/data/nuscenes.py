@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from ..config import ExperimentConfig
+from ..files import relative_path_note
 from .base import (
     DatasetError,
     MapDataset,
@@ -56,7 +57,8 @@ def open_nuscenes(dataroot: str | Path, version: str):
 
     root = Path(dataroot)
     if not root.is_dir():
-        raise DatasetError(f"nuScenes dataroot not found: {root} (set data.dataroot or --dataroot)")
+        raise DatasetError(f"nuScenes dataroot not found: {root} (set data.dataroot or --dataroot"
+                           f"{relative_path_note(root)})")
     table_root = root / version
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
@@ -154,7 +156,8 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         if not path.is_file() and (Path(nusc.dataroot) / path).is_file():
             path = Path(nusc.dataroot) / path
         if not path.is_file():
-            raise DatasetError(f"splits file not found: {splits_file} (config key data.splits_file)")
+            raise DatasetError(f"splits file not found: {splits_file} (config key data.splits_file"
+                               f"{relative_path_note(splits_file)})")
         try:
             splits = json.loads(path.read_text())
         except json.JSONDecodeError as e:

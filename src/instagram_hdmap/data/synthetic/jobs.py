@@ -45,6 +45,10 @@ SCENE_SPACING_US = 3600 * 1_000_000
 MP_START_METHOD = "spawn"  # workers start clean: no copied locks or threads (torch, OpenCV) from the caller
 POLL_S = 0.5  # how often the main process checks that its workers are alive while it waits
 STALL_S = 600.0  # a worker that sends nothing for this long (a sample takes seconds) is declared hung
+# what a world holds at its top level (nuScenes layout: maps, samples, the tables' version folder, splits.json;
+# Argoverse 2 layout: a folder per split), and the manifest
+WORLD_ENTRIES = frozenset({MANIFEST, "maps", "samples", "sweeps", "v1.0-trainval", "v1.0-mini", "splits.json", "train",
+                           "val", "test"})
 TMP_TAG = "synth-tmp"  # a world is written at .NAME.synth-tmp-PID (the next generation removes those of dead processes)
 
 
@@ -140,6 +144,11 @@ def _check_out(out: FsPath, force: bool) -> None:
         if not (out / MANIFEST).is_file():
             raise UserError(f"--out {out}: folder is not empty and holds no synthetic world ({MANIFEST}); "
                             "--force only replaces a world written by 'instagram-hdmap synth'")
+        others = sorted(p.name for p in out.iterdir() if p.name not in WORLD_ENTRIES)
+        if others:  # a training run or an evaluation kept inside the world: --force removed them with it
+            raise UserError(f"--out {out}: besides the synthetic world it holds {', '.join(others[:5])}"
+                            f"{f' and {len(others) - 5} more' if len(others) > 5 else ''}, which --force would delete "
+                            "with the world; move them out of it first, or choose another --out")
 
 
 def _unwritable(out: FsPath, e: OSError) -> UserError:
