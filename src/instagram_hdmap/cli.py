@@ -493,6 +493,13 @@ def _expand_home(args: argparse.Namespace) -> None:
                                  for v in value])
 
 
+def _say(line: str) -> None:
+    """One line to stderr in one write: under torchrun the ranks share the stream, and print's separate write of
+    the newline let two ranks' error lines run together on one line."""
+    sys.stderr.write(line + "\n")
+    sys.stderr.flush()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -504,37 +511,37 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = [*args.overrides, *extra]
     if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
         for note in repeated_overrides(getattr(args, "overrides", None) or []):
-            print(f"instagram-hdmap {args.command}: note: {note}", file=sys.stderr)
+            _say(f"instagram-hdmap {args.command}: note: {note}")
     _expand_home(args)
     try:
         return args.func(args) or 0
     except UserError as e:
-        print(f"instagram-hdmap {args.command}: error: {e}", file=sys.stderr)
+        _say(f"instagram-hdmap {args.command}: error: {e}")
         return 2
     except KeyboardInterrupt:
-        print(f"instagram-hdmap {args.command}: interrupted", file=sys.stderr)
+        _say(f"instagram-hdmap {args.command}: interrupted")
         return 130
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
         cause = os_error_in(e)
         died = data_worker_died(e)
         if died is not None:  # evaluate, predict: nothing was written (a training saves last.pt first)
-            print(f"instagram-hdmap {args.command}: error: {died.rstrip('. ')} (the out-of-memory killer, or a "
+            _say(f"instagram-hdmap {args.command}: error: {died.rstrip('. ')} (the out-of-memory killer, or a "
                   "kill); nothing was written: run it again (with a lower data.num_workers or eval.batch_size if "
-                  "memory ran out)", file=sys.stderr)
+                  "memory ran out)")
             return 2
         if cause is None and out_of_memory(e):
             first = " ".join(str(e).split())[:300]
-            print(f"instagram-hdmap {args.command}: error: out of memory ({type(e).__name__}: {first}); make the job "
+            _say(f"instagram-hdmap {args.command}: error: out of memory ({type(e).__name__}: {first}); make the job "
                   "smaller (train.batch_size / eval.batch_size, data.image_size, the grid's size and resolution, "
                   "model.gnn.num_vertices, evaluate-json's --resolution) or run it where there is more memory (a "
-                  "training resumes with --resume OUT/last.pt)", file=sys.stderr)
+                  "training resumes with --resume OUT/last.pt)")
             return 2
         if cause is None or cause.errno not in NO_ROOM:
             raise
         where = f" writing {cause.filename}" if cause.filename else ""
-        print(f"instagram-hdmap {args.command}: error: {cause.strerror or cause}{where}: the disk is full or a "
+        _say(f"instagram-hdmap {args.command}: error: {cause.strerror or cause}{where}: the disk is full or a "
               "file-size limit is reached; free some space and run again (a training resumes with --resume "
-              "OUT/last.pt)", file=sys.stderr)
+              "OUT/last.pt)")
         return 2
 
 
