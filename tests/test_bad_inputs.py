@@ -4504,6 +4504,40 @@ def _s18_grid(cfg):
     return BEVGrid.from_config(cfg.grid)
 
 
+@row("S16", "two evaluations into one --out at once: each wrote its pair of files at the end, so the folder could hold "
+            "one's submission beside the other's metrics (a pair that looked whole); the second is refused while "
+            "the first runs, and a refused or failed evaluation leaves no folder it created")
+def row_two_evaluations_into_one_out(env):
+    from instagram_hdmap.files import LOCK_FILE, locked_folder
+    from instagram_hdmap.predict import load_model
+
+    out = env.tmp / "eval"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")  # the first evaluation's earlier pair
+    holder = subprocess.Popen(  # the first evaluation's lock, as files.lock_folder takes it
+        [sys.executable, "-c", "import fcntl, os, sys, time\n"
+         f"f = open({str(out / LOCK_FILE)!r}, 'a+'); fcntl.flock(f, fcntl.LOCK_EX); f.write(str(os.getpid()))\n"
+         "f.flush(); print('locked', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        forbid(env, "instagram_hdmap.predict.load_model", "the evaluation")
+        env.error(rf"another evaluation is running in .*eval \(process {holder.pid}\); wait for it to end \(or stop "
+                  r"it\), or choose another --out", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
+        assert (out / "metrics.json").read_text() == "{}"
+    finally:
+        holder.kill()
+        holder.wait()
+    nested = env.tmp / "new" / "eval"  # created for a job that fails before writing: removed again
+    with pytest.raises(RuntimeError, match="the job failed"), locked_folder(nested, "evaluation", "choose another"):
+        assert (nested / LOCK_FILE).is_file()
+        raise RuntimeError("the job failed")
+    assert not (env.tmp / "new").exists()
+    env.monkeypatch.setattr("instagram_hdmap.predict.load_model", load_model)
+    rc, out_, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", nested)
+    assert rc == 0, err
+    assert sorted(p.name for p in nested.iterdir()) == ["metrics.json", "submission.json"]  # the lock file gone
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

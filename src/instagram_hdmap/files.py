@@ -20,11 +20,12 @@ worlds.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
 import shutil
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -319,3 +320,83 @@ def write_json(obj, path: str | Path, indent: int | None = None) -> Path:
     """Write ``obj`` as JSON atomically; returns the path. NaN and infinity are written as NaN /
     Infinity (what Python's json reads back)."""
     return write_text(json.dumps(obj, indent=indent), path)
+
+
+LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process whose job writes the folder
+_LOCKS: dict[str, object] = {}  # resolved folder -> the open lock file this process holds
+
+
+def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str], None] = print) -> None:
+    """Hold an exclusive lock on ``FOLDER/.instagram_hdmap.lock`` while this process's ``job`` writes
+    ``folder``: a second one started there (the same command run twice: two trainings into one
+    ``train.out_dir``, two evaluations into one ``--out``) is refused before it removes or overwrites anything of
+    the first one's, "another JOB is running in FOLDER (process PID); ... or ADVICE". The OS drops the lock when the
+    process ends, however it ends (``kill -9`` too): the file a killed job leaves locks nothing. Re-entrant within
+    a process. No lock where ``fcntl`` is missing; on a file system without locks (NFS without lockd, some FUSE
+    mounts: ENOLCK) the job goes on and ``note`` says so."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return
+    folder = Path(folder)
+    key = str(folder.resolve())
+    if key in _LOCKS:
+        return
+    handle = os.fdopen(os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:  # EWOULDBLOCK: another process holds it
+        owner = handle.read().strip()
+        handle.close()
+        raise UserError(f"another {job} is running in {folder} (process {owner or '?'}); wait for it to end "
+                        f"(or stop it), or {advice}") from None
+    except OSError as e:  # no locks on this file system: was read as "another job is running"
+        handle.close()
+        with contextlib.suppress(OSError):
+            (folder / LOCK_FILE).unlink()
+        note(f"note: {folder} takes no file lock ({e.strerror or e}): a second {job} started in it while this one "
+             "runs is not refused there")
+        return
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    _LOCKS[key] = handle
+
+
+def unlock_folder(folder: str | Path) -> None:
+    """Give up ``lock_folder``'s lock on ``folder`` (the end of the job) and remove its file; nothing if not held."""
+    try:
+        key = str(Path(folder).resolve())
+    except (OSError, RuntimeError):  # a loop of links (check_output_dir named it): no lock was taken
+        return
+    handle = _LOCKS.pop(key, None)
+    if handle is not None:
+        with contextlib.suppress(OSError):
+            (Path(folder) / LOCK_FILE).unlink()  # while still held: the folder is left as the job wrote it
+        handle.close()
+
+
+@contextmanager
+def locked_folder(folder: str | Path, job: str, advice: str, note: Callable[[str], None] = print,
+                  enabled: bool = True) -> Iterator[Path]:
+    """``folder`` created if missing and held with ``lock_folder`` while the block runs (``enabled``: False on the
+    processes that do not write it, under torchrun); given up after, and the folders it created removed again when
+    the block fails before writing anything into them (nothing left of a refused or failed job)."""
+    folder = Path(folder)
+    if not enabled:
+        yield folder
+        return
+    created = [p for p in (folder, *folder.parents) if not p.exists()]  # innermost first
+    folder.mkdir(parents=True, exist_ok=True)
+    ok = False
+    try:
+        lock_folder(folder, job, advice, note)
+        yield folder
+        ok = True
+    finally:
+        unlock_folder(folder)
+        if not ok:
+            for p in created:  # innermost first; rmdir only removes empty folders
+                with contextlib.suppress(OSError):
+                    p.rmdir()

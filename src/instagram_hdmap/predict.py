@@ -46,7 +46,7 @@ from .data.streaming import StreamingBatchSampler
 from .data.transforms import load_image
 from .engine import evaluate, is_temporal
 from .evaluation import Evaluator, write_submission
-from .files import OutputError, atomic_path, check_output_dir, check_output_file, write_json
+from .files import OutputError, atomic_path, check_output_dir, check_output_file, locked_folder, write_json
 from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
@@ -569,6 +569,15 @@ def run_evaluation(
     for name in ("submission.json", "metrics.json"):
         check_output_file(Path(out) / name, "--out")
     device = du.init_distributed(du.resolve_device(cfg.train.device).type)
+    # a second evaluation into the same --out while this one runs is refused (the pair of files of one and the
+    # other could otherwise end up side by side)
+    with locked_folder(out, "evaluation", "choose another --out", du.print_main, enabled=du.is_main_process()):
+        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp)
+
+
+def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out: Path, device: torch.device,
+                   overrides: Sequence[str], amp: str) -> dict:
+    """``run_evaluation``'s work, its output folder checked and held."""
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))

@@ -53,7 +53,7 @@ from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
-from .files import check_output_dir, remove_stale_temporaries
+from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, saved_config
 from .losses import Criterion
@@ -191,55 +191,10 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                                 "(or pass --force to start the run over)")
 
 
-LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process training in the folder
-_LOCKS: dict[str, object] = {}  # resolved folder -> the open lock file this process holds
-
-
 def lock_out_dir(out_dir: Path) -> None:
-    """Hold an exclusive lock on ``OUT/.instagram_hdmap.lock`` while this process trains in ``out_dir``:
-    a second training started there (the same command run twice) is refused before it removes or
-    overwrites anything of the first one's. The OS drops the lock when the process ends, however it
-    ends (``kill -9`` too): the file a killed run leaves locks nothing. No lock where ``fcntl`` is missing."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX
-        return
-    key = str(out_dir.resolve())
-    if key in _LOCKS:
-        return
-    handle = os.fdopen(os.open(out_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:  # EWOULDBLOCK: another process holds it
-        owner = handle.read().strip()
-        handle.close()
-        raise UserError(f"another training is running in {out_dir} (process {owner or '?'}); wait for it to end "
-                        "(or stop it), or choose another train.out_dir") from None
-    except OSError as e:  # a file system without locks (NFS without lockd, some FUSE mounts): was "another training"
-        handle.close()
-        with contextlib.suppress(OSError):
-            (out_dir / LOCK_FILE).unlink()
-        du.print_main(f"note: {out_dir} takes no file lock ({e.strerror or e}): a second training started in it "
-                      "while this one runs is not refused there")
-        return
-    handle.seek(0)
-    handle.truncate()
-    handle.write(f"{os.getpid()}\n")
-    handle.flush()
-    _LOCKS[key] = handle
-
-
-def unlock_out_dir(out_dir: Path) -> None:
-    """Give up ``lock_out_dir``'s lock on ``out_dir`` (the end of ``train``); nothing if not held."""
-    try:
-        key = str(out_dir.resolve())
-    except (OSError, RuntimeError):  # a loop of links (check_output_dir named it): no lock was taken
-        return
-    handle = _LOCKS.pop(key, None)
-    if handle is not None:
-        with contextlib.suppress(OSError):
-            (out_dir / LOCK_FILE).unlink()  # while still held: the folder is left as the run wrote it
-        handle.close()
+    """``files.lock_folder`` of ``train.out_dir``: a second training started there is refused before it removes
+    or overwrites anything of the first one's."""
+    lock_folder(out_dir, "training", "choose another train.out_dir", du.print_main)
 
 
 def config_differences(old: ExperimentConfig, cfg: ExperimentConfig, keys) -> str:
@@ -421,7 +376,7 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
             run.fit()
         return run.final_summary()
     finally:
-        unlock_out_dir(Path(cfg.train.out_dir))
+        unlock_folder(Path(cfg.train.out_dir))
 
 
 _SIGNALS_RECEIVED: list[int] = []  # signals _sigterm_as_interrupt turned into KeyboardInterrupt during the run
