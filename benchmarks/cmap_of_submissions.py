@@ -32,6 +32,10 @@ def main() -> None:
     parser.add_argument("--match-m", type=float, default=None,
                         help="the tracker's match distance (default: the config's eval.cmap_match_m, 1.0 m)")
     args = parser.parse_args()
+    missing = [f for f in args.evals if not (Path(f) / "submission.json").is_file()]
+    if missing:  # before the dataset is read: a glob that matched nothing stays a literal pattern
+        parser.error(f"no submission.json in {', '.join(missing[:3])}" + (f" and {len(missing) - 3} more" if
+                                                                          len(missing) > 3 else ""))
     cfg = load_config(args.config, [*world_overrides(Path(args.dataroot).expanduser()), "eval.cmap=true",
                                     *([f"eval.cmap_match_m={args.match_m}"] if args.match_m else [])])
     ds = build_dataset(cfg, args.split, augment=False)
