@@ -120,8 +120,8 @@ def _check_preds(preds, where: str, who: str = "Persistence",
             raise PersistenceInputError(f"{who}: {where}: element {k}'s pts must be [P, 2] (x, y in metres, "
                                         f"ego frame), got {got}")
         label, score = p["label"], p.get("score")
-        label = label.item() if hasattr(label, "item") and np.size(label) == 1 else label
-        score = score.item() if hasattr(score, "item") and np.size(score) == 1 else score
+        label, score = (x.item() if isinstance(x, torch.Tensor) and x.numel() == 1  # np.size: no bf16
+                        else x.item() if hasattr(x, "item") and np.size(x) == 1 else x for x in (label, score))
         if not is_real(label) or not math.isfinite(label) or label != int(label) or label < 0:
             raise PersistenceInputError(f"{who}: {where}: element {k}'s label must be a class index >= 0, got "
                                         f"{p['label']!r:.40}")
