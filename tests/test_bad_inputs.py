@@ -4589,7 +4589,7 @@ def row_match_previous_and_tracker_arguments(env):
     ):
         with pytest.raises(PersistenceInputError, match=pattern):
             match_previous(*args)
-    with pytest.raises(PersistenceInputError, match=r"^InstanceTracker: match_m and max_jump_m must be > 0.*match_m=0"):
+    with pytest.raises(PersistenceInputError, match=r"^InstanceTracker: needs match_m and max_jump_m > 0.*match_m=0"):
         InstanceTracker(grid, match_m=0)
     gt = {k: v for k, v in line.items() if k != "score"}
     tracker = InstanceTracker(grid)
@@ -4665,14 +4665,36 @@ def row_cmap_of_submissions_options(env):
                               capture_output=True, text=True, timeout=300)
 
     for args, pattern in ((("--match-m", "0", env.tmp / "ev"), r"error: config key 'eval.cmap_match_m \(--match-m\)' "
-                                                                 r"must be > 0, got 0.0"),
-                          (("--match-m", "-1", env.tmp / "ev"), r"must be > 0, got -1.0"),
+                                                                 r"must be in \(0, 10\].*, got 0.0"),
+                          (("--match-m", "-1", env.tmp / "ev"), r"must be in \(0, 10\].*, got -1.0"),
                           ((env.tmp / "other",), r"has none of the \d+ samples of split 'val'")):
         p = bench(*args)
         assert p.returncode == 2 and "Traceback" not in p.stderr and re.search(pattern, p.stderr), p.stderr
     p = bench(env.tmp / "part")
     assert p.returncode == 0 and re.search(r"note: .*part/submission.json lacks \d+ of the \d+ samples", p.stderr), \
         p.stderr
+
+
+@row("S19", "files.lock_folder (evaluate's --out, train.out_dir): a folder named .instagram_hdmap.lock where the lock "
+            "file goes was a raw IsADirectoryError traceback (exit 1); it is one line naming it")
+def row_lock_file_is_a_folder(env):
+    out = env.tmp / "eval"
+    (out / ".instagram_hdmap.lock").mkdir(parents=True)
+    env.error(r"eval/\.instagram_hdmap\.lock \(the lock this evaluation holds on .*eval\) is a folder, not the lock "
+              r"file; remove it, or choose another --out", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
+    run = env.tmp / "run"
+    (run / ".instagram_hdmap.lock").mkdir(parents=True)
+    env.error(r"is a folder, not the lock file; remove it, or choose another train.out_dir", "train", env.yaml,
+              f"train.out_dir={run}", "train.max_steps=1")
+
+
+@row("S19", "eval.cmap_match_m had no upper bound: 100 (centimetres meant) ran C-mAP with a tracker that passes IDs "
+            "across 100 m, with no word; it is bounded as model.temporal.persist_match_m (<= 10 m)")
+def row_cmap_match_m_bounded(env):
+    env.error(r"config key 'eval.cmap_match_m' must be in \(0, 10\] \(metres.*centimetres given\?\)\), got 100",
+              "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval", "eval.cmap=true",
+              "eval.cmap_match_m=100")
+    assert not (env.tmp / "eval").exists()
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -330,7 +330,7 @@ class InstanceTracker:
             values = {"match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
             msg = str(e).replace("Persistence: ", "InstanceTracker: ", 1)
             if "decay must be" in msg:
-                msg = ("InstanceTracker: match_m and max_jump_m must be > 0, max_turn_deg in (0, 180] (numbers); got "
+                msg = ("InstanceTracker: needs match_m and max_jump_m > 0, max_turn_deg in (0, 180] (numbers); got "
                        + ", ".join(f"{k}={v!r}" for k, v in values.items()))
             raise PersistenceInputError(msg) from None
         self.grid, self.match_m = self._checker.grid, float(match_m)
