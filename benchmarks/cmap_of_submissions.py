@@ -11,12 +11,13 @@ meter's own time per sample is printed: the cost of ``eval.cmap=true``.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-from instagram_hdmap.config import load_config
+from instagram_hdmap.config import UserError, load_config
 from instagram_hdmap.data import build_dataset
 from instagram_hdmap.demo import world_overrides
 from instagram_hdmap.evaluation.io import read_submission
@@ -36,14 +37,28 @@ def main() -> None:
     if missing:  # before the dataset is read: a glob that matched nothing stays a literal pattern
         parser.error(f"no submission.json in {', '.join(missing[:3])}" + (f" and {len(missing) - 3} more" if
                                                                           len(missing) > 3 else ""))
-    cfg = load_config(args.config, [*world_overrides(Path(args.dataroot).expanduser()), "eval.cmap=true",
-                                    *([f"eval.cmap_match_m={args.match_m}"] if args.match_m else [])])
-    ds = build_dataset(cfg, args.split, augment=False)
+    try:  # --match-m 0 was taken as "not given" (the default 1.0 m scored with no word); a bad value is one line
+        cfg = load_config(args.config, [*world_overrides(Path(args.dataroot).expanduser()), "eval.cmap=true",
+                                        *([f"eval.cmap_match_m={args.match_m}"] if args.match_m is not None else [])])
+        ds = build_dataset(cfg, args.split, augment=False)
+    except UserError as e:
+        parser.error(str(e).replace("eval.cmap_match_m", "eval.cmap_match_m (--match-m)"))
     index = {t: i for i, t in enumerate(ds.sample_tokens)}
     gts = {t: ds.gt_polylines(i) for t, i in index.items()}
     print(f"{'evaluation':<60}{'mAP':>8}{'C-mAP':>8}  C-AP per class; switched TPs at 1.0 m; ms/sample")
     for folder in args.evals:
-        preds = read_submission(Path(folder) / "submission.json", "pred", len(cfg.data.classes)).samples
+        try:
+            preds = read_submission(Path(folder) / "submission.json", "pred", len(cfg.data.classes)).samples
+        except UserError as e:
+            parser.error(str(e))
+        missing, extra = len(set(index) - set(preds)), len(set(preds) - set(index))
+        if missing == len(index):  # another world or split: C-mAP of no sample was printed as nan, exit 0
+            parser.error(f"{folder}/submission.json has none of the {len(index)} samples of split '{args.split}' of "
+                         f"{args.dataroot} (its {len(preds)} samples are of another split or world)")
+        if missing or extra:  # scored on the samples both have, which was not said
+            print(f"note: {folder}/submission.json lacks {missing} of the {len(index)} samples of split "
+                  f"'{args.split}'" + (f" and has {extra} samples not in it" if extra else "")
+                  + f": its C-mAP is over the {len(index) - missing} it has", file=sys.stderr)
         meter = make_cmap_meter(cfg)
         t0 = time.perf_counter()
         tokens = [t for t in ds.sample_tokens if t in preds]

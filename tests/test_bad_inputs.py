@@ -9,9 +9,9 @@ fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one fou
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
 fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S17`` one found by a
-seventeenth, ``S18`` one found by an eighteenth; a ninth-, tenth-, eleventh- or fourteenth-sweep row of a valid
-input that was refused checks that it runs). Everything runs on the tiny synthetic world of conftest.py and a
-random tiny model: no training longer than a few steps.
+seventeenth, ``S18`` one found by an eighteenth, ``S19`` one found by a nineteenth; a ninth-, tenth-,
+eleventh-, fourteenth- or nineteenth-sweep row of a valid input that was refused checks that it runs).
+Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S17"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S19"
     what: str
     run: Callable
 
@@ -4536,6 +4536,165 @@ def row_two_evaluations_into_one_out(env):
     rc, out_, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", nested)
     assert rc == 0, err
     assert sorted(p.name for p in nested.iterdir()) == ["metrics.json", "submission.json"]  # the lock file gone
+
+
+@row("S19", "ConsistentAPMeter.update(ids=...): an ID of NaN, inf or beyond int64 was a raw numpy ValueError / "
+            "OverflowError; ids as one [B, P] tensor or array (the docstring's 'tensors or arrays') and thresholds as "
+            "an array were refused; thresholds listing a distance twice counted it twice in C-mAP (eval.thresholds "
+            "refuses that). Now named / accepted")
+def row_cmap_prediction_ids(env):
+    from instagram_hdmap.evaluation.consistency import ConsistentAPMeter, EvaluationInputError
+    from instagram_hdmap.geometry import BEVGrid
+
+    grid = BEVGrid(-15.0, 15.0, -30.0, 30.0, 0.15)
+
+    def line(x, score=None):
+        d = {"pts": np.array([[x, -5.0], [x, 5.0]]), "label": 0}
+        return d if score is None else {**d, "score": score}
+
+    def cmap(ids, **kw):
+        meter = ConsistentAPMeter(grid, **kw)
+        meter.update([[line(1, 0.9), line(3, 0.8)]], [[line(1), line(3)]], ["s"], [0], np.eye(4)[None], ids=ids)
+        return meter.compute()["C-mAP"]
+
+    for bad in (float("nan"), float("inf"), 2**70):
+        with pytest.raises(EvaluationInputError, match=r"sample \(scene 's', frame 0\): ids must be one integer"):
+            cmap([[bad, 1]])
+    expected = cmap([[0, 1]])
+    assert cmap(torch.tensor([[0, 1]])) == cmap(np.array([[0, 1]])) == expected
+    assert ConsistentAPMeter(grid, thresholds=np.array([0.5, 1.0])).thresholds == (0.5, 1.0)
+    assert ConsistentAPMeter(grid, thresholds=torch.tensor([0.5, 1.0])).thresholds == (0.5, 1.0)
+    with pytest.raises(EvaluationInputError, match=r"thresholds lists a distance twice"):
+        ConsistentAPMeter(grid, thresholds=[1.0, 1.0])
+
+
+@row("S19", "persistence.match_previous (public, shared by Persistence and InstanceTracker) checked nothing: torch "
+            "poses were a raw TypeError, an element without 'label' / 'pts' a raw KeyError, grid None a raw "
+            "AttributeError, a singular pose a raw LinAlgError. InstanceTracker's errors named Persistence (and its "
+            "decay, for match_m=0), it refused elements without the 'score' it never reads (GT polylines), and a "
+            "NaN label was a raw ValueError in both. Now named / accepted")
+def row_match_previous_and_tracker_arguments(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.persistence import InstanceTracker, Persistence, PersistenceInputError, match_previous
+
+    grid = BEVGrid(-15.0, 15.0, -30.0, 30.0, 0.15)
+    line = {"pts": np.array([[1.0, -5.0], [1.0, 5.0]]), "label": 0, "score": 0.9}
+    D, _ = match_previous(torch.eye(4), [line], torch.eye(4, dtype=torch.float64), [line], grid)
+    assert D.tolist() == [[0.0]]
+    for args, pattern in (
+        ((np.eye(4), [{"pts": [[0, 0], [1, 1]]}], np.eye(4), [line], grid), r"prev_elements: element 0 has no 'label'"),
+        ((np.eye(4), [line], np.eye(4), [{"label": 0}], grid), r"preds: element 0 has no 'pts'"),
+        ((np.eye(4), [line], np.eye(4), [line], None), r"match_previous: grid must be a BEVGrid"),
+        ((np.zeros((4, 4)), [line], np.eye(4), [line], grid), r"prev_pose: its ego pose is not a rigid transform"),
+    ):
+        with pytest.raises(PersistenceInputError, match=pattern):
+            match_previous(*args)
+    with pytest.raises(PersistenceInputError, match=r"^InstanceTracker: needs match_m and max_jump_m > 0.*match_m=0"):
+        InstanceTracker(grid, match_m=0)
+    gt = {k: v for k, v in line.items() if k != "score"}
+    tracker = InstanceTracker(grid)
+    assert tracker.step([gt], "s", 0, np.eye(4)) == [0] and tracker.step([gt], "s", 1, np.eye(4)) == [0]
+    with pytest.raises(PersistenceInputError, match=r"^InstanceTracker: scene 's', frame 2: element 0's pts"):
+        tracker.step([{"pts": [1.0, 2.0], "label": 0}], "s", 2, np.eye(4))
+    for who in (InstanceTracker(grid), Persistence(grid)):
+        with pytest.raises(PersistenceInputError, match=r"element 0's label must be a class index"):
+            who.step([{**line, "label": float("nan")}], "s", 0, np.eye(4))
+
+
+@row("S19", "a bf16 model's polylines (pts a bfloat16 tensor) were refused by the evaluation's polyline check, "
+            "FlickerMeter / ConsistentAPMeter and Persistence ('Got unsupported ScalarType BFloat16'; NumPy has no "
+            "bfloat16); they are read as float")
+def row_bf16_polylines(env):
+    from instagram_hdmap.evaluation.consistency import ConsistentAPMeter
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.persistence import InstanceTracker, Persistence
+
+    grid = BEVGrid(-15.0, 15.0, -30.0, 30.0, 0.15)
+    pts = torch.tensor([[1.0, -5.0], [1.0, 5.0]])
+    pred = {"pts": pts.bfloat16(), "label": 0, "score": torch.tensor(0.9, dtype=torch.bfloat16)}
+    meter = ConsistentAPMeter(grid)
+    meter.update([[pred]], [[{"pts": pts, "label": 0}]], ["s"], [0], np.eye(4)[None])
+    assert meter.compute()["AP_class"]["0"] == 1.0
+    keep = Persistence(grid)
+    keep.step([pred], "s", 0, np.eye(4))
+    kept = keep.step([], "s", 1, np.eye(4))
+    assert len(kept) == 1 and np.allclose(kept[0]["pts"], pts.numpy())
+    tracker = InstanceTracker(grid)
+    assert tracker.step([pred], "s", 0, np.eye(4)) == [0] and tracker.step([pred], "s", 1, np.eye(4)) == [0]
+
+
+@row("S19", "InstaGraM.forward under torch.autocast: bf16 images into an fp32 model (and fp32 images into a bf16 "
+            "model) ran before sweep 18 and were then refused by its dtype check ('give images of the weights' "
+            "dtype'); autocast casts them itself, so they run again (a dtype autocast does not reconcile is still "
+            "named)")
+def row_forward_under_autocast(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.data.base import collate_fn
+    from instagram_hdmap.models import build_model
+
+    cfg = env.cfg()
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    batch = collate_fn([build_dataset(cfg, "val", augment=False)[0]])
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model({**batch, "images": batch["images"].bfloat16()})
+        assert isinstance(out, dict)
+        model.bfloat16()
+        model(batch)
+    with torch.no_grad(), pytest.raises(TypeError, match=r"'images' are torch.float32, the model's weights torch.bfl"):
+        model(batch)  # no autocast: still named
+
+
+@row("S19", "benchmarks/cmap_of_submissions.py: --match-m 0 was taken as not given (scored at the default 1.0 m, no "
+            "word); a bad --match-m was a raw ConfigError traceback; a submission of another split or world printed "
+            "C-mAP nan with exit 0, and one lacking samples was scored on the rest with no word")
+def row_cmap_of_submissions_options(env):
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "ev")
+    assert rc == 0, err
+    sub = json.loads((env.tmp / "ev" / "submission.json").read_text())
+    for name, keep in (("other", lambda t: t + "x"), ("part", None)):
+        results = ({keep(t): v for t, v in sub["results"].items()} if keep else
+                   dict(list(sub["results"].items())[:1]))
+        (env.tmp / name).mkdir()
+        (env.tmp / name / "submission.json").write_text(json.dumps({**sub, "results": results}))
+    data = load_config(env.yaml).data
+
+    def bench(*args):
+        return subprocess.run([sys.executable, str(REPO / "benchmarks" / "cmap_of_submissions.py"), "--config",
+                               str(env.yaml), "--dataroot", str(data.dataroot), *map(str, args)],
+                              capture_output=True, text=True, timeout=300)
+
+    for args, pattern in ((("--match-m", "0", env.tmp / "ev"), r"error: config key 'eval.cmap_match_m \(--match-m\)' "
+                                                                 r"must be in \(0, 10\].*, got 0.0"),
+                          (("--match-m", "-1", env.tmp / "ev"), r"must be in \(0, 10\].*, got -1.0"),
+                          ((env.tmp / "other",), r"has none of the \d+ samples of split 'val'")):
+        p = bench(*args)
+        assert p.returncode == 2 and "Traceback" not in p.stderr and re.search(pattern, p.stderr), p.stderr
+    p = bench(env.tmp / "part")
+    assert p.returncode == 0 and re.search(r"note: .*part/submission.json lacks \d+ of the \d+ samples", p.stderr), \
+        p.stderr
+
+
+@row("S19", "files.lock_folder (evaluate's --out, train.out_dir): a folder named .instagram_hdmap.lock where the lock "
+            "file goes was a raw IsADirectoryError traceback (exit 1); it is one line naming it")
+def row_lock_file_is_a_folder(env):
+    out = env.tmp / "eval"
+    (out / ".instagram_hdmap.lock").mkdir(parents=True)
+    env.error(r"eval/\.instagram_hdmap\.lock \(the lock this evaluation holds on .*eval\) is a folder, not the lock "
+              r"file; remove it, or choose another --out", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
+    run = env.tmp / "run"
+    (run / ".instagram_hdmap.lock").mkdir(parents=True)
+    env.error(r"is a folder, not the lock file; remove it, or choose another train.out_dir", "train", env.yaml,
+              f"train.out_dir={run}", "train.max_steps=1")
+
+
+@row("S19", "eval.cmap_match_m had no upper bound: 100 (centimetres meant) ran C-mAP with a tracker that passes IDs "
+            "across 100 m, with no word; it is bounded as model.temporal.persist_match_m (<= 10 m)")
+def row_cmap_match_m_bounded(env):
+    env.error(r"config key 'eval.cmap_match_m' must be in \(0, 10\] \(metres.*centimetres given\?\)\), got 100",
+              "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval", "eval.cmap=true",
+              "eval.cmap_match_m=100")
+    assert not (env.tmp / "eval").exists()
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

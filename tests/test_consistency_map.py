@@ -187,8 +187,9 @@ def test_bad_input_is_named():
         ConsistentAPMeter(GRID, classes=ONE, match_m=0.0)
     with pytest.raises(PersistenceInputError, match=r"InstanceTracker: one entry per sample"):
         InstanceTracker(GRID)(preds, scenes[:1], frames, poses)
-    with pytest.raises(PersistenceInputError, match=r"sample 0 \(scene 's'\): element 0 has no 'score'"):
-        InstanceTracker(GRID)([[{"pts": gts[0][0]["pts"], "label": 0}]], scenes[:1], frames[:1], poses[:1])
+    with pytest.raises(PersistenceInputError, match=r"InstanceTracker: sample 0 \(scene 's'\): element 0 has no "
+                                                    r"'label'"):  # no score is fine: the tracker reads none (GT)
+        InstanceTracker(GRID)([[{"pts": gts[0][0]["pts"], "score": 1.0}]], scenes[:1], frames[:1], poses[:1])
 
 
 def test_evaluation_reports_c_map_behind_eval_cmap(tiny_world, tmp_path):

@@ -377,7 +377,8 @@ class EvalConfig:
     # the Chamfer distance (m) within which an element of the previous frame, moved by the ego motion, passes its
     # ID on (the persistence matcher's test). C-mAP measures the model and this tracker together: it rises with
     # this distance, so compare models at one value
-    cmap_match_m: float = bounded(1.0, gt=0)
+    cmap_match_m: float = bounded(1.0, gt=0, le=10, note="metres, as model.temporal.persist_match_m (centimetres "
+                                  "given?)")
     # protocols computed as well, on the same predictions, reported under metrics["also"][protocol]
     also_protocols: tuple[Literal["vector", "raster"], ...] = ()
 

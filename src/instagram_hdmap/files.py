@@ -342,7 +342,12 @@ def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str],
     key = str(folder.resolve())
     if key in _LOCKS:
         return
-    handle = os.fdopen(os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
+    try:
+        handle = os.fdopen(os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644), "r+")
+    except OSError as e:  # a folder of that name was a raw IsADirectoryError
+        what = "is a folder, not the lock file; remove it" if (folder / LOCK_FILE).is_dir() else (
+            f"cannot be opened ({e.strerror or e})")
+        raise UserError(f"{folder / LOCK_FILE} (the lock this {job} holds on {folder}) {what}, or {advice}") from None
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:  # EWOULDBLOCK: another process holds it

@@ -51,70 +51,91 @@ class PersistenceInputError(UserError, ValueError):
     """An argument of ``Persistence`` or its call that it cannot use; the message names it (and the sample)."""
 
 
-def _check_frame(frame, where: str) -> int:
+def _check_grid(grid, who: str) -> BEVGrid:
+    if isinstance(grid, ExperimentConfig):  # a config's grid: the grid it describes
+        grid = grid.grid
+    if isinstance(grid, GridConfig):
+        grid = BEVGrid.from_config(grid)
+    if not isinstance(grid, BEVGrid):
+        raise PersistenceInputError(f"{who}: grid must be a BEVGrid (BEVGrid.from_config(cfg.grid)) or a "
+                                    f"config, got {type(grid).__name__}")
+    return grid
+
+
+def _check_frame(frame, where: str, who: str = "Persistence") -> int:
     if not is_real(frame) or not math.isfinite(frame) or frame != int(frame) or frame < 0:
-        raise PersistenceInputError(f"Persistence: {where}: its frame index must be an integer >= 0 (the frame's "
+        raise PersistenceInputError(f"{who}: {where}: its frame index must be an integer >= 0 (the frame's "
                                     f"place in its scene, not a timestamp), got {frame!r}")
     return int(frame)
 
 
-def _check_pose(pose, where: str) -> np.ndarray:
+def _check_pose(pose, where: str, who: str = "Persistence") -> np.ndarray:
     """A finite rigid [4, 4] ego -> world pose (a [3, 4] one gets its last row) as float64."""
     try:
         pose = np.array(pose.detach().cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
     except (TypeError, ValueError):
-        raise PersistenceInputError(f"Persistence: {where}: its ego pose must be a 4x4 ego -> world transform, got "
+        raise PersistenceInputError(f"{who}: {where}: its ego pose must be a 4x4 ego -> world transform, got "
                                     f"{pose!r:.80}") from None
     if pose.shape == (3, 4):
         pose = np.concatenate([pose, [[0.0, 0.0, 0.0, 1.0]]])
     if pose.shape != (4, 4):
-        raise PersistenceInputError(f"Persistence: {where}: its ego pose must be a 4x4 ego -> world transform, got "
+        raise PersistenceInputError(f"{who}: {where}: its ego pose must be a 4x4 ego -> world transform, got "
                                     f"shape {list(pose.shape)}")
     if not np.isfinite(pose).all():
-        raise PersistenceInputError(f"Persistence: {where}: its ego pose has NaN or infinite values; give a finite "
+        raise PersistenceInputError(f"{who}: {where}: its ego pose has NaN or infinite values; give a finite "
                                     "4x4 ego -> world transform")
     R = pose[:3, :3]
     det, off = float(np.linalg.det(R)), float(np.abs(R @ R.T - np.eye(3)).max())
     # Mapper's tolerance (inference.py): float16 poses round R by ~1e-3
     if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6) or off > 1e-2 or det <= 0:
-        raise PersistenceInputError(f"Persistence: {where}: its ego pose is not a rigid transform [[R, t], "
+        raise PersistenceInputError(f"{who}: {where}: its ego pose is not a rigid transform [[R, t], "
                                     f"[0, 0, 0, 1]] (last row {pose[3].round(4).tolist()}, det(R) {det:.3g})")
     return pose
 
 
-def _check_preds(preds, where: str) -> None:
-    """A sample's output: a list of polyline dicts, ``pts`` [P, 2] metres, an integer ``label``, a ``score``."""
+def _check_preds(preds, where: str, who: str = "Persistence",
+                 need: tuple[str, ...] = ("pts", "label", "score")) -> None:
+    """A sample's output: a list of polyline dicts, ``pts`` [P, 2] metres, an integer ``label``, a ``score`` (the
+    keys of ``need``: the tracker reads no score)."""
     if isinstance(preds, (str, bytes, Mapping)) or not isinstance(preds, Sequence):
-        raise PersistenceInputError(f"Persistence: {where}: its output must be a list of polyline dicts, got "
+        raise PersistenceInputError(f"{who}: {where}: its output must be a list of polyline dicts, got "
                                     f"{type(preds).__name__}")
     for k, p in enumerate(preds):
         if not isinstance(p, Mapping):
             hint = (" (MapElement.as_polyline() gives one; Mapper.stream() applies persistence to its elements "
                     "itself)" if hasattr(p, "as_polyline") else "")
-            raise PersistenceInputError(f"Persistence: {where}: element {k} must be a polyline dict with 'pts', "
+            raise PersistenceInputError(f"{who}: {where}: element {k} must be a polyline dict with 'pts', "
                                         f"'label' and 'score', got {type(p).__name__}{hint}")
-        missing = [key for key in ("pts", "label", "score") if key not in p]
+        missing = [key for key in need if key not in p]
         if missing:
-            raise PersistenceInputError(f"Persistence: {where}: element {k} has no {', '.join(map(repr, missing))} "
-                                        "(a polyline dict needs 'pts', 'label' and 'score': the model's output)")
+            needs = f"{', '.join(map(repr, need[:-1]))} and {need[-1]!r}"
+            raise PersistenceInputError(f"{who}: {where}: element {k} has no {', '.join(map(repr, missing))} "
+                                        f"(a polyline dict needs {needs}: the model's output)")
         try:
-            pts = np.asarray(p["pts"].detach().cpu() if isinstance(p["pts"], torch.Tensor) else p["pts"],
-                             dtype=np.float64)
+            pts = _points(p["pts"])
         except (TypeError, ValueError):
             pts = None
         if pts is None or pts.ndim != 2 or pts.shape[1] != 2:
             got = f"shape {list(pts.shape)}" if pts is not None else f"{p['pts']!r:.60}"
-            raise PersistenceInputError(f"Persistence: {where}: element {k}'s pts must be [P, 2] (x, y in metres, "
+            raise PersistenceInputError(f"{who}: {where}: element {k}'s pts must be [P, 2] (x, y in metres, "
                                         f"ego frame), got {got}")
-        label, score = p["label"], p["score"]
-        label = label.item() if hasattr(label, "item") and np.size(label) == 1 else label
-        score = score.item() if hasattr(score, "item") and np.size(score) == 1 else score
-        if not is_real(label) or label != int(label) or label < 0:
-            raise PersistenceInputError(f"Persistence: {where}: element {k}'s label must be a class index >= 0, got "
+        label, score = p["label"], p.get("score")
+        label, score = (x.item() if isinstance(x, torch.Tensor) and x.numel() == 1  # np.size: no bf16
+                        else x.item() if hasattr(x, "item") and np.size(x) == 1 else x for x in (label, score))
+        if not is_real(label) or not math.isfinite(label) or label != int(label) or label < 0:
+            raise PersistenceInputError(f"{who}: {where}: element {k}'s label must be a class index >= 0, got "
                                         f"{p['label']!r:.40}")
-        if not is_real(score) or not math.isfinite(score):
-            raise PersistenceInputError(f"Persistence: {where}: element {k}'s score must be a finite number, got "
+        if "score" in need and (not is_real(score) or not math.isfinite(score)):
+            raise PersistenceInputError(f"{who}: {where}: element {k}'s score must be a finite number, got "
                                         f"{p['score']!r:.40}")
+
+
+def _points(pts) -> np.ndarray:
+    """An element's ``pts`` as float64 (a tensor of a bf16 / fp16 model's output, on any device, too)."""
+    if isinstance(pts, torch.Tensor):
+        pts = pts.detach().cpu()
+        pts = pts.double() if pts.is_floating_point() else pts
+    return np.asarray(pts, dtype=np.float64)
 
 
 @dataclass
@@ -179,11 +200,15 @@ def match_previous(prev_pose: np.ndarray, prev_elements: Sequence[dict], pose: n
     returns ``D`` [len(prev_elements), len(preds)], the symmetric Chamfer distance (both resampled to
     ``MATCH_POINTS``) of each moved previous element to each output element of its class (inf for another
     class, an element with fewer than two points, or a previous one that left the grid), and the moved points."""
+    grid = _check_grid(grid, "match_previous")
+    prev_pose, pose = _check_pose(prev_pose, "prev_pose", "match_previous"), _check_pose(pose, "pose", "match_previous")
+    _check_preds(prev_elements, "prev_elements", "match_previous", ("pts", "label"))
+    _check_preds(preds, "preds", "match_previous", ("pts", "label"))
     to_now = np.linalg.inv(pose) @ prev_pose  # previous ego frame -> this one
     D = np.full((len(prev_elements), len(preds)), np.inf)
     moved = []
     for element in prev_elements:
-        pts = np.asarray(element["pts"], np.float64)
+        pts = _points(element["pts"])
         pts = pts @ to_now[:2, :2].T + to_now[:2, 3]  # the map is the ground plane: x, y of the ego frame
         moved.append(_inside_run(pts, grid))
     now: dict[int, list[int]] = {}  # class -> indices of this frame's outputs
@@ -195,7 +220,7 @@ def match_previous(prev_pose: np.ndarray, prev_elements: Sequence[dict], pose: n
         if not rows:
             continue
         mine = np.stack([_resample(moved[i], MATCH_POINTS) for i in rows])
-        theirs = np.stack([_resample(np.asarray(preds[j]["pts"], np.float64), MATCH_POINTS) for j in cols])
+        theirs = np.stack([_resample(_points(preds[j]["pts"]), MATCH_POINTS) for j in cols])
         D[np.ix_(rows, cols)] = _chamfer_matrix(mine, theirs)
     return D, moved
 
@@ -205,13 +230,7 @@ class Persistence:
 
     def __init__(self, grid: BEVGrid, frames: int = 1, decay: float = 0.5, match_m: float = 1.0,
                  max_jump_m: float = 10.0, max_turn_deg: float = 180.0):
-        if isinstance(grid, ExperimentConfig):  # a config's grid: the grid it describes
-            grid = grid.grid
-        if isinstance(grid, GridConfig):
-            grid = BEVGrid.from_config(grid)
-        if not isinstance(grid, BEVGrid):
-            raise PersistenceInputError(f"Persistence: grid must be a BEVGrid (BEVGrid.from_config(cfg.grid)) or a "
-                                        f"config, got {type(grid).__name__}")
+        grid = _check_grid(grid, "Persistence")
         if not isinstance(frames, numbers.Integral) or isinstance(frames, (bool, np.bool_)) or frames < 0:
             raise PersistenceInputError(f"Persistence: frames must be an integer >= 0, got {frames!r}")
         values = {"decay": decay, "match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
@@ -278,7 +297,8 @@ class Persistence:
                 if again or len(pts) < 2:  # the model found it again / it left the grid
                     continue
                 closed = bool(element.get("closed", False)) and len(pts) == len(element["pts"])
-                carried.append(({**element, "pts": pts.astype(np.asarray(element["pts"]).dtype, copy=False),
+                dtype = np.asarray(element["pts"]).dtype if not isinstance(element["pts"], torch.Tensor) else np.float32
+                carried.append(({**element, "pts": pts.astype(dtype, copy=False),
                                  "closed": closed, "score": float(element["score"]) * self.decay}, missed + 1))
         self.scenes[scene] = _Scene(frame, pose, [(p, 0) for p in preds] + carried)
         self.kept += len(carried)
@@ -304,7 +324,15 @@ class InstanceTracker:
     """
 
     def __init__(self, grid: BEVGrid, match_m: float = 1.0, max_jump_m: float = 10.0, max_turn_deg: float = 180.0):
-        self._checker = Persistence(grid, 1, 0.5, match_m, max_jump_m, max_turn_deg)  # the same argument checks
+        try:  # the same argument checks
+            self._checker = Persistence(grid, 1, 0.5, match_m, max_jump_m, max_turn_deg)
+        except PersistenceInputError as e:  # it named Persistence and its decay, which the tracker has not
+            values = {"match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
+            msg = str(e).replace("Persistence: ", "InstanceTracker: ", 1)
+            if "decay must be" in msg:
+                msg = ("InstanceTracker: needs match_m and max_jump_m > 0, max_turn_deg in (0, 180] (numbers); got "
+                       + ", ".join(f"{k}={v!r}" for k, v in values.items()))
+            raise PersistenceInputError(msg) from None
         self.grid, self.match_m = self._checker.grid, float(match_m)
         self.max_jump_m, self.max_turn_deg = float(max_jump_m), float(max_turn_deg)
         self.reset()
@@ -338,15 +366,16 @@ class InstanceTracker:
                                         f"of shape {list(poses.shape)}")
         for b, (p, s, f) in enumerate(zip(preds, scenes, frames)):  # all checked before any state changes
             where = f"sample {b} (scene '{s}')"
-            _check_frame(f, where), _check_pose(poses[b], where), _check_preds(p, where)
+            _check_frame(f, where, "InstanceTracker"), _check_pose(poses[b], where, "InstanceTracker")
+            _check_preds(p, where, "InstanceTracker", ("pts", "label"))
         return [self.step(p, str(s), int(f), poses[b]) for b, (p, s, f) in enumerate(zip(preds, scenes, frames))]
 
     def step(self, preds: list[dict], scene: str, frame: int, pose) -> list[int]:
         """One sample's element IDs (class docstring), in the order of ``preds``."""
         where = f"scene '{scene}', frame {frame!r}"
-        frame = _check_frame(frame, where)
-        pose = _check_pose(pose, where)
-        _check_preds(preds, where)
+        frame = _check_frame(frame, where, "InstanceTracker")
+        pose = _check_pose(pose, where, "InstanceTracker")
+        _check_preds(preds, where, "InstanceTracker", ("pts", "label"))
         prev = self.scenes.get(scene)
         ids = [-1] * len(preds)
         if _continues(prev, frame, pose, self.max_jump_m, self.max_turn_deg) and prev.elements and len(preds):

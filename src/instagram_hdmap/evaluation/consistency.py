@@ -347,10 +347,15 @@ class ConsistentAPMeter:
         self.grid, self.num_classes, self.classes = checks.grid, checks.num_classes, checks.classes
         self.link_m, self.min_shared_points = checks.link_m, checks.min_shared_points
         self.num_points = checks.num_points
+        if isinstance(thresholds, (torch.Tensor, np.ndarray)) and thresholds.ndim == 1:  # VectorAP takes them too
+            thresholds = thresholds.tolist()
         if isinstance(thresholds, (str, bytes)) or not isinstance(thresholds, Sequence) or not thresholds or not all(
                 is_real(t) and math.isfinite(t) and 0 < t < 100 for t in thresholds):
             raise EvaluationInputError(f"ConsistentAPMeter: thresholds must be a list of Chamfer distances in metres, "
                                        f"each in (0, 100), got {thresholds!r:.80}")
+        if len(set(thresholds)) != len(thresholds):  # (eval.thresholds' rule) C-mAP, their mean, would count it twice
+            raise EvaluationInputError(f"ConsistentAPMeter: thresholds lists a distance twice, which C-mAP (the mean "
+                                       f"over them) would count twice; got {list(thresholds)}")
         try:
             InstanceTracker(self.grid, match_m, max_jump_m, max_turn_deg)
         except PersistenceInputError as e:
@@ -370,13 +375,16 @@ class ConsistentAPMeter:
         A bad input is an ``EvaluationInputError`` naming the sample; nothing of the batch is kept then."""
         checked = checked_batch("ConsistentAPMeter.update", preds, gts, scenes, frames, poses, self.num_classes)
         if ids is not None:
+            if isinstance(ids, (torch.Tensor, np.ndarray)) and ids.ndim == 2:  # [B, P]: the same count per sample
+                ids = list(ids)
             if isinstance(ids, (str, bytes, Mapping)) or not isinstance(ids, Sequence) or len(ids) != len(checked):
                 raise EvaluationInputError(f"ConsistentAPMeter.update: ids must be a list of B = {len(checked)} "
                                            f"lists, one integer ID per prediction, got {ids!r:.80}")
             ids = [i.tolist() if isinstance(i, (torch.Tensor, np.ndarray)) else i for i in ids]
             for (key, _, _, _), p, i in zip(checked, preds, ids):
                 if (isinstance(i, (str, bytes)) or not isinstance(i, Sequence) or len(i) != len(p)
-                        or not all(is_real(x) and x == int(x) for x in i)):
+                        or not all(is_real(x) and math.isfinite(x) and x == int(x) and -2**63 <= x < 2**63
+                                   for x in i)):  # int64: NaN / inf / a 70-bit integer were raw numpy errors
                     raise EvaluationInputError(f"ConsistentAPMeter.update: sample (scene '{key[0]}', frame {key[1]}): "
                                                f"ids must be one integer per prediction ({len(p)}), got {i!r:.80}")
         matched = self._ap.match(

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+import torch
 
 from ..config import ExperimentConfig, GridConfig, UserError
 from ..geometry import BEVGrid
@@ -43,7 +44,10 @@ class PolylineSet:
 def _detached(value):
     """A tensor as its values on the CPU: a model's outputs in a training loop carry ``requires_grad`` (NumPy's
     raw "Can't call numpy() on Tensor that requires grad"), and may live on the GPU."""
-    return value.detach().cpu() if hasattr(value, "detach") and hasattr(value, "requires_grad") else value
+    if not (hasattr(value, "detach") and hasattr(value, "requires_grad")):
+        return value
+    value = value.detach().cpu()
+    return value.float() if value.dtype == torch.bfloat16 else value  # a bf16 model's output: NumPy has no bfloat16
 
 
 def check_grid(grid, who: str) -> BEVGrid:

@@ -87,7 +87,10 @@ class InstaGraM(nn.Module):
             raise ValueError(f"InstaGraM.forward: an empty batch ('images' of shape {shape}): give at least one sample "
                              "of at least one camera")
         weight = next(self.parameters(), None)
-        if weight is not None and images.dtype != weight.dtype:
+        # under torch.autocast the convolutions cast float images and weights themselves (bf16 images into an fp32
+        # model, fp32 images into a bf16 one): only a dtype autocast does not reconcile is refused
+        autocast = images.is_floating_point() and torch.is_autocast_enabled(images.device.type)
+        if weight is not None and images.dtype != weight.dtype and not autocast:
             raise TypeError(f"InstaGraM.forward: 'images' are {images.dtype}, the model's weights "
                             f"{weight.dtype}: give normalised float images of the weights' dtype (as the datasets and "
                             "Mapper do), e.g. images.to(model dtype)")
