@@ -225,6 +225,34 @@ def match_previous(prev_pose: np.ndarray, prev_elements: Sequence[dict], pose: n
     return D, moved
 
 
+def _batch(who: str, preds, scenes, frames, poses, need: tuple[str, ...] = ("pts", "label", "score")) -> list[tuple]:
+    """The batch arguments of ``Persistence`` and ``InstanceTracker`` (``who``), all checked before any state
+    changes: per sample ``(preds, scene, frame, pose)``, or a ``PersistenceInputError`` naming the argument and the
+    sample (arguments of other lengths were cut short by ``zip``)."""
+    preds = as_batch_list(preds, f"{who}: preds", "a list of B samples' outputs, each a list of polyline dicts",
+                          PersistenceInputError)
+    scenes = as_batch_list(scenes, f"{who}: scenes", "a list of B scene names, one per sample (for one sample: "
+                           "[name])", PersistenceInputError)
+    frames = as_batch_list(frames, f"{who}: frames", "B frame indices (a list or a [B] tensor)", PersistenceInputError)
+    try:
+        poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
+                 else np.asarray(poses, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise PersistenceInputError(f"{who}: poses must be B ego -> world transforms [B, 4, 4], got "
+                                    f"{poses!r:.80}") from None
+    if poses.ndim != 3:
+        raise PersistenceInputError(f"{who}: poses must be B ego -> world transforms [B, 4, 4], one per sample, got "
+                                    f"shape {list(poses.shape)}")
+    counts = {"preds": len(preds), "scenes": len(scenes), "frames": len(frames), "poses": len(poses)}
+    if len(set(counts.values())) > 1:
+        raise PersistenceInputError(f"{who}: one entry per sample in each argument, got "
+                                    + ", ".join(f"{v} {k}" for k, v in counts.items()))
+    for b, (p, s, f) in enumerate(zip(preds, scenes, frames)):
+        where = f"sample {b} (scene '{s}')"
+        _check_frame(f, where, who), _check_pose(poses[b], where, who), _check_preds(p, where, who, need)
+    return [(p, str(s), int(f), poses[b]) for b, (p, s, f) in enumerate(zip(preds, scenes, frames))]
+
+
 class Persistence:
     """The rule of the module docstring; ``__call__`` takes a batch, ``step`` one sample."""
 
@@ -257,29 +285,7 @@ class Persistence:
         self.scenes: dict[str, _Scene] = {}
 
     def __call__(self, preds: Sequence[list[dict]], scenes: Sequence[str], frames, poses) -> list[list[dict]]:
-        preds = as_batch_list(preds, "Persistence: preds", "a list of B samples' outputs, each a list of polyline "
-                              "dicts", PersistenceInputError)
-        scenes = as_batch_list(scenes, "Persistence: scenes", "a list of B scene names, one per sample (for one "
-                               "sample: [name])", PersistenceInputError)
-        frames = as_batch_list(frames, "Persistence: frames", "B frame indices (a list or a [B] tensor)",
-                               PersistenceInputError)
-        try:
-            poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
-                     else np.asarray(poses, dtype=np.float64))
-        except (TypeError, ValueError):
-            raise PersistenceInputError(f"Persistence: poses must be B ego -> world transforms [B, 4, 4], got "
-                                        f"{poses!r:.80}") from None
-        if poses.ndim != 3:
-            raise PersistenceInputError(f"Persistence: poses must be B ego -> world transforms [B, 4, 4], one per "
-                                        f"sample, got shape {list(poses.shape)}")
-        counts = {"preds": len(preds), "scenes": len(scenes), "frames": len(frames), "poses": len(poses)}
-        if len(set(counts.values())) > 1:  # zip would drop the samples past the shortest
-            raise PersistenceInputError("Persistence: one entry per sample in each argument, got "
-                                        + ", ".join(f"{v} {k}" for k, v in counts.items()))
-        for b, (p, s, f) in enumerate(zip(preds, scenes, frames)):  # all checked before any state changes
-            where = f"sample {b} (scene '{s}')"
-            _check_frame(f, where), _check_pose(poses[b], where), _check_preds(p, where)
-        return [self.step(p, str(s), int(f), poses[b]) for b, (p, s, f) in enumerate(zip(preds, scenes, frames))]
+        return [self.step(*sample) for sample in _batch("Persistence", preds, scenes, frames, poses)]
 
     def step(self, preds: list[dict], scene: str, frame: int, pose) -> list[dict]:
         """One sample's output with the remembered elements the model missed added (module docstring)."""
@@ -348,27 +354,8 @@ class InstanceTracker:
         self.next_id: dict[str, int] = {}
 
     def __call__(self, preds: Sequence[list[dict]], scenes: Sequence[str], frames, poses) -> list[list[int]]:
-        preds = as_batch_list(preds, "InstanceTracker: preds", "a list of B samples' outputs, each a list of "
-                              "polyline dicts", PersistenceInputError)
-        scenes = as_batch_list(scenes, "InstanceTracker: scenes", "a list of B scene names, one per sample (for one "
-                               "sample: [name])", PersistenceInputError)
-        frames = as_batch_list(frames, "InstanceTracker: frames", "B frame indices (a list or a [B] tensor)",
-                               PersistenceInputError)
-        try:
-            poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
-                     else np.asarray(poses, dtype=np.float64))
-        except (TypeError, ValueError):
-            raise PersistenceInputError(f"InstanceTracker: poses must be B ego -> world transforms [B, 4, 4], got "
-                                        f"{poses!r:.80}") from None
-        if poses.ndim != 3 or len({len(preds), len(scenes), len(frames), len(poses)}) > 1:
-            raise PersistenceInputError(f"InstanceTracker: one entry per sample in each argument and poses [B, 4, 4], "
-                                        f"got {len(preds)} preds, {len(scenes)} scenes, {len(frames)} frames, poses "
-                                        f"of shape {list(poses.shape)}")
-        for b, (p, s, f) in enumerate(zip(preds, scenes, frames)):  # all checked before any state changes
-            where = f"sample {b} (scene '{s}')"
-            _check_frame(f, where, "InstanceTracker"), _check_pose(poses[b], where, "InstanceTracker")
-            _check_preds(p, where, "InstanceTracker", ("pts", "label"))
-        return [self.step(p, str(s), int(f), poses[b]) for b, (p, s, f) in enumerate(zip(preds, scenes, frames))]
+        return [self.step(*sample) for sample in _batch("InstanceTracker", preds, scenes, frames, poses,
+                                                        ("pts", "label"))]
 
     def step(self, preds: list[dict], scene: str, frame: int, pose) -> list[int]:
         """One sample's element IDs (class docstring), in the order of ``preds``."""

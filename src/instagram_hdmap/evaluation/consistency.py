@@ -41,7 +41,7 @@ from ..errors import as_batch_list, is_real
 from ..geometry import BEVGrid
 from ..persistence import MATCH_POINTS, InstanceTracker, PersistenceInputError
 from .chamfer import chamfer_pairs
-from .inputs import EvaluationInputError, check_grid, read_polylines
+from .inputs import EvaluationInputError, check_grid, gather_states, read_polylines
 from .vector_ap import VectorAP, pooled_ap, resample_polylines
 
 
@@ -244,13 +244,7 @@ class FlickerMeter:
 
     def gather(self) -> None:
         """Under torch.distributed: every rank ends with all records (a no-op otherwise)."""
-        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
-            return
-        states: list[dict | None] = [None] * torch.distributed.get_world_size()
-        torch.distributed.all_gather_object(states, self.state_dict())
-        self.reset()
-        for state in states:
-            self.merge(state)
+        gather_states(self)
 
     def _links(self, prev: dict, cur: dict) -> list[tuple[int, int]]:
         """(instance of frame t, instance of frame t + 1) pairs that are one map element."""
@@ -435,13 +429,7 @@ class ConsistentAPMeter:
 
     def gather(self) -> None:
         """Under torch.distributed: every rank ends with all records (a no-op otherwise)."""
-        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
-            return
-        states: list[dict | None] = [None] * torch.distributed.get_world_size()
-        torch.distributed.all_gather_object(states, self.state_dict())
-        self.reset()
-        for state in states:
-            self.merge(state)
+        gather_states(self)
 
     def _tracks(self, keys: list[tuple[str, int]]) -> tuple[dict, dict]:
         """Predicted and GT instance IDs per sample (class docstring), ``keys`` sorted by (scene, frame)."""

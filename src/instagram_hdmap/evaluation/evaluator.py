@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from ..config import ExperimentConfig, load_config
 from ..geometry import BEVGrid
-from .inputs import EvaluationInputError, check_grid
+from .inputs import EvaluationInputError, check_grid, gather_states
 from .io import SubmissionError, read_submission
 from .raster_ap import RasterAP
 from .vector_ap import VectorAP
@@ -250,13 +250,7 @@ class Evaluator:
         """Under torch.distributed: all-gather every rank's state and merge them in rank order, so
         that every rank holds the whole dataset's state (compute and log on rank 0). A no-op
         without an initialised process group."""
-        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
-            return
-        states: list[dict | None] = [None] * torch.distributed.get_world_size()
-        torch.distributed.all_gather_object(states, self.state_dict())
-        self.reset()
-        for state in states:
-            self.merge(state)
+        gather_states(self)
 
     # --- result ------------------------------------------------------------------------------
     def compute(self) -> dict:

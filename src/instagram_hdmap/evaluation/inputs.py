@@ -142,3 +142,16 @@ def read_polylines(
     out.labels = np.asarray(labels, dtype=np.int64)
     out.scores = np.asarray(scores, dtype=np.float64)
     return out
+
+
+def gather_states(meter) -> None:
+    """Under torch.distributed: every rank's ``meter.state_dict()`` all-gathered and merged in rank order into
+    ``meter`` (reset first), so that every rank holds the whole dataset's state; a no-op without an initialised
+    process group. The ``gather`` of ``Evaluator``, ``FlickerMeter`` and ``ConsistentAPMeter``."""
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return
+    states: list[dict | None] = [None] * torch.distributed.get_world_size()
+    torch.distributed.all_gather_object(states, meter.state_dict())
+    meter.reset()
+    for state in states:
+        meter.merge(state)
