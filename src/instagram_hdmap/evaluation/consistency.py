@@ -166,6 +166,27 @@ def checked_batch(who: str, preds, gts, scenes, frames, poses, num_classes: int)
     return [(key, P, G, np.asarray(poses[b], dtype=np.float64)) for b, (key, (P, G)) in enumerate(zip(keys, checked))]
 
 
+def _records_to_merge(meter, state, keys: set[str], label_keys: tuple[str, ...], form: str) -> Mapping:
+    """The ``records`` of another meter's ``state_dict()`` for ``meter.merge``, checked: a state of the form
+    ``form`` (the meter itself, or anything else, named), each record with ``keys``, class ids (``label_keys``)
+    within ``meter.num_classes``."""
+    name = type(meter).__name__
+    records = state.get("records") if isinstance(state, Mapping) else None
+    if isinstance(state, type(meter)) or not isinstance(records, Mapping) or not all(
+            isinstance(k, tuple) and len(k) == 2 and isinstance(r, Mapping) and keys <= set(r)
+            for k, r in records.items()):
+        hint = "; pass other.state_dict()" if isinstance(state, type(meter)) else ""
+        raise EvaluationInputError(f"{name}.merge takes another {name}'s state_dict() ({form}), got "
+                                   f"{type(state).__name__}{hint}")
+    bad = [k for k, r in records.items()
+           if any(len(r[x]) and not 0 <= int(np.max(r[x])) < meter.num_classes for x in label_keys)]
+    if bad:
+        raise EvaluationInputError(f"{name}.merge: the state's sample (scene '{bad[0][0]}', frame {bad[0][1]}) has "
+                                   f"class ids beyond this meter's {meter.num_classes} classes (a state of a meter "
+                                   "with other classes)")
+    return records
+
+
 class FlickerMeter:
     """Accumulates per-sample detection status and computes the flicker rate (module docstring)."""
 
@@ -225,20 +246,8 @@ class FlickerMeter:
 
     def merge(self, state: dict) -> None:
         """Add another meter's ``state_dict()`` (a sample already here is kept once)."""
-        records = state.get("records") if isinstance(state, Mapping) else None
-        if isinstance(state, FlickerMeter) or not isinstance(records, Mapping) or not all(
-                isinstance(k, tuple) and len(k) == 2 and isinstance(r, Mapping)
-                and {"detected", "labels", "pts", "pose"} <= set(r) for k, r in records.items()):
-            hint = "; pass other.state_dict()" if isinstance(state, FlickerMeter) else ""
-            raise EvaluationInputError(
-                "FlickerMeter.merge takes another FlickerMeter's state_dict() ({'records': {(scene, frame): ...}}), "
-                f"got {type(state).__name__}{hint}")
-        bad = [k for k, r in records.items()
-               if len(r["labels"]) and not 0 <= int(np.max(r["labels"])) < self.num_classes]
-        if bad:
-            raise EvaluationInputError(f"FlickerMeter.merge: the state's sample (scene '{bad[0][0]}', frame "
-                                       f"{bad[0][1]}) has class ids beyond this meter's {self.num_classes} classes "
-                                       "(a state of a meter with other classes)")
+        records = _records_to_merge(self, state, {"detected", "labels", "pts", "pose"}, ("labels",),
+                                    "{'records': {(scene, frame): ...}}")
         for key, rec in records.items():
             self.records.setdefault(key, rec)
 
@@ -406,24 +415,12 @@ class ConsistentAPMeter:
 
     def merge(self, state: dict) -> None:
         """Add another meter's ``state_dict()`` (a sample already here is kept once)."""
-        records = state.get("records") if isinstance(state, Mapping) else None
-        keys = {"label", "score", "tp", "gt", "ids", "pts", "gt_labels", "gt_pts", "pose"}
-        if isinstance(state, ConsistentAPMeter) or not isinstance(records, Mapping) or not all(
-                isinstance(k, tuple) and len(k) == 2 and isinstance(r, Mapping) and keys <= set(r)
-                for k, r in records.items()):
-            hint = "; pass other.state_dict()" if isinstance(state, ConsistentAPMeter) else ""
-            raise EvaluationInputError(
-                "ConsistentAPMeter.merge takes another ConsistentAPMeter's state_dict() ({'records': {(scene, frame): "
-                f"...}}, 'thresholds': ...), got {type(state).__name__}{hint}")
+        records = _records_to_merge(self, state, {"label", "score", "tp", "gt", "ids", "pts", "gt_labels", "gt_pts",
+                                                  "pose"}, ("label", "gt_labels"),
+                                    "{'records': {(scene, frame): ...}, 'thresholds': ...}")
         if tuple(state.get("thresholds", ())) != self.thresholds:
             raise EvaluationInputError(f"ConsistentAPMeter.merge: the state is at thresholds "
                                        f"{list(state.get('thresholds', ()))}, this meter at {list(self.thresholds)}")
-        bad = [k for k, r in records.items() if any(len(r[x]) and not 0 <= int(np.max(r[x])) < self.num_classes
-                                                    for x in ("label", "gt_labels"))]
-        if bad:
-            raise EvaluationInputError(f"ConsistentAPMeter.merge: the state's sample (scene '{bad[0][0]}', frame "
-                                       f"{bad[0][1]}) has class ids beyond this meter's {self.num_classes} classes "
-                                       "(a state of a meter with other classes)")
         for key, rec in records.items():
             self.records.setdefault(key, rec)
 
