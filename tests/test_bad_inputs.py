@@ -4697,6 +4697,22 @@ def row_cmap_match_m_bounded(env):
     assert not (env.tmp / "eval").exists()
 
 
+@row("S19", "train --resume RUN/last.pt of an unfinished run with another train.out_dir (the config's default when "
+            "none is given): the run went on in that folder, its earlier checkpoints, log and events left in RUN, and "
+            "only the final 'outputs in' line named it; a note says where it goes on and how to continue in RUN")
+def row_resume_into_another_folder_noted(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.6], "train.epochs=3", "train.max_steps=1")
+    other = env.tmp / "elsewhere"
+    _toy_run(env, [0.3, 0.4, 0.2], "train.epochs=3", f"train.out_dir={other}", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert (f"note: {run / 'last.pt'} is a checkpoint of the run in {run.resolve()}; this run goes on in "
+            f"train.out_dir={other}") in out and f"pass train.out_dir={run.resolve()}" in out
+    assert (other / "last.pt").is_file()
+    _toy_run(env, [0.3, 0.4, 0.2], "train.epochs=3", resume=str(run / "last.pt"))  # its own folder: no note
+    assert "is a checkpoint of the run in" not in env.capsys.readouterr().out
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

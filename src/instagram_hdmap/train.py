@@ -519,6 +519,11 @@ class TrainingRun:
             run.check_not_finished(state, Path(resume))
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
                           f"({run.position.step_in_epoch} into the epoch)")
+            run_dir = Path(resume).resolve().parent  # a symbolic link to the checkpoint: the run it is in
+            if run.clock.last < 1.0 and not _same_path(run_dir, out_dir):  # (a finished one says so itself)
+                du.print_main(f"note: {resume} is a checkpoint of the run in {run_dir}; this run goes on in "
+                              f"train.out_dir={out_dir} (its checkpoints, log and TensorBoard events go there, the "
+                              f"earlier ones stay in {run_dir}; to continue there, pass train.out_dir={run_dir})")
             later = later_last_step(out_dir, Path(resume), run.position.step)
             if later is not None:  # resuming best.pt on purpose is fine; replacing a later last.pt unsaid is not
                 du.print_main(f"note: {out_dir / 'last.pt'} is at step {later}, later than {resume}; this run goes on "
