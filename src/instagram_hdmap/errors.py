@@ -12,6 +12,8 @@ import numbers
 import re
 from collections.abc import Mapping, Sequence
 
+import numpy as np
+
 
 class UserError(Exception):
     """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line
@@ -62,3 +64,13 @@ def as_batch_list(values, what: str, expected: str, error: type[UserError] = Use
     if values is None or isinstance(values, (str, bytes, Mapping)) or not isinstance(values, Sequence):
         raise error(f"{what} must be {expected}, got {values!r:.80}")
     return list(values)
+
+
+def as_float64_array(values, what: str, expected: str, error: type[UserError] = UserError) -> np.ndarray:
+    """A numeric batch argument (an array, a tensor of any dtype on any device, nested lists) as a float64 array;
+    one that is not numbers is ``error`` saying ``what`` must be ``expected`` (not numpy's own message)."""
+    try:
+        return (values.detach().cpu().double().numpy() if hasattr(values, "detach")
+                else np.asarray(values, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise error(f"{what} must be {expected}, got {values!r:.80}") from None

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .config import ExperimentConfig, GridConfig
-from .errors import UserError, as_batch_list, is_real
+from .errors import UserError, as_batch_list, as_float64_array, is_real
 from .geometry import BEVGrid
 
 MATCH_POINTS = 20  # points per polyline for the "is it the same element" Chamfer test
@@ -234,12 +234,7 @@ def _batch(who: str, preds, scenes, frames, poses, need: tuple[str, ...] = ("pts
     scenes = as_batch_list(scenes, f"{who}: scenes", "a list of B scene names, one per sample (for one sample: "
                            "[name])", PersistenceInputError)
     frames = as_batch_list(frames, f"{who}: frames", "B frame indices (a list or a [B] tensor)", PersistenceInputError)
-    try:
-        poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
-                 else np.asarray(poses, dtype=np.float64))
-    except (TypeError, ValueError):
-        raise PersistenceInputError(f"{who}: poses must be B ego -> world transforms [B, 4, 4], got "
-                                    f"{poses!r:.80}") from None
+    poses = as_float64_array(poses, f"{who}: poses", "B ego -> world transforms [B, 4, 4]", PersistenceInputError)
     if poses.ndim != 3:
         raise PersistenceInputError(f"{who}: poses must be B ego -> world transforms [B, 4, 4], one per sample, got "
                                     f"shape {list(poses.shape)}")

@@ -37,7 +37,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from ..errors import as_batch_list, is_real
+from ..errors import as_batch_list, as_float64_array, is_real
 from ..geometry import BEVGrid
 from ..persistence import MATCH_POINTS, InstanceTracker, PersistenceInputError
 from .chamfer import chamfer_pairs
@@ -117,12 +117,7 @@ def checked_batch(who: str, preds, gts, scenes, frames, poses, num_classes: int)
         if isinstance(value, (dict, str, bytes)) or not isinstance(value, Sequence):
             raise EvaluationInputError(f"{who}: {name} must be a list of B samples, each a list "
                                        f"of polyline dicts, got {type(value).__name__}")
-    try:
-        poses = (poses.detach().cpu().double().numpy() if isinstance(poses, torch.Tensor)
-                 else np.asarray(poses, dtype=np.float64))
-    except (TypeError, ValueError):
-        raise EvaluationInputError(f"{who}: poses must be B ego -> world transforms [B, 4, 4], "
-                                   f"got {poses!r:.80}") from None
+    poses = as_float64_array(poses, f"{who}: poses", "B ego -> world transforms [B, 4, 4]", EvaluationInputError)
     counts = {"preds": len(preds), "gts": len(gts), "scenes": len(scenes), "frames": len(frames)}
     B = len(gts)
     if poses.shape == (4, 4) and B != 1:
