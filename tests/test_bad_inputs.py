@@ -4713,6 +4713,48 @@ def row_resume_into_another_folder_noted(env):
     assert "is a checkpoint of the run in" not in env.capsys.readouterr().out
 
 
+@row("S17", "a training killed (kill -9, a power cut) between an epoch's last.pt and its line in log.jsonl: the "
+            "resume went on after that epoch and its line (losses, validation, samples/s) was never written; now the "
+            "line goes first, the checkpoint counts the lines before it, and a resume drops a killed run's lines "
+            "after its checkpoint (here the resume trains the epoch's end again and logs it once)")
+def row_log_line_survives_a_kill_between_line_and_checkpoint(env):
+    from instagram_hdmap.train import TrainingRun
+
+    class Killed(BaseException):  # not an exception the run handles: no save at the kill, as with kill -9
+        pass
+
+    real = {name: getattr(TrainingRun, name) for name in ("train_epoch", "log", "save")}
+    armed = []
+
+    def train_epoch(self):
+        stopped = real["train_epoch"](self)
+        armed.append(self.position.epoch == 1)  # epoch 0 just ended
+        return stopped
+
+    def killed_after(name):
+        def wrapped(self, *args, **kwargs):
+            real[name](self, *args, **kwargs)
+            if armed and armed[-1]:  # the first of the epoch's two writes, whichever it is
+                raise Killed
+        return wrapped
+
+    env.monkeypatch.setattr(TrainingRun, "train_epoch", train_epoch)
+    env.monkeypatch.setattr(TrainingRun, "log", killed_after("log"))
+    env.monkeypatch.setattr(TrainingRun, "save", killed_after("save"))
+    run = env.tmp / "run"
+    args = ["train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "train.checkpoint_every=1",
+            "train.val_every=100"]
+    with pytest.raises(Killed):
+        env.cli(*args)
+    for name, method in real.items():
+        env.monkeypatch.setattr(TrainingRun, name, method)
+    rc, _, err = env.cli(*args, "--resume", run / "last.pt")
+    assert rc == 0, err[-2000:]
+    lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [line["epoch"] for line in lines] == [0, 1], lines
+    assert load_checkpoint(run / "last.pt")["log_lines"] == 2
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -30,6 +30,7 @@ import random
 import re
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +54,7 @@ from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
-from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder
+from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder, write_text
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, saved_config
 from .losses import Criterion
@@ -189,6 +190,22 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                 raise UserError(f"train.out_dir {out_dir}: {name} is a {'folder' if target.is_dir() else 'file'}, "
                                 f"where the run keeps its {what} in a {'folder' if folder else 'file'}; move it away "
                                 "(or pass --force to start the run over)")
+
+
+def purge_log(path: Path, lines: int, note: Callable[[str], None]) -> int:
+    """Keep the first ``lines`` lines of a resumed run's ``log.jsonl``, the lines written before the checkpoint
+    it resumes from (its ``log_lines``): a killed run's lines after it (an epoch's line is written before the
+    checkpoint of that epoch, so a kill between the two loses none) go, as the resume trains those steps again
+    and logs them anew, where they showed twice. Returns how many lines the log holds after."""
+    if not path.is_file():
+        return 0
+    text = path.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+    keep = [line for line in text[:lines] if line.endswith("\n")]  # not a line the kill cut short
+    if len(keep) < len(text):
+        write_text("".join(keep), path)
+        note(f"{path}: dropped {len(text) - len(keep)} line(s) written after the checkpoint by the run that was "
+             "stopped; the resume trains those steps again and logs them anew")
+    return len(keep)
 
 
 def lock_out_dir(out_dir: Path) -> None:
@@ -481,6 +498,9 @@ class TrainingRun:
         # a validation that a Ctrl-C / SIGTERM cut short: last.pt records it and the resumed run runs it first (its
         # epoch counted as done, it was skipped, and after the final epoch the run ended never validated, no best.pt)
         self.validation_pending = False
+        # lines in log.jsonl when last.pt was saved: a resume drops those written after it (None: not counted)
+        self.log_lines: int | None = 0
+        self.line_due = False
         # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
 
@@ -559,6 +579,8 @@ class TrainingRun:
         self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
         self.best = state.get("best", self.best)
         self.validation_pending = bool(state.get("validation_pending", False))
+        lines = state.get("log_lines")  # None in a checkpoint saved before the lines were counted
+        self.log_lines = lines if isinstance(lines, int) and not isinstance(lines, bool) and lines >= 0 else None
         check_same_train_set(state.get("train_set"), train_set_fingerprint(self.train_loader), path)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
         self.note_world_change(state.get("world"), path)
@@ -630,6 +652,8 @@ class TrainingRun:
             # purge_step): they showed as a second curve over the steps the resume trains again
             purge = self.position.step + 1 if self.position.step else None
             self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=purge)
+            if self.log_lines is not None:  # the same for the log's lines (a checkpoint that counts them)
+                self.log_lines = purge_log(self.out_dir / "log.jsonl", self.log_lines, du.print_main)
             self.log_file = (self.out_dir / "log.jsonl").open("a")
         try:
             yield
@@ -693,8 +717,8 @@ class TrainingRun:
             if self.validation_pending and self.validating and self.val_loader is not None:
                 du.print_main(f"the validation after step {self.position.step} was interrupted; running it first")
                 self.validate()
+                self.log()  # before last.pt: a kill between the two loses no line (the resume drops it, redoes it)
                 self.save("last.pt", self.summary.get("val", {}).get("metrics"))
-                self.log()
             while not finished:
                 stopped = self.train_epoch()
                 finished = stopped or self.should_stop(self.position.step)  # also refreshes the clock saved below
@@ -702,10 +726,13 @@ class TrainingRun:
                         finished or self.position.epoch % self.cfg.train.val_every == 0):
                     self.validation_pending = True  # until it ends: an interrupt's last.pt says so
                     self.validate()
-                # after the validation, so that it carries the best score (a stop part-way too)
-                self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
+                # after the validation, so that it carries the best score (a stop part-way too); the epoch's
+                # line first: killed between the two, the resume drops the line and trains the epoch again
                 self.log()
+                self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
         except KeyboardInterrupt:
+            if self.line_due and not self.validation_pending:  # stopped after the epoch's validation, before its line
+                self.log()
             self.save("last.pt", gather=False)
             du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
                           f"{self.out_dir / 'last.pt'})")
@@ -740,6 +767,7 @@ class TrainingRun:
         )
         self.memory = result["memory"]
         self.position = Position(p.epoch, result["global_step"], result["step_in_epoch"])
+        self.line_due = True  # the epoch's line in log.jsonl, written by log()
         self.summary = {**self.summary, "epoch": p.epoch, "step": result["global_step"], "train": result["stats"],
                         "train_seconds": round(result["seconds"], 2),
                         "samples_per_s": round(result["samples_per_s"], 2), **self.schedule_summary()}
@@ -795,13 +823,16 @@ class TrainingRun:
             "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
             "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best, "memory": memories,
             "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
-            "world": self.world,
+            "world": self.world, "log_lines": self.log_lines,
         }, self.out_dir / name)
 
     def log(self) -> None:
         if self.log_file is not None:
             self.log_file.write(json.dumps(self.summary, default=float) + "\n")
             self.log_file.flush()
+            if self.log_lines is not None:
+                self.log_lines += 1
+        self.line_due = False
 
     def final_summary(self) -> dict:
         return {"epoch": self.position.epoch, "step": self.position.step,  # a resume that trained nothing
