@@ -4755,6 +4755,31 @@ def row_log_line_survives_a_kill_between_line_and_checkpoint(env):
     assert load_checkpoint(run / "last.pt")["log_lines"] == 2
 
 
+@row("S20", "torchrun jobs never destroyed their process group: at the interpreter's exit gloo's worker threads, still "
+            "running, aborted a rank now and then (SIGABRT, 'terminate called without an active exception') and the "
+            "job failed, exit 1, after all its work was done (twice in one loaded full suite); a command that ends "
+            "well destroys it on every rank (here a one-process group, as torchrun --nproc_per_node 1 makes)")
+def row_process_group_destroyed_at_the_end(env):
+    import socket
+
+    import torch.distributed as dist
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    for key, value in {"RANK": "0", "WORLD_SIZE": "1", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1",
+                       "MASTER_PORT": str(port)}.items():
+        env.monkeypatch.setenv(key, value)
+    try:
+        rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "e")
+        assert rc == 0, err[-2000:]
+        assert (env.tmp / "e" / "metrics.json").is_file()
+        assert not dist.is_initialized(), "the process group outlived the command"
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

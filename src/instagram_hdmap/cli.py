@@ -12,6 +12,7 @@ import os
 import sys
 from pathlib import Path
 
+from . import distributed as du
 from .benchmark import format_benchmark, run_benchmark
 from .config import UserError, load_config, parse_overrides, repeated_overrides
 from .data import build_dataset
@@ -514,7 +515,14 @@ def main(argv: list[str] | None = None) -> int:
             _say(f"instagram-hdmap {args.command}: note: {note}")
     _expand_home(args)
     try:
-        return args.func(args) or 0
+        code = args.func(args) or 0
+        # every rank of a torchrun job got here: destroy the process group before the interpreter exits, where gloo's
+        # worker threads, still running, aborted a rank at random (SIGABRT, "terminate called without an active
+        # exception") and the job failed with exit 1 after all its work was done (only on success: ranks that stop
+        # on an error may be inside a collective, where the destruction would wait for good)
+        du.barrier()
+        du.cleanup()
+        return code
     except UserError as e:
         _say(f"instagram-hdmap {args.command}: error: {e}")
         return 2
