@@ -4780,6 +4780,54 @@ def row_process_group_destroyed_at_the_end(env):
             dist.destroy_process_group()
 
 
+_LATE_WORKER_DEATH = """
+import os, signal, sys, time
+import torch
+from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import dataloader
+from instagram_hdmap import engine
+
+class Frames(Dataset):
+    def __len__(self):
+        return 8
+
+    def __getitem__(self, i):
+        return {"images": torch.zeros(1, 3, 4, 4)}
+
+class Interrupted(torch.nn.Module):
+    def forward(self, batch):
+        raise KeyboardInterrupt  # a SIGTERM, as a training turns it into one
+
+real = dataloader._MultiProcessingDataLoaderIter._shutdown_workers
+
+def signal_arrives_late(self):  # the same signal reaches the worker during the shutdown (a loaded machine)
+    if not self._shutdown:
+        for worker in self._workers:
+            os.kill(worker.pid, signal.SIGKILL)
+        time.sleep(0.3)
+    return real(self)
+
+dataloader._MultiProcessingDataLoaderIter._shutdown_workers = signal_arrives_late
+try:
+    engine.evaluate(Interrupted(), None, DataLoader(Frames(), batch_size=2, num_workers=1), torch.device("cpu"))
+except KeyboardInterrupt:
+    print("interrupted: saved", flush=True)
+sys.exit(130)
+"""
+
+
+@row("S20", "a loop over data-loader workers cut short by a scheduler's SIGTERM to the whole process group, on a "
+            "loaded machine (seen once in a full suite, in S9-sigterm_saves_last_pt): the workers were shut down "
+            "later by the iterator's __del__, where the worker's death came in as an 'Exception ignored ... "
+            "DataLoader worker is killed by signal' traceback under the run's one-line message (or in the middle of "
+            "the save of last.pt); the loop shuts its workers down as it ends")
+def row_workers_shut_down_when_a_loop_is_cut_short(env):
+    p = subprocess.run([sys.executable, "-c", _LATE_WORKER_DEATH], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+    assert p.returncode == 130 and p.stdout.strip() == "interrupted: saved", (p.returncode, p.stdout, p.stderr)
+    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
