@@ -11,6 +11,7 @@ eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S
 fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S17`` one found by a
 seventeenth, ``S18`` one found by an eighteenth, ``S19`` one found by a nineteenth; a ninth-, tenth-,
 eleventh-, fourteenth- or nineteenth-sweep row of a valid input that was refused checks that it runs).
+``S21`` marks a case found by a twenty-first sweep (the researcher's workflow through the docs and the Python API).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -4711,6 +4712,176 @@ def row_resume_into_another_folder_noted(env):
     assert (other / "last.pt").is_file()
     _toy_run(env, [0.3, 0.4, 0.2], "train.epochs=3", resume=str(run / "last.pt"))  # its own folder: no note
     assert "is a checkpoint of the run in" not in env.capsys.readouterr().out
+
+
+@row("S21", "model.backbone.weights: an ImageNet file with NaN weights loaded silently (every loss NaN from the first "
+            "step); a file saved from a DataParallel model ('module.' keys) was called 'another EfficientNet "
+            "variant?', one wrapped as {'state_dict': ...} 'not a state dict'; a folder, the release URL or name were "
+            "'weight file not found' alone. NaN is named, the wrappers are read, the others say what to give")
+def row_backbone_weights_of_other_shapes(env):
+    from efficientnet_pytorch import EfficientNet
+
+    from instagram_hdmap.models import build_model
+
+    state = EfficientNet.from_name("efficientnet-b0").state_dict()
+    base = ["model.backbone.name=efficientnet-b0", "data.image_size=[64,160]", "model.gnn.num_vertices=64"]
+
+    def build(weights):
+        return build_model(load_config(None, [*base, f"model.backbone.weights={weights}"]), pretrained=True)
+
+    files = {"nan": {k: v.float() * float("nan") if v.is_floating_point() else v for k, v in state.items()},
+             "module": {f"module.{k}": v for k, v in state.items()}, "wrapped": {"state_dict": state}}
+    for name, value in files.items():
+        torch.save(value, env.tmp / f"{name}.pth")
+    with pytest.raises(UserError, match=r"nan\.pth: the weights _conv_stem\.weight \(and \d+ more tensors\) hold NaN"):
+        build(env.tmp / "nan.pth")
+    for name in ("module", "wrapped"):
+        stem = build(env.tmp / f"{name}.pth").backbone.trunk._conv_stem.weight
+        assert torch.equal(stem, state["_conv_stem.weight"]), name
+    (env.tmp / "folder").mkdir()
+    with pytest.raises(UserError, match=r"folder \(it is a folder: give the \.pth file in it\)"):
+        build(env.tmp / "folder")
+    for given in ("efficientnet-b0", "ImageNet"):
+        with pytest.raises(UserError, match=rf"not found: {given} \(to download efficientnet-b0's ImageNet release, "
+                                            r"give model\.backbone\.weights=imagenet\)"):
+            build(given)
+
+
+@row("S21", "Mapper(model, config) with a config of another grid than the model was built with (a model built and "
+            "loaded by hand, the YAML file of another run): the model's BEV pixels were read as metres of the config's "
+            "grid, every element moved and scaled, exit 0; another image size was refused deep in the forward as "
+            "'resize them (... Mapper do)'. Both named when the Mapper is made")
+def row_mapper_model_of_another_config(env):
+    from instagram_hdmap import Mapper
+    from instagram_hdmap.models import build_model
+
+    cfg = env.cfg()
+    model = build_model(cfg).eval()
+    Mapper(model, cfg)  # the model's own config: taken
+    for overrides, named in ((["grid.resolution=0.5", "grid.cell_size=2"], r"grid BEVGrid\(.*resolution=0\.25"),
+                             (["grid.xbound=[-16,16]", "grid.ybound=[-8,8]", "grid.resolution=0.5"], "grid BEVGrid"),
+                             (["data.image_size=[128,320]"], r"data\.image_size \[64, 160\] \(config: \[128, 320\]\)")):
+        with pytest.raises(ValueError, match=rf"Mapper: the model was built for another config .*{named}"):
+            Mapper(model, env.cfg(*overrides))
+
+
+@row("S21", "evaluate of a checkpoint trained on data.ped_crossing=edges under a CONFIG of another crossing convention "
+            "(configs/synthetic/demo.yaml's 'each', as README's 'Scoring a checkpoint on any world' does): the model's "
+            "open crossing edges scored against closed rings, the crossing AP near 0, exit 0, and the note on the "
+            "CONFIG's model settings did not name it (the key is the GT's, not the model's); a note names both")
+def row_evaluate_under_another_crossing_convention(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval",
+                           "data.ped_crossing=each")
+    assert rc == 0, err
+    assert ("note: the checkpoint was trained on data.ped_crossing='edges' crossings; the GT here draws them as 'each'"
+            in out + err) and "data.ped_crossing=edges scores them as trained" in out + err
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval2")
+    assert rc == 0 and "data.ped_crossing=" not in out + err
+
+
+@row("S21", "demo.random_map_baseline (benchmarks/README.md's python -c command): a YAML path as the config was a raw "
+            "\"'str' object has no attribute 'data'\", picks of another length scored that many validation samples, "
+            "no word, one past the training split a raw IndexError and a negative one counted from its end; a path "
+            "is read, the picks are checked")
+def row_random_map_baseline_arguments(env):
+    from instagram_hdmap.demo import random_map_baseline
+
+    by_path = random_map_baseline(str(env.yaml), "vector")
+    assert by_path["AP_class"] == random_map_baseline(env.cfg(), "vector")["AP_class"]
+    n = by_path["counters"]["samples"]
+    for picks in ([0] * (n - 1), [0] * (n - 1) + [10**6], [-1] * n):
+        with pytest.raises(UserError, match=r"random_map_baseline: picks must be one training-sample index in \[0, "):
+            random_map_baseline(env.cfg(), "vector", picks=picks)
+    random_map_baseline(env.cfg(), "vector", picks=[np.int64(0)] * n)  # numpy indices: taken
+
+
+@row("S21", "train.init_from of a checkpoint of another architecture (another backbone, GNN depth, a temporal one into "
+            "a single-frame model): the error listed weight names only ('backbone.stages.0.0.weight (not in this "
+            "model)'); it now names the model keys on which the two configs differ")
+def row_init_from_other_architecture_names_the_keys(env):
+    base = ["train.max_steps=1", f"train.init_from={env.ckpt}", f"train.out_dir={env.tmp / 'run'}"]
+    env.error(r"do not fit this model's architecture .*, as the configs differ in model\.gnn\.layers: checkpoint 2 vs "
+              r"now 3; start from", "train", env.yaml, *base, "model.gnn.layers=3")
+    env.error(r"as the configs differ in model\.backbone\.name: checkpoint 'tiny' vs now 'efficientnet-b0'", "train",
+              env.yaml, *base, "model.backbone.name=efficientnet-b0", "model.backbone.from_scratch=true")
+    assert not (env.tmp / "run" / "last.pt").exists()
+
+
+@row("S21", "Mapper.from_checkpoint(path, config=cfg) (Mapper.from_onnx takes one) was 'unknown decoding option(s) "
+            "config', from_checkpoint(path, 'x.yaml') \"device='x.yaml' is not a device\"; both say that the model is "
+            "built from the checkpoint's own config and that overrides= changes keys")
+def row_mapper_from_checkpoint_given_a_config(env):
+    from instagram_hdmap import Mapper
+
+    for args, kwargs in (((), {"config": env.cfg()}), ((str(env.yaml),), {}), ((env.cfg(),), {})):
+        with pytest.raises(TypeError, match=r"Mapper\.from_checkpoint builds the model from the config saved in the "
+                                            r"checkpoint; it takes no config \(.*given\): change keys with overrides="):
+            Mapper.from_checkpoint(env.ckpt, *args, **kwargs)
+    Mapper.from_checkpoint(env.ckpt, "cpu", overrides=["model.gnn.match_threshold=0.2"])
+
+
+@row("S21", "Persistence and InstanceTracker took an element whose pts hold NaN (the evaluation refuses it): it "
+            "matched nothing, was remembered and carried, or took a new ID each frame, with no word; both name the "
+            "element")
+def row_persistence_nan_points(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.persistence import InstanceTracker, Persistence, PersistenceInputError
+
+    grid = BEVGrid(-15, 15, -7.5, 7.5, 0.15, 4)
+    good = {"pts": np.array([[0.0, 1.0], [5.0, 1.0]]), "label": 0, "score": 0.9}
+    for bad in ([[np.nan, 1.0], [5.0, 1.0]], torch.tensor([[0.0, np.inf], [5.0, 1.0]])):
+        for meter in (Persistence(grid, frames=2), InstanceTracker(grid)):
+            with pytest.raises(PersistenceInputError, match=r"sample 0 \(scene 's'\).*element 1's pts hold NaN or "
+                                                            r"infinite coordinates"):
+                meter([[good, {**good, "pts": bad}]], ["s"], [0], [np.eye(4)])
+            meter([[good]], ["s"], [0], [np.eye(4)])  # finite: taken
+
+
+@row("S21", "a self-intersecting road_segment / lane polygon of a map expansion was skipped (as the devkit does) with "
+            "no word: the samples near it lost that boundary; the skipped records are counted in one warning per map "
+            "naming the file")
+def row_map_self_intersecting_area_polygons_counted(env):
+    from instagram_hdmap.data.local_map import load_location_map
+
+    maps = env.tmp / "root" / "maps"
+    shutil.copytree(env.world / "maps", maps)
+    path = next((maps / "expansion").glob("*.json"))
+    m = json.loads(path.read_text())
+    tokens = [f"bowtie{i}" for i in range(4)]
+    m["node"] += [{"token": t, "x": x, "y": y} for t, (x, y) in zip(tokens, [(0, 0), (10, 10), (10, 0), (0, 10)])]
+    polygons = {p["token"]: p for p in m["polygon"]}
+    bad = m["road_segment"][0]
+    polygons[bad["polygon_token"]].update(exterior_node_tokens=tokens, holes=[])
+    path.write_text(json.dumps(m))
+    with pytest.warns(UserWarning, match=rf"{path.name}: 1 invalid \(self-intersecting\) road_segment / lane "
+                                         rf"polygon\(s\) skipped, their boundaries not drawn \({bad['token']}\)"):
+        load_location_map(env.tmp / "root", path.stem)
+
+
+@row("S21", "train stopped by train.max_steps before the end of its schedule: README says the run 'ends before its "
+            "final LR, and says so', but it printed only 'done: epoch 0, step 1' (log.jsonl's schedule_complete alone "
+            "held it); a note says so and how to finish")
+def row_max_steps_says_the_schedule_is_cut(env):
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.max_steps=1", "train.epochs=2")
+    assert rc == 0, err
+    assert re.search(r"note: train\.max_steps=1 stopped the run before the end of its schedule \(progress 0\.\d+; "
+                     r"lr .*\): resume with a larger train\.max_steps", out), out
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=2", "--resume", run / "last.pt")
+    assert rc == 0 and "stopped the run before the end" not in out, out + err
+
+
+@row("S21", "eval.cmap_match_m (or eval.flicker_threshold_m) given while eval.cmap (eval.flicker) is off: the setting "
+            "was unused with no word; evaluate and train say so once")
+def row_meter_setting_without_its_meter(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval",
+                           "eval.cmap_match_m=2", "eval.flicker=false", "eval.flicker_threshold_m=0.5")
+    assert rc == 0, err
+    assert "note: eval.cmap_match_m=2 is not used: eval.cmap is off (set eval.cmap=true" in out + err
+    assert "note: eval.flicker_threshold_m=0.5 is not used: eval.flicker is off" in out + err
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval2", "eval.cmap=true",
+                           "eval.cmap_match_m=2")
+    assert rc == 0 and "is not used" not in out + err
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

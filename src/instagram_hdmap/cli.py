@@ -143,6 +143,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     summary = train(cfg, resume=args.resume, force=args.force)
     if int(os.environ.get("RANK", "0")) == 0:  # under torchrun each rank returns here: one line, as the run's others
         print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
+        if cfg.train.max_steps is not None and summary.get("schedule_complete") is False:  # README: "and says so"
+            print(f"note: train.max_steps={cfg.train.max_steps} stopped the run before the end of its schedule "
+                  f"(progress {summary.get('progress', 0):.3f}; lr {summary.get('lr', 0):.3g}, final "
+                  f"{summary.get('final_lr', 0):.3g}): resume with a larger train.max_steps (or none) to finish it")
     return 0
 
 

@@ -119,6 +119,9 @@ def _check_preds(preds, where: str, who: str = "Persistence",
             got = f"shape {list(pts.shape)}" if pts is not None else f"{p['pts']!r:.60}"
             raise PersistenceInputError(f"{who}: {where}: element {k}'s pts must be [P, 2] (x, y in metres, "
                                         f"ego frame), got {got}")
+        if not np.isfinite(pts).all():  # matched nothing, took a new ID / was remembered with no word
+            raise PersistenceInputError(f"{who}: {where}: element {k}'s pts hold NaN or infinite coordinates (the "
+                                        "evaluation refuses them too); drop or fix that element")
         label, score = p["label"], p.get("score")
         label, score = (x.item() if isinstance(x, torch.Tensor) and x.numel() == 1  # np.size: no bf16
                         else x.item() if hasattr(x, "item") and np.size(x) == 1 else x for x in (label, score))

@@ -51,7 +51,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers
+from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
 from .visualize import (
     figure_rgb,
     intermediate_figure,
@@ -581,7 +581,7 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
-    notes += camera_dropout_notes(cfg, "the AP")
+    notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg)
     grid = BEVGrid.from_config(cfg.grid)
     split = cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)

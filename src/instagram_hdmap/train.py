@@ -46,7 +46,16 @@ from .checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, get_key, is_under, save_config
+from .config import (
+    EvalConfig,
+    ExperimentConfig,
+    UserError,
+    config_to_dict,
+    diff_configs,
+    get_key,
+    is_under,
+    save_config,
+)
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
@@ -55,7 +64,7 @@ from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder
 from .geometry import BEVGrid
-from .inference import MODEL_KEYS, saved_config
+from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
@@ -311,6 +320,16 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
                         threshold_m=cfg.eval.flicker_threshold_m)
 
 
+def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
+    """Notes for a meter's setting given while the meter is off (its default otherwise): it was unused with no word."""
+    default, notes = EvalConfig(), []
+    for switch, key in (("cmap", "cmap_match_m"), ("flicker", "flicker_threshold_m")):
+        if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
+            notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
+                         f"eval.{switch}=true for that meter)")
+    return notes
+
+
 def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
     """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
     predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
@@ -460,8 +479,10 @@ class TrainingRun:
         self.random_init = random_init_warning(cfg) if fresh and init_state is None else None
         if self.random_init:
             du.print_main(self.random_init)
+        for note in unused_meter_keys(cfg) if validate else ():
+            du.print_main(f"note: {note}")
         if init_state is not None:
-            new = init_weights(self.model, init_state)
+            new = init_weights(self.model, init_state, cfg)
             du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
                                                                   "start from their initialisation)" if new else ""))
         trainable = freeze_parameters(self.model, cfg.train.trainable)
@@ -504,7 +525,7 @@ class TrainingRun:
             with torch.random.fork_rng(devices=[]):  # the run's own model is initialised as without the probe
                 probe = build_model(cfg, pretrained=False)
             if init_state is not None:
-                init_weights(probe, init_state)
+                init_weights(probe, init_state, cfg)
             freeze_parameters(probe, cfg.train.trainable)
             check_frozen_are_trained(probe, cfg, fresh=state is None and init_state is None)
             del probe
@@ -869,12 +890,13 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
     return state
 
 
-def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
+def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:
     """``state``'s model weights into ``model`` (``train.init_from``); every weight must match by name and
     shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built). A
     checkpoint whose fusion does not fit this model's (another memory or fusion kind: other names or shapes)
     lends none of it: the whole fusion starts from its initialisation (the gated one then is the identity),
-    never half trained. A fusion for a model without one is an error (the run's config is not temporal)."""
+    never half trained. A fusion for a model without one is an error (the run's config is not temporal). With
+    ``cfg`` the error names the ``model.*`` keys on which the checkpoint's config and ``cfg`` differ."""
     own, theirs = model.state_dict(), state["model"]
     fusion = [k for k in theirs if k.startswith("temporal.")]
     if (any(k.startswith("temporal.") for k in own)  # (into a single-frame model a fusion is an error, below)
@@ -887,8 +909,13 @@ def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
                 if k in theirs and theirs[k].shape != own[k].shape])
     if wrong:
         more = f" and {len(wrong) - 3} more" if len(wrong) > 3 else ""
+        keys = ""  # the weights' names alone did not say which setting differs (another backbone, memory, depth)
+        if cfg is not None and isinstance(state.get("config"), dict):
+            old = saved_config(state["config"], "the checkpoint of train.init_from")
+            differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
+            keys = f", as the configs differ in {config_differences(old, cfg, differ)}" if differ else ""
         raise UserError(f"train.init_from: the checkpoint's weights do not fit this model's architecture "
-                        f"({'; '.join(wrong[:3])}{more}); start from a checkpoint of the same model config")
+                        f"({'; '.join(wrong[:3])}{more}){keys}; start from a checkpoint of the same model config")
     model.load_state_dict(theirs, strict=False)
     return missing
 
