@@ -4884,6 +4884,36 @@ def row_meter_setting_without_its_meter(env):
     assert rc == 0 and "is not used" not in out + err
 
 
+@row("S21", "evaluate --protocol raster eval.also_protocols=[vector] on a config of the vector protocol (tiny, demo): "
+            "refused as 'lists protocols besides eval.protocol='vector'', the protocol --protocol replaces; the "
+            "request is valid (raster, and vector as well) and runs")
+def row_evaluate_protocol_flag_with_also_protocols(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval", "--protocol",
+                           "raster", "eval.also_protocols=[vector]")
+    assert rc == 0, err
+    metrics = json.loads((env.tmp / "eval" / "metrics.json").read_text())
+    assert metrics["protocol"] == "raster" and metrics["also"]["vector"]["protocol"] == "vector"
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval2", "--protocol",
+                           "raster", "eval.also_protocols=[raster]")  # --protocol listed again: the duplicate dropped
+    assert rc == 0, err
+    env.error(r"eval\.also_protocols' lists protocols besides eval\.protocol='vector'", "evaluate", env.yaml,
+              "--checkpoint", env.ckpt, "--out", env.tmp / "eval3", "eval.also_protocols=[vector]")
+
+
+@row("S21", "train --resume with another data.ped_crossing (the crossings' targets: edges or rings) or data.image_fit "
+            "(the images the model learns from): the run went on with the other targets / images, mixed into one "
+            "model, exit 0, no word; both are checked as the other keys that define the training targets")
+def row_resume_with_another_crossing_convention_or_image_fit(env):
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.max_steps=1", "train.epochs=2")
+    assert rc == 0, err
+    for override, named in (("data.ped_crossing=each", "data.ped_crossing: checkpoint 'edges' vs now 'each'"),
+                            ("data.image_fit=stretch", "data.image_fit: checkpoint 'cover' vs now 'stretch'")):
+        env.error(rf"last\.pt was trained with an incompatible config \({re.escape(named)}\)", "train", env.yaml,
+                  f"train.out_dir={run}", "train.epochs=2", override, "--resume", run / "last.pt")
+    assert load_checkpoint(run / "last.pt")["step"] == 1
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from .benchmark import format_benchmark, run_benchmark
-from .config import UserError, load_config, parse_overrides, repeated_overrides
+from .config import ConfigError, UserError, load_config, parse_overrides, repeated_overrides
 from .data import build_dataset
 from .data.base import gt_submission
 from .data.synthetic import generate_world
@@ -197,8 +197,23 @@ def _print_notes(notes: list[str]) -> None:
         print(f"note: {note}")
 
 
+def _load_evaluate(args: argparse.Namespace):
+    """evaluate's config with ``--protocol`` as its ``eval.protocol``, so that ``eval.also_protocols`` is checked
+    against the protocol run (``--protocol raster eval.also_protocols=[vector]`` on a vector config was refused as
+    listing the config's own protocol); ``eval.also_protocols`` naming ``--protocol`` itself stays taken (the
+    duplicate dropped)."""
+    if args.protocol is None:
+        return _load(args)
+    try:
+        return load_config(args.config, [*args.overrides, f"eval.protocol={args.protocol}"])
+    except ConfigError as e:
+        if "eval.also_protocols" not in str(e):
+            raise
+        return _load(args)
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    result = run_evaluation(_load(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
+    result = run_evaluation(_load_evaluate(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
     if not result["paths"]:  # not rank 0 under torchrun
         return 0
     metrics = result["metrics"]

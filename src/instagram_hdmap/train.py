@@ -77,7 +77,10 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 # train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
 # one skipped the rest of the epoch and moved the learning rate along the schedule)
 # train.seed: the epochs' sample order (the saved position counts batches of that order)
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "train.trainable", "train.seed")
+# data.ped_crossing: the crossings' targets (edges or rings), data.image_fit: the images the model learns from (a
+# resume with another one switched them mid-run with no word)
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "data.image_fit", "train.batch_size",
+               "train.trainable", "train.seed")
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
