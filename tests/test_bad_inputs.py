@@ -4914,6 +4914,36 @@ def row_resume_with_another_crossing_convention_or_image_fit(env):
     assert load_checkpoint(run / "last.pt")["step"] == 1
 
 
+@row("S21", "FlickerMeter.merge / ConsistentAPMeter.merge of a state whose pose is NaN, None or 3x3 (a hand-built or "
+            "damaged state): merged as it was; the flicker rate came out NaN with no word, or compute() failed in a "
+            "raw matmul error / named the tracker's frame, not the merged state; merge names the state's sample")
+def row_drive_meter_merge_checks_poses(env):
+    import copy
+
+    from instagram_hdmap.evaluation.consistency import ConsistentAPMeter, FlickerMeter
+    from instagram_hdmap.evaluation.inputs import EvaluationInputError
+    from instagram_hdmap.geometry import BEVGrid
+
+    grid = BEVGrid(-15, 15, -7.5, 7.5, 0.15, 4)
+    pred = {"pts": np.array([[0.0, 1.0], [5.0, 1.0]]), "label": 0, "score": 0.9}
+    gt = {"pts": np.array([[0.0, 1.0], [5.0, 1.0]]), "label": 0}
+    for meter in (FlickerMeter, ConsistentAPMeter):
+        mine, other = meter(grid), meter(grid)
+        mine.update([[pred]], [[gt]], ["s"], [0], [np.eye(4)])
+        other.update([[pred]], [[gt]], ["s"], [1], [np.eye(4)])
+        for pose, named in ((np.full((4, 4), np.nan), "NaN or infinite"), (None, r"4x4 .*got shape \[\]"),
+                            (np.eye(3), r"4x4 .*got shape \[3, 3\]")):
+            state = copy.deepcopy(other.state_dict())
+            state["records"][("s", 1)]["pose"] = pose
+            with pytest.raises(EvaluationInputError, match=rf"{meter.__name__}\.merge: the state's sample \(scene 's', "
+                                                          rf"frame 1\): its ego pose .*{named}"):
+                copy.deepcopy(mine).merge(state)
+        state = copy.deepcopy(other.state_dict())
+        state["records"][("s", 1)]["pose"] = np.eye(4).tolist()  # a list: taken
+        mine.merge(state)
+        mine.compute()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
