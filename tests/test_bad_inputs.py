@@ -4944,6 +4944,30 @@ def row_drive_meter_merge_checks_poses(env):
         mine.compute()
 
 
+@row("S21", "a YAML path where the Python API takes a config (build_model, inference.load_model, "
+            "Persistence.from_config, InstanceTracker.from_config, train, predict.run_evaluation; build_dataset and "
+            "Evaluator.from_config took one): a raw \"'str' object has no attribute 'grid'\" (or 'does not support "
+            "item assignment') from deep inside; each reads the file (config.as_config, one helper), "
+            "BEVGrid.from_config(path) and a None config are a TypeError naming the function")
+def row_yaml_path_where_a_config_goes(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.inference import load_model
+    from instagram_hdmap.models import build_model
+    from instagram_hdmap.persistence import InstanceTracker, Persistence
+
+    path = str(env.yaml)
+    assert type(build_model(path)).__name__ == "InstaGraM"
+    assert load_model(env.ckpt, path)[1].grid == env.cfg().grid
+    assert Persistence.from_config(path) is None  # persist_frames 0
+    assert Persistence.from_config({"model": {"temporal": {"persist_frames": 2}}}).frames == 2
+    assert InstanceTracker.from_config(path).match_m == env.cfg().model.temporal.persist_match_m
+    with pytest.raises(TypeError, match=r"load_model takes an ExperimentConfig .* or a YAML file, got NoneType"):
+        load_model(env.ckpt, None)
+    with pytest.raises(TypeError, match=r"BEVGrid\.from_config takes a config's grid section \(cfg\.grid\) or the "
+                                        r"config, got str"):
+        BEVGrid.from_config(path)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 from .checkpoint import load_checkpoint
-from .config import ExperimentConfig, UserError, flatten, load_config, parse_overrides
+from .config import ExperimentConfig, UserError, as_config, flatten, load_config, parse_overrides
 from .data import build_dataset
 from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
@@ -149,8 +149,8 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     The training split comes from ``cfg``'s world, the validation split from ``val_cfg``'s (default
     the same world). ``picks`` (one training index per validation sample) replaces the random draw.
     ``cfg`` / ``val_cfg``: ``ExperimentConfig`` objects or YAML files."""
-    cfg = load_config(cfg)  # a YAML file's path was a raw "'str' object has no attribute 'data'"
-    val_cfg = None if val_cfg is None else load_config(val_cfg)
+    cfg = as_config(cfg, "random_map_baseline")  # a YAML file's path was a raw "'str' object has no attribute 'data'"
+    val_cfg = None if val_cfg is None else as_config(val_cfg, "random_map_baseline")
     train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
     if val_cfg is None or val_cfg.data.dataroot == cfg.data.dataroot:
         val_cfg = cfg if val_cfg is None else val_cfg

@@ -42,6 +42,7 @@ from .config import (
     MAP_CLASSES,
     ExperimentConfig,
     UserError,
+    as_config,
     config_from_dict,
     config_to_dict,
     deep_update,
@@ -219,8 +220,10 @@ def load_model(
     """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode.
 
     Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
-    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit.
+    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit. ``cfg``: an
+    ``ExperimentConfig`` or a YAML file.
     """
+    cfg = as_config(cfg, "load_model")  # a path was a raw "'str' object does not support item assignment"
     state = load_checkpoint(checkpoint)
     notes: list[str] = []
     if isinstance(state.get("config"), dict):

@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from . import distributed as du
-from .config import ExperimentConfig, UserError
+from .config import ExperimentConfig, UserError, as_config
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.rig import CameraCalibration, RigError, camera_named_by, read_rig_file
@@ -565,6 +565,7 @@ def run_evaluation(
     for a temporal model, ``metrics["memory"]`` the samples per memory
     status (fused, no memory, pose jump, missing frame).
     """
+    cfg = as_config(cfg, "run_evaluation")  # a YAML path (or the checkpoint, arguments swapped): named
     check_output_dir(out, "--out")  # before the work that fills it
     for name in ("submission.json", "metrics.json"):
         check_output_file(Path(out) / name, "--out")

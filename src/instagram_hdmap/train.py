@@ -50,6 +50,7 @@ from .config import (
     EvalConfig,
     ExperimentConfig,
     UserError,
+    as_config,
     config_to_dict,
     diff_configs,
     get_key,
@@ -390,7 +391,9 @@ def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
 def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = False,
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
-    (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
+    (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config. ``cfg``: an
+    ``ExperimentConfig`` or a YAML file."""
+    cfg = as_config(cfg, "train")
     try:
         run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
         with run.threads(), run.outputs():

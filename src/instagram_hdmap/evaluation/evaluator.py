@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..config import ExperimentConfig, load_config
+from ..config import ExperimentConfig, as_config
 from ..geometry import BEVGrid
 from .inputs import EvaluationInputError, check_grid, gather_states
 from .io import SubmissionError, read_submission
@@ -160,8 +160,7 @@ class Evaluator:
     @classmethod
     def from_config(cls, cfg: ExperimentConfig | str | Path, device: str | torch.device = "cpu") -> Evaluator:
         """The evaluator a config's ``eval`` section describes (``cfg``: an ``ExperimentConfig`` or a YAML file)."""
-        if not isinstance(cfg, ExperimentConfig):
-            cfg = load_config(cfg)
+        cfg = as_config(cfg, "Evaluator.from_config")
         ev = cfg.eval
         return cls(ev.protocol, ev.thresholds, cfg.data.classes, grid=BEVGrid.from_config(cfg.grid),
                    rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device, also=ev.also_protocols)
