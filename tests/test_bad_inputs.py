@@ -4968,6 +4968,32 @@ def row_yaml_path_where_a_config_goes(env):
         BEVGrid.from_config(path)
 
 
+@row("S21", "docs/deploy.md's 'Using the file without this package': onnxruntime's outputs (NumPy arrays) handed to "
+            "postprocess.postprocess_batch, as the page says, were a raw \"'numpy.ndarray' object has no attribute "
+            "'float'\"; outputs of a model of another grid size decoded with this grid came out in wrong metres, "
+            "exit 0. NumPy outputs are read, a grid of another size is named")
+def row_postprocess_numpy_outputs_and_grid(env):
+    from instagram_hdmap.data import build_dataset
+    from instagram_hdmap.data.base import collate_fn
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.inference import load_model
+    from instagram_hdmap.postprocess import decode_options, postprocess_batch
+
+    model, cfg, _ = load_model(env.ckpt, env.cfg())
+    grid = BEVGrid.from_config(cfg.grid)
+    batch = collate_fn([build_dataset(cfg, cfg.data.val_split, augment=False)[0]])
+    with torch.no_grad():
+        outputs = model(batch)
+    options = decode_options(cfg.model.gnn, grid)
+    ref = postprocess_batch(outputs, grid, **options)
+    got = postprocess_batch({k: v.numpy() for k, v in outputs.items()}, grid, **options)
+    assert [[(p["label"], p["pts"].tolist()) for p in s] for s in got] == [
+        [(p["label"], p["pts"].tolist()) for p in s] for s in ref]
+    with pytest.raises(ValueError, match=r"postprocess_batch: the outputs are of a model of another grid "
+                                         r"\('pred_heatmap' H x W 32 x 64, the grid 100 x 200\)"):
+        postprocess_batch(outputs, BEVGrid(-15, 15, -7.5, 7.5, 0.15, 4), **options)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
