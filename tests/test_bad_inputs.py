@@ -4994,6 +4994,26 @@ def row_postprocess_numpy_outputs_and_grid(env):
         postprocess_batch(outputs, BEVGrid(-15, 15, -7.5, 7.5, 0.15, 4), **options)
 
 
+@row("S21", "train.init_from with model.backbone.weights set (a paper config, whose weights=imagenet, fine-tuned from "
+            "a checkpoint): the ImageNet file was not loaded (the checkpoint's backbone wins), with no word; a note "
+            "says so")
+def row_init_from_with_backbone_weights_noted(env):
+    from efficientnet_pytorch import EfficientNet
+
+    from instagram_hdmap.models import build_model
+
+    b0 = ["model.backbone.name=efficientnet-b0", "model.backbone.from_scratch=true"]
+    cfg = env.cfg(*b0)
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)}, env.tmp / "b0.pt")
+    torch.save(EfficientNet.from_name("efficientnet-b0").state_dict(), env.tmp / "imagenet.pth")
+    rc, out, err = env.cli("train", env.yaml, "model.backbone.name=efficientnet-b0",
+                           f"model.backbone.weights={env.tmp / 'imagenet.pth'}", f"train.init_from={ckpt}",
+                           "train.max_steps=1", f"train.out_dir={env.tmp / 'run'}")
+    assert rc == 0, err
+    assert (f"note: model.backbone.weights={env.tmp / 'imagenet.pth'} is not loaded: the backbone starts from the "
+            f"weights of train.init_from={ckpt}") in out
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -491,6 +491,9 @@ class TrainingRun:
             new = init_weights(self.model, init_state, cfg)
             du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
                                                                   "start from their initialisation)" if new else ""))
+            if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
+                du.print_main(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
+                              f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
         trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
         self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
