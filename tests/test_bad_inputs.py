@@ -4948,8 +4948,10 @@ def row_drive_meter_merge_checks_poses(env):
             "Persistence.from_config, InstanceTracker.from_config, train, predict.run_evaluation; build_dataset and "
             "Evaluator.from_config took one): a raw \"'str' object has no attribute 'grid'\" (or 'does not support "
             "item assignment') from deep inside; each reads the file (config.as_config, one helper), "
-            "BEVGrid.from_config(path) and a None config are a TypeError naming the function")
+            "BEVGrid.from_config(path) and a None config (Mapper(model, None) took the default config) are a "
+            "TypeError naming the function")
 def row_yaml_path_where_a_config_goes(env):
+    from instagram_hdmap import Mapper
     from instagram_hdmap.geometry import BEVGrid
     from instagram_hdmap.inference import load_model
     from instagram_hdmap.models import build_model
@@ -4963,6 +4965,8 @@ def row_yaml_path_where_a_config_goes(env):
     assert InstanceTracker.from_config(path).match_m == env.cfg().model.temporal.persist_match_m
     with pytest.raises(TypeError, match=r"load_model takes an ExperimentConfig .* or a YAML file, got NoneType"):
         load_model(env.ckpt, None)
+    with pytest.raises(TypeError, match=r"Mapper takes an ExperimentConfig"):  # was the default config: another grid
+        Mapper(build_model(path), None)
     with pytest.raises(TypeError, match=r"BEVGrid\.from_config takes a config's grid section \(cfg\.grid\) or the "
                                         r"config, got str"):
         BEVGrid.from_config(path)
@@ -5012,6 +5016,22 @@ def row_init_from_with_backbone_weights_noted(env):
     assert rc == 0, err
     assert (f"note: model.backbone.weights={env.tmp / 'imagenet.pth'} is not loaded: the backbone starts from the "
             f"weights of train.init_from={ckpt}") in out
+
+
+@row("S21", "evaluate-json --protocol raster of a GT file whose meta states a 16 m x 8 m patch (export-gt of the tiny "
+            "config): the advice 'pass --xbound -8 8 --ybound -4 4', followed, was refused next ('16 m is not a whole "
+            "number of --resolution 0.15 m pixels'); the advice names a --resolution that tiles the patch")
+def row_raster_canvas_advice_with_resolution(env):
+    line = [[-5.0, 1.0], [5.0, 1.0]]
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"meta": {"ground_truth": True, "xbound": [-8.0, 8.0], "ybound": [-4.0, 4.0]},
+                              "results": {"a": [{"pts": line, "type": 0}]}}))
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": line, "type": 0, "confidence_level": 0.9}]}, False)
+    env.error(r"pass --xbound -8 8 --ybound -4 4 --resolution 0\.1 \(", "evaluate-json", "--pred", pred, "--gt", gt,
+              "--protocol", "raster")
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt, "--protocol", "raster", "--xbound", "-8", "8",
+                           "--ybound", "-4", "4", "--resolution", "0.1")
+    assert rc == 0 and re.search(r"divider\s+1\.0000", out), out + err
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

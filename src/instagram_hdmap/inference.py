@@ -50,7 +50,6 @@ from .config import (
     flatten,
     get_key,
     is_under,
-    load_config,
     parse_overrides,
     set_key,
 )
@@ -412,8 +411,7 @@ class OnnxModel:
                  optimization: str = "all", providers: Sequence[str] = ("CPUExecutionProvider",)):
         _, ort = require_onnx()
         self.path = as_path(path, "ONNX file")
-        if not isinstance(cfg, ExperimentConfig):
-            cfg = load_config(cfg)  # a YAML file's path: "'str' object has no attribute 'model'" deep in the check
+        cfg = as_config(cfg, "OnnxModel")  # a YAML file's path: "'str' object has no attribute 'model'" deep inside
         self.meta = check_export(self.path, cfg)
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or torch.get_num_threads()
@@ -762,8 +760,7 @@ class Mapper:
         if not (isinstance(model, (torch.nn.Module, OnnxModel))):
             raise TypeError(f"Mapper takes a model (an InstaGraM module or an OnnxModel), got {type(model).__name__}; "
                             "load a trained one with Mapper.from_checkpoint(path) or Mapper.from_onnx(path)")
-        if not isinstance(config, ExperimentConfig):
-            config = load_config(config)  # a YAML file's path (or a dict of its keys)
+        config = as_config(config, "Mapper")  # a YAML file's path (or a dict of its keys); None is no config
         self.model, self.config, self.source, self.notes = model, config, source, list(notes)
         self.device = device if device is not None else torch.device("cpu")
         self.grid = BEVGrid.from_config(config.grid)
@@ -823,7 +820,7 @@ class Mapper:
         if config is None:
             cfg = exported_config(meta)
         else:
-            cfg = config if isinstance(config, ExperimentConfig) else load_config(config)
+            cfg = as_config(config, "Mapper.from_onnx")
         cfg = with_decoding(cfg, decode_overrides, overrides)
         return cls(OnnxModel(path, cfg), cfg, source=f"ONNX {path} (onnxruntime)")
 

@@ -365,10 +365,16 @@ def _check_canvas(gt, grid: BEVGrid) -> None:
         crops = x0 < grid.xmin or x1 > grid.xmax or y0 < grid.ymin or y1 > grid.ymax
         why = ("which would crop it" if crops else  # a larger canvas: predictions beyond the patch would count
                "which would score predictions beyond the patch that the GT's own canvas leaves out")
+        def tiles(r: float) -> bool:
+            return all(abs(e / r - round(e / r)) < 1e-6 for e in (x1 - x0, y1 - y0))
+
+        # the advice alone was refused next when the resolution does not tile that patch (16 m at 0.15 m)
+        res = next((r for r in (grid.resolution, 0.1, 0.125, 0.2, 0.25, 0.05) if tiles(r)), None)
+        also = f" --resolution {res:g}" if res is not None and res != grid.resolution else ""
         raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
                               f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
-                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g} (to score "
-                              "another canvas on purpose, drop xbound/ybound from the GT file's meta)")
+                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g}{also} (to "
+                              "score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
 
 
 FRAME_META_KEYS = ("classes", "xbound", "ybound", "frame", "dataset")  # what the ids and coordinates mean
