@@ -4909,8 +4909,9 @@ def row_resume_with_another_crossing_convention_or_image_fit(env):
     assert rc == 0, err
     for override, named in (("data.ped_crossing=each", "data.ped_crossing: checkpoint 'edges' vs now 'each'"),
                             ("data.image_fit=stretch", "data.image_fit: checkpoint 'cover' vs now 'stretch'")):
-        env.error(rf"last\.pt was trained with an incompatible config \({re.escape(named)}\)", "train", env.yaml,
-                  f"train.out_dir={run}", "train.epochs=2", override, "--resume", run / "last.pt")
+        env.error(rf"last\.pt was trained with an incompatible config \({re.escape(named)}\); resume it with the "
+                  r"config it was trained with, or start a new run from its weights with train\.init_from=", "train",
+                  env.yaml, f"train.out_dir={run}", "train.epochs=2", override, "--resume", run / "last.pt")
     assert load_checkpoint(run / "last.pt")["step"] == 1
 
 

@@ -222,7 +222,9 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
     lines = config_differences(old, cfg, keys)
     if lines:
-        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
+        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
+                              f"the config it was trained with, or start a new run from its weights with "
+                              f"train.init_from={path} and another train.out_dir")
 
 
 def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
