@@ -47,7 +47,17 @@ from .checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, get_key, is_under, save_config
+from .config import (
+    EvalConfig,
+    ExperimentConfig,
+    UserError,
+    as_config,
+    config_to_dict,
+    diff_configs,
+    get_key,
+    is_under,
+    save_config,
+)
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
@@ -56,7 +66,7 @@ from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder, write_text
 from .geometry import BEVGrid
-from .inference import MODEL_KEYS, saved_config
+from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
@@ -69,7 +79,10 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 # train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
 # one skipped the rest of the epoch and moved the learning rate along the schedule)
 # train.seed: the epochs' sample order (the saved position counts batches of that order)
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "train.trainable", "train.seed")
+# data.ped_crossing: the crossings' targets (edges or rings), data.image_fit: the images the model learns from (a
+# resume with another one switched them mid-run with no word)
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "data.image_fit", "train.batch_size",
+               "train.trainable", "train.seed")
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
@@ -226,7 +239,9 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
     lines = config_differences(old, cfg, keys)
     if lines:
-        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
+        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
+                              f"the config it was trained with, or start a new run from its weights with "
+                              f"train.init_from={path} and another train.out_dir")
 
 
 def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
@@ -328,6 +343,16 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
                         threshold_m=cfg.eval.flicker_threshold_m)
 
 
+def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
+    """Notes for a meter's setting given while the meter is off (its default otherwise): it was unused with no word."""
+    default, notes = EvalConfig(), []
+    for switch, key in (("cmap", "cmap_match_m"), ("flicker", "flicker_threshold_m")):
+        if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
+            notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
+                         f"eval.{switch}=true for that meter)")
+    return notes
+
+
 def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
     """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
     predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
@@ -385,7 +410,9 @@ def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
 def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = False,
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
-    (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
+    (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config. ``cfg``: an
+    ``ExperimentConfig`` or a YAML file."""
+    cfg = as_config(cfg, "train")
     try:
         run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
         with run.threads(), run.outputs():
@@ -477,10 +504,15 @@ class TrainingRun:
         self.random_init = random_init_warning(cfg) if fresh and init_state is None else None
         if self.random_init:
             du.print_main(self.random_init)
+        for note in unused_meter_keys(cfg) if validate else ():
+            du.print_main(f"note: {note}")
         if init_state is not None:
-            new = init_weights(self.model, init_state)
+            new = init_weights(self.model, init_state, cfg)
             du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
                                                                   "start from their initialisation)" if new else ""))
+            if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
+                du.print_main(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
+                              f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
         trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
         self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
@@ -524,7 +556,7 @@ class TrainingRun:
             with torch.random.fork_rng(devices=[]):  # the run's own model is initialised as without the probe
                 probe = build_model(cfg, pretrained=False)
             if init_state is not None:
-                init_weights(probe, init_state)
+                init_weights(probe, init_state, cfg)
             freeze_parameters(probe, cfg.train.trainable)
             check_frozen_are_trained(probe, cfg, fresh=state is None and init_state is None)
             del probe
@@ -900,12 +932,13 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
     return state
 
 
-def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
+def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:
     """``state``'s model weights into ``model`` (``train.init_from``); every weight must match by name and
     shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built). A
     checkpoint whose fusion does not fit this model's (another memory or fusion kind: other names or shapes)
     lends none of it: the whole fusion starts from its initialisation (the gated one then is the identity),
-    never half trained. A fusion for a model without one is an error (the run's config is not temporal)."""
+    never half trained. A fusion for a model without one is an error (the run's config is not temporal). With
+    ``cfg`` the error names the ``model.*`` keys on which the checkpoint's config and ``cfg`` differ."""
     own, theirs = model.state_dict(), state["model"]
     fusion = [k for k in theirs if k.startswith("temporal.")]
     if (any(k.startswith("temporal.") for k in own)  # (into a single-frame model a fusion is an error, below)
@@ -918,8 +951,13 @@ def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
                 if k in theirs and theirs[k].shape != own[k].shape])
     if wrong:
         more = f" and {len(wrong) - 3} more" if len(wrong) > 3 else ""
+        keys = ""  # the weights' names alone did not say which setting differs (another backbone, memory, depth)
+        if cfg is not None and isinstance(state.get("config"), dict):
+            old = saved_config(state["config"], "the checkpoint of train.init_from")
+            differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
+            keys = f", as the configs differ in {config_differences(old, cfg, differ)}" if differ else ""
         raise UserError(f"train.init_from: the checkpoint's weights do not fit this model's architecture "
-                        f"({'; '.join(wrong[:3])}{more}); start from a checkpoint of the same model config")
+                        f"({'; '.join(wrong[:3])}{more}){keys}; start from a checkpoint of the same model config")
     model.load_state_dict(theirs, strict=False)
     return missing
 
