@@ -5150,6 +5150,66 @@ def row_raster_canvas_advice_with_resolution(env):
     assert rc == 0 and re.search(r"divider\s+1\.0000", out), out + err
 
 
+@row("S22", "Ctrl-C (or a SIGTERM) in the middle of a training step saved last.pt with the step half done (the "
+            "BatchNorm statistics of its forward, the optimizer's moments), which the resume did again: its weights "
+            "differed from an uninterrupted run's, with no word. The signal now waits for the step's end")
+def row_interrupt_mid_step_resumes_exactly(env):
+    import signal
+
+    from instagram_hdmap import engine
+
+    real, calls = engine.optimisation_step, []
+
+    def ctrl_c_in_the_second_step(*args, **kwargs):  # after the forward, before the optimizer's step
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    common = ["train.batch_size=1", "train.val_every=100"]
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'whole'}", *common)
+    assert rc == 0, err[-2000:]
+    env.monkeypatch.setattr(engine, "optimisation_step", ctrl_c_in_the_second_step)
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", *common)
+    assert rc == 130 and load_checkpoint(run / "last.pt")["step"] == 2, (rc, err[-2000:])
+    env.monkeypatch.setattr(engine, "optimisation_step", real)
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", "--resume", run / "last.pt", *common)
+    assert rc == 0, err[-2000:]
+    whole, resumed = load_checkpoint(env.tmp / "whole" / "last.pt")["model"], load_checkpoint(run / "last.pt")["model"]
+    assert all(torch.equal(whole[k], resumed[k]) for k in whole), "the resumed weights differ"
+
+
+@row("S22", "a temporal training with train.stream_warmup: the schedule counted train.epochs x the first (single-frame) "
+            "epoch's steps, but an epoch of streams lasts as long as its longest stream: one scene of 3 frames on 4 "
+            "streams ran 1 of its 3 steps and the run ended there, exit 0. Every epoch is counted as it is walked")
+def row_temporal_epochs_of_streams_counted_whole(env):
+    splits = env.tmp / "splits.json"
+    names = json.loads((env.world / "splits.json").read_text())
+    splits.write_text(json.dumps({"train": names["train"][:1], "val": names["val"]}))
+    run = env.tmp / "run"
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={run}", f"data.splits_file={splits}",
+                           "model.temporal.memory=bev", "train.epochs=2", "train.stream_warmup=0.5",
+                           "train.batch_size=4", "train.val_every=100")
+    assert rc == 0, err[-2000:]
+    state = load_checkpoint(run / "last.pt")
+    assert state["step"] == 1 + 3, state["step"]  # 1 step of shuffled frames, then the 3 frames of the scene
+
+
+@row("S22", "a temporal model trained on a world whose training scenes are all one frame (synth --samples-per-scene "
+            "1): the memory never held a frame, so the fusion never trained, exit 0 with no word (as "
+            "train.stream_frames=1, refused). Refused, naming the split")
+def row_temporal_training_on_one_frame_scenes(env):
+    from instagram_hdmap.data.synthetic import generate_world
+
+    world = env.tmp / "one_frame"
+    generate_world(out=str(world), scenes_train=2, scenes_val=1, samples_per_scene=1, image_size="160x90",
+                   progress=False)
+    env.error(r"every scene of the training split 'train' of .*one_frame has one frame", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}", f"data.dataroot={world}", f"data.splits_file={world / 'splits.json'}",
+              "model.temporal.memory=bev")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -301,6 +301,11 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
               # its own generator: making an iterator must not draw from the global torch RNG, whose
               # state the checkpoint restores for exact resume
               "generator": torch.Generator().manual_seed(cfg.train.seed)}
+    if streaming and all(len(run) < 2 for run in train_set.scenes.runs):  # trained with no history, exit 0
+        raise UserError(f"model.temporal.memory={cfg.model.temporal.memory!r}: every scene of the training split "
+                        f"'{cfg.data.train_split}' of {cfg.data.dataroot} has one frame, so the memory would never "
+                        "hold a previous frame and the temporal model would never train with it; train it on drives "
+                        "of several frames (synth --samples-per-scene 2 or more), or set model.temporal.memory=none")
     if streaming:
         sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
                                         rank=du.get_rank(), world_size=world_size,
@@ -424,6 +429,11 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
 
 
 _SIGNALS_RECEIVED: list[int] = []  # signals _sigterm_as_interrupt turned into KeyboardInterrupt during the run
+# True from a training step's start (before_step) to its end (on_step): a Ctrl-C or SIGTERM then waits for the step
+# to end. Raised in the middle of it, the interrupt saved last.pt with the step half done (BatchNorm statistics of
+# its forward, the optimizer's moments updated before the weights), which the resumed run then did again: its
+# weights were not those of an uninterrupted run, with no word
+_IN_STEP = [False]
 
 
 def raise_if_signalled() -> None:
@@ -460,10 +470,14 @@ def _sigterm_as_interrupt():
         # remembered too: an exception raised while Python runs a destructor (__del__, a weakref callback) is
         # printed and dropped, and the run would train on with the signal now ignored; the next step raises it
         _SIGNALS_RECEIVED.append(signum)
+        if _IN_STEP[0]:  # raised when the step ends (on_step), so that last.pt holds whole steps only
+            return
         raise KeyboardInterrupt(f"signal {signum} ({signal.Signals(signum).name})")
 
     hup = getattr(signal, "SIGHUP", None)  # (not on Windows)
     caught = [signal.SIGTERM] + ([hup] if hup is not None and signal.getsignal(hup) is signal.SIG_DFL else [])
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # Ctrl-C: the same, whole steps
+        caught.append(signal.SIGINT)
     def unraisable(info):  # that dropped KeyboardInterrupt is raised again at the next step: no traceback for it
         if not (isinstance(info.exc_value, KeyboardInterrupt) and _SIGNALS_RECEIVED):
             hook(info)
@@ -475,6 +489,7 @@ def _sigterm_as_interrupt():
         yield
     finally:
         _SIGNALS_RECEIVED.clear()
+        _IN_STEP[0] = False
         sys.unraisablehook = hook
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -518,7 +533,12 @@ class TrainingRun:
         self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
         self.batch_size = loader_batch_size(self.train_loader)
         self.steps_per_epoch = math.ceil(self.sampler.num_samples / self.batch_size)
-        self.total_steps = cfg.train.epochs * self.steps_per_epoch  # the schedule's length; max_steps only cuts it
+        # the schedule's length (max_steps only cuts it): a temporal training's single-frame epochs
+        # (train.stream_warmup) are shorter than its epochs of pieces, whose longest stream sets their length;
+        # epochs x the first epoch's steps ended the last epoch part-way with no word
+        self.total_steps = (sum(self.sampler.steps_of_epoch(e) for e in range(cfg.train.epochs))
+                            if isinstance(self.sampler, StreamingBatchSampler)
+                            else cfg.train.epochs * self.steps_per_epoch)
         self.clock = ProgressClock(cfg.train, self.total_steps)
         self.scaler = torch.amp.GradScaler(device.type) if cfg.train.amp == "fp16" else None
         self.position = Position(epoch=0)
@@ -714,6 +734,13 @@ class TrainingRun:
 
     # --- the schedule -------------------------------------------------------------------------------
 
+    def before_step(self, step: int) -> None:
+        """Before each step: a signal received since the last one (a skipped non-finite step) is raised, then
+        the step runs whole (``_IN_STEP``) at its learning rate."""
+        raise_if_signalled()
+        _IN_STEP[0] = True
+        self.set_lr(step)
+
     def set_lr(self, step: int) -> None:
         lr = self.cfg.train.lr * lr_factor(self.clock.progress(step, self.sync), self.cfg.train)
         for group in self.optimizer.param_groups:
@@ -792,8 +819,10 @@ class TrainingRun:
             self.train_loader.dataset.set_epoch(p.epoch)  # augmentation draws follow (seed, epoch, index)
         result = train_one_epoch(
             self.net, self.criterion, self.train_loader, self.optimizer, self.device, p,
-            settings=StepSettings.from_config(self.cfg.train), scaler=self.scaler, total=self.steps_per_epoch,
-            hooks=EpochHooks(before_step=self.set_lr, on_step=self.on_step, should_stop=self.should_stop,
+            settings=StepSettings.from_config(self.cfg.train), scaler=self.scaler,
+            total=(self.sampler.steps_of_epoch(p.epoch) if isinstance(self.sampler, StreamingBatchSampler)
+                   else self.steps_per_epoch),
+            hooks=EpochHooks(before_step=self.before_step, on_step=self.on_step, should_stop=self.should_stop,
                              writer=self.writer),
             memory=self.memory if p.step_in_epoch else None,
         )
@@ -811,6 +840,7 @@ class TrainingRun:
         """After each step: the position (for Ctrl-C), and ``last.pt`` every ``train.checkpoint_every`` steps."""
         self.position = Position(info.epoch, info.step, info.step_in_epoch)
         self.memory = info.memory
+        _IN_STEP[0] = False
         raise_if_signalled()
         every = self.cfg.train.checkpoint_every
         if every and info.step % every == 0:

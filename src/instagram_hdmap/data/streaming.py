@@ -153,6 +153,16 @@ class StreamingBatchSampler(Sampler[list[int]]):
         dealt = deal_scenes(lengths, range(len(lengths)), self.world_size * self.streams)
         return max(sum(lengths[s] for s in scenes) for scenes in dealt)
 
+    def steps_of_epoch(self, epoch: int) -> int:
+        """``steps`` of another epoch: the single-frame epochs (``single_epochs``) and the epochs of
+        pieces walk other runs, so their lengths differ (the longest stream of pieces is at least as long)."""
+        kept = self.epoch
+        self.epoch = epoch
+        try:
+            return self.steps
+        finally:
+            self.epoch = kept
+
     @property
     def num_samples(self) -> int:
         """Samples this rank loads in one epoch, padding included (``steps * streams``)."""
