@@ -5180,8 +5180,8 @@ def row_interrupt_mid_step_resumes_exactly(env):
     assert all(torch.equal(whole[k], resumed[k]) for k in whole), "the resumed weights differ"
 
 
-@row("S22", "a temporal training with train.stream_warmup: the schedule counted train.epochs x the first (single-frame) "
-            "epoch's steps, but an epoch of streams lasts as long as its longest stream: one scene of 3 frames on 4 "
+@row("S22", "a temporal training with train.stream_warmup: the schedule counted train.epochs x the first (single-frame)"
+            " epoch's steps, but an epoch of streams lasts as long as its longest stream: one scene of 3 frames on 4 "
             "streams ran 1 of its 3 steps and the run ended there, exit 0. Every epoch is counted as it is walked")
 def row_temporal_epochs_of_streams_counted_whole(env):
     splits = env.tmp / "splits.json"
