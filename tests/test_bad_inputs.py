@@ -5210,6 +5210,28 @@ def row_temporal_training_on_one_frame_scenes(env):
               "model.temporal.memory=bev")
 
 
+@row("S22", "AV2: a log whose map/ folder holds another log's map files (copied over from a neighbouring log) was "
+            "read as that log's map: the GT drew the other place's roads (none here), exit 0. Every map file named "
+            "after another log is named")
+def row_av2_map_files_of_another_log(env):
+    root, log = _av2_copy(env)
+    other = sorted((root / "train").iterdir())[1]
+    shutil.rmtree(log / "map")
+    shutil.copytree(other / "map", log / "map")
+    _av2_error(env, root, rf"log {log.name}: .*map.* is the map file of another log \({other.name}\)")
+
+
+@row("S22", "AV2: data.dataroot given as one log's folder (or a split folder of logs): 'not an AV2 sensor-dataset "
+            "root ... its folders: calibration, map, sensors'; the line now names the root and split that hold it")
+def row_av2_log_folder_as_the_root(env):
+    root, log = _av2_copy(env)
+    for given, split in ((log, "train"), (log.parent, "train")):
+        line = env.error(r"not an AV2 sensor-dataset root", "export-gt", env.yaml, "data.dataset=av2",
+                         "data.splits_file=null", f"data.dataroot={given}", "--split", "val", "--out",
+                         env.tmp / "gt.json")
+        assert f"data.dataroot={root} with the split '{split}'" in line, line
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

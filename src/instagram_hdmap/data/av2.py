@@ -53,6 +53,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -136,12 +137,29 @@ def _crossings(avm):
         yield pc.id, np.concatenate([e1, e2[::-1]]), (e1, e2[::-1])
 
 
+# AV2 names a log's map files after the log (map/log_map_archive_<log id>____<CITY>_city_<n>.json,
+# <log id>___img_Sim2_city.json, <log id>_ground_height_surface____<CITY>.npy)
+_MAP_FILE_LOG = re.compile(r"^(?:log_map_archive_)?([0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12})_")
+
+
+def check_map_files_of_the_log(log_dir: Path) -> None:
+    """A ``MapError`` when a file of ``log_dir/map`` is named after another log: the map of another log copied
+    in (another city or another part of it) gave that log's roads as the GT, or none, with no word."""
+    for path in sorted((log_dir / "map").glob("*")) if (log_dir / "map").is_dir() else ():
+        m = _MAP_FILE_LOG.match(path.name)
+        if m and m.group(1) != log_dir.name and _MAP_FILE_LOG.match(log_dir.name + "_"):
+            raise MapError(f"log {log_dir.name}: {path} is the map file of another log ({m.group(1)}); every log "
+                           "has its own map/ files, named after it (re-extract the log's map/ folder from the AV2 "
+                           "sensor dataset)")
+
+
 def load_log_map(log_dir: Path) -> _LocationMap:
     """Read a log's map archive with ``ArgoverseStaticMap`` and index its divider, crossing and
     drivable-area geometry (city frame) for ``LocalMapBuilder``."""
     from av2.map.map_api import ArgoverseStaticMap
 
     map_dir = log_dir / "map"
+    check_map_files_of_the_log(log_dir)
     files = sorted(map_dir.glob("log_map_archive_*.json")) if map_dir.is_dir() else []
     if len(files) != 1:
         raise MapError(f"log {log_dir.name}: expected one map archive {map_dir}/log_map_archive_*.json, found "
@@ -173,6 +191,7 @@ def load_ground_height(log_dir: Path):
     from av2.map.map_api import GroundHeightLayer
 
     map_dir = log_dir / "map"
+    check_map_files_of_the_log(log_dir)
     try:
         return GroundHeightLayer.from_file(map_dir)
     except (RuntimeError, KeyError, ValueError, OSError, ZeroDivisionError, json.JSONDecodeError) as e:
@@ -271,9 +290,19 @@ class AV2MapDataset(MapDataset):
             raise DatasetError(f"AV2 dataroot not found: {root} (set data.dataroot{relative_path_note(root)})")
         if not split_dir.is_dir():
             found = sorted(p.name for p in root.iterdir() if p.is_dir())
+            # a log folder, or a split folder of logs, given as the root: say which root holds it
+            if (root / "sensors").is_dir():
+                hint = (f"; {root} is one log (it holds sensors/): the root is the folder above its split folder, "
+                        f"data.dataroot={root.parent.parent} with the split '{root.parent.name}'")
+            elif found and all((root / name / "sensors").is_dir() for name in found if not name.startswith(".")):
+                hint = (f"; {root} is a split folder of logs: the root is the folder above it, "
+                        f"data.dataroot={root.parent} with the split '{root.name}'")
+            else:
+                hint = ""
             raise DatasetError(f"{root} is not an AV2 sensor-dataset root: it has no split folder '{split_dir.name}' "
                                f"of logs (expected {root}/{{train,val,test}}/<log_id>/sensors/...); its folders: "
-                               f"{', '.join(found) or 'none'} (set data.dataroot, data.train_split / data.val_split)")
+                               f"{', '.join(found) or 'none'} (set data.dataroot, data.train_split / data.val_split)"
+                               + hint)
         # a hidden folder (.ipynb_checkpoints, .Trash-1000, .git) is not a log; av2's loader skips it too
         logs = [p for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith(".")]
         if not logs:
