@@ -5232,6 +5232,62 @@ def row_av2_log_folder_as_the_root(env):
         assert f"data.dataroot={root} with the split '{split}'" in line, line
 
 
+_CACHE_WORLD = {"scenes_train": 1, "scenes_val": 1, "samples_per_scene": 2, "seed": 0, "image_size": "160x90"}
+
+
+@row("S22", "demo cache: two demos (or a demo and a training) that found no world both generated it, and the second "
+            "replaced the first's finished world with --force, moving it away under the process reading it. The "
+            "second now keeps the world the first finished and uses it")
+def row_demo_cache_world_finished_by_another_process(env):
+    from instagram_hdmap import demo
+
+    real = demo.generate_world
+
+    def another_process_finishes_first(out, **kwargs):
+        real(out=out, **{**kwargs, "force": True})  # the other demo's generation, done first
+        (Path(out) / "mark").write_text("the other process's world")
+        return real(out=out, **kwargs)
+
+    env.monkeypatch.setattr(demo, "generate_world", another_process_finishes_first)
+    root, reused = demo.ensure_world(env.tmp / "cache", _CACHE_WORLD, progress=False)
+    assert reused and (root / "mark").is_file(), "the world another process finished was replaced"
+
+
+@row("S22", "demo cache: a cached world damaged part-way (a camera image other than CAM_FRONT deleted, a table JSON "
+            "cut short, a map file removed) was reused: a dataset error minutes later, advising to download the "
+            "nuScenes map expansion. Named before the run, with 'delete the folder and run again'")
+def row_demo_cache_world_damaged(env):
+    from instagram_hdmap import demo
+    from instagram_hdmap.config import UserError
+
+    cache = env.tmp / "cache"
+    root, _ = demo.ensure_world(cache, _CACHE_WORLD, progress=False)
+    pristine = env.tmp / "pristine"
+    shutil.copytree(root, pristine)
+    damages = {"CAM_BACK": lambda: next((root / "samples" / "CAM_BACK").iterdir()).unlink(),
+               "sample_data": lambda: (root / "v1.0-trainval" / "sample_data.json").write_text('[{"token": "a'),
+               "boston-seaport": lambda: (root / "maps" / "expansion" / "boston-seaport.json").unlink()}
+    for what, damage in damages.items():
+        shutil.rmtree(root)
+        shutil.copytree(pristine, root)
+        damage()
+        with pytest.raises(UserError, match=rf"is damaged: .*{what}.*delete the folder and run the demo again"):
+            demo.ensure_world(cache, _CACHE_WORLD, progress=False)
+
+
+@row("S22", "INSTAGRAM_HDMAP_CACHE='~/cache' (as a .env file or a Dockerfile's ENV sets it: no shell expands the ~) "
+            "generated the demo's world into a folder named '~' in the working directory; a blank value into one "
+            "named '  '. '~' is the home folder, a blank value the default")
+def row_demo_cache_env_tilde(env):
+    from instagram_hdmap import demo
+
+    env.monkeypatch.setenv("HOME", str(env.tmp / "home"))
+    env.monkeypatch.setenv("INSTAGRAM_HDMAP_CACHE", "~/cache")
+    assert demo.default_cache_dir() == env.tmp / "home" / "cache"
+    env.monkeypatch.setenv("INSTAGRAM_HDMAP_CACHE", "  ")
+    assert demo.default_cache_dir() == env.tmp / "home" / ".cache" / "instagram_hdmap"
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
