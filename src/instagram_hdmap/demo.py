@@ -113,7 +113,8 @@ def world_damage(root: Path, manifest: dict, samples: int) -> str | None:
     for folder in folders:
         found = sum(1 for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
         if found != samples:
-            return f"{found} of its {samples} {folder.name} files are there"
+            kind = "images" if folder.name.startswith("CAM") else "files"
+            return f"{found} of its {samples} {folder.name} {kind} are there"
     version = root / manifest.get("version", VERSION)
     for name in ("sample", "sample_data", "scene", "ego_pose", "calibrated_sensor", "log", "map"):
         try:
