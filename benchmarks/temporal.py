@@ -213,9 +213,9 @@ def table(results: list[dict]) -> str:
                      + f"{mean[name]['mAP']:>8.3f}{mean[name]['flicker']:>9.3f}{mean[name]['flicker_detected']:>10.3f}")
     if len(mean) == 2:
         s, t = mean["single"], mean[temporal]
-        lines.append(f"temporal - single: mAP {t['mAP'] - s['mAP']:+.3f} (x{t['mAP'] / max(s['mAP'], 1e-9):.2f}); "
-                     f"flicker x{t['flicker'] / max(s['flicker'], 1e-9):.2f}, among detected "
-                     f"x{t['flicker_detected'] / max(s['flicker_detected'], 1e-9):.2f} "
+        lines.append(f"temporal - single: mAP {t['mAP'] - s['mAP']:+.3f} ({times(ratio(t['mAP'], s['mAP']))}); "
+                     f"flicker {times(ratio(t['flicker'], s['flicker']))}, among detected "
+                     f"{times(ratio(t['flicker_detected'], s['flicker_detected']))} "
                      "(target: mAP +0.05, flicker x0.5)")
     return "\n".join(lines)
 
@@ -254,6 +254,16 @@ def finetune_runs(seed: int, args, roots) -> list[dict]:
                     ("train.stream_warmup=0", *trainable), budget)]
 
 
+def ratio(a: float, b: float) -> float:
+    """a / b, NaN when b is 0 (or NaN): a single-frame model that detects nothing has flicker 0, and
+    a / max(b, 1e-9) printed 'flicker x0.00' for two models of flicker 0, the target x0.5 met."""
+    return a / b if b > 0 else math.nan
+
+
+def times(x: float) -> str:
+    return f"x{x:.2f}" if math.isfinite(x) else "x n/a (divided by 0)"
+
+
 def paired(results: list[dict]) -> str:
     """Per seed: temporal_ft - single_ft (the same start), and their means."""
     by = {(r["config"], r["seed"]): r for r in results}
@@ -267,11 +277,11 @@ def paired(results: list[dict]) -> str:
     for s in seeds:
         t, b = by[(name, s)], by[("single_ft", s)]
         d = {c: t["AP_class"][c] - b["AP_class"][c] for c in classes}
-        diffs.append((t["mAP"] - b["mAP"], t["flicker_mean"] / max(b["flicker_mean"], 1e-9), d))
-        lines.append(f"  seed {s}: mAP {diffs[-1][0]:+.3f}, flicker x{diffs[-1][1]:.2f}; "
+        diffs.append((t["mAP"] - b["mAP"], ratio(t["flicker_mean"], b["flicker_mean"]), d))
+        lines.append(f"  seed {s}: mAP {diffs[-1][0]:+.3f}, flicker {times(diffs[-1][1])}; "
                      + ", ".join(f"{c} {v:+.3f}" for c, v in d.items()))
     n = len(diffs)
-    lines.append(f"  mean: mAP {sum(x[0] for x in diffs) / n:+.3f}, flicker x{sum(x[1] for x in diffs) / n:.2f}; "
+    lines.append(f"  mean: mAP {sum(x[0] for x in diffs) / n:+.3f}, flicker {times(sum(x[1] for x in diffs) / n)}; "
                  + ", ".join(f"{c} {sum(x[2][c] for x in diffs) / n:+.3f}" for c in classes)
                  + " (target: mAP +0.05, flicker x0.5)")
     return "\n".join(lines)

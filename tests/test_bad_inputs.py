@@ -5288,6 +5288,22 @@ def row_demo_cache_env_tilde(env):
     assert demo.default_cache_dir() == env.tmp / "home" / ".cache" / "instagram_hdmap"
 
 
+@row("S22", "benchmarks/temporal.py with a tiny budget: a single-frame model that detects nothing has flicker 0, and "
+            "the summary divided by max(0, 1e-9): 'flicker x0.00 (target: ... flicker x0.5)', the target met by two "
+            "models that found nothing. A ratio over 0 is now 'n/a'")
+def row_benchmark_temporal_flicker_ratio_over_zero(env):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_temporal_s22", REPO / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    nothing = {"steps": 6, "AP_class": {"divider": 0.0}, "mAP": 0.0, "flicker_mean": 0.0,
+               "flicker_detected_mean": float("nan")}
+    results = [{**nothing, "config": "single", "seed": 0}, {**nothing, "config": "temporal", "seed": 0}]
+    text = bench.table(results) + bench.paired([{**r, "config": r["config"] + "_ft"} for r in results])
+    assert "x0.00" not in text and "n/a" in text, text
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
