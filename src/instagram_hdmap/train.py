@@ -305,7 +305,10 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
         raise UserError(f"model.temporal.memory={cfg.model.temporal.memory!r}: every scene of the training split "
                         f"'{cfg.data.train_split}' of {cfg.data.dataroot} has one frame, so the memory would never "
                         "hold a previous frame and the temporal model would never train with it; train it on drives "
-                        "of several frames (synth --samples-per-scene 2 or more), or set model.temporal.memory=none")
+                        "of several frames (" + (f"data.av2_frame_step={cfg.data.av2_frame_step} keeps one sweep of "
+                                                 "each log: lower it" if cfg.data.dataset == "av2" else
+                                                 "synth --samples-per-scene 2 or more")
+                        + "), or set model.temporal.memory=none")
     if streaming:
         sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
                                         rank=du.get_rank(), world_size=world_size,
