@@ -5254,7 +5254,7 @@ def row_demo_cache_world_finished_by_another_process(env):
 
 
 @row("S22", "demo cache: a cached world damaged part-way (a camera image other than CAM_FRONT deleted, a table JSON "
-            "cut short, a map file removed) was reused: a dataset error minutes later, advising to download the "
+            "cut short or removed, a map file removed, world.json cut short) was reused: a dataset error minutes later, advising to download the "
             "nuScenes map expansion. Named before the run, with 'delete the folder and run again'")
 def row_demo_cache_world_damaged(env):
     from instagram_hdmap import demo
@@ -5266,7 +5266,9 @@ def row_demo_cache_world_damaged(env):
     shutil.copytree(root, pristine)
     damages = {"CAM_BACK": lambda: next((root / "samples" / "CAM_BACK").iterdir()).unlink(),
                "sample_data": lambda: (root / "v1.0-trainval" / "sample_data.json").write_text('[{"token": "a'),
-               "boston-seaport": lambda: (root / "maps" / "expansion" / "boston-seaport.json").unlink()}
+               "boston-seaport": lambda: (root / "maps" / "expansion" / "boston-seaport.json").unlink(),
+               "instance": lambda: (root / "v1.0-trainval" / "instance.json").unlink(),
+               "world.json": lambda: (root / "world.json").write_text('{"format": "instagram')}
     for what, damage in damages.items():
         shutil.rmtree(root)
         shutil.copytree(pristine, root)

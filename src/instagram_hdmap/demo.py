@@ -116,7 +116,8 @@ def world_damage(root: Path, manifest: dict, samples: int) -> str | None:
             kind = "images" if folder.name.startswith("CAM") else "files"
             return f"{found} of its {samples} {folder.name} {kind} are there"
     version = root / manifest.get("version", VERSION)
-    for name in ("sample", "sample_data", "scene", "ego_pose", "calibrated_sensor", "log", "map"):
+    for name in ("attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map", "sample",
+                 "sample_annotation", "sample_data", "scene", "sensor", "visibility"):  # the generator's tables
         try:
             json.loads((version / f"{name}.json").read_bytes())
         except (OSError, ValueError) as e:
@@ -138,7 +139,11 @@ def ensure_world(cache_dir: Path, world: dict = WORLD, progress: bool = True, wo
         raise DemoError(f"{root} is not a complete synthetic world (no world.json); delete it and run the demo "
                         "again to regenerate it")
     if (root / "world.json").is_file():
-        manifest = read_manifest(root)
+        try:
+            manifest = read_manifest(root)
+        except UserError as e:  # a world.json cut short: say what to do with the cached world
+            raise DemoError(f"{root} is damaged: {e}; delete the folder and run the demo again to regenerate it"
+                            ) from None
         if not all(manifest.get(k) == world[k] for k in ("scenes_train", "scenes_val", "samples_per_scene", "seed")):
             raise DemoError(f"{root} holds another world than the demo's ({manifest}); delete it or use another "
                             "--cache")
