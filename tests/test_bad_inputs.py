@@ -5254,8 +5254,9 @@ def row_demo_cache_world_finished_by_another_process(env):
 
 
 @row("S22", "demo cache: a cached world damaged part-way (a camera image other than CAM_FRONT deleted, a table JSON "
-            "cut short or removed, a map file removed, world.json cut short) was reused: a dataset error minutes later, advising to download the "
-            "nuScenes map expansion. Named before the run, with 'delete the folder and run again'")
+            "cut short or removed, a map file removed, world.json cut short) was reused: a dataset error minutes "
+            "later, advising to download the nuScenes map expansion. Named before the run, with 'delete the folder "
+            "and run again'")
 def row_demo_cache_world_damaged(env):
     from instagram_hdmap import demo
     from instagram_hdmap.config import UserError
