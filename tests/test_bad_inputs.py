@@ -5307,6 +5307,16 @@ def row_benchmark_temporal_flicker_ratio_over_zero(env):
     assert "x0.00" not in text and "n/a" in text, text
 
 
+@row("S22", "a temporal training whose memory never fused (model.temporal.max_jump_m=0.01: every frame a pose jump, "
+            "as a max_jump_m in other units or drives faster than it would): the fusion trained on nothing, exit 0, "
+            "no word (log.jsonl alone counted the statuses). A warning names the statuses and the keys")
+def row_temporal_memory_never_fused_warned(env):
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "model.temporal.memory=bev",
+                           "model.temporal.max_jump_m=0.01", "train.epochs=1", "train.val_every=100")
+    assert rc == 0, err[-2000:]
+    assert re.search(r"warning: the temporal memory was never fused in epoch 0 \(per step: .*pose_jump", out), out
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -547,6 +547,7 @@ class TrainingRun:
         self.position = Position(epoch=0)
         self.best: dict = {"score": -math.inf}
         self.memory: dict | None = None  # a temporal model's memory of this rank's streams, mid-epoch
+        self.warned_unfused = False  # an epoch of streams whose memory never fused was reported
         self.net: torch.nn.Module = self.model
         self.writer = self.log_file = None
         self.summary: dict = {}
@@ -830,6 +831,17 @@ class TrainingRun:
             memory=self.memory if p.step_in_epoch else None,
         )
         self.memory = result["memory"]
+        stats = result["stats"]
+        if (isinstance(self.sampler, StreamingBatchSampler) and p.epoch >= self.sampler.single_epochs
+                and "memory_fused" in stats and stats["memory_fused"] == 0 and not self.warned_unfused):
+            # every frame of an epoch of streams started a new memory (a model.temporal.max_jump_m or max_turn_deg
+            # below the drives' motion between frames): the fusion trained on nothing, exit 0 with no word
+            self.warned_unfused = True
+            why = ", ".join(f"{k.removeprefix('memory_')} {v:.2f}" for k, v in stats.items()
+                            if k.startswith("memory_") and v)
+            du.print_main(f"warning: the temporal memory was never fused in epoch {p.epoch} (per step: {why}): the "
+                          "fusion learns nothing; check model.temporal.max_jump_m / max_turn_deg against the ego "
+                          "motion between frames, and that the scenes' frames follow each other")
         self.position = Position(p.epoch, result["global_step"], result["step_in_epoch"])
         self.line_due = True  # the epoch's line in log.jsonl, written by log()
         self.summary = {**self.summary, "epoch": p.epoch, "step": result["global_step"], "train": result["stats"],
