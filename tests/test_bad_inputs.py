@@ -5280,7 +5280,8 @@ def row_demo_cache_world_damaged(env):
 
 @row("S22", "INSTAGRAM_HDMAP_CACHE='~/cache' (as a .env file or a Dockerfile's ENV sets it: no shell expands the ~) "
             "generated the demo's world into a folder named '~' in the working directory; a blank value into one "
-            "named '  '. '~' is the home folder, a blank value the default")
+            "named '  '; XDG_CACHE_HOME was ignored. '~' is the home folder, a blank value the default, "
+            "$XDG_CACHE_HOME/instagram_hdmap the default where it is set")
 def row_demo_cache_env_tilde(env):
     from instagram_hdmap import demo
 
@@ -5288,6 +5289,11 @@ def row_demo_cache_env_tilde(env):
     env.monkeypatch.setenv("INSTAGRAM_HDMAP_CACHE", "~/cache")
     assert demo.default_cache_dir() == env.tmp / "home" / "cache"
     env.monkeypatch.setenv("INSTAGRAM_HDMAP_CACHE", "  ")
+    env.monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    assert demo.default_cache_dir() == env.tmp / "home" / ".cache" / "instagram_hdmap"
+    env.monkeypatch.setenv("XDG_CACHE_HOME", str(env.tmp / "xdg"))  # was ignored: the worlds filled ~/.cache
+    assert demo.default_cache_dir() == env.tmp / "xdg" / "instagram_hdmap"
+    env.monkeypatch.setenv("XDG_CACHE_HOME", "relative/cache")  # the spec: a relative value is ignored
     assert demo.default_cache_dir() == env.tmp / "home" / ".cache" / "instagram_hdmap"
 
 

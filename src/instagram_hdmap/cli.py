@@ -485,7 +485,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "Run it again to resume an interrupted demo.")
     p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     p.add_argument("--minutes", type=float, default=20.0, help="wall-time budget, set-up included (default 20)")
-    p.add_argument("--cache", help="world cache folder (default $INSTAGRAM_HDMAP_CACHE or ~/.cache/instagram_hdmap)")
+    p.add_argument("--cache", help="world cache folder (default $INSTAGRAM_HDMAP_CACHE, else "
+                   "$XDG_CACHE_HOME/instagram_hdmap, else ~/.cache/instagram_hdmap)")
     p.add_argument("--config", help="training config (default configs/synthetic/demo.yaml)")
     p.add_argument("--workers", type=int, default=2, help="processes generating the world (default 2)")
     p.add_argument("--no-raster", action="store_true", help="skip the raster-protocol evaluation")

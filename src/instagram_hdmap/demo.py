@@ -3,7 +3,8 @@
     instagram-hdmap demo --out runs/demo            # <= 20 min on 2 CPU cores, set-up included
 
 1. **World**: a synthetic nuScenes world (``data.synthetic``) is generated once into a cache folder
-   (``--cache``, default ``$INSTAGRAM_HDMAP_CACHE`` or ``~/.cache/instagram_hdmap``), named after its
+   (``--cache``, default ``$INSTAGRAM_HDMAP_CACHE``, else ``$XDG_CACHE_HOME/instagram_hdmap``, else
+   ``~/.cache/instagram_hdmap``), named after its
    generation parameters, and reused by every later run. Generation writes into a temporary folder
    that is renamed at the end, so an interrupted generation leaves no half world behind; free disk
    space is checked before it starts.
@@ -69,7 +70,14 @@ def default_cache_dir() -> Path:
     # '~/...' as a .env file or a Dockerfile's ENV gives it (no shell expands it there) made a folder named '~' in
     # the working directory; a blank value a folder named '  '
     env = os.environ.get("INSTAGRAM_HDMAP_CACHE", "").strip()
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "instagram_hdmap"
+    if env:
+        return Path(env).expanduser()
+    # the XDG base directory spec's cache home (a relative value is to be ignored): set where the home folder has
+    # a quota, it was ignored and the demo's worlds (~0.2 GB each) filled ~/.cache
+    xdg = os.environ.get("XDG_CACHE_HOME", "").strip()
+    if xdg and Path(xdg).expanduser().is_absolute():
+        return Path(xdg).expanduser() / "instagram_hdmap"
+    return Path.home() / ".cache" / "instagram_hdmap"
 
 
 def default_config_path() -> Path:
