@@ -462,6 +462,9 @@ def _sigterm_as_interrupt():
     held: list = []
 
     def interrupt(signum, frame):
+        if signum == signal.SIGINT and _IN_STEP[0] and _SIGNALS_RECEIVED:  # Ctrl-C again while the step ends: the
+            _IN_STEP[0] = False  # user's choice (a step that hangs), at once, as before
+            raise KeyboardInterrupt("Ctrl-C twice")
         # a SIGTERM to the process group (a scheduler's) kills the data-loader workers too: torch's SIGCHLD handler
         # would raise "worker killed" in the middle of the save below; it is put back after
         if chld is not None and not held:
@@ -469,11 +472,15 @@ def _sigterm_as_interrupt():
         # a second SIGTERM (scancel or docker stop twice) would abort the save below, keeping the older last.pt
         # and losing the steps since: ignored until the block ends (SIGKILL still stops it)
         for sig in caught:
-            signal.signal(sig, signal.SIG_IGN)
+            if not (sig == signal.SIGINT and _IN_STEP[0]):
+                signal.signal(sig, signal.SIG_IGN)
         # remembered too: an exception raised while Python runs a destructor (__del__, a weakref callback) is
         # printed and dropped, and the run would train on with the signal now ignored; the next step raises it
         _SIGNALS_RECEIVED.append(signum)
         if _IN_STEP[0]:  # raised when the step ends (on_step), so that last.pt holds whole steps only
+            if signum == signal.SIGINT:
+                sys.stderr.write("\nCtrl-C: the step in progress ends first, then last.pt is saved (Ctrl-C again to "
+                                 "stop at once, losing that step)\n")
             return
         raise KeyboardInterrupt(f"signal {signum} ({signal.Signals(signum).name})")
 
