@@ -5323,6 +5323,22 @@ def row_temporal_memory_never_fused_warned(env):
     assert re.search(r"warning: the temporal memory was never fused in epoch 0 \(per step: .*pose_jump", out), out
 
 
+@row("S22", "demo cache on a read-only folder (a shared read-only cache, chattr +i): the one line said '--out "
+            "CACHE/synthetic-...: cannot write there; choose a writable folder', synth's option, which the demo does "
+            "not have. It names the cache folder and --cache / $INSTAGRAM_HDMAP_CACHE")
+def row_demo_cache_read_only(env):
+    from instagram_hdmap import demo
+    from instagram_hdmap.config import UserError
+
+    def read_only(out, **kwargs):  # what synth says of an --out it cannot write (data/synthetic/jobs.py)
+        raise UserError(f"--out {out}: cannot write there (Operation not permitted); choose a writable folder")
+
+    env.monkeypatch.setattr(demo, "generate_world", read_only)
+    with pytest.raises(UserError) as e:
+        demo.ensure_world(env.tmp / "cache", _CACHE_WORLD, progress=False)
+    assert "--out" not in str(e.value) and "--cache" in str(e.value), str(e.value)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
