@@ -12,6 +12,7 @@ fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, 
 seventeenth, ``S18`` one found by an eighteenth, ``S19`` one found by a nineteenth; a ninth-, tenth-,
 eleventh-, fourteenth- or nineteenth-sweep row of a valid input that was refused checks that it runs).
 ``S21`` marks a case found by a twenty-first sweep (the researcher's workflow through the docs and the Python API).
+``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
