@@ -5340,6 +5340,20 @@ def row_demo_cache_read_only(env):
     assert "--out" not in str(e.value) and "--cache" in str(e.value), str(e.value)
 
 
+@row("S22", "a temporal training with more streams (train.batch_size) than scenes (or stream pieces): the streams "
+            "without a scene of their own walked repeats of the first ones, the same frames several times in each "
+            "batch, with no word. A note says how many and which train.batch_size gives each stream its own frames")
+def row_temporal_more_streams_than_scenes_noted(env):
+    splits = env.tmp / "splits.json"
+    names = json.loads((env.world / "splits.json").read_text())
+    splits.write_text(json.dumps({"train": names["train"][:1], "val": names["val"]}))
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", f"data.splits_file={splits}",
+                           "model.temporal.memory=bev", "train.batch_size=4", "train.max_steps=1", "train.val_every=100")
+    assert rc == 0, err[-2000:]
+    assert re.search(r"note: 4 streams \(train.batch_size\) for 1 scene piece\(s\) .*3 stream\(s\) walk only repeats",
+                     out), out
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -315,6 +315,13 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
                                         piece_frames=cfg.train.stream_frames,
                                         single_epochs=round(cfg.train.stream_warmup * cfg.train.epochs))
         train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
+        k, streams = cfg.train.stream_frames, per_rank * world_size
+        walks = sum(math.ceil(len(run) / k) if k > 0 else 1 for run in train_set.scenes.runs)  # an epoch of streams
+        if streams > walks:  # the rest walk padding: the same frames twice in a batch, with no word
+            du.print_main(f"note: {streams} streams (train.batch_size) for {walks} scene piece(s) of split "
+                          f"'{cfg.data.train_split}': {streams - walks} stream(s) walk only repeats of the epoch's "
+                          "first scenes (the same frames more than once in a batch); a train.batch_size of at most "
+                          f"{walks} (or train.stream_frames pieces) gives each stream frames of its own")
     else:
         sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
         train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, drop_last=False, **common)
