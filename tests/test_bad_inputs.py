@@ -5348,7 +5348,8 @@ def row_temporal_more_streams_than_scenes_noted(env):
     names = json.loads((env.world / "splits.json").read_text())
     splits.write_text(json.dumps({"train": names["train"][:1], "val": names["val"]}))
     rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", f"data.splits_file={splits}",
-                           "model.temporal.memory=bev", "train.batch_size=4", "train.max_steps=1", "train.val_every=100")
+                           "model.temporal.memory=bev", "train.batch_size=4", "train.max_steps=1",
+                           "train.val_every=100")
     assert rc == 0, err[-2000:]
     assert re.search(r"note: 4 streams \(train.batch_size\) for 1 scene piece\(s\) .*3 stream\(s\) walk only repeats",
                      out), out
