@@ -5222,8 +5222,9 @@ def row_av2_map_files_of_another_log(env):
     _av2_error(env, root, rf"log {log.name}: .*map.* is the map file of another log \({other.name}\)")
 
 
-@row("S22", "AV2: data.dataroot given as one log's folder (or a split folder of logs): 'not an AV2 sensor-dataset "
-            "root ... its folders: calibration, map, sensors'; the line now names the root and split that hold it")
+@row("S22", "AV2: data.dataroot given as one log's folder (or a split folder of logs, or a nuScenes root): 'not an AV2 "
+            "sensor-dataset root ... its folders: calibration, map, sensors'; the line now names the root and split "
+            "that hold it (or data.dataset=nuscenes)")
 def row_av2_log_folder_as_the_root(env):
     root, log = _av2_copy(env)
     for given, split in ((log, "train"), (log.parent, "train")):
@@ -5231,6 +5232,9 @@ def row_av2_log_folder_as_the_root(env):
                          "data.splits_file=null", f"data.dataroot={given}", "--split", "val", "--out",
                          env.tmp / "gt.json")
         assert f"data.dataroot={root} with the split '{split}'" in line, line
+    line = env.error(r"not an AV2 sensor-dataset root", "export-gt", env.yaml, "data.dataset=av2",
+                     "data.splits_file=null", "--split", "val", "--out", env.tmp / "gt.json")  # the nuScenes world
+    assert "is a nuScenes dataroot (versions v1.0-trainval): set data.dataset=nuscenes" in line, line
 
 
 _CACHE_WORLD = {"scenes_train": 1, "scenes_val": 1, "samples_per_scene": 2, "seed": 0, "image_size": "160x90"}

@@ -297,6 +297,9 @@ class AV2MapDataset(MapDataset):
             elif found and all((root / name / "sensors").is_dir() for name in found if not name.startswith(".")):
                 hint = (f"; {root} is a split folder of logs: the root is the folder above it, "
                         f"data.dataroot={root.parent} with the split '{root.name}'")
+            elif any(root.glob("*/sample.json")):  # (the converse, data.dataset=nuscenes on an AV2 root, says so too)
+                versions = sorted(p.parent.name for p in root.glob("*/sample.json"))
+                hint = f"; {root} is a nuScenes dataroot (versions {', '.join(versions)}): set data.dataset=nuscenes"
             else:
                 hint = ""
             raise DatasetError(f"{root} is not an AV2 sensor-dataset root: it has no split folder '{split_dir.name}' "
