@@ -348,6 +348,7 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
 
 
 def main() -> None:
+    from instagram_hdmap.config import UserError
     from instagram_hdmap.demo import VAL_WORLD, WORLD, default_cache_dir, ensure_world
     from instagram_hdmap.files import write_json
 
@@ -393,11 +394,14 @@ def main() -> None:
                         "variant shares --out and the single-frame runs: e.g. train.stream_frames=10)")
     args = p.parse_args()
     check_args(p, args)
-    cache = Path(args.cache) if args.cache else default_cache_dir()
-    train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
+    cache = Path(args.cache).expanduser() if args.cache else default_cache_dir()
     val_occluders = args.occluders if args.val_occluders is None else args.val_occluders
-    val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": val_occluders},
-                               workers=args.workers)
+    try:  # a damaged or unwritable cache: one line (a raw traceback before)
+        train_root, _ = ensure_world(cache, {**WORLD, "occluders": args.occluders}, workers=args.workers)
+        val_root, _ = ensure_world(cache, {**VAL_WORLD, "scenes_val": args.val_scenes, "occluders": val_occluders},
+                                   workers=args.workers)
+    except UserError as e:
+        p.error(f"--cache: {e}")
     results = [run_one(name + (memory_suffix(args) if name == "temporal" else ""), seed, args,
                        (train_root, val_root), name)
                for seed in args.seeds for name in args.configs if not (args.finetune and args.finetune_base)]

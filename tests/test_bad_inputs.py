@@ -5359,6 +5359,18 @@ def row_temporal_more_streams_than_scenes_noted(env):
                      out), out
 
 
+@row("S22", "benchmarks/temporal.py on a damaged world cache (a world folder without world.json, a cached world "
+            "missing a file): a raw traceback ending in the demo's DemoError. One line, exit 2")
+def row_benchmark_temporal_damaged_cache(env):
+    from instagram_hdmap.demo import WORLD, world_key
+
+    (env.tmp / "cache" / world_key({**WORLD, "occluders": 0.5})).mkdir(parents=True)  # no world.json
+    p = _benchmark_temporal(env, "--steps", "240", "--occluders", "0.5")
+    lines = [ln for ln in p.stderr.splitlines() if "error" in ln]
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    assert re.search(r"--cache: .* is not a complete synthetic world \(no world.json\)", lines[-1]), p.stderr[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
