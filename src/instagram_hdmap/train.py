@@ -844,6 +844,8 @@ class TrainingRun:
                              writer=self.writer),
             memory=self.memory if p.step_in_epoch else None,
         )
+        _IN_STEP[0] = False  # (an epoch that ended on a skipped non-finite step never reached on_step)
+        raise_if_signalled()
         self.memory = result["memory"]
         stats = result["stats"]
         if (isinstance(self.sampler, StreamingBatchSampler) and p.epoch >= self.sampler.single_epochs
