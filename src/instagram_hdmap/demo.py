@@ -115,7 +115,8 @@ def check_disk(folder: Path, need_bytes: int) -> None:
 def world_damage(root: Path, manifest: dict, samples: int) -> str | None:
     """What is missing from a cached world (a camera or lidar file, a table that is not JSON, a map file),
     or None: the cache is a folder of plain files that anything may have altered since it was generated."""
-    folders = sorted(p for p in (root / "samples").iterdir() if p.is_dir()) if (root / "samples").is_dir() else []
+    folders = (sorted(p for p in (root / "samples").iterdir() if p.is_dir() and not p.name.startswith("."))
+               if (root / "samples").is_dir() else [])  # (a hidden .ipynb_checkpoints is no sensor)
     if len(folders) < 7:  # six cameras and the lidar
         return f"its samples/ folder holds {len(folders)} of the 7 sensor folders"
     for folder in folders:
