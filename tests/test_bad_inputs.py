@@ -4713,6 +4713,102 @@ def row_resume_into_another_folder_noted(env):
     assert "is a checkpoint of the run in" not in env.capsys.readouterr().out
 
 
+@row("S20", "model.gnn.min_vertices above model.gnn.num_vertices (min_vertices=100 with N = 64, or num_vertices=1): no "
+            "element could ever be decoded, and evaluate / predict-images --decode wrote empty predictions, exit 0")
+def row_min_vertices_above_num_vertices(env):
+    forbid(env, "instagram_hdmap.predict.save_figure", "drawing")
+    env.error(r"'model\.gnn\.min_vertices' is 100, but the model keeps model\.gnn\.num_vertices=64 vertices: no "
+              r"element could ever be decoded", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out",
+              env.tmp / "eval", "model.gnn.min_vertices=100")
+    rig, images = _rig_files(env)
+    env.error(r"'model\.gnn\.min_vertices' is 100", "predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out",
+              env.tmp / "out", "--device", "cpu", "--decode", "min_vertices=100", *images)
+    env.error(r"'model\.gnn\.min_vertices' is 2, but the model keeps model\.gnn\.num_vertices=1", "model-summary",
+              env.yaml, "model.gnn.num_vertices=1")
+    assert not (env.tmp / "eval").exists()
+
+
+@row("S20", "every loss weight 0 (loss.vertex_weight, distance_weight, adjacency_weight, class_weight): the loss was 0 "
+            "and the run trained nothing, exit 0; an LSS depth_bound of one bin ([1, 13, 20]: every camera feature at "
+            "one depth) trained too")
+def row_loss_all_zero_and_one_depth_bin(env):
+    forbid(env, "instagram_hdmap.train.build_loaders", "the training")
+    env.error(r"'loss\.vertex_weight', .* are all 0: the loss would be 0", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}", "loss.vertex_weight=0", "loss.distance_weight=0",
+              "loss.adjacency_weight=0", "loss.class_weight=0")
+    env.error(r"'model\.view_transform\.depth_bound': \(start, stop, step\) = \(1\.0, 13\.0, 20\.0\) gives 1 depth bin",
+              "model-summary", env.yaml, "model.view_transform.depth_bound=[1,13,20]")
+    assert env.cli("model-summary", env.yaml, "loss.vertex_weight=0")[0] == 0  # one weight 0: an ablation, valid
+
+
+@row("S20", "demo --out OUT run again with another --config (or other model overrides) after OUT's run completed: it "
+            "evaluated OUT's old model and wrote metrics.json naming the new config, exit 0, no word (an unfinished "
+            "run failed later, after the worlds, with the resume's message)")
+def row_demo_rerun_with_other_settings(env):
+    run = env.tmp / "demo" / "run"
+    run.mkdir(parents=True)
+    shutil.copy(env.ckpt, run / "last.pt")  # a run of configs/synthetic/tiny.yaml's model in OUT
+    forbid(env, "instagram_hdmap.demo.ensure_world", "world generation")
+    env.error(r"--out .*demo holds a demo run of other settings \(.*data\.image_size: checkpoint \[64, 160\] vs now "
+              r"\[64, 192\].*give another --out, or delete .*run to start over", "demo", "--out", env.tmp / "demo",
+              "--cache", env.tmp / "cache")
+
+
+@row("S20", "the temporal memory's keys on a single-frame model (train.stream_frames=4, model.temporal.fusion=gru with "
+            "model.temporal.memory=none) trained a single-frame model on shuffled frames with no word; an LSS frustum "
+            "that stops short of the grid (depth_bound to 13 m, grid.xbound [-16, 16]) likewise")
+def row_training_notes_on_unread_settings(env):
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.max_steps=1",
+                           "train.stream_frames=4", "model.temporal.fusion=gru", "grid.xbound=[-16,16]")
+    assert rc == 0, err[-2000:]
+    assert ("note: model.temporal.fusion=gru, train.stream_frames=4 set, but model.temporal.memory=none: only a "
+            "temporal model reads them") in out, out
+    assert "note: model.view_transform.depth_bound stops at 13 m, but the grid" in out and "reaches 16 m" in out, out
+    rc, out, _ = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run2'}", "train.max_steps=1")
+    assert rc == 0 and "note:" not in out, out  # the tiny config itself: no note
+
+
+@row("S20", "evaluate-json --protocol raster of export-gt's 16 m x 8 m file: the message said to pass --xbound -8 8 "
+            "--ybound -4 4, which then failed (the default 0.15 m pixels do not tile 16 m); the hint now runs")
+def row_raster_canvas_hint_runs(env):
+    gt = env.tmp / "gt.json"
+    gt.write_text(json.dumps({"meta": {"xbound": [-8.0, 8.0], "ybound": [-4.0, 4.0], "ground_truth": True},
+                              "results": {"a": [{"pts": [[0, 0], [5, 0]], "type": 0}]}}))
+    pred = _submission(env.tmp / "p.json", {"a": [{"pts": [[0, 0], [5, 0]], "type": 0, "confidence_level": 0.9}]},
+                       False)
+    line = env.error(r"pass --xbound -8 8 --ybound -4 4 --resolution 0\.1 ", "evaluate-json", "--pred", pred, "--gt",
+                     gt, "--protocol", "raster")
+    hint = re.search(r"pass (--xbound .*?) \(", line).group(1).split()
+    rc, _, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt, "--protocol", "raster", *hint)
+    assert rc == 0, err[-2000:]
+
+
+@row("S20", "predict-images: a rig file's image_size written as floats ([400.0, 225.0], numpy's or MATLAB's JSON) was "
+            "refused as not 'positive whole numbers'; an image OpenCV cannot read (a float TIFF, an animated GIF) was "
+            "'corrupt or not an image'")
+def row_rig_float_size_and_unreadable_image_kinds(env):
+    from PIL import Image
+
+    from instagram_hdmap.data.transforms import ImageError, read_image
+
+    rig, images = _rig_files(env, lambda d: d.update(image_size=[400.0, 225.0]))
+    rc, _, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "out",
+                         "--device", "cpu", *images)
+    assert rc == 0, err[-2000:]
+    env.error(r"'image_size' must be \[width, height\] .* got \[400\.5, 225\]", "predict-images", "--checkpoint",
+              env.ckpt, "--rig", _rig_files(env, lambda d: d.update(image_size=[400.5, 225]))[0], "--out",
+              env.tmp / "out2", "--device", "cpu", *images)
+    tif = env.tmp / "float.tif"
+    Image.fromarray(np.full((225, 400), 0.5, np.float32), mode="F").save(tif)
+    with pytest.raises(ImageError, match=r"cannot be decoded \(a TIFF F image, which OpenCV does not read; save it as "
+                                         r"an 8-bit RGB JPEG or PNG\)"):
+        read_image(tif)
+    junk = env.tmp / "junk.jpg"
+    junk.write_bytes(b"\x00" * 100)
+    with pytest.raises(ImageError, match=r"corrupt or not an image"):
+        read_image(junk)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

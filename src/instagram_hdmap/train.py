@@ -46,7 +46,7 @@ from .checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, get_key, is_under, save_config
+from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, flatten, get_key, is_under, save_config
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
@@ -492,6 +492,8 @@ class TrainingRun:
         out_dir = Path(cfg.train.out_dir)
         check_init_from_outside(cfg, out_dir, resume)
         check_stream_schedule(cfg)
+        for note in setting_notes(cfg):
+            du.print_main(note)
         check_batch_over_ranks(cfg, du.get_world_size())
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
@@ -830,6 +832,34 @@ def check_stream_schedule(cfg: ExperimentConfig) -> None:
                         f"{single} single-frame epoch(s) of {cfg.train.epochs}: the temporal model would never train "
                         "with its memory (it is empty on single frames); raise train.epochs or lower "
                         "train.stream_warmup")
+
+
+# the keys that only a temporal model (model.temporal.memory not none) reads: set on a single-frame model they are
+# ignored (element persistence, model.temporal.persist_* and the pose-jump limits it shares, works on any model)
+MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.temporal.drop_prob",
+                    "model.temporal.edge_samples", "train.stream_frames", "train.stream_warmup")
+
+
+def setting_notes(cfg: ExperimentConfig) -> list[str]:
+    """Notes on settings that train, but not as they read: the memory's keys on a model without a memory (the
+    run trained a single-frame model on shuffled frames), an LSS frustum that stops short of the grid (the
+    cells beyond it never get a camera feature)."""
+    notes = []
+    if cfg.model.temporal.memory == "none":
+        default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
+        unused = [f"{k}={now[k]}" for k in MEMORY_ONLY_KEYS if now[k] != default[k]]
+        if unused:
+            notes.append(f"note: {', '.join(unused)} set, but model.temporal.memory=none: only a temporal model reads "
+                         "them, so this run trains a single-frame model on shuffled frames (docs/temporal.md: set "
+                         "model.temporal.memory, e.g. bev, or start from configs/temporal/)")
+    vt, g = cfg.model.view_transform, cfg.grid
+    reach = max(abs(g.xbound[0]), abs(g.xbound[1]), abs(g.ybound[0]), abs(g.ybound[1]))
+    if vt.kind == "lss" and vt.depth_bound[1] < reach:
+        notes.append(f"note: model.view_transform.depth_bound stops at {vt.depth_bound[1]:g} m, but the grid "
+                     f"(grid.xbound, grid.ybound) reaches {reach:g} m from the ego: its cells beyond "
+                     f"{vt.depth_bound[1]:g} m never get a camera feature (the paper's 60 m x 30 m grid: "
+                     "depth_bound [4, 45, 1])")
+    return notes
 
 
 def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:
