@@ -4809,6 +4809,21 @@ def row_rig_float_size_and_unreadable_image_kinds(env):
         read_image(junk)
 
 
+@row("S20", "a command's output piped into a reader that stops early (`model-summary CONFIG | head -1`, export-gt's "
+            "'wrote' line into `head -0`): a raw BrokenPipeError traceback, exit 1; now quiet, exit 141 as Unix "
+            "tools (SIGPIPE)")
+def row_output_pipe_closed_early(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    for argv in (["model-summary", str(env.yaml)], ["export-gt", str(env.yaml), "--out", str(env.tmp / "gt.json")]):
+        p = subprocess.Popen([sys.executable, "-m", "instagram_hdmap.cli", *argv], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, env=env_vars)
+        p.stdout.close()  # the reader is gone before the first line (`| head -0`)
+        err = p.stderr.read().decode()
+        assert p.wait(timeout=120) == 141, err[-2000:]
+        assert "Traceback" not in err and "BrokenPipe" not in err, err[-2000:]
+    assert (env.tmp / "gt.json").is_file()  # the work was done; only its report had no reader
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

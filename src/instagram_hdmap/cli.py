@@ -7,6 +7,7 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import os
 import sys
@@ -500,6 +501,15 @@ def _say(line: str) -> None:
     sys.stderr.flush()
 
 
+def _stdout_to_devnull() -> None:
+    """Point stdout at /dev/null, so that the interpreter's last flush does not fail on the closed pipe again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # stdout replaced (tests, notebooks)
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -521,6 +531,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _say(f"instagram-hdmap {args.command}: interrupted")
         return 130
+    except BrokenPipeError:  # the reader of the output went away (`model-summary CONFIG | head -1`): stop quietly, as
+        _stdout_to_devnull()  # Unix tools do (exit 141, as if by SIGPIPE), not with a traceback
+        return 141
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
         cause = os_error_in(e)
         died = data_worker_died(e)
