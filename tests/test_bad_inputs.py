@@ -4824,6 +4824,20 @@ def row_output_pipe_closed_early(env):
     assert (env.tmp / "gt.json").is_file()  # the work was done; only its report had no reader
 
 
+@row("S20", "a temporal training of more streams (train.batch_size) than the training split has scenes (or pieces of "
+            "train.stream_frames): the streams without a scene walked others' frames again in every batch (padding), "
+            "no word")
+def row_more_streams_than_scenes(env):
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.max_steps=1",
+                           "model.temporal.memory=bev", "train.batch_size=8")
+    assert rc == 0, err[-2000:]
+    assert re.search(r"note: train\.batch_size=8 streams, but the training split has 2 scenes: 6 streams walk no scene "
+                     r"of their own", out), out
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run2'}", "train.max_steps=1",
+                           "model.temporal.memory=bev", "train.batch_size=2")
+    assert rc == 0 and "streams walk no scene" not in out, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -275,6 +275,13 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
                                         piece_frames=cfg.train.stream_frames,
                                         single_epochs=round(cfg.train.stream_warmup * cfg.train.epochs))
         train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
+        k, runs = cfg.train.stream_frames, train_set.scenes.runs
+        walks = sum(-(-len(r) // k) for r in runs) if k > 0 else len(runs)
+        if walks < per_rank * world_size:  # the streams without a scene of their own repeat others' frames (padding)
+            what = f"{walks} pieces of train.stream_frames={k} frames" if k > 0 else f"{walks} scenes"
+            du.print_main(f"note: train.batch_size={cfg.train.batch_size} streams, but the training split has "
+                          f"{what}: {per_rank * world_size - walks} streams walk no scene of their own and repeat "
+                          f"others' frames in every batch (padding); a batch of at most {walks} streams trains as much")
     else:
         sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
         train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, drop_last=False, **common)
