@@ -9,8 +9,9 @@ fourth, ``S5`` one found by a fifth, ``S6`` one found by a sixth, ``S7`` one fou
 found by an eighth, ``S9`` one found by a ninth, ``S10`` one found by a tenth, ``S11`` one found by an
 eleventh, ``S12`` one found by a twelfth, ``S13`` one found by a thirteenth, ``S14`` one found by a
 fourteenth, ``S15`` one found by a fifteenth, ``S16`` one found by a sixteenth, ``S17`` one found by a
-seventeenth, ``S18`` one found by an eighteenth, ``S19`` one found by a nineteenth; a ninth-, tenth-,
-eleventh-, fourteenth- or nineteenth-sweep row of a valid input that was refused checks that it runs).
+seventeenth, ``S18`` one found by an eighteenth, ``S19`` one found by a nineteenth, ``S20`` one found by a
+twentieth; a ninth-, tenth-, eleventh-, fourteenth-, nineteenth- or twentieth-sweep row of a valid input that was
+refused checks that it runs).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -46,7 +47,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S19"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S20"
     what: str
     run: Callable
 
