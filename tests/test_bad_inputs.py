@@ -4839,6 +4839,17 @@ def row_more_streams_than_scenes(env):
     assert rc == 0 and "streams walk no scene" not in out, err[-2000:]
 
 
+@row("S20", "predict-images: a byte-identical copy of one camera's image given for another camera (CAM_FRONT.jpg "
+            "copied to fill CAM_FRONT_RIGHT) ran, exit 0 (the same path twice, or a link to it, was named)")
+def row_predict_images_copy_of_an_image(env):
+    rig, images = _rig_files(env)
+    shutil.copy(images[1], images[2])
+    forbid(env, "instagram_hdmap.predict.save_figure", "drawing")
+    env.error(r"cameras CAM_FRONT and CAM_FRONT_RIGHT are given the same image: .*CAM_FRONT_RIGHT\.jpg is a copy of "
+              r".*CAM_FRONT\.jpg \(the same bytes\)", "predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out",
+              env.tmp / "out", "--device", "cpu", *images)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

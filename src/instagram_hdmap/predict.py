@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -374,11 +375,18 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
         raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
                        f"({', '.join(names)}): give one image per camera, in the rig file's order")
     seen: dict[str, str] = {}
+    copies: dict[str, tuple[str, str]] = {}  # a byte-identical copy is the same image under another name
     for cam, path in zip(rig, images):
         other = seen.setdefault(os.path.realpath(path), cam.name)
         if other != cam.name:
             raise RigError(f"cameras {other} and {cam.name} are given the same image {path}; give each camera its "
                            "own image, in the rig file's order")
+        with contextlib.suppress(OSError):  # an unreadable file is named where it is decoded
+            digest = hashlib.sha1(Path(path).read_bytes()).hexdigest()
+            first = copies.setdefault(digest, (cam.name, str(path)))
+            if first[0] != cam.name:
+                raise RigError(f"cameras {first[0]} and {cam.name} are given the same image: {path} is a copy of "
+                               f"{first[1]} (the same bytes); give each camera its own image, in the rig file's order")
         named = camera_named_by(path, names)
         if named is not None and named != cam.name:  # images given in another order than the rig file's cameras
             raise RigError(f"image {path} is named for camera {named} but is given for camera {cam.name}: give the "
