@@ -4827,8 +4827,10 @@ def row_output_pipe_closed_early(env):
 
 @row("S20", "a temporal training of more streams (train.batch_size) than the training split has scenes (or pieces of "
             "train.stream_frames): the streams without a scene walked others' frames again in every batch (padding), "
-            "no word")
+            "no word; on a world of one-frame scenes the memory was never fused, no word")
 def row_more_streams_than_scenes(env):
+    from instagram_hdmap.data.synthetic import generate_world
+
     rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.max_steps=1",
                            "model.temporal.memory=bev", "train.batch_size=8")
     assert rc == 0, err[-2000:]
@@ -4836,7 +4838,13 @@ def row_more_streams_than_scenes(env):
                      r"of their own", out), out
     rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run2'}", "train.max_steps=1",
                            "model.temporal.memory=bev", "train.batch_size=2")
-    assert rc == 0 and "streams walk no scene" not in out, err[-2000:]
+    assert rc == 0 and "streams walk no scene" not in out and "has one frame" not in out, err[-2000:]
+    world = env.tmp / "w1"  # a world of one-frame scenes: the memory is never fused
+    generate_world(out=world, scenes_train=2, scenes_val=1, samples_per_scene=1, image_size="400x225", progress=False)
+    rc, out, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run3'}", "train.max_steps=1",
+                           "model.temporal.memory=bev", "train.batch_size=2", f"data.dataroot={world}",
+                           f"data.splits_file={world / 'splits.json'}")
+    assert rc == 0 and "note: every scene of the training split 'train' has one frame" in out, err[-2000:]
 
 
 @row("S20", "predict-images: a byte-identical copy of one camera's image given for another camera (CAM_FRONT.jpg "

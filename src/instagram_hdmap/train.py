@@ -276,6 +276,10 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
                                         single_epochs=round(cfg.train.stream_warmup * cfg.train.epochs))
         train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
         k, runs = cfg.train.stream_frames, train_set.scenes.runs
+        if runs and max(len(r) for r in runs) < 2:  # every frame starts a scene: the memory is never fused
+            du.print_main(f"note: every scene of the training split '{cfg.data.train_split}' has one frame, so the "
+                          f"temporal model (model.temporal.memory={cfg.model.temporal.memory}) never fuses a memory: "
+                          "this trains its single-frame parts only (train on drives of several frames)")
         walks = sum(-(-len(r) // k) for r in runs) if k > 0 else len(runs)
         if walks < per_rank * world_size:  # the streams without a scene of their own repeat others' frames (padding)
             what = f"{walks} pieces of train.stream_frames={k} frames" if k > 0 else f"{walks} scenes"
