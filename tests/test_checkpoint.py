@@ -121,10 +121,16 @@ def test_a_signal_during_the_save_lands_after_it(tmp_path, monkeypatch):
         return real_save(obj, f, *args, **kwargs)
 
     monkeypatch.setattr(torch, "save", save_with_a_signal)
-    state = {"model": {"w": torch.arange(1000.0)}, "step": 7}
-    with pytest.raises(KeyboardInterrupt):
-        save_checkpoint(state, tmp_path / "last.pt")
-    assert calls == ["saving"]
-    loaded = load_checkpoint(tmp_path / "last.pt")
-    assert loaded["step"] == 7 and torch.equal(loaded["model"]["w"], state["model"]["w"])
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler given back
+    # Python's Ctrl-C handler, whatever the suite inherited: started as a background job (`pytest &` in a script),
+    # Python starts with SIGINT ignored, which signals_deferred rightly leaves alone, and the signal never came
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        state = {"model": {"w": torch.arange(1000.0)}, "step": 7}
+        with pytest.raises(KeyboardInterrupt):
+            save_checkpoint(state, tmp_path / "last.pt")
+        assert calls == ["saving"]
+        loaded = load_checkpoint(tmp_path / "last.pt")
+        assert loaded["step"] == 7 and torch.equal(loaded["model"]["w"], state["model"]["w"])
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler given back
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -13,8 +13,9 @@ import os
 import sys
 from pathlib import Path
 
+from . import distributed as du
 from .benchmark import format_benchmark, run_benchmark
-from .config import UserError, load_config, parse_overrides, repeated_overrides
+from .config import ConfigError, UserError, load_config, parse_overrides, repeated_overrides
 from .data import build_dataset
 from .data.base import gt_submission
 from .data.synthetic import generate_world
@@ -144,6 +145,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     summary = train(cfg, resume=args.resume, force=args.force)
     if int(os.environ.get("RANK", "0")) == 0:  # under torchrun each rank returns here: one line, as the run's others
         print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
+        if cfg.train.max_steps is not None and summary.get("schedule_complete") is False:  # README: "and says so"
+            print(f"note: train.max_steps={cfg.train.max_steps} stopped the run before the end of its schedule "
+                  f"(progress {summary.get('progress', 0):.3f}; lr {summary.get('lr', 0):.3g}, final "
+                  f"{summary.get('final_lr', 0):.3g}): resume with a larger train.max_steps (or none) to finish it")
     return 0
 
 
@@ -194,8 +199,23 @@ def _print_notes(notes: list[str]) -> None:
         print(f"note: {note}")
 
 
+def _load_evaluate(args: argparse.Namespace):
+    """evaluate's config with ``--protocol`` as its ``eval.protocol``, so that ``eval.also_protocols`` is checked
+    against the protocol run (``--protocol raster eval.also_protocols=[vector]`` on a vector config was refused as
+    listing the config's own protocol); ``eval.also_protocols`` naming ``--protocol`` itself stays taken (the
+    duplicate dropped)."""
+    if args.protocol is None:
+        return _load(args)
+    try:
+        return load_config(args.config, [*args.overrides, f"eval.protocol={args.protocol}"])
+    except ConfigError as e:
+        if "eval.also_protocols" not in str(e):
+            raise
+        return _load(args)
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    result = run_evaluation(_load(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
+    result = run_evaluation(_load_evaluate(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
     if not result["paths"]:  # not rank 0 under torchrun
         return 0
     metrics = result["metrics"]
@@ -524,7 +544,14 @@ def main(argv: list[str] | None = None) -> int:
             _say(f"instagram-hdmap {args.command}: note: {note}")
     _expand_home(args)
     try:
-        return args.func(args) or 0
+        code = args.func(args) or 0
+        # every rank of a torchrun job got here: destroy the process group before the interpreter exits, where gloo's
+        # worker threads, still running, aborted a rank at random (SIGABRT, "terminate called without an active
+        # exception") and the job failed with exit 1 after all its work was done (only on success: ranks that stop
+        # on an error may be inside a collective, where the destruction would wait for good)
+        du.barrier()
+        du.cleanup()
+        return code
     except UserError as e:
         _say(f"instagram-hdmap {args.command}: error: {e}")
         return 2

@@ -657,6 +657,18 @@ def load_config(path: str | Path | dict | ExperimentConfig | None = None,
     return cfg
 
 
+def as_config(cfg: ExperimentConfig | str | Path | dict, who: str) -> ExperimentConfig:
+    """``cfg`` for a function that takes a config (``who`` names it): an ``ExperimentConfig`` as it is, a YAML file's
+    path or a dict of its keys loaded (``load_config``); anything else a ``TypeError`` naming ``who`` (a path was a
+    raw "'str' object has no attribute 'model'" from deep inside)."""
+    if isinstance(cfg, ExperimentConfig):
+        return cfg
+    if isinstance(cfg, (str, Path, dict)):
+        return load_config(cfg)
+    raise TypeError(f"{who} takes an ExperimentConfig (instagram_hdmap.config.load_config(path)) or a YAML file, got "
+                    f"{type(cfg).__name__}")
+
+
 # the keys that hold a file or folder path: a leading ~ is the user's home, as a shell would read it (a YAML
 # file or a quoted override keeps it: train.out_dir=~/runs made a folder named "~" in the working directory)
 PATH_KEYS = ("data.dataroot", "data.splits_file", "model.backbone.weights", "train.out_dir", "train.init_from")

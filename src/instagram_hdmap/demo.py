@@ -27,6 +27,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
 import os
 import random
 import shutil
@@ -34,7 +35,7 @@ import time
 from pathlib import Path
 
 from .checkpoint import load_checkpoint
-from .config import ExperimentConfig, UserError, flatten, load_config, parse_overrides
+from .config import ExperimentConfig, UserError, as_config, flatten, load_config, parse_overrides
 from .data import build_dataset
 from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
@@ -147,7 +148,10 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     """Metrics of the *random training map*: each validation sample predicted by the GT polylines
     of a uniformly drawn training sample (score 1): the map prior without looking at the images.
     The training split comes from ``cfg``'s world, the validation split from ``val_cfg``'s (default
-    the same world). ``picks`` (one training index per validation sample) replaces the random draw."""
+    the same world). ``picks`` (one training index per validation sample) replaces the random draw.
+    ``cfg`` / ``val_cfg``: ``ExperimentConfig`` objects or YAML files."""
+    cfg = as_config(cfg, "random_map_baseline")  # a YAML file's path was a raw "'str' object has no attribute 'data'"
+    val_cfg = None if val_cfg is None else as_config(val_cfg, "random_map_baseline")
     train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
     if val_cfg is None or val_cfg.data.dataroot == cfg.data.dataroot:
         val_cfg = cfg if val_cfg is None else val_cfg
@@ -157,6 +161,13 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     rng = random.Random(seed)
     if picks is None:
         picks = [rng.randrange(len(train_set)) for _ in range(len(val_set))]
+    picks = list(picks)
+    # fewer picks scored only that many validation samples, an index past the split was a raw IndexError and a
+    # negative one counted from the end, all with no word
+    if len(picks) != len(val_set) or not all(isinstance(j, numbers.Integral) and 0 <= j < len(train_set)
+                                             for j in picks):
+        raise UserError(f"random_map_baseline: picks must be one training-sample index in [0, {len(train_set)}) per "
+                        f"validation sample ({len(val_set)}), got {len(picks)} pick(s): {picks[:8]!r:.120}")
     cache: dict[int, list[dict]] = {}
     evaluator = Evaluator.from_config(dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol)))
     for i, j in enumerate(picks):

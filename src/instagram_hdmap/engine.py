@@ -136,6 +136,31 @@ def scored_tokens(loader) -> set[str] | None:
     return {tokens[i] for i in sampler.owned()}
 
 
+def _length(loader) -> int | None:
+    """Batches in ``loader`` for the progress bar (given its iterator, tqdm no longer sees the loader)."""
+    try:
+        return len(loader)
+    except TypeError:  # an iterable-style dataset, a generator
+        return None
+
+
+def shut_down_workers(batches) -> None:
+    """The data-loader workers of a loop cut short (Ctrl-C, a SIGTERM, an error), shut down now. Left to the
+    iterator's ``__del__``, the shutdown ran later, after the run had saved and printed its one-line message,
+    where a worker that the same signal had killed (a scheduler signals the whole process group) raised torch's
+    "DataLoader worker ... is killed by signal" as an "Exception ignored" traceback under that line, or in the
+    middle of the save of ``last.pt``; the shutdown also takes the workers' pids off torch's SIGCHLD watch.
+    A worker's death reported during the shutdown is the one the loop is ending on: not raised again."""
+    shutdown = getattr(batches, "_shutdown_workers", None)  # torch's multi-process iterator (a private method)
+    if shutdown is None:
+        return
+    try:
+        shutdown()
+    except RuntimeError as e:
+        if "DataLoader worker" not in str(e):
+            raise
+
+
 def train_one_epoch(
     model: torch.nn.Module,
     criterion: Callable[[dict, dict], dict],
@@ -171,62 +196,67 @@ def train_one_epoch(
     count, n_samples, t_epoch = 0, 0, time.perf_counter()
     stopped = False
     t_last, n_last = time.perf_counter(), 0
-    bar = tqdm(loader, total=total, initial=step_in_epoch, desc=f"epoch {epoch}", dynamic_ncols=True,
-               disable=not du.is_main_process(), leave=False)
-    for batch in bar:
-        batch = move_to(batch, device)
-        if hooks.before_step is not None:
-            hooks.before_step(global_step)
-        with autocast_context(device, settings.amp):
-            outputs = model(batch, memory=memory) if streaming else model(batch)
-        if streaming:
-            memory = outputs["memory"]
-        losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters
-        loss = losses["loss_total"]
-        global_step += 1
-        step_in_epoch += 1
-        if not torch.isfinite(loss):
-            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items() if k.startswith("loss_"))
-            if settings.on_nonfinite == "stop":
-                raise NonFiniteLossError(
-                    f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
-                    "train.amp=none, or set train.on_nonfinite=skip to skip such steps"
-                )
-            du.print_main(f"warning: skipping step {global_step} with non-finite loss ({terms})")
-            optimizer.zero_grad(set_to_none=True)
-            memory = None  # a memory of non-finite features would poison the next steps
-            continue
+    batches = iter(loader)
+    bar = tqdm(batches, total=_length(loader) if total is None else total, initial=step_in_epoch,
+               desc=f"epoch {epoch}", dynamic_ncols=True, disable=not du.is_main_process(), leave=False)
+    try:
+        for batch in bar:
+            batch = move_to(batch, device)
+            if hooks.before_step is not None:
+                hooks.before_step(global_step)
+            with autocast_context(device, settings.amp):
+                outputs = model(batch, memory=memory) if streaming else model(batch)
+            if streaming:
+                memory = outputs["memory"]
+            losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters
+            loss = losses["loss_total"]
+            global_step += 1
+            step_in_epoch += 1
+            if not torch.isfinite(loss):
+                terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items() if k.startswith("loss_"))
+                if settings.on_nonfinite == "stop":
+                    raise NonFiniteLossError(
+                        f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
+                        "train.amp=none, or set train.on_nonfinite=skip to skip such steps"
+                    )
+                du.print_main(f"warning: skipping step {global_step} with non-finite loss ({terms})")
+                optimizer.zero_grad(set_to_none=True)
+                memory = None  # a memory of non-finite features would poison the next steps
+                continue
 
-        grad_norm = optimisation_step(loss, model, optimizer, scaler, settings.grad_clip)
-        values = _scalars(losses)
-        values["grad_norm"] = float(grad_norm)
-        values.update(memory_counts(outputs))
-        if "pred_vertex_mask" in outputs:
-            values["num_vertices"] = float(outputs["pred_vertex_mask"].sum(1).float().mean())
-        for k, v in values.items():
-            sums[k] += v
-        count += 1
-        n_samples += batch["images"].shape[0] * du.get_world_size()
+            grad_norm = optimisation_step(loss, model, optimizer, scaler, settings.grad_clip)
+            values = _scalars(losses)
+            values["grad_norm"] = float(grad_norm)
+            values.update(memory_counts(outputs))
+            if "pred_vertex_mask" in outputs:
+                values["num_vertices"] = float(outputs["pred_vertex_mask"].sum(1).float().mean())
+            for k, v in values.items():
+                sums[k] += v
+            count += 1
+            n_samples += batch["images"].shape[0] * du.get_world_size()
 
-        if global_step % settings.log_every == 0 or step_in_epoch == 1:
-            logged = du.reduce_dict(values, device if device.type == "cuda" else None)
-            now = time.perf_counter()
-            batch_size = batch["images"].shape[0] * du.get_world_size()
-            throughput = batch_size * (count - n_last) / max(now - t_last, 1e-9)
-            t_last, n_last = now, count
-            bar.set_postfix(loss=f"{logged['loss_total']:.3f}",
-                            **{k[5:]: f"{v:.3f}" for k, v in logged.items()
-                               if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
-            if hooks.writer is not None:
-                for k, v in logged.items():
-                    hooks.writer.add_scalar(f"train/{k}", v, global_step)
-                hooks.writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
-                hooks.writer.add_scalar("train/samples_per_s", throughput, global_step)
-        if hooks.on_step is not None:
-            hooks.on_step(StepInfo(epoch, global_step, step_in_epoch, values, memory))
-        if hooks.should_stop is not None and hooks.should_stop(global_step):
-            stopped = True
-            break
+            if global_step % settings.log_every == 0 or step_in_epoch == 1:
+                logged = du.reduce_dict(values, device if device.type == "cuda" else None)
+                now = time.perf_counter()
+                batch_size = batch["images"].shape[0] * du.get_world_size()
+                throughput = batch_size * (count - n_last) / max(now - t_last, 1e-9)
+                t_last, n_last = now, count
+                bar.set_postfix(loss=f"{logged['loss_total']:.3f}",
+                                **{k[5:]: f"{v:.3f}" for k, v in logged.items()
+                                   if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
+                if hooks.writer is not None:
+                    for k, v in logged.items():
+                        hooks.writer.add_scalar(f"train/{k}", v, global_step)
+                    hooks.writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
+                    hooks.writer.add_scalar("train/samples_per_s", throughput, global_step)
+            if hooks.on_step is not None:
+                hooks.on_step(StepInfo(epoch, global_step, step_in_epoch, values, memory))
+            if hooks.should_stop is not None and hooks.should_stop(global_step):
+                stopped = True
+                break
+    except BaseException:
+        shut_down_workers(batches)
+        raise
     bar.close()
     stats = du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                            device if device.type == "cuda" else None)
@@ -276,54 +306,59 @@ def evaluate(
     count = persisted = 0
     t0 = time.perf_counter()
     n_samples = 0
-    for batch in tqdm(loader, total=total, desc="eval", dynamic_ncols=True, disable=not du.is_main_process(),
-                      leave=False):
-        batch = move_to(batch, device)
-        with autocast_context(device, amp):
-            outputs = model(batch, memory=memory) if streaming else model(batch)
-        tokens, keep = batch.get("sample_token"), list(range(batch["images"].shape[0]))
-        replaced = batch["replaced"].tolist() if streaming and "replaced" in batch else [False] * len(keep)
-        if owned is not None:  # streaming padding: score each owned sample once (even twice in a batch)
-            keep = []
-            for b, t in enumerate(tokens):
-                if t in owned and not replaced[b]:  # a stand-in for a bad frame: scored in its own place
-                    keep.append(b)
-                    owned.discard(t)
-        if streaming:
-            memory = outputs["memory"]
-            counted = list(keep)
-            for b, r in enumerate(replaced):  # a bad frame counts as a missing one, once (not in padding)
-                if r and (owned is None or batch["stands_for"][b] in owned):
-                    counted.append(b)
-                    if owned is not None:
-                        owned.discard(batch["stands_for"][b])
-            for k, v in memory_counts({"memory_status": outputs["memory_status"][counted]}).items():
-                status_counts[k] += v
-        if criterion is not None:
-            for k, v in _scalars(criterion(outputs, batch)).items():
-                sums[k] += v
-            count += 1
-        n_samples += batch["images"].shape[0]
-        if postprocess is not None:
-            preds = postprocess(outputs)
-            if persist is not None and keep:  # the scored samples only: a stream's padding walks a scene again
-                # (at the same time as the stream that owns it, when there are more streams than scenes) and would
-                # overwrite that scene's remembered elements between its frames
-                with_kept = persist([preds[b] for b in keep], [batch["scene"][b] for b in keep],
-                                    batch["frame_index"][keep], batch["ego_pose"][keep])
-                for b, p in zip(keep, with_kept):
-                    persisted += len(p) - len(preds[b])  # the kept ones come last
-                    preds[b] = p
-            preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
-                                                                                       for b in keep]
-            if evaluator is not None:
-                evaluator.update(preds, gts, tokens=tokens)
-            if on_predictions is not None:
-                on_predictions(tokens, preds)
-            for meter in (flicker, cmap):
-                if meter is not None:
-                    meter.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
-                                 batch["ego_pose"][keep])
+    batches = iter(loader)
+    try:
+        for batch in tqdm(batches, total=_length(loader) if total is None else total, desc="eval",
+                          dynamic_ncols=True, disable=not du.is_main_process(), leave=False):
+            batch = move_to(batch, device)
+            with autocast_context(device, amp):
+                outputs = model(batch, memory=memory) if streaming else model(batch)
+            tokens, keep = batch.get("sample_token"), list(range(batch["images"].shape[0]))
+            replaced = batch["replaced"].tolist() if streaming and "replaced" in batch else [False] * len(keep)
+            if owned is not None:  # streaming padding: score each owned sample once (even twice in a batch)
+                keep = []
+                for b, t in enumerate(tokens):
+                    if t in owned and not replaced[b]:  # a stand-in for a bad frame: scored in its own place
+                        keep.append(b)
+                        owned.discard(t)
+            if streaming:
+                memory = outputs["memory"]
+                counted = list(keep)
+                for b, r in enumerate(replaced):  # a bad frame counts as a missing one, once (not in padding)
+                    if r and (owned is None or batch["stands_for"][b] in owned):
+                        counted.append(b)
+                        if owned is not None:
+                            owned.discard(batch["stands_for"][b])
+                for k, v in memory_counts({"memory_status": outputs["memory_status"][counted]}).items():
+                    status_counts[k] += v
+            if criterion is not None:
+                for k, v in _scalars(criterion(outputs, batch)).items():
+                    sums[k] += v
+                count += 1
+            n_samples += batch["images"].shape[0]
+            if postprocess is not None:
+                preds = postprocess(outputs)
+                if persist is not None and keep:  # the scored samples only: a stream's padding walks a scene again
+                    # (at the same time as the stream that owns it, when there are more streams than scenes) and would
+                    # overwrite that scene's remembered elements between its frames
+                    with_kept = persist([preds[b] for b in keep], [batch["scene"][b] for b in keep],
+                                        batch["frame_index"][keep], batch["ego_pose"][keep])
+                    for b, p in zip(keep, with_kept):
+                        persisted += len(p) - len(preds[b])  # the kept ones come last
+                        preds[b] = p
+                preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
+                                                                                           for b in keep]
+                if evaluator is not None:
+                    evaluator.update(preds, gts, tokens=tokens)
+                if on_predictions is not None:
+                    on_predictions(tokens, preds)
+                for meter in (flicker, cmap):
+                    if meter is not None:
+                        meter.update(preds, gts, [batch["scene"][b] for b in keep], batch["frame_index"][keep],
+                                     batch["ego_pose"][keep])
+    except BaseException:
+        shut_down_workers(batches)
+        raise
     result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
                                        device if device.type == "cuda" else None)}
     if streaming:

@@ -63,6 +63,9 @@ class BEVGrid:
     def from_config(cls, cfg: GridConfig) -> BEVGrid:
         if hasattr(cfg, "grid") and not hasattr(cfg, "xbound"):  # a whole ExperimentConfig: a raw AttributeError
             cfg = cfg.grid
+        if not all(hasattr(cfg, k) for k in ("xbound", "ybound", "resolution", "cell_size")):  # a YAML path: raw error
+            raise TypeError(f"BEVGrid.from_config takes a config's grid section (cfg.grid) or the config, got "
+                            f"{type(cfg).__name__}; a YAML file is read by instagram_hdmap.config.load_config(path)")
         grid = cls(cfg.xbound[0], cfg.xbound[1], cfg.ybound[0], cfg.ybound[1], cfg.resolution, cfg.cell_size)
         grid.check()
         return grid

@@ -42,6 +42,7 @@ from .config import (
     MAP_CLASSES,
     ExperimentConfig,
     UserError,
+    as_config,
     config_from_dict,
     config_to_dict,
     deep_update,
@@ -49,7 +50,6 @@ from .config import (
     flatten,
     get_key,
     is_under,
-    load_config,
     parse_overrides,
     set_key,
 )
@@ -164,6 +164,11 @@ def inference_config(
         out_d = config_to_dict(out)
         notes.append("overriding the checkpoint's " + ", ".join(
             f"{k}={get_key(trained_d, k)!r} with {get_key(out_d, k)!r}" for k in changed))
+    if trained.data.ped_crossing != out.data.ped_crossing:  # the GT's convention, not the model's: the CONFIG's wins
+        notes.append(f"the checkpoint was trained on data.ped_crossing={trained.data.ped_crossing!r} crossings; the GT "
+                     f"here draws them as {out.data.ped_crossing!r} (this config's), so its crossings are scored "
+                     f"against another convention than the model learnt (docs/conventions.md); data.ped_crossing="
+                     f"{trained.data.ped_crossing} scores them as trained")
     return out, notes
 
 
@@ -214,8 +219,10 @@ def load_model(
     """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode.
 
     Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
-    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit.
+    Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit. ``cfg``: an
+    ``ExperimentConfig`` or a YAML file.
     """
+    cfg = as_config(cfg, "load_model")  # a path was a raw "'str' object does not support item assignment"
     state = load_checkpoint(checkpoint)
     notes: list[str] = []
     if isinstance(state.get("config"), dict):
@@ -404,8 +411,7 @@ class OnnxModel:
                  optimization: str = "all", providers: Sequence[str] = ("CPUExecutionProvider",)):
         _, ort = require_onnx()
         self.path = as_path(path, "ONNX file")
-        if not isinstance(cfg, ExperimentConfig):
-            cfg = load_config(cfg)  # a YAML file's path: "'str' object has no attribute 'model'" deep in the check
+        cfg = as_config(cfg, "OnnxModel")  # a YAML file's path: "'str' object has no attribute 'model'" deep inside
         self.meta = check_export(self.path, cfg)
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or torch.get_num_threads()
@@ -754,11 +760,20 @@ class Mapper:
         if not (isinstance(model, (torch.nn.Module, OnnxModel))):
             raise TypeError(f"Mapper takes a model (an InstaGraM module or an OnnxModel), got {type(model).__name__}; "
                             "load a trained one with Mapper.from_checkpoint(path) or Mapper.from_onnx(path)")
-        if not isinstance(config, ExperimentConfig):
-            config = load_config(config)  # a YAML file's path (or a dict of its keys)
+        config = as_config(config, "Mapper")  # a YAML file's path (or a dict of its keys); None is no config
         self.model, self.config, self.source, self.notes = model, config, source, list(notes)
         self.device = device if device is not None else torch.device("cpu")
         self.grid = BEVGrid.from_config(config.grid)
+        # a model built from another config than the one given: its BEV pixels were read as metres of this grid (every
+        # element moved and scaled, no word), its images resized to this image size (refused deep in the forward)
+        grid, size = getattr(getattr(model, "graph_head", None), "grid", None), getattr(model, "image_size", None)
+        differ = ([f"grid {grid} (config: {self.grid})"] if grid is not None and grid != self.grid else []) + (
+            [f"data.image_size {list(size)} (config: {list(config.data.image_size)})"]
+            if size is not None and tuple(size) != tuple(config.data.image_size) else [])
+        if differ:
+            raise ValueError(f"Mapper: the model was built for another config than the one given: {'; '.join(differ)}; "
+                             "give the config the model was built from (Mapper.from_checkpoint(path) reads it from the "
+                             "checkpoint)")
         self.cameras = rig_cameras(config)
         self.classes = tuple(config.data.classes)
         self.decode_options = decode_options(config.model.gnn, self.grid)
@@ -773,6 +788,14 @@ class Mapper:
         options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
         (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
         architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
+        config = decode_overrides.pop("config", None)
+        if config is not None or isinstance(device, ExperimentConfig) or str(device).endswith((".yaml", ".yml")):
+            # from_onnx's config= was "unknown decoding option(s) config", a YAML file "device='x.yaml' is not a device"
+            given = config if config is not None else device
+            given = "an ExperimentConfig" if isinstance(given, ExperimentConfig) else f"{given!r:.80}"
+            raise TypeError(f"Mapper.from_checkpoint builds the model from the config saved in the checkpoint; it "
+                            f"takes no config ({given} given): change keys with overrides=['model.gnn.num_vertices=600'"
+                            f", ...] (config= is Mapper.from_onnx's)")
         state = load_checkpoint(path)
         if not isinstance(state.get("config"), dict):
             raise CheckpointError(f"checkpoint {path} holds no config, so its model cannot be built; use a "
@@ -797,7 +820,7 @@ class Mapper:
         if config is None:
             cfg = exported_config(meta)
         else:
-            cfg = config if isinstance(config, ExperimentConfig) else load_config(config)
+            cfg = as_config(config, "Mapper.from_onnx")
         cfg = with_decoding(cfg, decode_overrides, overrides)
         return cls(OnnxModel(path, cfg), cfg, source=f"ONNX {path} (onnxruntime)")
 

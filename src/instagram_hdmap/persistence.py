@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .config import ExperimentConfig, GridConfig
+from .config import ExperimentConfig, GridConfig, as_config
 from .errors import UserError, as_batch_list, as_float64_array, is_real
 from .geometry import BEVGrid
 
@@ -119,6 +119,9 @@ def _check_preds(preds, where: str, who: str = "Persistence",
             got = f"shape {list(pts.shape)}" if pts is not None else f"{p['pts']!r:.60}"
             raise PersistenceInputError(f"{who}: {where}: element {k}'s pts must be [P, 2] (x, y in metres, "
                                         f"ego frame), got {got}")
+        if not np.isfinite(pts).all():  # matched nothing, took a new ID / was remembered with no word
+            raise PersistenceInputError(f"{who}: {where}: element {k}'s pts hold NaN or infinite coordinates (the "
+                                        "evaluation refuses them too); drop or fix that element")
         label, score = p["label"], p.get("score")
         label, score = (x.item() if isinstance(x, torch.Tensor) and x.numel() == 1  # np.size: no bf16
                         else x.item() if hasattr(x, "item") and np.size(x) == 1 else x for x in (label, score))
@@ -269,7 +272,9 @@ class Persistence:
 
     @classmethod
     def from_config(cls, cfg) -> Persistence | None:
-        """``model.temporal.persist_*`` of an ``ExperimentConfig``; None when ``persist_frames`` is 0."""
+        """``model.temporal.persist_*`` of an ``ExperimentConfig`` (or a YAML file); None when ``persist_frames``
+        is 0."""
+        cfg = as_config(cfg, "Persistence.from_config")
         t = cfg.model.temporal
         if t.persist_frames == 0:
             return None
@@ -340,7 +345,9 @@ class InstanceTracker:
 
     @classmethod
     def from_config(cls, cfg) -> InstanceTracker:
-        """``model.temporal``'s ``persist_match_m``, ``max_jump_m``, ``max_turn_deg`` and the config's grid."""
+        """``model.temporal``'s ``persist_match_m``, ``max_jump_m``, ``max_turn_deg`` and the config's grid (an
+        ``ExperimentConfig`` or a YAML file)."""
+        cfg = as_config(cfg, "InstanceTracker.from_config")
         t = cfg.model.temporal
         return cls(BEVGrid.from_config(cfg.grid), t.persist_match_m, t.max_jump_m, t.max_turn_deg)
 

@@ -503,6 +503,9 @@ def postprocess_batch(
     if missing:
         raise KeyError(f"post-processing needs {missing}, missing from the model output (docs/conventions.md)")
     grid = as_grid(grid, "postprocess_batch")
+    # onnxruntime's outputs (docs/deploy.md, "Using the file without this package") are NumPy arrays: a raw
+    # "'numpy.ndarray' object has no attribute 'float'"
+    outputs = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in outputs.items()}
     if not (is_real(match_threshold) and 0 < match_threshold < 1):  # NaN or 5: nothing decoded, no word
         raise ValueError(f"postprocess_batch: match_threshold is an adjacency probability in (0, 1) "
                          f"(model.gnn.match_threshold), got {match_threshold!r:.40}")
@@ -510,6 +513,11 @@ def postprocess_batch(
     if len(shape) != 3 or shape[2] != 2:  # one sample's outputs: a raw "not enough values to unpack"
         raise ValueError(f"postprocess_batch: outputs must be batched, 'pred_vertices_px' [B, N, 2], got shape {shape} "
                          "(one sample's outputs: add the batch dimension, v[None])")
+    size = list(getattr(outputs.get("pred_heatmap"), "shape", ()))[-2:]
+    if len(size) == 2 and size != [grid.H, grid.W]:  # BEV pixels read as metres of another grid: wrong, no word
+        raise ValueError(f"postprocess_batch: the outputs are of a model of another grid ('pred_heatmap' H x W "
+                         f"{size[0]} x {size[1]}, the grid {grid.H} x {grid.W}): decode with the grid the model was "
+                         "built with (BEVGrid.from_config(cfg.grid) of its config)")
     if decoder == "official":
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")

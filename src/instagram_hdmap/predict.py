@@ -39,7 +39,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from . import distributed as du
-from .config import ExperimentConfig, UserError
+from .config import ExperimentConfig, UserError, as_config
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.rig import CameraCalibration, RigError, camera_named_by, read_rig_file
@@ -52,7 +52,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers
+from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
 from .visualize import (
     figure_rgb,
     intermediate_figure,
@@ -573,6 +573,7 @@ def run_evaluation(
     for a temporal model, ``metrics["memory"]`` the samples per memory
     status (fused, no memory, pose jump, missing frame).
     """
+    cfg = as_config(cfg, "run_evaluation")  # a YAML path (or the checkpoint, arguments swapped): named
     check_output_dir(out, "--out")  # before the work that fills it
     for name in ("submission.json", "metrics.json"):
         check_output_file(Path(out) / name, "--out")
@@ -589,7 +590,7 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
-    notes += camera_dropout_notes(cfg, "the AP")
+    notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg)
     grid = BEVGrid.from_config(cfg.grid)
     split = cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)

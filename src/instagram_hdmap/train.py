@@ -30,6 +30,7 @@ import random
 import re
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -46,16 +47,27 @@ from .checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from .config import ExperimentConfig, UserError, config_to_dict, diff_configs, flatten, get_key, is_under, save_config
+from .config import (
+    EvalConfig,
+    ExperimentConfig,
+    UserError,
+    as_config,
+    config_to_dict,
+    diff_configs,
+    flatten,
+    get_key,
+    is_under,
+    save_config,
+)
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
-from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder
+from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder, write_text
 from .geometry import BEVGrid
-from .inference import MODEL_KEYS, saved_config
+from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
@@ -68,7 +80,10 @@ from .schedule import ProgressClock, final_lr_factor, lr_factor
 # train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
 # one skipped the rest of the epoch and moved the learning rate along the schedule)
 # train.seed: the epochs' sample order (the saved position counts batches of that order)
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "train.batch_size", "train.trainable", "train.seed")
+# data.ped_crossing: the crossings' targets (edges or rings), data.image_fit: the images the model learns from (a
+# resume with another one switched them mid-run with no word)
+RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "data.image_fit", "train.batch_size",
+               "train.trainable", "train.seed")
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
@@ -191,6 +206,22 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                                 "(or pass --force to start the run over)")
 
 
+def purge_log(path: Path, lines: int, note: Callable[[str], None]) -> int:
+    """Keep the first ``lines`` lines of a resumed run's ``log.jsonl``, the lines written before the checkpoint
+    it resumes from (its ``log_lines``): a killed run's lines after it (an epoch's line is written before the
+    checkpoint of that epoch, so a kill between the two loses none) go, as the resume trains those steps again
+    and logs them anew, where they showed twice. Returns how many lines the log holds after."""
+    if not path.is_file():
+        return 0
+    text = path.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+    keep = [line for line in text[:lines] if line.endswith("\n")]  # not a line the kill cut short
+    if len(keep) < len(text):
+        write_text("".join(keep), path)
+        note(f"{path}: dropped {len(text) - len(keep)} line(s) written after the checkpoint by the run that was "
+             "stopped; the resume trains those steps again and logs them anew")
+    return len(keep)
+
+
 def lock_out_dir(out_dir: Path) -> None:
     """``files.lock_folder`` of ``train.out_dir``: a second training started there is refused before it removes
     or overwrites anything of the first one's."""
@@ -209,7 +240,9 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
     lines = config_differences(old, cfg, keys)
     if lines:
-        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines})")
+        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
+                              f"the config it was trained with, or start a new run from its weights with "
+                              f"train.init_from={path} and another train.out_dir")
 
 
 def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
@@ -322,6 +355,16 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
                         threshold_m=cfg.eval.flicker_threshold_m)
 
 
+def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
+    """Notes for a meter's setting given while the meter is off (its default otherwise): it was unused with no word."""
+    default, notes = EvalConfig(), []
+    for switch, key in (("cmap", "cmap_match_m"), ("flicker", "flicker_threshold_m")):
+        if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
+            notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
+                         f"eval.{switch}=true for that meter)")
+    return notes
+
+
 def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
     """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
     predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
@@ -379,7 +422,9 @@ def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
 def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = False,
           loaders=None, validate: bool = True) -> dict:
     """Train ``cfg``; returns the final summary (epoch, step, last metrics). ``loaders`` =
-    (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config."""
+    (train_loader, sampler, val_loader) may be given (tests); otherwise built from the config. ``cfg``: an
+    ``ExperimentConfig`` or a YAML file."""
+    cfg = as_config(cfg, "train")
     try:
         run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
         with run.threads(), run.outputs():
@@ -471,10 +516,15 @@ class TrainingRun:
         self.random_init = random_init_warning(cfg) if fresh and init_state is None else None
         if self.random_init:
             du.print_main(self.random_init)
+        for note in unused_meter_keys(cfg) if validate else ():
+            du.print_main(f"note: {note}")
         if init_state is not None:
-            new = init_weights(self.model, init_state)
+            new = init_weights(self.model, init_state, cfg)
             du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
                                                                   "start from their initialisation)" if new else ""))
+            if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
+                du.print_main(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
+                              f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
         trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
         self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
@@ -492,6 +542,9 @@ class TrainingRun:
         # a validation that a Ctrl-C / SIGTERM cut short: last.pt records it and the resumed run runs it first (its
         # epoch counted as done, it was skipped, and after the final epoch the run ended never validated, no best.pt)
         self.validation_pending = False
+        # lines in log.jsonl when last.pt was saved: a resume drops those written after it (None: not counted)
+        self.log_lines: int | None = 0
+        self.line_due = False
         # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
 
@@ -517,7 +570,7 @@ class TrainingRun:
             with torch.random.fork_rng(devices=[]):  # the run's own model is initialised as without the probe
                 probe = build_model(cfg, pretrained=False)
             if init_state is not None:
-                init_weights(probe, init_state)
+                init_weights(probe, init_state, cfg)
             freeze_parameters(probe, cfg.train.trainable)
             check_frozen_are_trained(probe, cfg, fresh=state is None and init_state is None)
             del probe
@@ -572,6 +625,8 @@ class TrainingRun:
         self.position = Position(state["epoch"], state["step"], state["step_in_epoch"])
         self.best = state.get("best", self.best)
         self.validation_pending = bool(state.get("validation_pending", False))
+        lines = state.get("log_lines")  # None in a checkpoint saved before the lines were counted
+        self.log_lines = lines if isinstance(lines, int) and not isinstance(lines, bool) and lines >= 0 else None
         check_same_train_set(state.get("train_set"), train_set_fingerprint(self.train_loader), path)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
         self.note_world_change(state.get("world"), path)
@@ -643,6 +698,8 @@ class TrainingRun:
             # purge_step): they showed as a second curve over the steps the resume trains again
             purge = self.position.step + 1 if self.position.step else None
             self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=purge)
+            if self.log_lines is not None:  # the same for the log's lines (a checkpoint that counts them)
+                self.log_lines = purge_log(self.out_dir / "log.jsonl", self.log_lines, du.print_main)
             self.log_file = (self.out_dir / "log.jsonl").open("a")
         try:
             yield
@@ -706,8 +763,8 @@ class TrainingRun:
             if self.validation_pending and self.validating and self.val_loader is not None:
                 du.print_main(f"the validation after step {self.position.step} was interrupted; running it first")
                 self.validate()
+                self.log()  # before last.pt: a kill between the two loses no line (the resume drops it, redoes it)
                 self.save("last.pt", self.summary.get("val", {}).get("metrics"))
-                self.log()
             while not finished:
                 stopped = self.train_epoch()
                 finished = stopped or self.should_stop(self.position.step)  # also refreshes the clock saved below
@@ -715,10 +772,13 @@ class TrainingRun:
                         finished or self.position.epoch % self.cfg.train.val_every == 0):
                     self.validation_pending = True  # until it ends: an interrupt's last.pt says so
                     self.validate()
-                # after the validation, so that it carries the best score (a stop part-way too)
-                self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
+                # after the validation, so that it carries the best score (a stop part-way too); the epoch's
+                # line first: killed between the two, the resume drops the line and trains the epoch again
                 self.log()
+                self.save("last.pt", self.summary.get("val", {}).get("metrics") if not stopped else None)
         except KeyboardInterrupt:
+            if self.line_due and not self.validation_pending:  # stopped after the epoch's validation, before its line
+                self.log()
             self.save("last.pt", gather=False)
             du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
                           f"{self.out_dir / 'last.pt'})")
@@ -753,6 +813,7 @@ class TrainingRun:
         )
         self.memory = result["memory"]
         self.position = Position(p.epoch, result["global_step"], result["step_in_epoch"])
+        self.line_due = True  # the epoch's line in log.jsonl, written by log()
         self.summary = {**self.summary, "epoch": p.epoch, "step": result["global_step"], "train": result["stats"],
                         "train_seconds": round(result["seconds"], 2),
                         "samples_per_s": round(result["samples_per_s"], 2), **self.schedule_summary()}
@@ -808,13 +869,16 @@ class TrainingRun:
             "epoch": p.epoch, "step": p.step, "step_in_epoch": p.step_in_epoch, "rng": rng_state(),
             "config": config_to_dict(self.cfg), "metrics": metrics or {}, "best": self.best, "memory": memories,
             "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
-            "world": self.world,
+            "world": self.world, "log_lines": self.log_lines,
         }, self.out_dir / name)
 
     def log(self) -> None:
         if self.log_file is not None:
             self.log_file.write(json.dumps(self.summary, default=float) + "\n")
             self.log_file.flush()
+            if self.log_lines is not None:
+                self.log_lines += 1
+        self.line_due = False
 
     def final_summary(self) -> dict:
         return {"epoch": self.position.epoch, "step": self.position.step,  # a resume that trained nothing
@@ -910,12 +974,13 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
     return state
 
 
-def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
+def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:
     """``state``'s model weights into ``model`` (``train.init_from``); every weight must match by name and
     shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built). A
     checkpoint whose fusion does not fit this model's (another memory or fusion kind: other names or shapes)
     lends none of it: the whole fusion starts from its initialisation (the gated one then is the identity),
-    never half trained. A fusion for a model without one is an error (the run's config is not temporal)."""
+    never half trained. A fusion for a model without one is an error (the run's config is not temporal). With
+    ``cfg`` the error names the ``model.*`` keys on which the checkpoint's config and ``cfg`` differ."""
     own, theirs = model.state_dict(), state["model"]
     fusion = [k for k in theirs if k.startswith("temporal.")]
     if (any(k.startswith("temporal.") for k in own)  # (into a single-frame model a fusion is an error, below)
@@ -928,8 +993,13 @@ def init_weights(model: torch.nn.Module, state: dict) -> list[str]:
                 if k in theirs and theirs[k].shape != own[k].shape])
     if wrong:
         more = f" and {len(wrong) - 3} more" if len(wrong) > 3 else ""
+        keys = ""  # the weights' names alone did not say which setting differs (another backbone, memory, depth)
+        if cfg is not None and isinstance(state.get("config"), dict):
+            old = saved_config(state["config"], "the checkpoint of train.init_from")
+            differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
+            keys = f", as the configs differ in {config_differences(old, cfg, differ)}" if differ else ""
         raise UserError(f"train.init_from: the checkpoint's weights do not fit this model's architecture "
-                        f"({'; '.join(wrong[:3])}{more}); start from a checkpoint of the same model config")
+                        f"({'; '.join(wrong[:3])}{more}){keys}; start from a checkpoint of the same model config")
     model.load_state_dict(theirs, strict=False)
     return missing
 

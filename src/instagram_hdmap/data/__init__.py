@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from ..config import ExperimentConfig, load_config
+from ..config import as_config
 from .av2 import AV2MapDataset
 from .nuscenes import NuScenesMapDataset
 from .rig import CAMERAS
@@ -13,11 +11,7 @@ from .rig import CAMERAS
 def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     """The dataset of ``cfg.data.dataset`` for ``split``. ``like``: a dataset of the same config whose
     loaded tables may be shared (nuScenes: its ``NuScenes``). ``cfg``: an ``ExperimentConfig`` or a YAML file."""
-    if isinstance(cfg, (str, Path)):  # a raw "'str' object has no attribute 'data'"
-        cfg = load_config(cfg)
-    if not isinstance(cfg, ExperimentConfig):
-        raise TypeError(f"build_dataset takes an ExperimentConfig (instagram_hdmap.config.load_config(path)) or a "
-                        f"YAML file, got {type(cfg).__name__}")
+    cfg = as_config(cfg, "build_dataset")  # a path was a raw "'str' object has no attribute 'data'"
     if not isinstance(split, str):  # a list was a raw "unhashable type", None read as the split 'None'
         raise TypeError(f"build_dataset: split must be one split name (a str such as {cfg.data.val_split!r}), got "
                         f"{split!r:.60}")

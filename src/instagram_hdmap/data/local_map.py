@@ -37,7 +37,8 @@ expansion records are turned into polyline dicts (docs/conventions.md), in metre
   (line-merged) are open polylines.
 
 Boundary rings are oriented as in MapTR (exterior clockwise, interiors counter-clockwise). Invalid
-area polygons are skipped, as the devkit's ``_get_layer_polygon`` does. A crossing polygon that is
+area polygons are skipped, as the devkit's ``_get_layer_polygon`` does, counted in one ``UserWarning``
+per map naming the file and the records. A crossing polygon that is
 invalid (self-intersecting) is repaired with ``shapely.make_valid`` (its polygonal parts kept), one
 with fewer than 3 distinct points is skipped; both are counted and reported once per map (a
 ``UserWarning`` naming the file; ``_LocationMap.crossing_report``), never silently and never at the
@@ -271,8 +272,13 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
             holes = [h for h in (nodes(h.get("node_tokens", ()), layer, r.get("token")) for h in poly.get("holes", ()))
                      if len(h)]
             if len(ring) >= 3 and all(len(h) >= 3 for h in holes):  # fewer: no area (GEOS would raise)
-                areas.append(Polygon(ring, holes))
-    areas = np.array([p for p in areas if p.is_valid and not p.is_empty], dtype=object)
+                areas.append((str(r.get("token")), Polygon(ring, holes)))
+    invalid = [token for token, a in areas if not a.is_valid]
+    if invalid:  # skipped as the devkit's _get_layer_polygon does, but no longer with no word (a boundary lost)
+        warnings.warn(f"{path}: {len(invalid)} invalid (self-intersecting) road_segment / lane polygon(s) skipped, "
+                      f"their boundaries not drawn ({', '.join(invalid[:5])}"
+                      f"{f' and {len(invalid) - 5} more' if len(invalid) > 5 else ''})", stacklevel=2)
+    areas = np.array([a for _, a in areas if a.is_valid and not a.is_empty], dtype=object)
     return _LocationMap(dividers, peds, ped_edges, areas, crossing_report=report)
 
 

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..config import ExperimentConfig, load_config
+from ..config import ExperimentConfig, as_config
 from ..geometry import BEVGrid
 from .inputs import EvaluationInputError, check_grid, gather_states
 from .io import SubmissionError, read_submission
@@ -160,8 +160,7 @@ class Evaluator:
     @classmethod
     def from_config(cls, cfg: ExperimentConfig | str | Path, device: str | torch.device = "cpu") -> Evaluator:
         """The evaluator a config's ``eval`` section describes (``cfg``: an ``ExperimentConfig`` or a YAML file)."""
-        if not isinstance(cfg, ExperimentConfig):
-            cfg = load_config(cfg)
+        cfg = as_config(cfg, "Evaluator.from_config")
         ev = cfg.eval
         return cls(ev.protocol, ev.thresholds, cfg.data.classes, grid=BEVGrid.from_config(cfg.grid),
                    rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device, also=ev.also_protocols)
@@ -366,21 +365,16 @@ def _check_canvas(gt, grid: BEVGrid) -> None:
         crops = x0 < grid.xmin or x1 > grid.xmax or y0 < grid.ymin or y1 > grid.ymax
         why = ("which would crop it" if crops else  # a larger canvas: predictions beyond the patch would count
                "which would score predictions beyond the patch that the GT's own canvas leaves out")
-        resolution = "" if _tiles(grid.resolution, x1 - x0, y1 - y0) else next(
-            (f" --resolution {r:g}" for r in sorted(RESOLUTIONS, key=lambda r: abs(r - grid.resolution))
-             if _tiles(r, x1 - x0, y1 - y0)), "")  # the hint must run: the default 0.15 m does not tile 16 m
+        def tiles(r: float) -> bool:
+            return all(abs(e / r - round(e / r)) < 1e-6 for e in (x1 - x0, y1 - y0))
+
+        # the advice alone was refused next when the resolution does not tile that patch (16 m at 0.15 m)
+        res = next((r for r in (grid.resolution, 0.1, 0.125, 0.2, 0.25, 0.05) if tiles(r)), None)
+        also = f" --resolution {res:g}" if res is not None and res != grid.resolution else ""
         raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
                               f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
-                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g}{resolution} "
-                              "(to score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
-
-
-RESOLUTIONS = (0.15, 0.1, 0.2, 0.25, 0.3, 0.5, 0.05)  # raster pixel sizes (m) a hint may propose
-
-
-def _tiles(resolution: float, *extents: float) -> bool:
-    """Whether ``resolution`` divides every extent into whole pixels (as evaluate-json requires)."""
-    return all(abs(e / resolution - round(e / resolution)) <= 1e-6 for e in extents)
+                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g}{also} (to "
+                              "score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
 
 
 FRAME_META_KEYS = ("classes", "xbound", "ybound", "frame", "dataset")  # what the ids and coordinates mean

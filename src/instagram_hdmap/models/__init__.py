@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from torch import nn
 
-from ..config import ConfigError, ExperimentConfig
+from ..config import ConfigError, ExperimentConfig, as_config
 from ..geometry import BEVGrid
 from .backbone import FEATURE_DOWNSAMPLE, IMAGE_DIVISOR, EfficientNetBackbone, TinyBackbone, load_pretrained_backbone
 from .bev_heads import BEVHeads
@@ -107,7 +107,9 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
 def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=None) -> InstaGraM:
     """Config -> InstaGraM, randomly initialised; with ``pretrained`` (a training run that starts,
     not one that resumes or loads a checkpoint) the EfficientNet gets ``model.backbone.weights``
-    (``load_pretrained_backbone``; ``download`` replaces the ImageNet download, for tests)."""
+    (``load_pretrained_backbone``; ``download`` replaces the ImageNet download, for tests). ``cfg``: an
+    ``ExperimentConfig`` or a YAML file."""
+    cfg = as_config(cfg, "build_model")
     grid = BEVGrid.from_config(cfg.grid)  # ConfigError if the grid does not tile into S x S cells
     _check(cfg, grid)
     m, image_size = cfg.model, tuple(cfg.data.image_size)

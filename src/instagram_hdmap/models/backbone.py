@@ -17,7 +17,8 @@ randomly initialised; ``load_pretrained_backbone(backbone, weights)`` gives it I
 (``model.backbone.weights``): ``"imagenet"`` downloads efficientnet_pytorch's release (the official
 code's ``EfficientNet.from_pretrained``, ``model/base.py:167``) into torch's hub cache, a path reads a
 local checkpoint in that package's state-dict format (as written by
-``torch.save(EfficientNet.from_pretrained(name).state_dict())``).
+``torch.save(EfficientNet.from_pretrained(name).state_dict())``; a DataParallel model's ``module.`` keys
+and a one-key wrapper such as ``{"state_dict": ...}`` are read too; non-finite weights are refused).
 ``TinyBackbone``: five strided convolutions, for tests on CPU.
 """
 
@@ -139,7 +140,13 @@ class EfficientNetBackbone(nn.Module):
         key = "model.backbone.weights"
         path = Path(path)
         if not path.is_file():
-            raise UserError(f"{key}: weight file not found: {path}")
+            # a folder, a URL or the release's name (efficientnet_pytorch's from_pretrained takes one) were "weight
+            # file not found" alone
+            named = str(path).lower().startswith(("http:", "https:", "imagenet", "efficientnet")) or "://" in str(path)
+            hint = (" (it is a folder: give the .pth file in it)" if path.is_dir() else
+                    f" (to download {self.name}'s ImageNet release, give model.backbone.weights=imagenet)" if named
+                    else "")
+            raise UserError(f"{key}: weight file not found: {path}{hint}")
         device = self.trunk._conv_stem.weight.device
         try:
             state = torch.load(path, map_location=device, weights_only=True)
@@ -151,6 +158,10 @@ class EfficientNetBackbone(nn.Module):
         """Load an ImageNet state dict in efficientnet_pytorch's format (``source`` names it in errors)."""
         key = "model.backbone.weights"
         path = source
+        if isinstance(state, dict) and len(state) == 1 and isinstance(next(iter(state.values())), dict):
+            state = next(iter(state.values()))  # a wrapper: {"state_dict": ...}, {"model": ...}
+        if isinstance(state, dict) and state and all(isinstance(k, str) and k.startswith("module.") for k in state):
+            state = {k[len("module."):]: v for k, v in state.items()}  # saved from a DataParallel / DDP wrapper
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
             raise UserError(
                 f"{key}: {path} is not a state dict of tensors; save one with "
@@ -170,6 +181,11 @@ class EfficientNetBackbone(nn.Module):
                 f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
                 f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?"
             )
+        bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+        if bad:  # loaded silently, then every loss NaN from the first step
+            more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""
+            raise UserError(f"{key}: {path}: the weights {bad[0]}{more} hold NaN or infinite values; the file is "
+                            "damaged: fetch it again")
         self.trunk.load_state_dict(state)
 
 
