@@ -4833,6 +4833,18 @@ def row_more_streams_than_scenes(env):
     assert rc == 0 and "note: every scene of the training split 'train' has one frame" in out, err[-2000:]
 
 
+@row("S20", "predict-images --decode match_threshold=0.1 ... --decode match_threshold=0.3 (one option twice, a slip in "
+            "a long command): the last was used with no word, where an override given twice is noted")
+def row_decode_option_given_twice(env):
+    rig, images = _rig_files(env)
+    rc, out, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "out",
+                           "--device", "cpu", "--decode", "match_threshold=0.1", "--decode", "match_threshold=0.3",
+                           *images)
+    assert rc == 0, err[-2000:]
+    assert ("note: --decode match_threshold is given 2 times (match_threshold=0.1, match_threshold=0.3); the last, "
+            "match_threshold=0.3, is used") in err, err[-2000:]
+
+
 @row("S20", "predict-images: a byte-identical copy of one camera's image given for another camera (CAM_FRONT.jpg "
             "copied to fill CAM_FRONT_RIGHT) ran, exit 0 (the same path twice, or a link to it, was named)")
 def row_predict_images_copy_of_an_image(env):

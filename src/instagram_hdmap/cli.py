@@ -540,7 +540,8 @@ def main(argv: list[str] | None = None) -> int:
     if extra:
         args.overrides = [*args.overrides, *extra]
     if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
-        for note in repeated_overrides(getattr(args, "overrides", None) or []):
+        decode = [f"--decode {note}" for note in repeated_overrides(getattr(args, "decode", None) or [])]
+        for note in repeated_overrides(getattr(args, "overrides", None) or []) + decode:
             _say(f"instagram-hdmap {args.command}: note: {note}")
     _expand_home(args)
     try:
