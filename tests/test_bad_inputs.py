@@ -4845,6 +4845,19 @@ def row_decode_option_given_twice(env):
             "match_threshold=0.3, is used") in err, err[-2000:]
 
 
+@row("S20", "evaluate (and a training's validation) with eval.rank_by=descending or eval.fix_instance_ids=true under the "
+            "vector protocol: unused with no word (evaluate-json refuses --rank-by with the vector protocol)")
+def row_raster_options_under_the_vector_protocol(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval",
+                           "eval.rank_by=descending", "eval.fix_instance_ids=true")
+    assert rc == 0, err[-2000:]
+    for key in ("eval.rank_by=descending", "eval.fix_instance_ids=True"):
+        assert f"note: {key} is not used: an option of the raster protocol, and eval.protocol=vector" in out, out
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval2",
+                           "--protocol", "raster", "eval.rank_by=descending")
+    assert rc == 0 and "is not used" not in out, err[-2000:]
+
+
 @row("S20", "predict-images: a byte-identical copy of one camera's image given for another camera (CAM_FRONT.jpg "
             "copied to fill CAM_FRONT_RIGHT) ran, exit 0 (the same path twice, or a link to it, was named)")
 def row_predict_images_copy_of_an_image(env):

@@ -362,6 +362,12 @@ def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
         if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
             notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
                          f"eval.{switch}=true for that meter)")
+    if "raster" not in (cfg.eval.protocol, *cfg.eval.also_protocols):  # evaluate-json refuses them with the vector one
+        for key in ("rank_by", "fix_instance_ids"):
+            if getattr(cfg.eval, key) != getattr(default, key):
+                notes.append(f"eval.{key}={getattr(cfg.eval, key)} is not used: an option of the raster protocol, and "
+                             f"eval.protocol={cfg.eval.protocol} (set eval.protocol=raster, or "
+                             "eval.also_protocols=[raster])")
     return notes
 
 
