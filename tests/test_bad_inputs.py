@@ -4845,8 +4845,8 @@ def row_decode_option_given_twice(env):
             "match_threshold=0.3, is used") in err, err[-2000:]
 
 
-@row("S20", "evaluate (and a training's validation) with eval.rank_by=descending or eval.fix_instance_ids=true under the "
-            "vector protocol: unused with no word (evaluate-json refuses --rank-by with the vector protocol)")
+@row("S20", "evaluate (and a training's validation) with eval.rank_by=descending or eval.fix_instance_ids=true under "
+            "the vector protocol: unused with no word (evaluate-json refuses --rank-by with the vector protocol)")
 def row_raster_options_under_the_vector_protocol(env):
     rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval",
                            "eval.rank_by=descending", "eval.fix_instance_ids=true")
