@@ -4858,6 +4858,15 @@ def row_raster_options_under_the_vector_protocol(env):
     assert rc == 0 and "is not used" not in out, err[-2000:]
 
 
+@row("S20", "export-gt --out - (stdout for Unix tools): a file named '-' written in the working directory, 'wrote -', "
+            "exit 0 (show-gt --out -: a folder '-'); --out /dev/stdout still writes the JSON to the terminal")
+def row_dash_as_output_path(env):
+    forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
+    env.error(r"--out -: the output is written to a file, not to stdout", "export-gt", env.yaml, "--out", "-")
+    env.error(r"--out -: the output is written to a file, not to stdout", "show-gt", env.yaml, "--out", "-")
+    assert not Path("-").exists()  # the row runs in its own folder (monkeypatch.chdir)
+
+
 @row("S20", "predict-images: a byte-identical copy of one camera's image given for another camera (CAM_FRONT.jpg "
             "copied to fill CAM_FRONT_RIGHT) ran, exit 0 (the same path twice, or a link to it, was named)")
 def row_predict_images_copy_of_an_image(env):
