@@ -4864,6 +4864,8 @@ def row_dash_as_output_path(env):
     forbid(env, "instagram_hdmap.cli.gt_submission", "the export")
     env.error(r"--out -: the output is written to a file, not to stdout", "export-gt", env.yaml, "--out", "-")
     env.error(r"--out -: the output is written to a file, not to stdout", "show-gt", env.yaml, "--out", "-")
+    forbid(env, "instagram_hdmap.demo.ensure_world", "world generation")
+    env.error(r"--out -: the output is written to a file", "demo", "--out", "-", "--cache", env.tmp / "cache")
     assert not Path("-").exists()  # the row runs in its own folder (monkeypatch.chdir)
 
 

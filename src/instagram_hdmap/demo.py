@@ -41,7 +41,7 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .files import check_no_broken_link, remove_stale_temporaries, write_json
+from .files import check_no_broken_link, check_not_dash, remove_stale_temporaries, write_json
 from .inference import saved_config
 from .models import build_model
 from .predict import predict_sample, run_evaluation
@@ -182,6 +182,7 @@ def _budget_left(t0: float, minutes: float) -> float:
 
 
 def _check_out(out: Path) -> None:
+    check_not_dash(out, "--out")
     check_no_broken_link(out, "--out")
     try:
         out.mkdir(parents=True, exist_ok=True)
