@@ -1023,7 +1023,8 @@ def _rig_files(env, edit: Callable[[dict], None] | None = None) -> tuple[Path, l
     images = []
     for k, c in enumerate(CAMERAS):
         images.append(env.tmp / f"{c}.jpg")
-        Image.fromarray(np.full((225, 400, 3), 40 * k, np.uint8)).save(images[-1])
+        texture = (np.arange(400, dtype=np.uint8) % 16)[None, :, None]  # not blank: a blank frame may repeat
+        Image.fromarray(np.full((225, 400, 3), 40 * k, np.uint8) + texture).save(images[-1])
     return path, images
 
 
@@ -4144,6 +4145,8 @@ def row_resume_with_another_validation(env):
     assert rc == 0, err[-2000:]
     assert re.search(r"note: the best score so far .* was measured with another validation \(eval\.protocol: "
                      r"checkpoint 'vector' vs now 'raster'\)", out), out
+
+
 @row("S16", "a run saved part-way through an epoch by 2 torchrun processes and resumed by 1: the shuffled sampler "
             "skipped samples of this rank's share (computed for the old number of ranks), so part of the epoch was "
             "walked twice or not at all, no word; it goes on from the same sample of the epoch's order, and says so")
@@ -4878,6 +4881,25 @@ def row_predict_images_copy_of_an_image(env):
     env.error(r"cameras CAM_FRONT and CAM_FRONT_RIGHT are given the same image: .*CAM_FRONT_RIGHT\.jpg is a copy of "
               r".*CAM_FRONT\.jpg \(the same bytes\)", "predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out",
               env.tmp / "out", "--device", "cpu", *images)
+
+
+@row("S20", "predict-images: one image for two cameras (the same file or a copy) was refused even where it is a blank "
+            "frame, the image a failed camera gives (the model trains with such cameras: data.camera_dropout), so a "
+            "frame with two failed cameras could not be run at all; a one-colour image may stand for several")
+def row_predict_images_blank_frames_may_repeat(env):
+    import cv2
+
+    rig, images = _rig_files(env)
+    black = env.tmp / "black.png"
+    cv2.imwrite(str(black), np.zeros((225, 400, 3), np.uint8))
+    for a, b in ((1, 2), (3, 4)):
+        shutil.copy(black, images[a])
+        shutil.copy(black, images[b])
+    rc, _, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "blank",
+                         "--device", "cpu", images[0], images[1], images[2], black, black, *images[5:])
+    assert rc == 0, err[-2000:]
+
+
 @row("S17", "a training killed (kill -9, a power cut) between an epoch's last.pt and its line in log.jsonl: the "
             "resume went on after that epoch and its line (losses, validation, samples/s) was never written; now the "
             "line goes first, the checkpoint counts the lines before it, and a resume drops a killed run's lines "
