@@ -7,8 +7,10 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import os
+import select
 import sys
 from pathlib import Path
 
@@ -521,6 +523,26 @@ def _say(line: str) -> None:
     sys.stderr.flush()
 
 
+def _stdout_gone() -> bool:
+    """Whether stdout's reader has gone (its pipe is closed), not another pipe's (a data-loader worker's): the
+    write end of a pipe without a reader polls as an error."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # no file descriptor (tests, notebooks)
+        return True
+
+
+def _stdout_to_devnull() -> None:
+    """Point stdout at /dev/null, so that the interpreter's last flush does not fail on the closed pipe again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # stdout replaced (tests, notebooks)
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -531,7 +553,8 @@ def main(argv: list[str] | None = None) -> int:
     if extra:
         args.overrides = [*args.overrides, *extra]
     if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
-        for note in repeated_overrides(getattr(args, "overrides", None) or []):
+        decode = [f"--decode {note}" for note in repeated_overrides(getattr(args, "decode", None) or [])]
+        for note in repeated_overrides(getattr(args, "overrides", None) or []) + decode:
             _say(f"instagram-hdmap {args.command}: note: {note}")
     _expand_home(args)
     try:
@@ -550,6 +573,9 @@ def main(argv: list[str] | None = None) -> int:
         _say(f"instagram-hdmap {args.command}: interrupted")
         return 130
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
+        if isinstance(e, BrokenPipeError) and _stdout_gone():  # the reader of the output went away (`model-summary
+            _stdout_to_devnull()  # CONFIG | head -1`): stop quietly, as Unix tools do (exit 141, as by SIGPIPE)
+            return 141
         cause = os_error_in(e)
         died = data_worker_died(e)
         if died is not None:  # evaluate, predict: nothing was written (a training saves last.pt first)

@@ -717,6 +717,15 @@ def validate_config(cfg: ExperimentConfig) -> None:
     if gnn.max_edge_m is not None and gnn.decoder in ("mutual", "official"):
         raise ConfigError("config key 'model.gnn.max_edge_m' is an option of the greedy and classwise decoders; "
                           "set model.gnn.decoder=greedy (or classwise), or max_edge_m=null")
+    if gnn.min_vertices > gnn.num_vertices:  # every element needs more vertices than the model keeps: none decoded
+        raise ConfigError(f"config key 'model.gnn.min_vertices' is {gnn.min_vertices}, but the model keeps "
+                          f"model.gnn.num_vertices={gnn.num_vertices} vertices: no element could ever be decoded "
+                          "(each needs min_vertices of them); lower min_vertices or raise num_vertices")
+    loss = cfg.loss
+    if not any((loss.vertex_weight, loss.distance_weight, loss.adjacency_weight, loss.class_weight)):
+        raise ConfigError("config keys 'loss.vertex_weight', 'loss.distance_weight', 'loss.adjacency_weight' and "
+                          "'loss.class_weight' are all 0: the loss would be 0 and training would learn nothing; "
+                          "give at least one a positive weight")
     d = cfg.data
     if tuple(d.classes) != MAP_CLASSES:
         raise ConfigError(f"config key 'data.classes' must be {list(MAP_CLASSES)}: the local map's classes, in the "

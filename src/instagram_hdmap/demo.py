@@ -42,11 +42,12 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .files import check_no_broken_link, remove_stale_temporaries, write_json
+from .files import check_no_broken_link, check_not_dash, remove_stale_temporaries, write_json
+from .inference import saved_config
 from .models import build_model
 from .predict import predict_sample, run_evaluation
 from .schedule import final_lr_factor
-from .train import train
+from .train import RESUME_KEYS, STREAM_RESUME_KEYS, config_differences, train
 
 # The demo's worlds: 480 x 270 camera images (the network sees 64 x 192), about 0.1 s per sample on
 # one core. Training uses WORLD's train split. Validation uses VAL_WORLD, a world of another seed:
@@ -227,6 +228,7 @@ def _budget_left(t0: float, minutes: float) -> float:
 
 
 def _check_out(out: Path) -> None:
+    check_not_dash(out, "--out")
     check_no_broken_link(out, "--out")
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -241,6 +243,21 @@ def _check_out(out: Path) -> None:
 # checkpoint: another folder's run would be deleted), its worlds and its time budget
 DEMO_KEYS = {"train.out_dir": "--out (the run goes to OUT/run)", "train.time_budget_min": "--minutes",
              "data.dataroot": "--cache", "data.version": "--cache", "data.splits_file": "--cache"}
+
+
+def _check_earlier_run(last: Path, cfg: ExperimentConfig, config: Path) -> None:
+    """A rerun into OUT goes on with OUT/run/last.pt (or, when its schedule is complete, evaluates it): a run of
+    another model or training setting (another --config, other overrides) is refused before the worlds; it was
+    evaluated as it was and written up under the new --config's name, exit 0."""
+    if not last.is_file():
+        return
+    state = _checkpoint_state(last)
+    keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
+    differ = config_differences(saved_config(state.get("config"), f"checkpoint {last}"), cfg, keys)
+    if differ:
+        raise DemoError(f"--out {last.parent.parent} holds a demo run of other settings ({differ}): the demo would go "
+                        f"on with (or evaluate) that run as the one of --config {config}; give another --out, or "
+                        f"delete {last.parent} to start over")
 
 
 def _check_overrides(overrides) -> None:
@@ -278,7 +295,9 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
                         "in the nuScenes layout; give a config of data.dataset=nuscenes (configs/synthetic/, "
                         "configs/temporal/synthetic.yaml), or train on your own world with instagram-hdmap train")
     # the checks across model keys (data.image_size, grid.cell_size, ...) live in build_model
-    build_model(load_config(config, [*world_overrides(cache_dir / "world"), *overrides]))
+    planned = load_config(config, [*world_overrides(cache_dir / "world"), *overrides])
+    build_model(planned)
+    _check_earlier_run(out / "run" / "last.pt", planned, config)
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
     print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "
@@ -315,7 +334,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
         if resume:
             print(f"training: resuming {last} at step {steps_done}", flush=True)
         print(f"training: {config}, {cfg.train.schedule} schedule over {cfg.train.epochs} epochs or "
-              f"{cfg.train.time_budget_min:.1f} min, whichever is shorter, in {run_dir} (Ctrl-C saves a resumable "
+              f"{cfg.train.time_budget_min:.4g} min, whichever is shorter, in {run_dir} (Ctrl-C saves a resumable "
               "checkpoint)", flush=True)
         summary = train(cfg, resume=resume, force=resume is None, validate=False)
     train_s = time.perf_counter() - t_train

@@ -134,11 +134,20 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+def check_not_dash(path: str | Path, flag: str) -> None:
+    """``-`` (stdout for Unix tools) names no file here: a file or folder called '-' was written in the working
+    directory, and the one line said only "wrote -"."""
+    if str(path) == "-":
+        raise OutputError(f"{flag} -: the output is written to a file, not to stdout; give a file or folder name "
+                          "(on Linux, /dev/stdout writes a file's text to the terminal)")
+
+
 def check_output_file(path: str | Path, flag: str = "output file",
                       inputs: Iterable[tuple[str | Path | None, str]] = ()) -> Path:
     """Before the work: ``path`` can be written as a file (it is not a folder, and it or the first
     existing folder above it is writable). ``flag`` names the option in the message (``--out``).
     ``inputs``: (path, option) pairs of the job's input files, which the output must not replace."""
+    check_not_dash(path, flag)
     path = Path(path)
     check_name_lengths(path, flag)
     for source, option in inputs:
@@ -158,6 +167,7 @@ def check_output_file(path: str | Path, flag: str = "output file",
 def check_output_dir(path: str | Path, flag: str = "output folder") -> Path:
     """Before the work: ``path`` can be an output folder (it is not a file, and it or the first
     existing folder above it is writable)."""
+    check_not_dash(path, flag)
     path = Path(path)
     check_name_lengths(path, flag)
     check_no_broken_link(path, flag)

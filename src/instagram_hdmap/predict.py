@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -43,7 +44,7 @@ from .data import build_dataset
 from .data.base import collate_fn
 from .data.rig import CameraCalibration, RigError, camera_named_by, read_rig_file
 from .data.streaming import StreamingBatchSampler
-from .data.transforms import load_image
+from .data.transforms import ImageError, load_image, read_image
 from .engine import evaluate, is_temporal
 from .evaluation import Evaluator, write_submission
 from .files import OutputError, atomic_path, check_output_dir, check_output_file, locked_folder, write_json
@@ -353,6 +354,16 @@ def load_or_skip(dataset, index: int) -> dict | None:
 # --- your own images: predict-images ------------------------------------------------------------------
 
 
+def _blank_image(path: str | Path) -> bool:
+    """Whether ``path`` decodes to one colour (a failed camera's frame); False when it does not decode (named
+    where it is read)."""
+    try:
+        image, _ = read_image(path)
+    except (ImageError, OSError):
+        return False
+    return bool((image == image.reshape(-1, image.shape[-1])[0]).all())
+
+
 def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], rig_file: str | Path,
               cameras: Sequence[str]) -> Frame:
     """The ``Frame`` of ``images`` (one file per camera of a rig file, in its order), checked: the rig's
@@ -374,11 +385,21 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
         raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
                        f"({', '.join(names)}): give one image per camera, in the rig file's order")
     seen: dict[str, str] = {}
+    copies: dict[str, tuple[str, str]] = {}  # a byte-identical copy is the same image under another name
     for cam, path in zip(rig, images):
+        # one image for two cameras (the same file, a link or a copy) is a mistake, except a blank frame: the
+        # cameras that failed (data.camera_dropout's case) may all be given one black image
         other = seen.setdefault(os.path.realpath(path), cam.name)
-        if other != cam.name:
+        if other != cam.name and not _blank_image(path):
             raise RigError(f"cameras {other} and {cam.name} are given the same image {path}; give each camera its "
-                           "own image, in the rig file's order")
+                           "own image, in the rig file's order (a blank image may stand for several failed cameras)")
+        with contextlib.suppress(OSError):  # an unreadable file is named where it is decoded
+            digest = hashlib.sha1(Path(path).read_bytes()).hexdigest()
+            first = copies.setdefault(digest, (cam.name, str(path)))
+            if first[0] != cam.name and not _blank_image(path):
+                raise RigError(f"cameras {first[0]} and {cam.name} are given the same image: {path} is a copy of "
+                               f"{first[1]} (the same bytes); give each camera its own image, in the rig file's order "
+                               "(a blank image may stand for several failed cameras)")
         named = camera_named_by(path, names)
         if named is not None and named != cam.name:  # images given in another order than the rig file's cameras
             raise RigError(f"image {path} is named for camera {named} but is given for camera {cam.name}: give the "

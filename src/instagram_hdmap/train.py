@@ -54,6 +54,7 @@ from .config import (
     as_config,
     config_to_dict,
     diff_configs,
+    flatten,
     get_key,
     is_under,
     save_config,
@@ -301,27 +302,23 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
               # its own generator: making an iterator must not draw from the global torch RNG, whose
               # state the checkpoint restores for exact resume
               "generator": torch.Generator().manual_seed(cfg.train.seed)}
-    if streaming and all(len(run) < 2 for run in train_set.scenes.runs):  # trained with no history, exit 0
-        raise UserError(f"model.temporal.memory={cfg.model.temporal.memory!r}: every scene of the training split "
-                        f"'{cfg.data.train_split}' of {cfg.data.dataroot} has one frame, so the memory would never "
-                        "hold a previous frame and the temporal model would never train with it; train it on drives "
-                        "of several frames (" + (f"data.av2_frame_step={cfg.data.av2_frame_step} keeps one sweep of "
-                                                 "each log: lower it" if cfg.data.dataset == "av2" else
-                                                 "synth --samples-per-scene 2 or more")
-                        + "), or set model.temporal.memory=none")
     if streaming:
         sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
                                         rank=du.get_rank(), world_size=world_size,
                                         piece_frames=cfg.train.stream_frames,
                                         single_epochs=round(cfg.train.stream_warmup * cfg.train.epochs))
         train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
-        k, streams = cfg.train.stream_frames, per_rank * world_size
-        walks = sum(math.ceil(len(run) / k) if k > 0 else 1 for run in train_set.scenes.runs)  # an epoch of streams
-        if streams > walks:  # the rest walk padding: the same frames twice in a batch, with no word
-            du.print_main(f"note: {streams} streams (train.batch_size) for {walks} scene piece(s) of split "
-                          f"'{cfg.data.train_split}': {streams - walks} stream(s) walk only repeats of the epoch's "
-                          "first scenes (the same frames more than once in a batch); a train.batch_size of at most "
-                          f"{walks} (or train.stream_frames pieces) gives each stream frames of its own")
+        k, runs = cfg.train.stream_frames, train_set.scenes.runs
+        if runs and max(len(r) for r in runs) < 2:  # every frame starts a scene: the memory is never fused
+            du.print_main(f"note: every scene of the training split '{cfg.data.train_split}' has one frame, so the "
+                          f"temporal model (model.temporal.memory={cfg.model.temporal.memory}) never fuses a memory: "
+                          "this trains its single-frame parts only (train on drives of several frames)")
+        walks = sum(-(-len(r) // k) for r in runs) if k > 0 else len(runs)
+        if walks < per_rank * world_size:  # the streams without a scene of their own repeat others' frames (padding)
+            what = f"{walks} pieces of train.stream_frames={k} frames" if k > 0 else f"{walks} scenes"
+            du.print_main(f"note: train.batch_size={cfg.train.batch_size} streams, but the training split has "
+                          f"{what}: {per_rank * world_size - walks} streams walk no scene of their own and repeat "
+                          f"others' frames in every batch (padding); a batch of at most {walks} streams trains as much")
     else:
         sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
         train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, drop_last=False, **common)
@@ -365,6 +362,12 @@ def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
         if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
             notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
                          f"eval.{switch}=true for that meter)")
+    if "raster" not in (cfg.eval.protocol, *cfg.eval.also_protocols):  # evaluate-json refuses them with the vector one
+        for key in ("rank_by", "fix_instance_ids"):
+            if getattr(cfg.eval, key) != getattr(default, key):
+                notes.append(f"eval.{key}={getattr(cfg.eval, key)} is not used: an option of the raster protocol, and "
+                             f"eval.protocol={cfg.eval.protocol} (set eval.protocol=raster, or "
+                             "eval.also_protocols=[raster])")
     return notes
 
 
@@ -582,6 +585,8 @@ class TrainingRun:
         out_dir = Path(cfg.train.out_dir)
         check_init_from_outside(cfg, out_dir, resume)
         check_stream_schedule(cfg)
+        for note in setting_notes(cfg):
+            du.print_main(note)
         check_batch_over_ranks(cfg, du.get_world_size())
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
@@ -954,6 +959,34 @@ def check_stream_schedule(cfg: ExperimentConfig) -> None:
                         f"{single} single-frame epoch(s) of {cfg.train.epochs}: the temporal model would never train "
                         "with its memory (it is empty on single frames); raise train.epochs or lower "
                         "train.stream_warmup")
+
+
+# the keys that only a temporal model (model.temporal.memory not none) reads: set on a single-frame model they are
+# ignored (element persistence, model.temporal.persist_* and the pose-jump limits it shares, works on any model)
+MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.temporal.drop_prob",
+                    "model.temporal.edge_samples", "train.stream_frames", "train.stream_warmup")
+
+
+def setting_notes(cfg: ExperimentConfig) -> list[str]:
+    """Notes on settings that train, but not as they read: the memory's keys on a model without a memory (the
+    run trained a single-frame model on shuffled frames), an LSS frustum that stops short of the grid (the
+    cells beyond it never get a camera feature)."""
+    notes = []
+    if cfg.model.temporal.memory == "none":
+        default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
+        unused = [f"{k}={now[k]}" for k in MEMORY_ONLY_KEYS if now[k] != default[k]]
+        if unused:
+            notes.append(f"note: {', '.join(unused)} set, but model.temporal.memory=none: only a temporal model reads "
+                         "them, so this run trains a single-frame model on shuffled frames (docs/temporal.md: set "
+                         "model.temporal.memory, e.g. bev, or start from configs/temporal/)")
+    vt, g = cfg.model.view_transform, cfg.grid
+    reach = max(abs(g.xbound[0]), abs(g.xbound[1]), abs(g.ybound[0]), abs(g.ybound[1]))
+    if vt.kind == "lss" and vt.depth_bound[1] < reach:
+        notes.append(f"note: model.view_transform.depth_bound stops at {vt.depth_bound[1]:g} m, but the grid "
+                     f"(grid.xbound, grid.ybound) reaches {reach:g} m from the ego: its cells beyond "
+                     f"{vt.depth_bound[1]:g} m never get a camera feature (the paper's 60 m x 30 m grid: "
+                     "depth_bound [4, 45, 1])")
+    return notes
 
 
 def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:

@@ -272,8 +272,10 @@ def camera_named_by(path, cameras: Sequence[str]) -> str | None:
 
 
 def _image_size(value, what: str) -> tuple[int, int]:
+    # 1600.0 (a writer of floats: numpy, MATLAB) is a whole number too
     if (not isinstance(value, (list, tuple)) or len(value) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and float(v).is_integer() and v > 0
+                       for v in value)):
         raise RigError(f"{what} must be [width, height] in pixels (positive whole numbers), got {value!r}")
     return int(value[0]), int(value[1])
 

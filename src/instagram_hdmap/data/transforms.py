@@ -144,8 +144,23 @@ def read_image(path: str | Path, factor: int = 1) -> tuple[np.ndarray, int]:
     factor = factor if is_jpeg else 1
     img = cv2.imdecode(buf, _REDUCED_FLAGS[factor]) if len(buf) else None
     if img is None:
-        raise ImageError(f"camera image cannot be decoded (corrupt or not an image): {path}")
+        raise ImageError(f"camera image cannot be decoded ({_undecodable_kind(buf)}): {path}")
     return img, factor
+
+
+def _undecodable_kind(buf: np.ndarray) -> str:
+    """Why OpenCV decoded nothing: a valid image of a kind it does not read (a float TIFF, an animated GIF:
+    PIL opens them) or no image at all."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(buf.tobytes())) as im:
+            kind = f"{im.format} {im.mode}" + (", animated" if getattr(im, "is_animated", False) else "")
+    except Exception:  # not an image PIL knows either
+        return "corrupt or not an image"
+    return f"a {kind} image, which OpenCV does not read; save it as an 8-bit RGB JPEG or PNG"
 
 
 _ORIENTATIONS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped upside down", 5: "transposed",

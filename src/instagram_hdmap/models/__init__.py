@@ -18,6 +18,7 @@ paper's 30.7 M for LSS repeats the IPM figure.
 
 from __future__ import annotations
 
+import numpy as np
 from torch import nn
 
 from ..config import ConfigError, ExperimentConfig, as_config
@@ -65,6 +66,11 @@ def _check(cfg: ExperimentConfig, grid: BEVGrid) -> None:
     _require(0 < start < stop and step > 0, "model.view_transform.depth_bound",
              f"(start, stop, step) = {vt.depth_bound} must satisfy 0 < start < stop and step > 0")
     _require(vt.zbound[0] < vt.zbound[1], "model.view_transform.zbound", "lower bound must be below upper")
+    if vt.kind == "lss":  # a frustum of one depth: every feature at one distance from its camera
+        bins = len(np.arange(start, stop, step))
+        _require(bins >= 2, "model.view_transform.depth_bound",
+                 f"(start, stop, step) = {vt.depth_bound} gives {bins} depth bin: every camera feature would be "
+                 "put at one depth; choose a step well below stop - start (the paper: [4, 45, 1])")
     if vt.kind == "mlp":
         d = vt.mlp_bev_downsample
         _require(d > 0 and grid.H % d == 0 and grid.W % d == 0, "model.view_transform.mlp_bev_downsample",
