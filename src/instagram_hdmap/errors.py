@@ -74,3 +74,19 @@ def as_float64_array(values, what: str, expected: str, error: type[UserError] = 
                 else np.asarray(values, dtype=np.float64))
     except (TypeError, ValueError):
         raise error(f"{what} must be {expected}, got {values!r:.80}") from None
+
+
+def check_rigid_pose(pose: np.ndarray, where: str, error: type[UserError] = UserError) -> np.ndarray:
+    """A float64 [4, 4] ego -> world pose that is finite and rigid ([[R, t], [0, 0, 0, 1]], R a rotation within
+    Mapper's tolerance: float16 poses round R by ~1e-3), returned as it is; else ``error`` naming ``where``. The
+    one pose check of the drive meters and of persistence."""
+    if pose.shape != (4, 4):
+        raise error(f"{where}: its ego pose must be a 4x4 ego -> world transform, got shape {list(pose.shape)}")
+    if not np.isfinite(pose).all():
+        raise error(f"{where}: its ego pose has NaN or infinite values; give a finite 4x4 ego -> world transform")
+    R = pose[:3, :3]
+    det, off = float(np.linalg.det(R)), float(np.abs(R @ R.T - np.eye(3)).max())
+    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6) or off > 1e-2 or det <= 0:
+        raise error(f"{where}: its ego pose is not a rigid transform [[R, t], [0, 0, 0, 1]] (last row "
+                    f"{pose[3].round(4).tolist()}, det(R) {det:.3g})")
+    return pose

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .config import ExperimentConfig, GridConfig, as_config
-from .errors import UserError, as_batch_list, as_float64_array, is_real
+from .errors import UserError, as_batch_list, as_float64_array, check_rigid_pose, is_real
 from .geometry import BEVGrid
 
 MATCH_POINTS = 20  # points per polyline for the "is it the same element" Chamfer test
@@ -78,19 +78,7 @@ def _check_pose(pose, where: str, who: str = "Persistence") -> np.ndarray:
                                     f"{pose!r:.80}") from None
     if pose.shape == (3, 4):
         pose = np.concatenate([pose, [[0.0, 0.0, 0.0, 1.0]]])
-    if pose.shape != (4, 4):
-        raise PersistenceInputError(f"{who}: {where}: its ego pose must be a 4x4 ego -> world transform, got "
-                                    f"shape {list(pose.shape)}")
-    if not np.isfinite(pose).all():
-        raise PersistenceInputError(f"{who}: {where}: its ego pose has NaN or infinite values; give a finite "
-                                    "4x4 ego -> world transform")
-    R = pose[:3, :3]
-    det, off = float(np.linalg.det(R)), float(np.abs(R @ R.T - np.eye(3)).max())
-    # Mapper's tolerance (inference.py): float16 poses round R by ~1e-3
-    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6) or off > 1e-2 or det <= 0:
-        raise PersistenceInputError(f"{who}: {where}: its ego pose is not a rigid transform [[R, t], "
-                                    f"[0, 0, 0, 1]] (last row {pose[3].round(4).tolist()}, det(R) {det:.3g})")
-    return pose
+    return check_rigid_pose(pose, f"{who}: {where}", PersistenceInputError)
 
 
 def _check_preds(preds, where: str, who: str = "Persistence",

@@ -37,7 +37,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from ..errors import as_batch_list, as_float64_array, is_real
+from ..errors import as_batch_list, as_float64_array, check_rigid_pose, is_real
 from ..geometry import BEVGrid
 from ..persistence import MATCH_POINTS, InstanceTracker, PersistenceInputError
 from .chamfer import chamfer_pairs
@@ -144,7 +144,7 @@ def checked_batch(who: str, preds, gts, scenes, frames, poses, num_classes: int)
     checked = []
     for b, key in enumerate(keys):
         where = f"sample (scene '{key[0]}', frame {key[1]})"
-        _check_pose(poses[b], where)
+        check_rigid_pose(poses[b], where, EvaluationInputError)
         p = preds[b]
         if isinstance(p, Sequence) and not isinstance(p, (str, bytes)):
             p = [x.as_polyline() if hasattr(x, "as_polyline") and not isinstance(x, dict)  # MapElement
@@ -153,20 +153,6 @@ def checked_batch(who: str, preds, gts, scenes, frames, poses, num_classes: int)
         G = read_polylines(gts[b], role="GT", num_classes=num_classes, where=where, short="drop")
         checked.append((P, G))
     return [(key, P, G, np.asarray(poses[b], dtype=np.float64)) for b, (key, (P, G)) in enumerate(zip(keys, checked))]
-
-
-def _check_pose(pose: np.ndarray, where: str) -> np.ndarray:
-    """A sample's ego pose (float64 [4, 4]) finite and rigid, or an ``EvaluationInputError`` naming ``where``."""
-    if pose.shape != (4, 4):
-        raise EvaluationInputError(f"{where}: its ego pose must be a 4x4 ego -> world transform, got shape "
-                                   f"{list(pose.shape)}")
-    if not np.isfinite(pose).all():
-        raise EvaluationInputError(f"{where}: its ego pose has NaN or infinite values; give a finite 4x4 "
-                                   "ego -> world transform")
-    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6) or abs(np.linalg.det(pose)) < 1e-9:
-        raise EvaluationInputError(f"{where}: its ego pose is not a rigid transform [[R, t], [0, 0, 0, 1]] "
-                                   f"(last row {pose[3].round(4).tolist()}, det {np.linalg.det(pose):.3g})")
-    return pose
 
 
 def _records_to_merge(meter, state, keys: set[str], label_keys: tuple[str, ...], form: str) -> Mapping:
@@ -188,9 +174,10 @@ def _records_to_merge(meter, state, keys: set[str], label_keys: tuple[str, ...],
                                    f"class ids beyond this meter's {meter.num_classes} classes (a state of a meter "
                                    "with other classes)")
     # a pose of NaN, None or another shape was merged as it was: a NaN flicker rate with no word, a raw matmul error
-    return {k: {**r, "pose": _check_pose(as_float64_array(r["pose"], f"{name}.merge: the state's pose", "a 4x4 ego -> "
-                                                          "world transform", EvaluationInputError),
-                                         f"{name}.merge: the state's sample (scene '{k[0]}', frame {k[1]})")}
+    return {k: {**r, "pose": check_rigid_pose(as_float64_array(r["pose"], f"{name}.merge: the state's pose",
+                                                               "a 4x4 ego -> world transform", EvaluationInputError),
+                                              f"{name}.merge: the state's sample (scene '{k[0]}', frame {k[1]})",
+                                              EvaluationInputError)}
             for k, r in records.items()}
 
 
