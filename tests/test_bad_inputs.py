@@ -5528,6 +5528,32 @@ def row_benchmark_temporal_damaged_cache(env):
     assert re.search(r"--cache: .* is not a complete synthetic world \(no world.json\)", lines[-1]), p.stderr[-2000:]
 
 
+@row("S23", "predict-images: a rig file could not give the road's height in its ego frame (the Python API's "
+            "Frame(ground_height=...)): a rig in AV2's rear-axle frame (the road 0.38 m below the origin) ran with the "
+            "ground plane at z = 0, 0.38 m too high for the IPM / MLP view transforms, with no word, and "
+            "'ground_height' in the file was an unknown field. The rig file takes \"ground_height\" and passes it to "
+            "the model")
+def row_predict_images_rig_ground_height(env):
+    from instagram_hdmap.inference import Mapper
+
+    rig, images = _rig_files(env, lambda d: d.__setitem__("ground_height", -0.38))
+    seen = []
+    forward = Mapper.forward
+
+    def spy(self, batch, memory=None):
+        seen.append(batch["ground_height"].tolist())
+        return forward(self, batch, memory)
+
+    env.monkeypatch.setattr(Mapper, "forward", spy)
+    rc, _, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "out",
+                         "--device", "cpu", *images)
+    assert rc == 0, err[-2000:]
+    assert seen and np.allclose(seen[0], [-0.38]), seen
+    rig, _ = _rig_files(env, lambda d: d.__setitem__("ground_height", "low"))
+    env.error(r"rig\.json: 'ground_height' must be a number of metres", "predict-images", "--checkpoint", env.ckpt,
+              "--rig", rig, "--out", env.tmp / "out2", "--device", "cpu", *images)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
