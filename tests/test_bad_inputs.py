@@ -5545,10 +5545,21 @@ def row_predict_images_rig_ground_height(env):
         return forward(self, batch, memory)
 
     env.monkeypatch.setattr(Mapper, "forward", spy)
+    from instagram_hdmap import predict
+
+    drawn = []
+    figures = predict.prediction_figures
+
+    def spy_figures(*args, ground_z=0.0, **kwargs):
+        drawn.append(ground_z)  # the pictures project the elements onto the same road
+        return figures(*args, ground_z=ground_z, **kwargs)
+
+    env.monkeypatch.setattr(predict, "prediction_figures", spy_figures)
     rc, _, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "out",
                          "--device", "cpu", *images)
     assert rc == 0, err[-2000:]
     assert seen and np.allclose(seen[0], [-0.38]), seen
+    assert drawn and np.isclose(drawn[0], -0.38), drawn
     rig, _ = _rig_files(env, lambda d: d.__setitem__("ground_height", "low"))
     env.error(r"rig\.json: 'ground_height' must be a number of metres", "predict-images", "--checkpoint", env.ckpt,
               "--rig", rig, "--out", env.tmp / "out2", "--device", "cpu", *images)

@@ -441,7 +441,8 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     display = display_images([(Path(frame.images[c]), size[c]) for c in mapper.cameras], camera_width)  # model order
     figures = prediction_figures(outputs, preds, None, display,
                                  {k: batch[k][0] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")},
-                                 mapper.config, f"{name} - {mapper.source}", mapper.cameras)
+                                 mapper.config, f"{name} - {mapper.source}", mapper.cameras,
+                                 ground_z=float(frame.ground_height))  # the elements drawn on the rig's road
     meta = {**submission_meta(mapper.config, "", mapper.source), "rig": str(rig_file),
             "images": [str(p) for p in images]}
     paths = write_together(Path(out), figures, {name: preds}, meta)
