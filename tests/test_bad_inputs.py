@@ -5565,6 +5565,34 @@ def row_predict_images_rig_ground_height(env):
               "--rig", rig, "--out", env.tmp / "out2", "--device", "cpu", *images)
 
 
+@row("S23", "evaluate-json --protocol raster re-scoring evaluate's predictions against export-gt's GT (a 16 m x 8 m "
+            "grid at 0.25 m): the canvas advice named --resolution 0.1, the first that tiles the patch, and the raster "
+            "AP at 0.1 m pixels differed from evaluate's at the config's 0.25 m (divider AP@0.5 0.67 against 1.0, "
+            "exit 0, no word). export-gt and evaluate state the grid's resolution in the meta; the advice names it "
+            "and another resolution is noted")
+def row_evaluate_json_raster_resolution_of_the_gt(env):
+    from instagram_hdmap.evaluation.evaluator import evaluate_files
+    from instagram_hdmap.geometry import BEVGrid
+
+    gt = env.tmp / "gt.json"
+    assert env.cli("export-gt", env.yaml, "--out", gt)[0] == 0
+    data = json.loads(gt.read_text())
+    assert data["meta"]["resolution"] == 0.25, data["meta"]
+    rng = np.random.default_rng(0)
+    preds = {t: [{"pts": (np.array(v["pts"]) + rng.normal(0, 0.8, 2)).tolist(), "type": v["type"],
+                  "confidence_level": float(rng.uniform())} for v in vs] for t, vs in data["results"].items()}
+    meta = {k: data["meta"][k] for k in ("classes", "xbound", "ybound", "frame", "dataset")}
+    pred = env.tmp / "pred.json"
+    pred.write_text(json.dumps({"meta": {**meta, "ground_truth": False}, "results": preds}))
+    line = env.error(r"pass --xbound -8 8 --ybound -4 4 --resolution 0\.25 ", "evaluate-json", "--pred", pred, "--gt",
+                     gt, "--protocol", "raster")
+    assert "0.1" not in line, line
+    m = evaluate_files(pred, gt, "raster", grid=BEVGrid(-8, 8, -4, 4, 0.1, cell_size=1))
+    assert any("--resolution 0.25 to reproduce evaluate's number" in n for n in m["notes"]), m["notes"]
+    m = evaluate_files(pred, gt, "raster", grid=BEVGrid(-8, 8, -4, 4, 0.25, cell_size=1))
+    assert not any("pixels" in n for n in m["notes"]), m["notes"]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

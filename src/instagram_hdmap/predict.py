@@ -76,6 +76,7 @@ def submission_meta(cfg: ExperimentConfig, split: str, source: str) -> dict:
         "ground_truth": False, "source": source, "config_name": cfg.name, "dataset": cfg.data.dataset,
         "version": cfg.data.version, "split": split, "frame": "ego, x forward, y left, metres",
         "classes": list(cfg.data.classes), "xbound": list(g.xbound), "ybound": list(g.ybound),
+        "resolution": g.resolution,
     }
 
 
