@@ -14,6 +14,7 @@ twentieth; a ninth-, tenth-, eleventh-, fourteenth-, nineteenth- or twentieth-sw
 refused checks that it runs).
 ``S21`` marks a case found by a twenty-first sweep (the researcher's workflow through the docs and the Python API).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
+``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -49,7 +50,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S20"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S23"
     what: str
     run: Callable
 
