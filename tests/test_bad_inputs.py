@@ -5587,7 +5587,7 @@ def row_evaluate_json_raster_resolution_of_the_gt(env):
     pred.write_text(json.dumps({"meta": {**meta, "ground_truth": False}, "results": preds}))
     line = env.error(r"pass --xbound -8 8 --ybound -4 4 --resolution 0\.25 ", "evaluate-json", "--pred", pred, "--gt",
                      gt, "--protocol", "raster")
-    assert "0.1" not in line, line
+    assert "--resolution 0.1" not in line, line
     m = evaluate_files(pred, gt, "raster", grid=BEVGrid(-8, 8, -4, 4, 0.1, cell_size=1))
     assert any("--resolution 0.25 to reproduce evaluate's number" in n for n in m["notes"]), m["notes"]
     m = evaluate_files(pred, gt, "raster", grid=BEVGrid(-8, 8, -4, 4, 0.25, cell_size=1))
