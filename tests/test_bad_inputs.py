@@ -5594,6 +5594,29 @@ def row_evaluate_json_raster_resolution_of_the_gt(env):
     assert not any("pixels" in n for n in m["notes"]), m["notes"]
 
 
+@row("S23", "targets of a polyline given open whose last point is its first (a divider loop around an island, "
+            "line-merged into one line): the last point shared the first's cell and was dropped, so the GT graph, "
+            "decoded back to metres (the oracle's ceiling, the training targets), lost the closing segment with no "
+            "word. Such a loop is a cycle, decoded back closed")
+def row_targets_of_an_open_loop(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.inference import gt_outputs
+    from instagram_hdmap.postprocess import postprocess_batch
+    from instagram_hdmap.targets import build_targets
+
+    grid = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15, 8)
+    loop = np.array([[-4.0, -2.0], [4.0, -2.0], [4.0, 2.0], [-4.0, 2.0], [-4.0, -2.0]])
+    targets = build_targets([{"pts": loop, "label": 0, "closed": False}], grid)
+    (decoded,) = postprocess_batch(gt_outputs({k: v[None] for k, v in targets.items()}, grid, 3), grid)
+    assert len(decoded) == 1, decoded
+    pts = np.asarray(decoded[0]["pts"])
+    assert len(pts) == 5 and np.allclose(pts[0], pts[-1]) and np.abs(pts - loop).max() <= 0.075 + 1e-6, pts
+    u = np.array([[-4.0, -2.0], [4.0, -2.0], [4.0, 2.0], [-4.0, 2.0]])  # an open U stays open
+    targets = build_targets([{"pts": u, "label": 0, "closed": False}], grid)
+    (decoded,) = postprocess_batch(gt_outputs({k: v[None] for k, v in targets.items()}, grid, 3), grid)
+    assert len(decoded) == 1 and len(decoded[0]["pts"]) == 4 and not decoded[0]["closed"], decoded
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
