@@ -14,6 +14,7 @@ twentieth; a ninth-, tenth-, eleventh-, fourteenth-, nineteenth- or twentieth-sw
 refused checks that it runs).
 ``S21`` marks a case found by a twenty-first sweep (the researcher's workflow through the docs and the Python API).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
+``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -49,7 +50,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S20"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S23"
     what: str
     run: Callable
 
@@ -5526,6 +5527,94 @@ def row_benchmark_temporal_damaged_cache(env):
     lines = [ln for ln in p.stderr.splitlines() if "error" in ln]
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
     assert re.search(r"--cache: .* is not a complete synthetic world \(no world.json\)", lines[-1]), p.stderr[-2000:]
+
+
+@row("S23", "predict-images: a rig file could not give the road's height in its ego frame (the Python API's "
+            "Frame(ground_height=...)): a rig in AV2's rear-axle frame (the road 0.38 m below the origin) ran with the "
+            "ground plane at z = 0, 0.38 m too high for the IPM / MLP view transforms, with no word, and "
+            "'ground_height' in the file was an unknown field. The rig file takes \"ground_height\" and passes it to "
+            "the model")
+def row_predict_images_rig_ground_height(env):
+    from instagram_hdmap.inference import Mapper
+
+    rig, images = _rig_files(env, lambda d: d.__setitem__("ground_height", -0.38))
+    seen = []
+    forward = Mapper.forward
+
+    def spy(self, batch, memory=None):
+        seen.append(batch["ground_height"].tolist())
+        return forward(self, batch, memory)
+
+    env.monkeypatch.setattr(Mapper, "forward", spy)
+    from instagram_hdmap import predict
+
+    drawn = []
+    figures = predict.prediction_figures
+
+    def spy_figures(*args, ground_z=0.0, **kwargs):
+        drawn.append(ground_z)  # the pictures project the elements onto the same road
+        return figures(*args, ground_z=ground_z, **kwargs)
+
+    env.monkeypatch.setattr(predict, "prediction_figures", spy_figures)
+    rc, _, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "out",
+                         "--device", "cpu", *images)
+    assert rc == 0, err[-2000:]
+    assert seen and np.allclose(seen[0], [-0.38]), seen
+    assert drawn and np.isclose(drawn[0], -0.38), drawn
+    rig, _ = _rig_files(env, lambda d: d.__setitem__("ground_height", "low"))
+    env.error(r"rig\.json: 'ground_height' must be a number of metres", "predict-images", "--checkpoint", env.ckpt,
+              "--rig", rig, "--out", env.tmp / "out2", "--device", "cpu", *images)
+
+
+@row("S23", "evaluate-json --protocol raster re-scoring evaluate's predictions against export-gt's GT (a 16 m x 8 m "
+            "grid at 0.25 m): the canvas advice named --resolution 0.1, the first that tiles the patch, and the raster "
+            "AP at 0.1 m pixels differed from evaluate's at the config's 0.25 m (divider AP@0.5 0.67 against 1.0, "
+            "exit 0, no word). export-gt and evaluate state the grid's resolution in the meta; the advice names it "
+            "and another resolution is noted")
+def row_evaluate_json_raster_resolution_of_the_gt(env):
+    from instagram_hdmap.evaluation.evaluator import evaluate_files
+    from instagram_hdmap.geometry import BEVGrid
+
+    gt = env.tmp / "gt.json"
+    assert env.cli("export-gt", env.yaml, "--out", gt)[0] == 0
+    data = json.loads(gt.read_text())
+    assert data["meta"]["resolution"] == 0.25, data["meta"]
+    rng = np.random.default_rng(0)
+    preds = {t: [{"pts": (np.array(v["pts"]) + rng.normal(0, 0.8, 2)).tolist(), "type": v["type"],
+                  "confidence_level": float(rng.uniform())} for v in vs] for t, vs in data["results"].items()}
+    meta = {k: data["meta"][k] for k in ("classes", "xbound", "ybound", "frame", "dataset")}
+    pred = env.tmp / "pred.json"
+    pred.write_text(json.dumps({"meta": {**meta, "ground_truth": False}, "results": preds}))
+    line = env.error(r"pass --xbound -8 8 --ybound -4 4 --resolution 0\.25 ", "evaluate-json", "--pred", pred, "--gt",
+                     gt, "--protocol", "raster")
+    assert "--resolution 0.1" not in line, line
+    m = evaluate_files(pred, gt, "raster", grid=BEVGrid(-8, 8, -4, 4, 0.1, cell_size=1))
+    assert any("--resolution 0.25 to reproduce evaluate's number" in n for n in m["notes"]), m["notes"]
+    m = evaluate_files(pred, gt, "raster", grid=BEVGrid(-8, 8, -4, 4, 0.25, cell_size=1))
+    assert not any("pixels" in n for n in m["notes"]), m["notes"]
+
+
+@row("S23", "targets of a polyline given open whose last point is its first (a divider loop around an island, "
+            "line-merged into one line): the last point shared the first's cell and was dropped, so the GT graph, "
+            "decoded back to metres (the oracle's ceiling, the training targets), lost the closing segment with no "
+            "word. Such a loop is a cycle, decoded back closed")
+def row_targets_of_an_open_loop(env):
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.inference import gt_outputs
+    from instagram_hdmap.postprocess import postprocess_batch
+    from instagram_hdmap.targets import build_targets
+
+    grid = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15, 8)
+    loop = np.array([[-4.0, -2.0], [4.0, -2.0], [4.0, 2.0], [-4.0, 2.0], [-4.0, -2.0]])
+    targets = build_targets([{"pts": loop, "label": 0, "closed": False}], grid)
+    (decoded,) = postprocess_batch(gt_outputs({k: v[None] for k, v in targets.items()}, grid, 3), grid)
+    assert len(decoded) == 1, decoded
+    pts = np.asarray(decoded[0]["pts"])
+    assert len(pts) == 5 and np.allclose(pts[0], pts[-1]) and np.abs(pts - loop).max() <= 0.075 + 1e-6, pts
+    u = np.array([[-4.0, -2.0], [4.0, -2.0], [4.0, 2.0], [-4.0, 2.0]])  # an open U stays open
+    targets = build_targets([{"pts": u, "label": 0, "closed": False}], grid)
+    (decoded,) = postprocess_batch(gt_outputs({k: v[None] for k, v in targets.items()}, grid, 3), grid)
+    assert len(decoded) == 1 and len(decoded[0]["pts"]) == 4 and not decoded[0]["closed"], decoded
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

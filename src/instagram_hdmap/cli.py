@@ -293,6 +293,8 @@ def _cmd_predict_images(args: argparse.Namespace) -> int:
                             name=args.name)
     print(f"{result['name']} ({result['source']}): {len(result['elements'])} map elements; wrote "
           f"{', '.join(str(p) for p in result['paths'])}")
+    for note in result.get("notes", []):
+        print(f"note: {note}")
     return 0
 
 

@@ -76,6 +76,7 @@ def submission_meta(cfg: ExperimentConfig, split: str, source: str) -> dict:
         "ground_truth": False, "source": source, "config_name": cfg.name, "dataset": cfg.data.dataset,
         "version": cfg.data.version, "split": split, "frame": "ego, x forward, y left, metres",
         "classes": list(cfg.data.classes), "xbound": list(g.xbound), "ybound": list(g.ybound),
+        "resolution": g.resolution,
     }
 
 
@@ -409,7 +410,8 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
             raise RigError(f"rig file {rig_file}: camera {cam.name}: 'image_size' is {cam.image_size[0]}x"
                            f"{cam.image_size[1]} but its image {path} is {size[0]}x{size[1]}")
     pose = {c.name: np.vstack([np.c_[c.rotation, c.translation], [0, 0, 0, 1]]) for c in rig}
-    return Frame(images=dict(zip(names, images)), intrinsics={c.name: c.intrinsics for c in rig}, cam_to_ego=pose)
+    return Frame(images=dict(zip(names, images)), intrinsics={c.name: c.intrinsics for c in rig}, cam_to_ego=pose,
+                 ground_height=getattr(rig, "ground_height", 0.0))
 
 
 def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str | Path, *,
@@ -420,7 +422,7 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     exported from, default: the one stamped in it) on one frame of your own cameras, described by a
     rig file (``data.rig.read_rig_file``), and ``predict``'s pictures (no GT) and ``prediction.json``
     (the frame under ``name``) in ``out``. ``decode``: decoding options (``inference.DECODE_OPTIONS``).
-    Returns ``{"name", "elements", "paths", "source"}``."""
+    Returns ``{"name", "elements", "paths", "source", "notes"}``."""
     if (checkpoint is None) == (onnx is None):
         raise PredictError("pass --checkpoint CKPT or --onnx FILE (one of them)")
     if checkpoint is not None and config is not None:
@@ -440,11 +442,18 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     display = display_images([(Path(frame.images[c]), size[c]) for c in mapper.cameras], camera_width)  # model order
     figures = prediction_figures(outputs, preds, None, display,
                                  {k: batch[k][0] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")},
-                                 mapper.config, f"{name} - {mapper.source}", mapper.cameras)
+                                 mapper.config, f"{name} - {mapper.source}", mapper.cameras,
+                                 ground_z=float(frame.ground_height))  # the elements drawn on the rig's road
     meta = {**submission_meta(mapper.config, "", mapper.source), "rig": str(rig_file),
             "images": [str(p) for p in images]}
     paths = write_together(Path(out), figures, {name: preds}, meta)
-    return {"name": name, "elements": elements, "paths": paths, "source": mapper.source}
+    notes = []
+    if mapper.config.data.dataset == "av2" and getattr(rig, "ground_height", 0.0) == 0.0:
+        # AV2's ego origin (the rear axle) is 0.33-0.43 m above the road, the frame the model was trained in
+        notes.append(f"the model was trained on AV2 (ego origin on the rear axle, the road about 0.38 m below it) and "
+                     f"rig file {rig_file} gives no 'ground_height': the road is taken at z = 0 of the rig's ego "
+                     "frame; if its translations are AV2's (rear-axle origin), add \"ground_height\": -0.38")
+    return {"name": name, "elements": elements, "paths": paths, "source": mapper.source, "notes": notes}
 
 
 # --- a scene as a video: predict --scene --video -------------------------------------------------------

@@ -15,7 +15,8 @@ How graph vertices relate to cells (SuperPoint-style subsampling, one vertex per
 
 1. every polyline point becomes a candidate vertex at its BEV pixel (``grid.px_index`` of
    ``grid.m_to_px``, clamped into the grid): a vertex position is an integer pixel, so the vertex head
-   can represent it exactly. A closed shape's repeated last point is dropped (the cycle closes it).
+   can represent it exactly. A closed shape's repeated last point is dropped (the cycle closes it); a
+   polyline given open whose last point is its first (a loop, >= 3 distinct points) is a closed shape.
 2. **One vertex per cell, over the whole sample.** When a cell holds several candidates (consecutive
    points of one instance, a U-turn of one instance, or points of different instances) the kept one
    is the smallest by the key ``(not endpoint, label, instance, order)``: the endpoint of an open
@@ -89,6 +90,14 @@ def _polyline_pixels(polylines: Sequence[dict], grid: BEVGrid) -> tuple[np.ndarr
     return np.clip(grid.px_index(grid.m_to_px(pts_m)), 0, [grid.W - 1, grid.H - 1]), counts
 
 
+def _is_loop(pts) -> bool:
+    """A polyline given open (``closed`` False) that ends where it starts, with >= 3 distinct points: a loop (a
+    divider around an island, merged into one line). As an open chain its last point shared the first's cell and
+    was dropped, and the targets decoded back lost the closing segment with no word."""
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    return len(p) >= 4 and bool((p[0] == p[-1]).all()) and len(np.unique(p, axis=0)) >= 3
+
+
 def _instance_index(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For concatenated points of instances with ``counts`` points: instance id and order, [Q] each."""
     inst = np.repeat(np.arange(len(counts)), counts)
@@ -106,7 +115,7 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
     check_polylines(polylines, where="vertex_graph")
     S, Wc = grid.cell_size, grid.Wc
     uv, counts = _polyline_pixels(polylines, grid)  # [Q, 2] all candidates, in (instance, order) order
-    closed = np.array([bool(p.get("closed", False)) for p in polylines], dtype=bool)
+    closed = np.array([bool(p.get("closed", False)) or _is_loop(p["pts"]) for p in polylines], dtype=bool)
     labels = np.array([int(p["label"]) for p in polylines], dtype=np.int64)
     inst, order = _instance_index(counts)
     # a closed shape repeats its first point at the end: drop it, the cycle closes the shape

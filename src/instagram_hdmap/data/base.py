@@ -495,6 +495,7 @@ def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
         "classes": list(d.classes),
         "xbound": list(g.xbound),
         "ybound": list(g.ybound),
+        "resolution": g.resolution,  # the raster protocol's pixel in evaluate (evaluate-json: --resolution)
         "sample_dist": d.sample_dist,
     }
     return {"meta": meta, "results": results}

@@ -14,6 +14,7 @@ rendered. The ego frame: x forward, y left, z up, origin at the rear axle on the
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -280,7 +281,16 @@ def _image_size(value, what: str) -> tuple[int, int]:
     return int(value[0]), int(value[1])
 
 
-def read_rig_file(path) -> list[CameraCalibration]:
+class RigCameras(list):
+    """``read_rig_file``'s cameras (a list of ``CameraCalibration``, the file's order) and the rig's
+    ``ground_height`` (metres, the road's height in its ego frame)."""
+
+    def __init__(self, cameras=(), ground_height: float = 0.0):
+        super().__init__(cameras)
+        self.ground_height = ground_height
+
+
+def read_rig_file(path) -> RigCameras:
     """The cameras of a rig file (README, "Your own cameras"), in its order:
 
         {"image_size": [W, H],                       # every camera's, unless a camera gives its own
@@ -290,8 +300,11 @@ def read_rig_file(path) -> list[CameraCalibration]:
                                    "image_size": [W, H]},               # optional
                      ...}}
 
-    ``rotation`` may instead be ``"quaternion": [w, x, y, z]`` (nuScenes' convention). Errors are one
-    ``RigError`` line naming the file, the camera and the field."""
+    ``rotation`` may instead be ``"quaternion": [w, x, y, z]`` (nuScenes' convention). An optional top-level
+    ``"ground_height"`` is the road's height in the rig's ego frame (metres along z; default 0: the origin on
+    the road, as nuScenes'; about -0.38 for a rig given in AV2's rear-axle frame), the Python API's
+    ``Frame(ground_height=...)``: the returned list's ``ground_height``. Errors are one ``RigError`` line naming
+    the file, the camera and the field."""
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark (Windows editors) is no JSON
@@ -304,10 +317,16 @@ def read_rig_file(path) -> list[CameraCalibration]:
     if not isinstance(data, dict) or not isinstance(data.get("cameras"), dict) or not data["cameras"]:
         raise RigError(f"rig file {path}: expected an object with a non-empty 'cameras' object "
                        '{"CAMERA_NAME": {"intrinsics", "rotation", "translation"}, ...}')
-    unknown = sorted(set(data) - {"image_size", "cameras"})
+    unknown = sorted(set(data) - {"image_size", "cameras", "ground_height"})
     if unknown:
-        raise RigError(f"rig file {path}: unknown field(s) {', '.join(unknown)}; a rig file has 'image_size' and "
-                       "'cameras'")
+        raise RigError(f"rig file {path}: unknown field(s) {', '.join(unknown)}; a rig file has 'image_size', "
+                       "'cameras' and optionally 'ground_height'")
+    # the road's height in the rig's ego frame: without it a rig in AV2's rear-axle frame put the ground plane of the
+    # IPM / MLP view transforms 0.38 m too high, with no word (the Python API's Frame has it; the file could not say it)
+    ground = data.get("ground_height", 0.0)
+    if isinstance(ground, bool) or not isinstance(ground, (int, float)) or not math.isfinite(ground):
+        raise RigError(f"rig file {path}: 'ground_height' must be a number of metres (the road's height in the ego "
+                       f"frame, e.g. -0.38 for AV2's rear-axle origin), got {ground!r:.40}")
     default = _image_size(data["image_size"], f"rig file {path}: 'image_size'") if "image_size" in data else None
     cameras = []
     for name, cam in data["cameras"].items():
@@ -338,4 +357,4 @@ def read_rig_file(path) -> list[CameraCalibration]:
         check_upright(calib.rotation, where, "is the quaternion in [w, x, y, z] order (nuScenes, pyquaternion), not "
                       "[x, y, z, w] (scipy, ROS)?" if "quaternion" in cam else None)
         cameras.append(CameraCalibration(name, calib.intrinsics, calib.rotation, calib.translation, size))
-    return cameras
+    return RigCameras(cameras, ground_height=float(ground))

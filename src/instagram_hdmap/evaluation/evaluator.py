@@ -352,6 +352,15 @@ def format_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
+def _meta_resolution(sub) -> float | None:
+    """The grid resolution (metres per pixel) a submission's meta states (export-gt and evaluate write the config's
+    ``grid.resolution``), or None."""
+    r = sub.meta.get("resolution")
+    if isinstance(r, bool) or not isinstance(r, (int, float)) or not (math.isfinite(r) and r > 0):
+        return None
+    return float(r)
+
+
 def _check_canvas(gt, grid: BEVGrid) -> None:
     """The raster canvas is the map patch the GT file's meta states (export-gt writes ``xbound`` /
     ``ybound``): a smaller canvas crops the map silently (a 100 m x 100 m GT scored on 60 m x 30 m), a larger one
@@ -368,8 +377,10 @@ def _check_canvas(gt, grid: BEVGrid) -> None:
         def tiles(r: float) -> bool:
             return all(abs(e / r - round(e / r)) < 1e-6 for e in (x1 - x0, y1 - y0))
 
-        # the advice alone was refused next when the resolution does not tile that patch (16 m at 0.15 m)
-        res = next((r for r in (grid.resolution, 0.1, 0.125, 0.2, 0.25, 0.05) if tiles(r)), None)
+        # the advice alone was refused next when the resolution does not tile that patch (16 m at 0.15 m); the GT's
+        # own grid resolution first (export-gt states it): evaluate's raster AP of that config used it
+        res = next((r for r in (_meta_resolution(gt), grid.resolution, 0.1, 0.125, 0.2, 0.25, 0.05)
+                    if r is not None and tiles(r)), None)
         also = f" --resolution {res:g}" if res is not None and res != grid.resolution else ""
         raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
                               f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
@@ -524,6 +535,14 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
                      "without predictions")
     if extra:
         notes.append(f"{len(extra)} sample tokens only in {pred_path} were ignored (--ignore-extra-predictions)")
+    stated = _meta_resolution(gt)
+    used = (grid if grid is not None else DEFAULT_RASTER_GRID).resolution
+    if protocol == "raster" and stated is not None and abs(stated - used) > 1e-9:
+        # the raster AP depends on the pixel (5-px lines): evaluate of that config scored at its grid's resolution,
+        # and the same predictions re-scored here at another gave another number with no word
+        notes.append(f"{gt_path} was exported from a config whose grid has {stated:g} m pixels (evaluate's raster AP "
+                     f"of that config used them); this raster canvas has {used:g} m pixels, so its AP differs: pass "
+                     f"--resolution {stated:g} to reproduce evaluate's number")
     metrics["notes"] = notes + metrics["notes"]
     metrics["inputs"] = {"pred": str(pred_path), "gt": str(gt_path)}
     return metrics
