@@ -15,6 +15,7 @@ refused checks that it runs).
 ``S21`` marks a case found by a twenty-first sweep (the researcher's workflow through the docs and the Python API).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
+``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -5615,6 +5616,35 @@ def row_targets_of_an_open_loop(env):
     targets = build_targets([{"pts": u, "label": 0, "closed": False}], grid)
     (decoded,) = postprocess_batch(gt_outputs({k: v[None] for k, v in targets.items()}, grid, 3), grid)
     assert len(decoded) == 1 and len(decoded[0]["pts"]) == 4 and not decoded[0]["closed"], decoded
+
+
+@row("S24", "a splits file written by hand: a list of sample tokens (or scene tokens) in place of scene names said "
+            "only 'names 2 scene(s) not in version', a JSON list of lists said 'it has: none', a YAML file said only "
+            "'not valid JSON', split names other than train/val did not point at data.train_split / data.val_split. "
+            "Each now says what it holds and what to write")
+def row_splits_file_written_by_hand(env):
+    names = json.loads((env.world / "splits.json").read_text())
+    samples = json.loads((env.world / "v1.0-trainval" / "sample.json").read_text())
+    scenes = json.loads((env.world / "v1.0-trainval" / "scene.json").read_text())
+    val_scenes = [s for s in scenes if s["name"] in names["val"]]
+    cases = {
+        "tokens.json": ({**names, "val": [r["token"] for r in samples if r["scene_token"] == val_scenes[0]["token"]]},
+                        r"split 'val' names \d+ scene\(s\) not in .*these are sample tokens: .*'name' of scene\.json"),
+        "scene_tokens.json": ({**names, "val": [s["token"] for s in val_scenes]},
+                              r"these are scene tokens: a splits file lists scene names"),
+        "lists.json": ([names["train"], names["val"]], r"lists\.json holds a JSON list, not an object of splits"),
+        "names.json": ({"mytrain": names["train"], "myval": names["val"]},
+                       r"it has: mytrain, myval \(set data\.train_split / data\.val_split"),
+    }
+    for name, (content, pattern) in cases.items():
+        path = env.tmp / name
+        path.write_text(json.dumps(content))
+        env.error(pattern, "show-gt", env.yaml, f"data.splits_file={path}", "--out", env.tmp / "show")
+    path = env.tmp / "splits.yaml"
+    path.write_text("train:\n" + "".join(f"- {n}\n" for n in names["train"]) + "val:\n"
+                    + "".join(f"- {n}\n" for n in names["val"]))
+    env.error(r"splits\.yaml is not valid JSON: .*a YAML file\? write it as JSON", "show-gt", env.yaml,
+              f"data.splits_file={path}", "--out", env.tmp / "show")
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -161,11 +161,19 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         try:
             splits = json.loads(path.read_text())
         except json.JSONDecodeError as e:
-            raise DatasetError(f"splits file {path} is not valid JSON: {e}") from None
-        if not isinstance(splits, dict) or split not in splits or not isinstance(splits[split], list):
-            keys = ", ".join(splits) if isinstance(splits, dict) else "none"
+            hint = ""
+            if path.suffix.lower() in (".yaml", ".yml"):
+                hint = ' (a YAML file? write it as JSON: {"train": [scene names], "val": [scene names]})'
+            raise DatasetError(f"splits file {path} is not valid JSON: {e}{hint}") from None
+        if not isinstance(splits, dict):  # a list of lists said "it has: none"
             raise DatasetError(
-                f"splits file {path} has no list of scene names for split '{split}'; it has: {keys}"
+                f"splits file {path} holds a JSON {type(splits).__name__}, not an object of splits: write it as "
+                f'{{"train": [scene names], "val": [scene names]}}'
+            )
+        if split not in splits or not isinstance(splits[split], list):
+            raise DatasetError(
+                f"splits file {path} has no list of scene names for split '{split}'; it has: {', '.join(splits)}"
+                f" (set data.train_split / data.val_split to the file's names)"
             )
         odd = [n for n in splits[split] if not isinstance(n, str)]
         if odd:  # a nested list ({"val": [names]} with names a list already) was a raw TypeError
@@ -174,9 +182,14 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         wanted = set(splits[split])
         missing = sorted(wanted - set(present))
         if missing:
+            hint = ""  # tokens of samples or scenes were taken for unknown scene names, with no word on why
+            for table, what in (("sample", "sample tokens"), ("scene", "scene tokens")):
+                if set(missing) <= {r["token"] for r in getattr(nusc, table, [])}:
+                    hint = (f" (these are {what}: a splits file lists scene names, the 'name' of scene.json, "
+                            f"e.g. {present[:1]})")
             raise DatasetError(
                 f"splits file {path}: split '{split}' names {len(missing)} scene(s) not in version "
-                f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}"
+                f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}{hint}"
             )
     elif version in OFFICIAL_SPLITS:
         from nuscenes.utils.splits import create_splits_scenes
