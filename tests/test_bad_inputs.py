@@ -5647,6 +5647,25 @@ def row_splits_file_written_by_hand(env):
               f"data.splits_file={path}", "--out", env.tmp / "show")
 
 
+@row("S24", "generate_world (the Python API of synth) given a count as a float (scenes_train=1.0) was a raw "
+            "TypeError 'slice indices must be integers' (samples_per_scene=1.0 wrote 'samples: 2.0' into world.json), "
+            "an image_size of (64.5, 48) was cut to 64 px with no word, ('a', 48) a raw ValueError. Each is named; "
+            "numpy integers and whole floats of pixels still work")
+def row_synth_api_counts_not_whole(env):
+    from instagram_hdmap.data.synthetic import generate_world
+
+    small = dict(scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False, workers=1)
+    for change, pattern in (({"scenes_train": 1.0}, r"--scenes-train 1\.0: .* whole number"),
+                            ({"samples_per_scene": 1.0}, r"--samples-per-scene 1\.0: .* whole number"),
+                            ({"image_size": (64.5, 48)}, r"--image-size \(64\.5, 48\): expected two whole numbers"),
+                            ({"image_size": ("a", 48)}, r"--image-size \('a', 48\): expected two whole numbers")):
+        with pytest.raises(UserError, match=pattern):
+            generate_world(env.tmp / "w", **{**small, **change})
+        assert not (env.tmp / "w").exists()
+    manifest = generate_world(env.tmp / "w", **{**small, "scenes_val": np.int64(1), "image_size": [64.0, 48.0]})
+    assert manifest["image_size"] == [64, 48] and manifest["samples"] == 2, manifest
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
