@@ -5666,6 +5666,21 @@ def row_synth_api_counts_not_whole(env):
     assert manifest["image_size"] == [64, 48] and manifest["samples"] == 2, manifest
 
 
+@row("S24", "a splits file saved by a Windows editor: with a UTF-8 byte-order mark it was refused ('Unexpected UTF-8 "
+            "BOM'), as UTF-16 (Windows PowerShell's Out-File) a raw UnicodeDecodeError traceback, exit 1; a folder "
+            "given as the splits file said 'not found'. Both encodings are read; the folder is named as one")
+def row_splits_file_with_a_byte_order_mark(env):
+    text = (env.world / "splits.json").read_text()
+    for name, data in (("bom.json", b"\xef\xbb\xbf" + text.encode()), ("utf16.json", text.encode("utf-16"))):
+        path = env.tmp / name
+        path.write_bytes(data)
+        rc, _, err = env.cli("show-gt", env.yaml, f"data.splits_file={path}", "--out", env.tmp / f"show_{name}")
+        assert rc == 0, err[-3000:]
+    (env.tmp / "folder.json").mkdir()
+    env.error(r"splits file .*folder\.json is a folder \(config key data\.splits_file\)", "show-gt", env.yaml,
+              f"data.splits_file={env.tmp / 'folder.json'}", "--out", env.tmp / "show")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

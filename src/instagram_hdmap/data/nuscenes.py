@@ -155,11 +155,20 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         path = Path(splits_file)
         if not path.is_file() and (Path(nusc.dataroot) / path).is_file():
             path = Path(nusc.dataroot) / path
+        if path.is_dir():
+            raise DatasetError(f"splits file {splits_file} is a folder (config key data.splits_file): give the JSON "
+                               "file of scene names per split")
         if not path.is_file():
             raise DatasetError(f"splits file not found: {splits_file} (config key data.splits_file"
                                f"{relative_path_note(splits_file)})")
-        try:
-            splits = json.loads(path.read_text())
+        try:  # a byte-order mark (Windows editors; PowerShell's UTF-16) was refused or a raw UnicodeDecodeError
+            raw = path.read_bytes()
+            splits = json.loads(raw.decode("utf-16" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"))
+        except OSError as e:
+            raise DatasetError(f"splits file {path} cannot be read ({e.strerror or e})") from None
+        except UnicodeDecodeError:
+            raise DatasetError(f"splits file {path} is not a JSON text file (UTF-8); expected "
+                               '{"train": [scene names], "val": [scene names]}') from None
         except json.JSONDecodeError as e:
             hint = ""
             if path.suffix.lower() in (".yaml", ".yml"):
