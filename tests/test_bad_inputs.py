@@ -5681,6 +5681,15 @@ def row_splits_file_with_a_byte_order_mark(env):
               f"data.splits_file={env.tmp / 'folder.json'}", "--out", env.tmp / "show")
 
 
+@row("S24", "synth --out below a file (notes.txt/world): 'cannot write there (File exists)', naming neither the file "
+            "nor the cause; now names the file that is not a folder")
+def row_synth_out_below_a_file(env):
+    (env.tmp / "notes.txt").write_text("x")
+    env.error(r"--out .*notes\.txt/world: .*notes\.txt is a file, not a folder", "synth", "--out",
+              env.tmp / "notes.txt" / "world", "--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1",
+              "--image-size", "64x48")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
