@@ -158,7 +158,7 @@ def _check_out(out: FsPath, force: bool) -> None:
 def _unwritable(out: FsPath, e: OSError) -> UserError:
     for parent in out.absolute().parents:  # a file on the way said "File exists", naming neither it nor the cause
         if parent.is_file():
-            return UserError(f"--out {out}: {parent} is a file, not a folder; choose another path")
+            return UserError(f"--out {out}: cannot write there: {parent} is a file, not a folder; choose another path")
     return UserError(f"--out {out}: cannot write there ({e.strerror or e}); choose a writable folder")
 
 
