@@ -193,7 +193,7 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         if missing:
             hint = ""  # tokens of samples or scenes were taken for unknown scene names, with no word on why
             for table, what in (("sample", "sample tokens"), ("scene", "scene tokens")):
-                if set(missing) <= {r["token"] for r in getattr(nusc, table, [])}:
+                if set(missing) <= {r.get("token") for r in getattr(nusc, table, [])}:
                     hint = (f" (these are {what}: a splits file lists scene names, the 'name' of scene.json, "
                             f"e.g. {present[:1]})")
             raise DatasetError(
