@@ -5690,6 +5690,13 @@ def row_synth_out_below_a_file(env):
               "--image-size", "64x48")
 
 
+@row("S24", "synth --out '' (an unset shell variable, --out \"$WORLD\") was taken for the current folder: refused "
+            "there only because it was not empty (an empty one got the world). An empty --out is named")
+def row_synth_out_empty_string(env):
+    env.error(r"--out '': an empty path", "synth", "--out", "", "--scenes-train", "1", "--scenes-val", "1",
+              "--samples-per-scene", "1", "--image-size", "64x48")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
