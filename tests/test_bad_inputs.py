@@ -5695,6 +5695,10 @@ def row_synth_out_below_a_file(env):
 def row_synth_out_empty_string(env):
     env.error(r"--out '': an empty path", "synth", "--out", "", "--scenes-train", "1", "--scenes-val", "1",
               "--samples-per-scene", "1", "--image-size", "64x48")
+    from instagram_hdmap.data.synthetic import generate_world
+
+    with pytest.raises(UserError, match=r"--out '': an empty path"):  # the Python API too
+        generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
