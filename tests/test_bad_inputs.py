@@ -15,6 +15,7 @@ refused checks that it runs).
 ``S21`` marks a case found by a twenty-first sweep (the researcher's workflow through the docs and the Python API).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
+``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -5615,6 +5616,89 @@ def row_targets_of_an_open_loop(env):
     targets = build_targets([{"pts": u, "label": 0, "closed": False}], grid)
     (decoded,) = postprocess_batch(gt_outputs({k: v[None] for k, v in targets.items()}, grid, 3), grid)
     assert len(decoded) == 1 and len(decoded[0]["pts"]) == 4 and not decoded[0]["closed"], decoded
+
+
+@row("S24", "a splits file written by hand: a list of sample tokens (or scene tokens) in place of scene names said "
+            "only 'names 2 scene(s) not in version', a JSON list of lists said 'it has: none', a YAML file said only "
+            "'not valid JSON', split names other than train/val did not point at data.train_split / data.val_split. "
+            "Each now says what it holds and what to write")
+def row_splits_file_written_by_hand(env):
+    names = json.loads((env.world / "splits.json").read_text())
+    samples = json.loads((env.world / "v1.0-trainval" / "sample.json").read_text())
+    scenes = json.loads((env.world / "v1.0-trainval" / "scene.json").read_text())
+    val_scenes = [s for s in scenes if s["name"] in names["val"]]
+    cases = {
+        "tokens.json": ({**names, "val": [r["token"] for r in samples if r["scene_token"] == val_scenes[0]["token"]]},
+                        r"split 'val' names \d+ scene\(s\) not in .*these are sample tokens: .*'name' of scene\.json"),
+        "scene_tokens.json": ({**names, "val": [s["token"] for s in val_scenes]},
+                              r"these are scene tokens: a splits file lists scene names"),
+        "lists.json": ([names["train"], names["val"]], r"lists\.json holds a JSON list, not an object of splits"),
+        "names.json": ({"mytrain": names["train"], "myval": names["val"]},
+                       r"it has: mytrain, myval \(set data\.train_split / data\.val_split"),
+    }
+    for name, (content, pattern) in cases.items():
+        path = env.tmp / name
+        path.write_text(json.dumps(content))
+        env.error(pattern, "show-gt", env.yaml, f"data.splits_file={path}", "--out", env.tmp / "show")
+    path = env.tmp / "splits.yaml"
+    path.write_text("train:\n" + "".join(f"- {n}\n" for n in names["train"]) + "val:\n"
+                    + "".join(f"- {n}\n" for n in names["val"]))
+    env.error(r"splits\.yaml is not valid JSON: .*a YAML file\? write it as JSON", "show-gt", env.yaml,
+              f"data.splits_file={path}", "--out", env.tmp / "show")
+
+
+@row("S24", "generate_world (the Python API of synth) given a count as a float (scenes_train=1.0) was a raw "
+            "TypeError 'slice indices must be integers' (samples_per_scene=1.0 wrote 'samples: 2.0' into world.json), "
+            "an image_size of (64.5, 48) was cut to 64 px with no word, ('a', 48) a raw ValueError. Each is named; "
+            "numpy integers and whole floats of pixels still work")
+def row_synth_api_counts_not_whole(env):
+    from instagram_hdmap.data.synthetic import generate_world
+
+    small = dict(scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False, workers=1)
+    for change, pattern in (({"scenes_train": 1.0}, r"--scenes-train 1\.0: .* whole number"),
+                            ({"samples_per_scene": 1.0}, r"--samples-per-scene 1\.0: .* whole number"),
+                            ({"image_size": (64.5, 48)}, r"--image-size \(64\.5, 48\): expected two whole numbers"),
+                            ({"image_size": ("a", 48)}, r"--image-size \('a', 48\): expected two whole numbers")):
+        with pytest.raises(UserError, match=pattern):
+            generate_world(env.tmp / "w", **{**small, **change})
+        assert not (env.tmp / "w").exists()
+    manifest = generate_world(env.tmp / "w", **{**small, "scenes_val": np.int64(1), "image_size": [64.0, 48.0]})
+    assert manifest["image_size"] == [64, 48] and manifest["samples"] == 2, manifest
+
+
+@row("S24", "a splits file saved by a Windows editor: with a UTF-8 byte-order mark it was refused ('Unexpected UTF-8 "
+            "BOM'), as UTF-16 (Windows PowerShell's Out-File) a raw UnicodeDecodeError traceback, exit 1; a folder "
+            "given as the splits file said 'not found'. Both encodings are read; the folder is named as one")
+def row_splits_file_with_a_byte_order_mark(env):
+    text = (env.world / "splits.json").read_text()
+    for name, data in (("bom.json", b"\xef\xbb\xbf" + text.encode()), ("utf16.json", text.encode("utf-16"))):
+        path = env.tmp / name
+        path.write_bytes(data)
+        rc, _, err = env.cli("show-gt", env.yaml, f"data.splits_file={path}", "--out", env.tmp / f"show_{name}")
+        assert rc == 0, err[-3000:]
+    (env.tmp / "folder.json").mkdir()
+    env.error(r"splits file .*folder\.json is a folder \(config key data\.splits_file\)", "show-gt", env.yaml,
+              f"data.splits_file={env.tmp / 'folder.json'}", "--out", env.tmp / "show")
+
+
+@row("S24", "synth --out below a file (notes.txt/world): 'cannot write there (File exists)', naming neither the file "
+            "nor the cause; now names the file that is not a folder")
+def row_synth_out_below_a_file(env):
+    (env.tmp / "notes.txt").write_text("x")
+    env.error(r"--out .*notes\.txt/world: .*notes\.txt is a file, not a folder", "synth", "--out",
+              env.tmp / "notes.txt" / "world", "--scenes-train", "1", "--scenes-val", "1", "--samples-per-scene", "1",
+              "--image-size", "64x48")
+
+
+@row("S24", "synth --out '' (an unset shell variable, --out \"$WORLD\") was taken for the current folder: refused "
+            "there only because it was not empty (an empty one got the world). An empty --out is named")
+def row_synth_out_empty_string(env):
+    env.error(r"--out '': an empty path", "synth", "--out", "", "--scenes-train", "1", "--scenes-val", "1",
+              "--samples-per-scene", "1", "--image-size", "64x48")
+    from instagram_hdmap.data.synthetic import generate_world
+
+    with pytest.raises(UserError, match=r"--out '': an empty path"):  # the Python API too
+        generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -46,6 +46,8 @@ def _load(args: argparse.Namespace):
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    if not str(args.out).strip():  # '' was taken for the current folder (an unset shell variable: --out "$WORLD")
+        raise UserError(f"--out {args.out!r}: an empty path (an unset shell variable?); name the world's folder")
     generate = generate_av2_world if args.format == "av2" else generate_world
     manifest = generate(
         out=args.out,

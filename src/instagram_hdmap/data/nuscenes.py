@@ -155,17 +155,34 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         path = Path(splits_file)
         if not path.is_file() and (Path(nusc.dataroot) / path).is_file():
             path = Path(nusc.dataroot) / path
+        if path.is_dir():
+            raise DatasetError(f"splits file {splits_file} is a folder (config key data.splits_file): give the JSON "
+                               "file of scene names per split")
         if not path.is_file():
             raise DatasetError(f"splits file not found: {splits_file} (config key data.splits_file"
                                f"{relative_path_note(splits_file)})")
-        try:
-            splits = json.loads(path.read_text())
+        try:  # a byte-order mark (Windows editors; PowerShell's UTF-16) was refused or a raw UnicodeDecodeError
+            raw = path.read_bytes()
+            splits = json.loads(raw.decode("utf-16" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"))
+        except OSError as e:
+            raise DatasetError(f"splits file {path} cannot be read ({e.strerror or e})") from None
+        except UnicodeDecodeError:
+            raise DatasetError(f"splits file {path} is not a JSON text file (UTF-8); expected "
+                               '{"train": [scene names], "val": [scene names]}') from None
         except json.JSONDecodeError as e:
-            raise DatasetError(f"splits file {path} is not valid JSON: {e}") from None
-        if not isinstance(splits, dict) or split not in splits or not isinstance(splits[split], list):
-            keys = ", ".join(splits) if isinstance(splits, dict) else "none"
+            hint = ""
+            if path.suffix.lower() in (".yaml", ".yml"):
+                hint = ' (a YAML file? write it as JSON: {"train": [scene names], "val": [scene names]})'
+            raise DatasetError(f"splits file {path} is not valid JSON: {e}{hint}") from None
+        if not isinstance(splits, dict):  # a list of lists said "it has: none"
             raise DatasetError(
-                f"splits file {path} has no list of scene names for split '{split}'; it has: {keys}"
+                f"splits file {path} holds a JSON {type(splits).__name__}, not an object of splits: write it as "
+                f'{{"train": [scene names], "val": [scene names]}}'
+            )
+        if split not in splits or not isinstance(splits[split], list):
+            raise DatasetError(
+                f"splits file {path} has no list of scene names for split '{split}'; it has: {', '.join(splits)}"
+                f" (set data.train_split / data.val_split to the file's names)"
             )
         odd = [n for n in splits[split] if not isinstance(n, str)]
         if odd:  # a nested list ({"val": [names]} with names a list already) was a raw TypeError
@@ -174,9 +191,14 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         wanted = set(splits[split])
         missing = sorted(wanted - set(present))
         if missing:
+            hint = ""  # tokens of samples or scenes were taken for unknown scene names, with no word on why
+            for table, what in (("sample", "sample tokens"), ("scene", "scene tokens")):
+                if set(missing) <= {r.get("token") for r in getattr(nusc, table, [])}:
+                    hint = (f" (these are {what}: a splits file lists scene names, the 'name' of scene.json, "
+                            f"e.g. {present[:1]})")
             raise DatasetError(
                 f"splits file {path}: split '{split}' names {len(missing)} scene(s) not in version "
-                f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}"
+                f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}{hint}"
             )
     elif version in OFFICIAL_SPLITS:
         from nuscenes.utils.splits import create_splits_scenes

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -90,6 +91,9 @@ def parse_image_size(text: str | tuple[int, int] | list[int]) -> tuple[int, int]
     if isinstance(text, (tuple, list)):
         if len(text) != 2:
             raise UserError(f"--image-size {text!r}: expected WIDTHxHEIGHT, e.g. 1600x900")
+        if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and float(v).is_integer() for v in text):
+            # (64.5, 48) was cut to 64 with no word; ("a", 48) was a raw ValueError
+            raise UserError(f"--image-size {text!r}: expected two whole numbers of pixels (width, height)")
         w, h = (int(v) for v in text)
     else:
         m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))

@@ -90,6 +90,10 @@ def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int, see
     """The arguments of a world: scene and sample counts, and the seed (numpy's generators take 0 .. 2**63)."""
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2**63:
         raise UserError(f"--seed {seed}: a world's seed is a whole number from 0 to 2**63 - 1")
+    for flag, value in (("--scenes-train", scenes_train), ("--scenes-val", scenes_val),
+                        ("--samples-per-scene", samples_per_scene)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # 1.0: a raw TypeError deep inside
+            raise UserError(f"{flag} {value!r}: a count of scenes or samples is a whole number (an int)")
     if scenes_train < 0 or scenes_val < 0:
         raise UserError(f"--scenes-train {scenes_train} / --scenes-val {scenes_val}: counts cannot be negative")
     if scenes_train + scenes_val == 0:
@@ -152,6 +156,9 @@ def _check_out(out: FsPath, force: bool) -> None:
 
 
 def _unwritable(out: FsPath, e: OSError) -> UserError:
+    for parent in out.absolute().parents:  # a file on the way said "File exists", naming neither it nor the cause
+        if parent.is_file():
+            return UserError(f"--out {out}: cannot write there: {parent} is a file, not a folder; choose another path")
     return UserError(f"--out {out}: cannot write there ({e.strerror or e}); choose a writable folder")
 
 
