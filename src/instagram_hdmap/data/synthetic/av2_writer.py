@@ -73,7 +73,7 @@ from shapely.geometry import LineString, Polygon, box
 from shapely.ops import split as split_polygon
 from tqdm import tqdm
 
-from ...config import AV2_RING_CAMERAS, UserError
+from ...config import AV2_RING_CAMERAS
 from ..av2 import require_av2
 from ..rig import Sensor, parse_image_size
 from .jobs import (
@@ -86,6 +86,7 @@ from .jobs import (
     check_workers,
     render_scenes,
     scene_occluders,
+    world_folder,
     write_world,
 )
 from .render import MapPainter, SceneRenderer, scene_look
@@ -180,9 +181,7 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     check_counts(scenes_train, scenes_val, samples_per_scene, seed)
     workers = check_workers(workers)
     occluders = check_occluders(occluders)
-    if isinstance(out, str) and not out.strip():  # Path('') is the current folder: an unset variable wrote there
-        raise UserError(f"--out {out!r}: an empty path (an unset shell variable?); name the world's folder")
-    return write_world(FsPath(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
+    return write_world(world_folder(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
                                                               seed, size, progress, workers, occluders))
 
 

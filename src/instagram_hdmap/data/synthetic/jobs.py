@@ -175,6 +175,14 @@ def _make_writable(tmp: FsPath, out: FsPath) -> None:
         raise _unwritable(out, e) from e
 
 
+def world_folder(out) -> FsPath:
+    """The ``out`` argument of the world generators as a path; an empty string is refused (``Path('')`` is the
+    current folder: an unset shell variable wrote the world there)."""
+    if isinstance(out, str) and not out.strip():
+        raise UserError(f"--out {out!r}: an empty path (an unset shell variable?); name the world's folder")
+    return FsPath(out)
+
+
 def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> dict:
     """``write(tmp)`` into a temporary sibling folder of ``out``, then rename it to ``out`` (replacing a
     world there with ``force``): a world is whole or absent, never half-written. Returns what ``write``

@@ -51,6 +51,7 @@ from .jobs import (
     check_workers,
     render_scenes,
     scene_occluders,
+    world_folder,
     write_world,
 )
 from .map_writer import write_map_json, write_semantic_prior
@@ -92,9 +93,7 @@ def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_
     workers = check_workers(workers)
     occluders = check_occluders(occluders)
     train_names, val_names = scene_names(scenes_train, scenes_val)
-    if isinstance(out, str) and not out.strip():  # Path('') is the current folder: an unset variable wrote there
-        raise UserError(f"--out {out!r}: an empty path (an unset shell variable?); name the world's folder")
-    return write_world(FsPath(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
+    return write_world(world_folder(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
                                                               seed, size, progress, workers, occluders))
 
 
