@@ -16,6 +16,7 @@ refused checks that it runs).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
+``S26`` marks a case found by a twenty-sixth sweep (the config as users write it: keys, overrides, YAML files).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -5699,6 +5700,97 @@ def row_synth_out_empty_string(env):
 
     with pytest.raises(UserError, match=r"--out '': an empty path"):  # the Python API too
         generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
+
+
+@row("S26", "a mapping given on the command line after one of its keys (model.gnn.layers=3 model.gnn={dim: 64}) "
+            "replaced the section the first had set: model.gnn.layers silently went back to the YAML's value; the "
+            "mapping now merges into the keys before it, and a key given by both is noted (the last wins)")
+def row_override_mapping_keeps_earlier_keys(env):
+    cfg = env.cfg("model.gnn.layers=3", "model.gnn={dim: 64}")
+    assert (cfg.model.gnn.layers, cfg.model.gnn.dim) == (3, 64)
+    cfg = env.cfg("model.gnn.layers=3", "model={gnn: {heads: 2}}")
+    assert (cfg.model.gnn.layers, cfg.model.gnn.heads) == (3, 2)
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}")
+    assert rc == 0, err
+    assert ("note: model.gnn.layers is given 2 times (model.gnn.layers=3, model.gnn={layers: 1, dim: 64}); the last, "
+            "model.gnn={layers: 1, dim: 64}, is used") in err
+    assert env.cfg("model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}").model.gnn.layers == 1
+
+
+@row("S26", "YAML 1.1's integers: a leading zero made an octal number (train.seed: 0123 ran with seed 83, "
+            "train.epochs=010 trained 8 epochs) and colons a base-60 one (train.time_budget_min: 1:30:00 was 5400 "
+            "minutes), exit 0; a leading zero is now decimal (YAML 1.2), and 1:30 is text that a number key refuses")
+def row_yaml_leading_zero_and_base_60(env):
+    path = env.tmp / "c.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  seed: 0123\n  epochs: 010\n  max_steps: 0_10\n")
+    cfg = load_config(path)
+    assert (cfg.train.seed, cfg.train.epochs, cfg.train.max_steps) == (123, 10, 10)
+    assert env.cfg("train.epochs=010").train.epochs == 10
+    assert env.cfg("train.seed=0x1F").train.seed == 31  # hexadecimal stays (YAML 1.2 has it too)
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  time_budget_min: 1:30:00\n")
+    env.error(r"config key 'train\.time_budget_min': expected float or null, got '1:30:00'", "model-summary", path)
+    env.error(r"config key 'train\.max_steps': expected int or null, got '1:30'", "model-summary", env.yaml,
+              "train.max_steps=1:30")
+    assert env.cfg("name=1:30").name == "1:30"
+
+
+@row("S26", "a text key whose text reads as a YAML 1.2 float (name: '3e-4', an experiment named after its learning "
+            "rate): save_config wrote it bare (PyYAML's YAML 1.1 sees text), so the run's config.yaml no longer "
+            "loaded ('expected str, got 0.0003'); it is written quoted and loads as saved")
+def row_saved_config_text_that_reads_as_a_number(env):
+    from instagram_hdmap.config import save_config
+
+    for overrides in (["name='3e-4'"], ["name='1e3'", "data.train_split='1e3'"], ["name='010'"], ["name='1:30'"]):
+        cfg = env.cfg(*overrides)
+        save_config(cfg, env.tmp / "saved.yaml")
+        assert load_config(env.tmp / "saved.yaml") == cfg, overrides
+
+
+@row("S26", "a YAML file (or override) nested hundreds of levels deep: a raw RecursionError traceback naming nothing; "
+            "a value of a million items (YAML aliases) given to a number key: a 58 MB error message; now one line "
+            "naming the file and cut short")
+def row_deep_or_huge_yaml_values(env):
+    deep = env.tmp / "deep.yaml"
+    deep.write_text(f"_base_: {env.yaml}\nmodel: " + "[" * 3000 + "]" * 3000 + "\n")
+    env.error(r"config file .*deep\.yaml: its lists or mappings are nested too deeply", "model-summary", deep)
+    env.error(r"override 'model=\[\[.*': its lists or mappings are nested too deeply", "model-summary", env.yaml,
+              "model=" + "[" * 3000 + "]" * 3000)
+    huge = env.tmp / "huge.yaml"  # a list whose last item holds 2^20 leaves, through aliases
+    huge.write_text(f"_base_: {env.yaml}\nmodel:\n  gnn:\n    dim: [&a0 [x, x], "
+                    + ", ".join(f"&a{i} [*a{i - 1}, *a{i - 1}]" for i in range(1, 21)) + "]\n")
+    line = env.error(r"config key 'model\.gnn\.dim': expected int, got \[\[", "model-summary", huge)
+    assert len(line) < 400, len(line)
+
+
+@row("S26", "a text key given a number or a YAML 1.1 word (name: 2024, data.version: 1.0, data.val_split: no) and a "
+            "whole-number key given 1e3: refused saying only 'expected str, got 2024 (int)'; the message now says "
+            "to quote the text, or how to write the whole number")
+def row_text_key_given_a_number_says_quote_it(env):
+    env.error(r"config key 'name': expected str, got 2024 \(int\); .*quote the text .*name=\"'\.\.\.'\"",
+              "model-summary", env.yaml, "name=2024")
+    env.error(r"config key 'data\.val_split': expected str, got False \(bool\); .*quote", "model-summary", env.yaml,
+              "data.val_split=no")
+    env.error(r"config key 'train\.epochs': expected int, got 1000\.0 \(float\); write the whole number as 1000",
+              "model-summary", env.yaml, "train.epochs=1e3")
+    assert env.cfg("name='2024'").name == "2024"
+
+
+@row("S26", "eval.flicker_threshold_m in centimetres (100): every GT element counted as detected, the flicker rate 0, "
+            "exit 0, while its siblings eval.cmap_match_m and eval.thresholds refuse more than 10 m; refused the same")
+def row_flicker_threshold_in_centimetres(env):
+    env.error(r"config key 'eval\.flicker_threshold_m' must be in \(0, 10\] \(metres.*centimetres given\?\)",
+              "model-summary", env.yaml, "eval.flicker_threshold_m=100")
+    assert env.cfg("eval.flicker_threshold_m=10").eval.flicker_threshold_m == 10
+
+
+@row("S26", "data.val_split equal to data.train_split (a slip, or an overfitting check): validation and the choice "
+            "of best.pt scored the training scenes with no word; training notes it at the start")
+def row_validation_on_the_training_split_noted(env):
+    from instagram_hdmap.train import setting_notes
+
+    notes = setting_notes(env.cfg("data.val_split=train"))
+    assert any("data.val_split=train is the training split" in n for n in notes), notes
+    assert not any("training split" in n for n in setting_notes(env.cfg()))
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -969,8 +969,8 @@ MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.tem
 
 def setting_notes(cfg: ExperimentConfig) -> list[str]:
     """Notes on settings that train, but not as they read: the memory's keys on a model without a memory (the
-    run trained a single-frame model on shuffled frames), an LSS frustum that stops short of the grid (the
-    cells beyond it never get a camera feature)."""
+    run trained a single-frame model on shuffled frames), validation on the training split, an LSS frustum that
+    stops short of the grid (the cells beyond it never get a camera feature)."""
     notes = []
     if cfg.model.temporal.memory == "none":
         default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
@@ -979,6 +979,10 @@ def setting_notes(cfg: ExperimentConfig) -> list[str]:
             notes.append(f"note: {', '.join(unused)} set, but model.temporal.memory=none: only a temporal model reads "
                          "them, so this run trains a single-frame model on shuffled frames (docs/temporal.md: set "
                          "model.temporal.memory, e.g. bev, or start from configs/temporal/)")
+    d = cfg.data
+    if d.val_split == d.train_split:  # an overfitting check may mean it; a slip made best.pt a pick on training scenes
+        notes.append(f"note: data.val_split={d.val_split} is the training split (data.train_split): validation, and "
+                     "the choice of best.pt, score the scenes this run trains on, not held-out ones")
     vt, g = cfg.model.view_transform, cfg.grid
     reach = max(abs(g.xbound[0]), abs(g.xbound[1]), abs(g.ybound[0]), abs(g.ybound[1]))
     if vt.kind == "lss" and vt.depth_bound[1] < reach:
