@@ -5793,6 +5793,22 @@ def row_validation_on_the_training_split_noted(env):
     assert not any("training split" in n for n in setting_notes(env.cfg()))
 
 
+@row("S26", "a checkpoint whose config is YAML text (written by hand from the experiment YAML) was read as YAML 1.1, "
+            "not as a config file is: lr: 1e-3 was text ('holds a config this version cannot read: expected float, "
+            "got '1e-3''), layers: 010 octal 8; it is read as config files are")
+def row_checkpoint_config_text_read_as_a_config_file(env):
+    import yaml
+
+    from instagram_hdmap.config import config_from_dict
+
+    state = load_checkpoint(env.ckpt)
+    text = yaml.safe_dump(state["config"]).replace("lr: 0.001", "lr: 1e-3").replace("seed: 0\n", "seed: 010\n")
+    assert "lr: 1e-3" in text and "seed: 010" in text
+    path = save_checkpoint({**state, "config": text}, env.tmp / "text_config.pt")
+    cfg = config_from_dict(load_checkpoint(path)["config"])
+    assert (cfg.train.lr, cfg.train.seed) == (1e-3, 10)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .config import UserError
+from .config import UserError, load_yaml
 from .errors import one_line
 from .files import as_path, atomic_path
 
@@ -135,7 +135,7 @@ def _yaml_config(text: str, path: Path) -> dict:
     import yaml
 
     try:
-        config = yaml.safe_load(text)
+        config = load_yaml(text)  # as a config file is read (YAML 1.2 numbers: lr: 1e-3 is a float, not text)
     except yaml.YAMLError as e:
         raise CheckpointError(f"checkpoint {path}: its config is text that is not YAML ({one_line(e)})") from None
     if not isinstance(config, dict):
