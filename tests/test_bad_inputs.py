@@ -5809,6 +5809,20 @@ def row_checkpoint_config_text_read_as_a_config_file(env):
     assert (cfg.train.lr, cfg.train.seed) == (1e-3, 10)
 
 
+@row("S26", "a decoder's option given with another decoder (model.gnn.same_class_edges=true with decoder=classwise, "
+            "model.gnn.class_min_prob with greedy): unused with no word, while max_edge_m with mutual is refused; "
+            "evaluate and training's validation note it")
+def row_decoder_option_of_another_decoder_noted(env):
+    from instagram_hdmap.train import unused_meter_keys
+
+    notes = unused_meter_keys(env.cfg("model.gnn.decoder=classwise", "model.gnn.same_class_edges=true"))
+    assert any("model.gnn.same_class_edges=true is not used" in n for n in notes), notes
+    notes = unused_meter_keys(env.cfg("model.gnn.class_min_prob=0.2"))
+    assert any("model.gnn.class_min_prob=0.2 is not used" in n and "decoder=greedy" in n for n in notes), notes
+    assert not unused_meter_keys(env.cfg("model.gnn.decoder=classwise", "model.gnn.class_min_prob=0.2"))
+    assert not unused_meter_keys(env.cfg("model.gnn.same_class_edges=true"))
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

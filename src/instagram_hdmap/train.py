@@ -50,6 +50,7 @@ from .checkpoint import (
 from .config import (
     EvalConfig,
     ExperimentConfig,
+    GraphHeadConfig,
     UserError,
     as_config,
     config_to_dict,
@@ -356,8 +357,17 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
 
 
 def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
-    """Notes for a meter's setting given while the meter is off (its default otherwise): it was unused with no word."""
+    """Notes for a meter's setting given while the meter is off (its default otherwise), and for a decoder's option
+    given with another decoder: it was unused with no word."""
     default, notes = EvalConfig(), []
+    gnn, gnn_default = cfg.model.gnn, GraphHeadConfig()
+    if gnn.same_class_edges and gnn.decoder == "classwise":  # classwise builds a graph per class of its own rule
+        notes.append("model.gnn.same_class_edges=true is not used: an option of the greedy decoder, and "
+                     "model.gnn.decoder=classwise (which joins the vertices whose class probability is at least "
+                     "model.gnn.class_min_prob)")
+    if gnn.class_min_prob != gnn_default.class_min_prob and gnn.decoder != "classwise":
+        notes.append(f"model.gnn.class_min_prob={gnn.class_min_prob:g} is not used: an option of the classwise "
+                     f"decoder, and model.gnn.decoder={gnn.decoder}")
     for switch, key in (("cmap", "cmap_match_m"), ("flicker", "flicker_threshold_m")):
         if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
             notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
