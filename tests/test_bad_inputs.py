@@ -5823,6 +5823,24 @@ def row_decoder_option_of_another_decoder_noted(env):
     assert not unused_meter_keys(env.cfg("model.gnn.same_class_edges=true"))
 
 
+@row("S26", "a key that only another setting reads (train.min_lr_factor under the step schedule, train.lr_step / "
+            "lr_gamma under cosine, model.gnn.vd_sampling without the pe+vd embedding) trained as if unset, with no "
+            "word; training notes it at the start")
+def row_key_of_another_setting_noted(env):
+    from instagram_hdmap.train import setting_notes
+
+    def notes(*overrides):
+        return " | ".join(setting_notes(env.cfg(*overrides)))
+
+    assert "train.min_lr_factor=0.1 set, but train.schedule=step does not read it" in notes("train.min_lr_factor=0.1")
+    assert "train.lr_step=5, train.lr_gamma=0.5 set, but train.schedule=cosine" in notes(
+        "train.schedule=cosine", "train.lr_step=5", "train.lr_gamma=0.5")
+    assert "model.gnn.vd_sampling=cell set, but model.gnn.embedding=pe+dt" in notes("model.gnn.vd_sampling=cell")
+    for ok in (["train.schedule=cosine", "train.min_lr_factor=0.1"], ["train.lr_step=5", "train.lr_gamma=0.5"],
+               ["model.gnn.vd_sampling=cell", "model.gnn.embedding=pe+vd", "model.bev_heads.distance_head=false"]):
+        assert "does not read" not in notes(*ok) and "reads it" not in notes(*ok), ok
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -51,6 +51,7 @@ from .config import (
     EvalConfig,
     ExperimentConfig,
     GraphHeadConfig,
+    TrainConfig,
     UserError,
     as_config,
     config_to_dict,
@@ -979,8 +980,9 @@ MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.tem
 
 def setting_notes(cfg: ExperimentConfig) -> list[str]:
     """Notes on settings that train, but not as they read: the memory's keys on a model without a memory (the
-    run trained a single-frame model on shuffled frames), validation on the training split, an LSS frustum that
-    stops short of the grid (the cells beyond it never get a camera feature)."""
+    run trained a single-frame model on shuffled frames), another schedule's keys, vd_sampling without the pe+vd
+    embedding, validation on the training split, an LSS frustum that stops short of the grid (the cells beyond it
+    never get a camera feature)."""
     notes = []
     if cfg.model.temporal.memory == "none":
         default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
@@ -989,6 +991,17 @@ def setting_notes(cfg: ExperimentConfig) -> list[str]:
             notes.append(f"note: {', '.join(unused)} set, but model.temporal.memory=none: only a temporal model reads "
                          "them, so this run trains a single-frame model on shuffled frames (docs/temporal.md: set "
                          "model.temporal.memory, e.g. bev, or start from configs/temporal/)")
+    t, t0 = cfg.train, TrainConfig()
+    own = {"step": ("lr_step", "lr_gamma"), "cosine": ("min_lr_factor",)}  # the keys only that schedule reads
+    unread = [f"train.{k}={getattr(t, k):g}" for other, keys in own.items() if other != t.schedule for k in keys
+              if getattr(t, k) != getattr(t0, k)]
+    if unread:
+        notes.append(f"note: {', '.join(unread)} set, but train.schedule={t.schedule} does not read it "
+                     "(min_lr_factor is the cosine schedule's; lr_step and lr_gamma the step schedule's)")
+    gnn = cfg.model.gnn
+    if gnn.vd_sampling != GraphHeadConfig().vd_sampling and gnn.embedding != "pe+vd":
+        notes.append(f"note: model.gnn.vd_sampling={gnn.vd_sampling} set, but model.gnn.embedding={gnn.embedding}: "
+                     "only the visual-descriptor embedding (pe+vd) reads it")
     d = cfg.data
     if d.val_split == d.train_split:  # an overfitting check may mean it; a slip made best.pt a pick on training scenes
         notes.append(f"note: data.val_split={d.val_split} is the training split (data.train_split): validation, and "
