@@ -5841,6 +5841,18 @@ def row_key_of_another_setting_noted(env):
         assert "does not read" not in notes(*ok) and "reads it" not in notes(*ok), ok
 
 
+@row("S26", "benchmarks/temporal.py --set model={temporal: {memory: bev}} (the memory as a mapping, not the dotted "
+            "key): the check that --memory alone sets the memory read the dotted key only, so the single-frame "
+            "baseline ran with a memory; it reads the keys the override sets")
+def row_benchmark_temporal_memory_set_as_a_mapping(env):
+    for args in (["--set", "model={temporal: {memory: bev}}"], ["--temporal-set", "model.temporal={memory: bev}"]):
+        p = _benchmark_temporal(env, "--memory", "graph", *args, "--steps", "2")
+        assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+        assert re.search(r"--(temporal-)?set model.*memory: bev}+: the temporal model's memory is --memory \(graph\)",
+                         p.stderr), p.stderr[-2000:]
+    assert not (env.tmp / "cache").exists()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
