@@ -518,7 +518,9 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
                 raise ConfigError(f"config key '{key}' was renamed '{renamed}'; write {renamed} (checkpoints "
                                   "saved with the old name still load)")
             raise ConfigError(
-                f"unknown config key '{key}'; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
+                f"unknown config key '{key}'"
+                + (" (YAML reads a key on / off / yes / no as true / false)" if isinstance(name, bool) else "")
+                + f"; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
             )
         current = getattr(obj, name)
         if dataclasses.is_dataclass(current):
