@@ -5704,7 +5704,8 @@ def row_synth_out_empty_string(env):
 
 @row("S26", "a mapping given on the command line after one of its keys (model.gnn.layers=3 model.gnn={dim: 64}) "
             "replaced the section the first had set: model.gnn.layers silently went back to the YAML's value; the "
-            "mapping now merges into the keys before it, and a key given by both is noted (the last wins)")
+            "mapping now merges into the keys before it, and a key given by both is noted (the last wins); an override "
+            "that is not a string (Python API) was a raw TypeError naming nothing")
 def row_override_mapping_keeps_earlier_keys(env):
     cfg = env.cfg("model.gnn.layers=3", "model.gnn={dim: 64}")
     assert (cfg.model.gnn.layers, cfg.model.gnn.dim) == (3, 64)
@@ -5715,6 +5716,9 @@ def row_override_mapping_keeps_earlier_keys(env):
     assert ("note: model.gnn.layers is given 2 times (model.gnn.layers=3, model.gnn={layers: 1, dim: 64}); the last, "
             "model.gnn={layers: 1, dim: 64}, is used") in err
     assert env.cfg("model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}").model.gnn.layers == 1
+    for item in (3, None, b"train.lr=1"):  # an override that is not a string: a raw "argument of type 'int' ..."
+        with pytest.raises(TypeError, match=r"an override is a 'key\.sub=value' string, got"):
+            load_config(env.yaml, ["train.lr=1e-3", item])
 
 
 @row("S26", "YAML 1.1's integers: a leading zero made an octal number (train.seed: 0123 ran with seed 83, "

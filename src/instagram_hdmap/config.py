@@ -506,7 +506,7 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
     """Return a copy of dataclass ``obj`` with the nested ``updates`` applied and checked."""
     if not isinstance(updates, dict):
         raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {_show(updates)}"
-                          + (" (an empty section: give it keys or delete it)" if updates is None else ""))
+                          + (" (an empty section: give it keys or delete it)" if updates is None and prefix else ""))
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     changes = {}
@@ -656,6 +656,8 @@ def parse_overrides(overrides: list[str]) -> dict:
     """``["model.gnn.layers=9", "data.image_size=[256,704]"]`` -> nested dict of YAML values."""
     nested: dict = {}
     for item in overrides:
+        if not isinstance(item, str):  # a raw "argument of type 'int' is not iterable"
+            raise TypeError(f"an override is a 'key.sub=value' string, got {_show(item)} ({type(item).__name__})")
         if "=" not in item:
             raise ConfigError(f"override '{item}' must look like key.sub=value")
         key, raw = item.split("=", 1)
