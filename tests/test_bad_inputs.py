@@ -5832,8 +5832,8 @@ def row_decoder_option_of_another_decoder_noted(env):
 
 
 @row("S26", "a key that only another setting reads (train.min_lr_factor under the step schedule, train.lr_step / "
-            "lr_gamma under cosine, model.gnn.vd_sampling without the pe+vd embedding) trained as if unset, with no "
-            "word; training notes it at the start")
+            "lr_gamma under cosine, model.gnn.vd_sampling without the pe+vd embedding, data.aug_* without "
+            "data.augment, data.av2_* on nuScenes) trained as if unset, with no word; training notes it at the start")
 def row_key_of_another_setting_noted(env):
     from instagram_hdmap.train import setting_notes
 
@@ -5844,8 +5844,11 @@ def row_key_of_another_setting_noted(env):
     assert "train.lr_step=5, train.lr_gamma=0.5 set, but train.schedule=cosine" in notes(
         "train.schedule=cosine", "train.lr_step=5", "train.lr_gamma=0.5")
     assert "model.gnn.vd_sampling=cell set, but model.gnn.embedding=pe+dt" in notes("model.gnn.vd_sampling=cell")
+    assert "data.aug_rotate_deg=10.0 set, but data.augment=false" in notes("data.aug_rotate_deg=10")
+    assert "data.av2_frame_step=2 set, but data.dataset=nuscenes" in notes("data.av2_frame_step=2")
     for ok in (["train.schedule=cosine", "train.min_lr_factor=0.1"], ["train.lr_step=5", "train.lr_gamma=0.5"],
-               ["model.gnn.vd_sampling=cell", "model.gnn.embedding=pe+vd", "model.bev_heads.distance_head=false"]):
+               ["model.gnn.vd_sampling=cell", "model.gnn.embedding=pe+vd", "model.bev_heads.distance_head=false"],
+               ["data.aug_rotate_deg=10", "data.augment=true"]):
         assert "does not read" not in notes(*ok) and "reads it" not in notes(*ok), ok
 
 

@@ -48,6 +48,7 @@ from .checkpoint import (
     set_rng_state,
 )
 from .config import (
+    DataConfig,
     EvalConfig,
     ExperimentConfig,
     GraphHeadConfig,
@@ -981,8 +982,8 @@ MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.tem
 def setting_notes(cfg: ExperimentConfig) -> list[str]:
     """Notes on settings that train, but not as they read: the memory's keys on a model without a memory (the
     run trained a single-frame model on shuffled frames), another schedule's keys, vd_sampling without the pe+vd
-    embedding, validation on the training split, an LSS frustum that stops short of the grid (the cells beyond it
-    never get a camera feature)."""
+    embedding, augmentation keys without data.augment, AV2 keys on nuScenes, validation on the training split, an
+    LSS frustum that stops short of the grid (the cells beyond it never get a camera feature)."""
     notes = []
     if cfg.model.temporal.memory == "none":
         default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
@@ -1002,7 +1003,14 @@ def setting_notes(cfg: ExperimentConfig) -> list[str]:
     if gnn.vd_sampling != GraphHeadConfig().vd_sampling and gnn.embedding != "pe+vd":
         notes.append(f"note: model.gnn.vd_sampling={gnn.vd_sampling} set, but model.gnn.embedding={gnn.embedding}: "
                      "only the visual-descriptor embedding (pe+vd) reads it")
-    d = cfg.data
+    d, d0 = cfg.data, DataConfig()
+    for keys, unread, why in ((("aug_scale", "aug_rotate_deg", "aug_crop_jitter"), not d.augment,
+                               "data.augment=false (set data.augment=true to augment the training images)"),
+                              (("av2_cameras", "av2_frame_step"), d.dataset != "av2",
+                               f"data.dataset={d.dataset}: only the Argoverse 2 loader reads them")):
+        given = [f"data.{k}={config_to_dict(d)[k]}" for k in keys if unread and getattr(d, k) != getattr(d0, k)]
+        if given:
+            notes.append(f"note: {', '.join(given)} set, but {why}")
     if d.val_split == d.train_split:  # an overfitting check may mean it; a slip made best.pt a pick on training scenes
         notes.append(f"note: data.val_split={d.val_split} is the training split (data.train_split): validation, and "
                      "the choice of best.pt, score the scenes this run trains on, not held-out ones")
