@@ -25,6 +25,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import datetime
+import difflib
 import math
 import os
 import re
@@ -517,8 +518,10 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
             if renamed is not None:
                 raise ConfigError(f"config key '{key}' was renamed '{renamed}'; write {renamed} (checkpoints "
                                   "saved with the old name still load)")
+            near = difflib.get_close_matches(str(name).lower(), names, n=1, cutoff=0.75)  # layer, Layers, modle
             raise ConfigError(
                 f"unknown config key '{key}'"
+                + (f" (did you mean '{prefix}{near[0]}'?)" if near else "")
                 + (" (YAML reads a key on / off / yes / no as true / false)" if isinstance(name, bool) else "")
                 + f"; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
             )
