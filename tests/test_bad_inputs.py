@@ -5865,7 +5865,7 @@ def row_benchmark_temporal_memory_set_as_a_mapping(env):
 
 
 @row("S26", "a key one letter off (model.gnn.layer, train.max_step, MODEL.gnn.layers) was refused with the section's "
-            "whole list of keys to read through (model.gnn has 21); the nearest key is named first")
+            "whole list of keys to read through (model.gnn has 18); the nearest key is named first")
 def row_unknown_key_names_the_nearest(env):
     for override, near in (("model.gnn.layer=3", "model.gnn.layers"), ("train.max_step=9", "train.max_steps"),
                            ("MODEL.gnn.layers=3", "model"), ("eval.threshold=[1]", "eval.thresholds")):
