@@ -5865,7 +5865,8 @@ def row_benchmark_temporal_memory_set_as_a_mapping(env):
 
 
 @row("S26", "a key one letter off (model.gnn.layer, train.max_step, MODEL.gnn.layers) was refused with the section's "
-            "whole list of keys to read through (model.gnn has 18); the nearest key is named first")
+            "whole list of keys to read through (model.gnn has 18); the nearest key is named first (and a dotted key "
+            "in a YAML file is told to nest)")
 def row_unknown_key_names_the_nearest(env):
     for override, near in (("model.gnn.layer=3", "model.gnn.layers"), ("train.max_step=9", "train.max_steps"),
                            ("MODEL.gnn.layers=3", "model"), ("eval.threshold=[1]", "eval.thresholds")):
@@ -5874,6 +5875,9 @@ def row_unknown_key_names_the_nearest(env):
     line = env.error(r"unknown config key 'model\.gnn\.xyz'; valid keys of", "model-summary", env.yaml,
                      "model.gnn.xyz=3")
     assert "did you mean" not in line
+    path = env.tmp / "dotted.yaml"
+    path.write_text(f"_base_: {env.yaml}\nmodel.gnn.layers: 3\n")  # the command line's dotted form in a file
+    env.error(r"unknown config key 'model\.gnn\.layers' \(a YAML file nests the keys", "model-summary", path)
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

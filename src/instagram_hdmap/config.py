@@ -518,11 +518,14 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
             if renamed is not None:
                 raise ConfigError(f"config key '{key}' was renamed '{renamed}'; write {renamed} (checkpoints "
                                   "saved with the old name still load)")
-            near = difflib.get_close_matches(str(name).lower(), names, n=1, cutoff=0.75)  # layer, Layers, modle
+            dotted = "." in str(name)  # model.gnn.layers: 9 in a YAML file
+            near = [] if dotted else difflib.get_close_matches(str(name).lower(), names, n=1, cutoff=0.75)  # Layers
             raise ConfigError(
                 f"unknown config key '{key}'"
                 + (f" (did you mean '{prefix}{near[0]}'?)" if near else "")
                 + (" (YAML reads a key on / off / yes / no as true / false)" if isinstance(name, bool) else "")
+                + (" (a YAML file nests the keys, model: {gnn: {layers: 9}}; the dotted form is the command line's)"
+                   if dotted else "")
                 + f"; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
             )
         current = getattr(obj, name)
