@@ -5768,7 +5768,8 @@ def row_deep_or_huge_yaml_values(env):
 
 @row("S26", "a text key given a number or a YAML 1.1 word (name: 2024, data.version: 1.0, data.val_split: no) and a "
             "whole-number key given 1e3: refused saying only 'expected str, got 2024 (int)' (a key `on:`: 'unknown "
-            "key True'); the message now says to quote the text, how to write the whole number, what YAML did")
+            "key True'; a section of commented-out keys: 'must be a mapping, got None'); the message now says to "
+            "quote the text, how to write the whole number, what YAML did")
 def row_text_key_given_a_number_says_quote_it(env):
     env.error(r"config key 'name': expected str, got 2024 \(int\); .*quote the text .*name=\"'\.\.\.'\"",
               "model-summary", env.yaml, "name=2024")
@@ -5781,6 +5782,9 @@ def row_text_key_given_a_number_says_quote_it(env):
     path.write_text(f"_base_: {env.yaml}\non: 1\n")  # a key `on` (a typo, or a CI file's) is YAML 1.1's true
     env.error(r"unknown config key 'True' \(YAML reads a key on / off / yes / no as true / false\)", "model-summary",
               path)
+    path.write_text(f"_base_: {env.yaml}\nmodel:\n  # gnn:\n  #   layers: 3\n")  # every key of it commented out
+    env.error(r"config section 'model' must be a mapping, got None \(an empty section: give it keys or delete it\)",
+              "model-summary", path)
 
 
 @row("S26", "eval.flicker_threshold_m in centimetres (100): every GT element counted as detected, the flicker rate 0, "
