@@ -5884,6 +5884,20 @@ def row_unknown_key_names_the_nearest(env):
     env.error(r"unknown config key 'model\.gnn\.layers' \(a YAML file nests the keys", "model-summary", path)
 
 
+@row("S26", "an override written with a flag, as the benchmarks' --set or other tools' --model.gnn.layers=9: "
+            "'unrecognized arguments: --set' said nothing of how to write it; it says that overrides are key=value "
+            "words after CONFIG")
+def row_override_written_with_a_flag(env):
+    for argv in (["--set", "model.gnn.layers=3"], ["--model.gnn.layers=3"]):
+        with pytest.raises(SystemExit) as e:
+            env.cli("model-summary", env.yaml, *argv)
+        err = env.capsys.readouterr().err
+        assert e.value.code == 2 and "config overrides are key=value words after CONFIG, without a flag" in err, err
+    with pytest.raises(SystemExit):
+        env.cli("model-summary", env.yaml, "--bogus")
+    assert "key=value words" not in env.capsys.readouterr().err
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
