@@ -5769,7 +5769,7 @@ def row_deep_or_huge_yaml_values(env):
 @row("S26", "a text key given a number or a YAML 1.1 word (name: 2024, data.version: 1.0, data.val_split: no) and a "
             "whole-number key given 1e3: refused saying only 'expected str, got 2024 (int)' (a key `on:`: 'unknown "
             "key True'; a section of commented-out keys: 'must be a mapping, got None'); the message now says to "
-            "quote the text, how to write the whole number, what YAML did")
+            "quote the text, how to write the whole number or a list, what YAML did")
 def row_text_key_given_a_number_says_quote_it(env):
     env.error(r"config key 'name': expected str, got 2024 \(int\); .*quote the text .*name=\"'\.\.\.'\"",
               "model-summary", env.yaml, "name=2024")
@@ -5778,6 +5778,8 @@ def row_text_key_given_a_number_says_quote_it(env):
     env.error(r"config key 'train\.epochs': expected int, got 1000\.0 \(float\); write the whole number as 1000",
               "model-summary", env.yaml, "train.epochs=1e3")
     assert env.cfg("name='2024'").name == "2024"
+    env.error(r"config key 'train\.trainable': expected list of str, got 'temporal' \(str\); a list is written in "
+              r"brackets: \[a, b\] \(one item: \[a\]\)", "model-summary", env.yaml, "train.trainable=temporal")
     path = env.tmp / "on.yaml"
     path.write_text(f"_base_: {env.yaml}\non: 1\n")  # a key `on` (a typo, or a CI file's) is YAML 1.1's true
     env.error(r"unknown config key 'True' \(YAML reads a key on / off / yes / no as true / false\)", "model-summary",

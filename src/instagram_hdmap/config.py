@@ -442,6 +442,8 @@ def _hint(value: Any, tp: Any, key: str) -> str:
         return f"; YAML reads yes / no / on / off, numbers and dates as such: quote the text to keep it text ({where})"
     if int in args and isinstance(value, float) and value.is_integer():  # epochs: 1e3
         return f"; write the whole number as {int(value)}"
+    if any(typing.get_origin(a) is tuple for a in args) and isinstance(value, (str, int, float)):  # trainable=temporal
+        return "; a list is written in brackets: [a, b] (one item: [a])"
     return ""
 
 
