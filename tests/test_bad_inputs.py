@@ -22,6 +22,7 @@ Everything runs on the tiny synthetic world of conftest.py and a random tiny mod
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
@@ -5908,3 +5909,16 @@ def test_bad_input(row: Row, shared, tmp_path, capsys, monkeypatch, request):
     world, yaml, ckpt = shared
     monkeypatch.chdir(tmp_path)
     row.run(Env(world, yaml, ckpt, tmp_path, capsys, monkeypatch, request))
+
+
+def test_faults_page_cites_every_row_and_only_rows():
+    """docs/faults.md promises, each backed by a row: every id it cites names a row (or, as `4-*`, some rows) of this
+    table, and every row is cited, so neither a promise without a test nor a test without its promise is left."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "faults.md").read_text(encoding="utf-8")
+    ids = {f"{r.case}-{r.id}" for r in ROWS}
+    cited = set(re.findall(r"`((?:\d+|S\d*)-[A-Za-z0-9_*-]+)`", doc))
+    assert len(cited) > 100, "the citation pattern found almost nothing: has the page's format changed?"
+    unknown = sorted(c for c in cited if not fnmatch.filter(ids, c))
+    assert not unknown, f"docs/faults.md cites ids that are not rows: {unknown}"
+    uncited = sorted(i for i in ids if not any(fnmatch.fnmatchcase(i, c) for c in cited))
+    assert not uncited, f"rows that docs/faults.md does not cite: {uncited}"
