@@ -43,11 +43,12 @@ from .base import (
 )
 from .local_map import LocalMapBuilder, MapError
 from .rig import CAMERAS
-from .transforms import ImageAug, load_image, sample_augmentation
+from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 OFFICIAL_SPLITS = {
     "v1.0-trainval": {"train": "train", "val": "val"},
     "v1.0-mini": {"train": "mini_train", "val": "mini_val"},
+    "v1.0-test": {"test": "test"},  # no annotations, but the maps: the devkit's split 'test' (was refused)
 }
 
 
@@ -62,6 +63,11 @@ def open_nuscenes(dataroot: str | Path, version: str):
     table_root = root / version
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
+        below = sorted(p for p in root.iterdir() if (p / version / "sample.json").is_file())
+        if below:  # the tar's extracted top folder one level up: "versions in X: none" said nothing of where
+            raise DatasetError(f"nuScenes version '{version}' not found in {root}, but in its subfolder {below[0]}: "
+                               f"set data.dataroot (or --dataroot) to {below[0]}, the folder that holds {version}/, "
+                               "maps/ and samples/")
         av2 = not found and any(root.glob("*/*/city_SE3_egovehicle.feather"))  # <split>/<log>/: an AV2 root
         raise DatasetError(
             f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; versions "
@@ -211,6 +217,16 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
                 f"{', '.join(official)}, or set data.splits_file"
             )
         wanted = set(official[name])
+        if present and not wanted & set(present):  # was "split 'mini_train' ... has no samples", with no word on why
+            holding = [k for k, v in official.items() if set(present) & set(v)]
+            raise DatasetError(
+                f"split '{split}' of {version}: the nuScenes devkit's official split '{name}' ({len(wanted)} scenes, "
+                f"e.g. {sorted(wanted)[:2]}) names none of the {len(present)} scene(s) of version '{version}' in "
+                f"{nusc.dataroot} (e.g. {present[:2]}); "
+                + (f"its scenes are in the official split(s) {', '.join(holding)}: set data.train_split / "
+                   "data.val_split to one of them" if holding else
+                   "they are not official nuScenes scenes: set data.splits_file to a JSON file "
+                   '{"train": [scene names], "val": [scene names]}'))
     else:
         raise DatasetError(
             f"version '{version}' has no official split; set data.splits_file to a JSON file "
@@ -373,10 +389,16 @@ class NuScenesMapDataset(MapDataset):
             aug = ImageAug()
             if self.augment:
                 aug = sample_augmentation(self.data_cfg, rng)  # one draw per camera
-            image, post_rot, post_tran = load_image(
-                self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug,
-                fit=self.data_cfg.image_fit,
-            )
+            try:
+                image, post_rot, post_tran = load_image(
+                    self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug,
+                    fit=self.data_cfg.image_fit,
+                )
+            except ImageError as e:
+                hint = self._missing_image_hint(self.dataroot / sd["filename"])
+                if hint is None:
+                    raise
+                raise ImageError(f"{e}; {hint}") from None
             pose = _pose_matrix(cs["rotation"], cs["translation"])
             out["images"].append(image)
             out["intrinsics"].append(torch.tensor(cs["camera_intrinsic"], dtype=torch.float32))
@@ -388,6 +410,44 @@ class NuScenesMapDataset(MapDataset):
                               CAMERAS, f"sample {sample['token']} in {self.dataroot / self.data_cfg.version}/"
                                        "sample_data.json")
         return {k: torch.stack(v) for k, v in out.items()}
+
+    def _missing_image_hint(self, path: Path) -> str | None:
+        """Why a camera image of the tables is not on disk, for a dataset downloaded in parts: no ``samples/`` at
+        all (the metadata alone), the file under another case, or how many of the split's images are missing
+        (some blob parts only). None when the file exists. (Each was one "not found" naming one file.)"""
+        if path.exists():
+            return None
+        samples = self.dataroot / "samples"
+        if not samples.is_dir():
+            return (f"{self.dataroot} has no samples/ folder: the camera images are not downloaded, only the "
+                    f"metadata ({self.data_cfg.version}/); download the nuScenes camera blobs (e.g. "
+                    f"{self.data_cfg.version}01..10_blobs) and extract them into {self.dataroot}")
+        if path.parent.is_dir():
+            names = getattr(self, "_folder_names", {})
+            self._folder_names = names
+            if path.parent not in names:
+                names[path.parent] = {n.lower(): n for n in (p.name for p in path.parent.iterdir())}
+            other = names[path.parent].get(path.name.lower())
+            if other is not None:
+                return (f"the folder holds {other}, its name in another case (the tables name {path.name}, and file "
+                        "names are case-sensitive): rename the files as the tables name them")
+        if getattr(self, "_missing_count", None) is None:
+            n = missing = 0
+            for token in self.sample_tokens:
+                data = self.nusc.get("sample", token).get("data") or {}
+                for cam in CAMERAS:
+                    try:
+                        name = self.nusc.get("sample_data", data[cam])["filename"]
+                    except (KeyError, TypeError):
+                        continue
+                    n += 1
+                    missing += not (self.dataroot / name).exists()
+            self._missing_count = (missing, n)
+        missing, n = self._missing_count
+        skip = ("" if self.data_cfg.on_bad_sample == "skip" else
+                ", or set data.on_bad_sample=skip to use only the samples whose images are present")
+        return (f"{missing} of the {n} camera images of split '{self.split}' are not in {self.dataroot} (a partial "
+                f"download? the nuScenes camera blobs come in parts): download and extract the missing parts{skip}")
 
     def _camera_records(self, sample: dict, cam: str) -> tuple[dict, dict]:
         """(sample_data, calibrated_sensor) of camera ``cam`` of ``sample``, their fields checked: a

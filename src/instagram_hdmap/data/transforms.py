@@ -128,6 +128,9 @@ def read_image(path: str | Path, factor: int = 1) -> tuple[np.ndarray, int]:
         buf = np.fromfile(path, dtype=np.uint8)
     except OSError as e:
         raise ImageError(f"camera image not found or unreadable: {path} ({e.strerror})") from None
+    if not len(buf):  # was "cannot be decoded (corrupt or not an image)"
+        raise ImageError(f"camera image is empty (0 bytes): {path}: a download or extraction cut short? extract or "
+                         "copy it again")
     is_jpeg = len(buf) >= 4 and buf[0] == 0xFF and buf[1] == 0xD8
     if is_jpeg and not (buf[-2] == 0xFF and buf[-1] == 0xD9) and b"\xff\xd9" not in buf[-64:].tobytes():
         raise ImageError(f"camera image is truncated (no JPEG end marker): {path}")
