@@ -396,6 +396,10 @@ class AV2MapDataset(MapDataset):
 
     def _image_path(self, log: str, cam: str, ts: int) -> Path:
         folder = self.split_dir / log / "sensors" / "cameras" / cam
+        if not folder.parent.is_dir():  # "choose the cameras with data.av2_cameras" offered a way out there is not
+            raise DatasetError(f"log {log}: {folder.parent} does not exist: the log has no camera images at all (a "
+                               "download without the sensor data's images?); training, evaluate, predict and "
+                               "show-gt need them, export-gt does not")
         if not folder.is_dir():
             raise DatasetError(f"log {log}: camera folder {folder} does not exist; the log has no {cam} images "
                                "(an incomplete log, or choose the cameras with data.av2_cameras)")
@@ -409,14 +413,17 @@ class AV2MapDataset(MapDataset):
         if path is None or not path.is_file():
             stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
             nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
-            others = sorted({q.suffix for q in folder.iterdir() if q.is_file() and q.suffix.lower() != ".jpg"})
+            # .JPG too: a folder of upper-case names was "the folder holds no images"
+            others = sorted({q.suffix for q in folder.iterdir() if q.is_file() and q.suffix != ".jpg"})
+            fix = ("rename them to <timestamp_ns>.jpg, in lower case" if {o.lower() for o in others} == {".jpg"}
+                   else "convert them to JPEG")
             detail = (f"the nearest is {folder / f'{nearest}.jpg'}, {abs(nearest - ts) / 1e6:.1f} ms away"
                       if nearest is not None else
                       f"the folder holds no .jpg images (AV2's loader reads only <timestamp_ns>.jpg; it holds "
-                      f"{', '.join(others)} files: convert them to JPEG)" if others else "the folder holds no images")
+                      f"{', '.join(others)} files: {fix})" if others else "the folder holds no images")
             raise DatasetError(f"log {log}: no {cam} image within {CAMERA_WINDOW_MS} ms of lidar sweep {ts} "
-                               f"(sensors/lidar/{ts}.feather) in {folder}: {detail}; the log's camera and lidar "
-                               "timestamps do not match")
+                               f"(sensors/lidar/{ts}.feather) in {folder}: {detail}"
+                               + ("; the log's camera and lidar timestamps do not match" if nearest is not None else ""))
         if path.stem.isdigit():  # av2's synchronisation keeps a ring camera within 25 ms: any other within 0.5 s
             check_camera_time(ts // 1000, int(path.stem) // 1000, f"log {log}, lidar sweep {ts}: camera {cam}: {path}")
         return path

@@ -208,10 +208,12 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
 
     path = map_expansion_path(dataroot, location)
     if not path.is_file():
-        raise MapError(
-            f"map expansion file not found: {path} (location '{location}'); download the nuScenes map "
-            f"expansion (v1.3) and unpack it into {Path(dataroot) / 'maps'}"
-        )
+        root = Path(dataroot)  # the expansion's zip unpacked one level off: "download it" did not say where it was
+        near = [p for p in (root / "expansion" / path.name, root / "maps" / path.name,
+                            root / "maps" / "expansion" / "expansion" / path.name) if p.is_file()]
+        where = (f"; {near[0]} is there: move its folder's map files to {path.parent}, where the devkit reads them"
+                 if near else f"; download the nuScenes map expansion (v1.3) and unpack it into {root / 'maps'}")
+        raise MapError(f"map expansion file not found: {path} (location '{location}'){where}")
     if location not in locations:
         raise MapError(f"unknown map location '{location}' in {path}; the devkit knows {', '.join(locations)}")
     try:
