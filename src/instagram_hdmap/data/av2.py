@@ -423,7 +423,8 @@ class AV2MapDataset(MapDataset):
                       f"{', '.join(others)} files: {fix})" if others else "the folder holds no images")
             raise DatasetError(f"log {log}: no {cam} image within {CAMERA_WINDOW_MS} ms of lidar sweep {ts} "
                                f"(sensors/lidar/{ts}.feather) in {folder}: {detail}"
-                               + ("; the log's camera and lidar timestamps do not match" if nearest is not None else ""))
+                               + ("; the log's camera and lidar timestamps do not match" if nearest is not None
+                                  else ""))
         if path.stem.isdigit():  # av2's synchronisation keeps a ring camera within 25 ms: any other within 0.5 s
             check_camera_time(ts // 1000, int(path.stem) // 1000, f"log {log}, lidar sweep {ts}: camera {cam}: {path}")
         return path

@@ -132,6 +132,9 @@ def _unparsable_table(table_root: Path) -> str | None:
             if data.startswith(b"\xef\xbb\xbf"):
                 return (f"{path.name} starts with a UTF-8 byte-order mark, which the nuScenes devkit cannot read; "
                         "save it as UTF-8 without one")
+            if not data.strip():  # "Expecting value: line 1 column 1" for a download cut short
+                return (f"{path.name} is empty ({len(data)} bytes): a download or extraction cut short? extract the "
+                        "metadata archive again")
             return f"{path.name} is not valid JSON: {e}"
     return None
 
