@@ -17,6 +17,7 @@ refused checks that it runs).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
 ``S26`` marks a case found by a twenty-sixth sweep (the config as users write it: keys, overrides, YAML files).
+``S29`` marks a case found by a twenty-ninth sweep (the real datasets as downloaded: nuScenes in parts, AV2 as shipped).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -5899,6 +5900,111 @@ def row_override_written_with_a_flag(env):
     with pytest.raises(SystemExit):
         env.cli("model-summary", env.yaml, "--bogus")
     assert "key=value words" not in env.capsys.readouterr().err
+
+
+@row("S29", "the official split names on a world of other scenes (data.splits_file=null, data.train_split=mini_train) "
+            "said only \"split 'mini_train' ... has no samples\"; it names the devkit's split, the version's scenes "
+            "and the official splits that hold them. A v1.0-test folder (no annotations) with its official split "
+            "'test' was refused as 'version v1.0-test has no official split'; it is read")
+def row_nuscenes_official_split_names_and_v1_0_test(env):
+    from nuscenes.utils.splits import create_splits_scenes
+
+    from instagram_hdmap.data.base import DatasetError
+
+    def test_scenes(tables):
+        names = sorted(create_splits_scenes()["test"])
+        for scene, name in zip(tables["scene"], names):
+            scene["name"] = name
+        tables["sample_annotation"], tables["instance"] = [], []
+
+    with pytest.raises(DatasetError, match=r"official split 'mini_train' \(8 scenes, .*names none of the \d+ "
+                                           r"scene\(s\) of version 'v1\.0-trainval'.*official split\(s\) \w"):
+        val_dataset(env.cfg("data.splits_file=null", "data.val_split=mini_train"))
+    root = env.shadow_world(test_scenes)
+    (root / "v1.0-trainval").rename(root / "v1.0-test")
+    ds = val_dataset(env.cfg(f"data.dataroot={root}", "data.version=v1.0-test", "data.splits_file=null",
+                             "data.val_split=test"))
+    assert len(ds) == len(json.loads((root / "v1.0-test" / "sample.json").read_text()))
+    with pytest.raises(DatasetError, match=r"official split\(s\) test: set data\.train_split / data\.val_split"):
+        val_dataset(env.cfg(f"data.dataroot={root}", "data.version=v1.0-test", "data.splits_file=null"))
+
+
+@row("S29", "nuScenes as downloaded in parts: the metadata alone (no samples/ folder), some blob parts only, images "
+            "under upper-case names (.JPG) and 0-byte images (a download cut short) were each one 'camera image not "
+            "found' or 'cannot be decoded (corrupt or not an image)'; they say that samples/ is missing, how many of "
+            "the split's images are missing (and data.on_bad_sample=skip), the name in the other case, '0 bytes'")
+def row_nuscenes_images_downloaded_in_parts(env):
+    from instagram_hdmap.data.transforms import ImageError
+
+    meta = env.tmp / "meta"
+    meta.mkdir()
+    for name in ("maps", "v1.0-trainval"):
+        (meta / name).symlink_to(env.world / name)
+    env.error(r"has no samples/ folder: the camera images are not downloaded, only the metadata \(v1\.0-trainval/\)",
+              "show-gt", env.yaml, f"data.dataroot={meta}", "--index", "0", "--out", env.tmp / "show")
+    root = env.shadow_world(copy_samples=True)
+    tables = {p.stem: json.loads(p.read_text()) for p in (root / "v1.0-trainval").glob("*.json")}
+    image = root / camera_record(tables, "CAM_FRONT")[0]["filename"]
+    ds = val_dataset(env.cfg(f"data.dataroot={root}"))
+    image.rename(image.with_suffix(".JPG"))
+    with pytest.raises(ImageError, match=r"the folder holds \S+CAM_FRONT\S+\.JPG, its name in another case"):
+        ds[0]
+    image.with_suffix(".JPG").unlink()
+    with pytest.raises(ImageError, match=r"1 of the \d+ camera images of split 'val' are not in .*partial download.*"
+                                         r"data\.on_bad_sample=skip"):
+        val_dataset(env.cfg(f"data.dataroot={root}"))[0]
+    image.write_bytes(b"")
+    with pytest.raises(ImageError, match=r"camera image is empty \(0 bytes\): \S+CAM_FRONT"):
+        ds[0]
+
+
+@row("S29", "a nuScenes download unpacked one level off: the dataroot the tar's top folder above it said 'versions "
+            "in X: none', the map expansion unpacked into the dataroot or into maps/ said 'download the map "
+            "expansion', an empty (0-byte) table 'not valid JSON: Expecting value'; each names where the files are "
+            "or that the table is empty")
+def row_nuscenes_unpacked_one_level_off(env):
+    from instagram_hdmap.data.base import DatasetError
+    from instagram_hdmap.data.local_map import MapError
+
+    top = env.tmp / "top"
+    top.mkdir()
+    (top / "nuscenes").symlink_to(env.world)
+    with pytest.raises(DatasetError, match=r"not found in \S+top, but in its subfolder \S+top/nuscenes: set "
+                                           r"data\.dataroot"):
+        _s18_dataset(env, top)
+    for where in ("expansion", "maps"):
+        root = env.tmp / f"off_{where}"
+        (root / "maps").mkdir(parents=True)
+        for name in ("samples", "v1.0-trainval"):
+            (root / name).symlink_to(env.world / name)
+        for png in (env.world / "maps").glob("*.png"):  # the basemaps the devkit's tables need
+            (root / "maps" / png.name).symlink_to(png)
+        shutil.copytree(env.world / "maps" / "expansion", root / where, dirs_exist_ok=True)
+        with pytest.raises(MapError, match=rf"{root / where}/\S+\.json is there: move its folder's map files to "
+                                           rf"{root / 'maps' / 'expansion'}"):
+            _s18_dataset(env, root)
+    root = env.shadow_world()
+    (root / "v1.0-trainval" / "sample_data.json").write_text("")
+    with pytest.raises(DatasetError, match=r"sample_data\.json is empty \(0 bytes\): a download or extraction cut"):
+        _s18_dataset(env, root)
+
+
+@row("S29", "AV2: a camera folder of <timestamp_ns>.JPG images was 'the folder holds no images; the log's camera and "
+            "lidar timestamps do not match' (both wrong); it names the .JPG files and says to rename them. A log with "
+            "no sensors/cameras at all (the real log of shared/av2_real) was told to choose cameras with "
+            "data.av2_cameras; it says the log has no images and that export-gt needs none")
+def row_av2_camera_images_upper_case_or_absent(env):
+    root, log = _av2_copy(env)
+    for image in (log / "sensors" / "cameras" / "ring_side_left").iterdir():
+        image.rename(image.with_suffix(".JPG"))
+    line = _av2_error(env, root, r"ring_side_left: the folder holds no \.jpg images .*\.JPG files: rename them")
+    assert "timestamps do not match" not in line
+    for other in sorted((root / "train").iterdir()):
+        shutil.rmtree(other / "sensors" / "cameras")
+    _av2_error(env, root, r"sensors/cameras does not exist: the log has no camera images at all .*export-gt does not")
+    rc, out, err = env.cli("export-gt", env.yaml, "data.dataset=av2", "data.splits_file=null", f"data.dataroot={root}",
+                           "--split", "train", "--out", env.tmp / "gt.json")
+    assert rc == 0, err[-2000:]
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
