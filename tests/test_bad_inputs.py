@@ -5960,8 +5960,10 @@ def row_nuscenes_images_downloaded_in_parts(env):
 
 @row("S29", "a nuScenes download unpacked one level off: the dataroot the tar's top folder above it said 'versions "
             "in X: none', the map expansion unpacked into the dataroot or into maps/ said 'download the map "
-            "expansion', an empty (0-byte) table 'not valid JSON: Expecting value'; each names where the files are "
-            "or that the table is empty")
+            "expansion', an empty (0-byte) table 'not valid JSON: Expecting value', tables one folder too deep "
+            "(v1.0-trainval/v1.0-trainval) and archives not extracted also 'versions in X: none', no maps/*.png "
+            "a bare 'AssertionError: map mask'; each names where the files are, what is missing or that the table "
+            "is empty")
 def row_nuscenes_unpacked_one_level_off(env):
     from instagram_hdmap.data.base import DatasetError
     from instagram_hdmap.data.local_map import MapError
@@ -5987,6 +5989,23 @@ def row_nuscenes_unpacked_one_level_off(env):
     (root / "v1.0-trainval" / "sample_data.json").write_text("")
     with pytest.raises(DatasetError, match=r"sample_data\.json is empty \(0 bytes\): a download or extraction cut"):
         _s18_dataset(env, root)
+    nested = env.tmp / "nested"
+    (nested / "v1.0-trainval").mkdir(parents=True)
+    (nested / "v1.0-trainval" / "v1.0-trainval").symlink_to(env.world / "v1.0-trainval")
+    with pytest.raises(DatasetError, match=r"its tables are one folder too deep, in \S+nested/v1\.0-trainval/"
+                                           r"v1\.0-trainval: move them up"):
+        _s18_dataset(env, nested)
+    archives = env.tmp / "archives"
+    archives.mkdir()
+    (archives / "v1.0-trainval_meta.tgz").write_bytes(b"")
+    with pytest.raises(DatasetError, match=r"holds the archives v1\.0-trainval_meta\.tgz: extract them there"):
+        _s18_dataset(env, archives)
+    no_png = env.tmp / "no_png"
+    no_png.mkdir()
+    (no_png / "v1.0-trainval").symlink_to(env.world / "v1.0-trainval")
+    with pytest.raises(DatasetError, match=r"the map mask \S+\.png does not exist: the basemap PNGs \(maps/\*\.png\) "
+                                           r"come with the metadata archive"):
+        _s18_dataset(env, no_png)
 
 
 @row("S29", "AV2: a camera folder of <timestamp_ns>.JPG images was 'the folder holds no images; the log's camera and "

@@ -64,6 +64,14 @@ def open_nuscenes(dataroot: str | Path, version: str):
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
         below = sorted(p for p in root.iterdir() if (p / version / "sample.json").is_file())
+        if (table_root / version / "sample.json").is_file():  # an archive extracted into a folder of its own name
+            raise DatasetError(f"nuScenes version '{version}': its tables are one folder too deep, in "
+                               f"{table_root / version}: move them up into {table_root}")
+        archives = sorted(p.name for p in root.iterdir() if p.name.endswith((".tgz", ".tar", ".tar.gz", ".zip")))
+        if archives and not found:  # "versions in X: none" beside the downloaded archives
+            raise DatasetError(f"nuScenes version '{version}' not found in {root}, which holds the archives "
+                               f"{', '.join(archives[:4])}{' ...' if len(archives) > 4 else ''}: extract them there "
+                               f"(tar -xzf FILE -C {root}), so that {table_root} holds the tables")
         if below:  # the tar's extracted top folder one level up: "versions in X: none" said nothing of where
             raise DatasetError(f"nuScenes version '{version}' not found in {root}, but in its subfolder {below[0]}: "
                                f"set data.dataroot (or --dataroot) to {below[0]}, the folder that holds {version}/, "
@@ -83,6 +91,10 @@ def open_nuscenes(dataroot: str | Path, version: str):
                            "by another, e.g. a sample_annotation of a removed sample); remove or fix the referring "
                            "records") from None
     except (AssertionError, ValueError, OSError, json.JSONDecodeError) as e:
+        if str(e).startswith("map mask ") and str(e).endswith(" does not exist"):  # the devkit's own assert
+            raise DatasetError(f"nuScenes version '{version}' in {root}: the {e}: the basemap PNGs (maps/*.png) come "
+                               f"with the metadata archive ({version}_meta): extract its maps/ folder into "
+                               f"{root}") from None
         raise DatasetError(f"cannot load nuScenes tables from {table_root}: "
                            f"{_unparsable_table(table_root) or f'{type(e).__name__}: {e}'}") from None
     except Exception as e:  # the devkit indexes records without checking them (TypeError, IndexError, ...)
