@@ -6011,11 +6011,17 @@ def row_nuscenes_unpacked_one_level_off(env):
 @row("S29", "AV2: a camera folder of <timestamp_ns>.JPG images was 'the folder holds no images; the log's camera and "
             "lidar timestamps do not match' (both wrong); it names the .JPG files and says to rename them. A log with "
             "no sensors/cameras at all (the real log of shared/av2_real) was told to choose cameras with "
-            "data.av2_cameras; it says the log has no images and that export-gt needs none")
+            "data.av2_cameras; it says the log has no images and that export-gt needs none. A root one level up "
+            "(ROOT/sensor/train, as s5cmd copies the bucket) names the subfolder")
 def row_av2_camera_images_upper_case_or_absent(env):
     root, log = _av2_copy(env)
     for image in (log / "sensors" / "cameras" / "ring_side_left").iterdir():
         image.rename(image.with_suffix(".JPG"))
+    up = env.tmp / "up"
+    up.mkdir()
+    (up / "sensor").symlink_to(root)  # s5cmd's copy of the bucket's av2/sensor/ folder
+    _av2_error(env, up, r"its folders: sensor .*; its subfolder \S+up/sensor holds the split folder 'train': "
+                        r"data\.dataroot=\S+up/sensor")
     line = _av2_error(env, root, r"ring_side_left: the folder holds no \.jpg images .*\.JPG files: rename them")
     assert "timestamps do not match" not in line
     for other in sorted((root / "train").iterdir()):

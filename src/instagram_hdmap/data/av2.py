@@ -297,6 +297,10 @@ class AV2MapDataset(MapDataset):
             elif found and all((root / name / "sensors").is_dir() for name in found if not name.startswith(".")):
                 hint = (f"; {root} is a split folder of logs: the root is the folder above it, "
                         f"data.dataroot={root.parent} with the split '{root.name}'")
+            elif below := sorted(p for p in root.iterdir() if (p / split_dir.name).is_dir()):
+                # s5cmd's copy of s3://argoverse/datasets/av2/sensor/ is ROOT/sensor/{train,val,test}: "its folders:
+                # sensor" said nothing of it
+                hint = f"; its subfolder {below[0]} holds the split folder '{split_dir.name}': data.dataroot={below[0]}"
             elif any(root.glob("*/sample.json")):  # (the converse, data.dataset=nuscenes on an AV2 root, says so too)
                 versions = sorted(p.parent.name for p in root.glob("*/sample.json"))
                 hint = f"; {root} is a nuScenes dataroot (versions {', '.join(versions)}): set data.dataset=nuscenes"
