@@ -6032,6 +6032,31 @@ def row_av2_camera_images_upper_case_or_absent(env):
     assert rc == 0, err[-2000:]
 
 
+@row("S29", "a map expansion of an earlier version (1.2) was the devkit's 'outdated map version (%s)!' (its format "
+            "string unfilled); it names the file's version and the 1.3 the devkit reads. export-gt with "
+            "data.on_bad_sample=skip where every sample's map fails wrote an empty GT file with exit 0; it is refused, "
+            "and a partial one notes how many samples were left out")
+def row_map_expansion_of_an_earlier_version(env):
+    root = env.tmp / "old_maps"
+    (root / "maps" / "expansion").mkdir(parents=True)
+    for name in ("samples", "v1.0-trainval"):
+        (root / name).symlink_to(env.world / name)
+    for png in (env.world / "maps").glob("*.png"):
+        (root / "maps" / png.name).symlink_to(png)
+    for path in (env.world / "maps" / "expansion").glob("*.json"):
+        (root / "maps" / "expansion" / path.name).write_text(json.dumps({**json.loads(path.read_text()),
+                                                                         "version": "1.2"}))
+    out = env.tmp / "gt.json"
+    env.error(r"expansion/\S+\.json: its version is 1\.2, an earlier map expansion; the devkit reads version 1\.3",
+              "export-gt", env.yaml, f"data.dataroot={root}", "--out", out)
+    with pytest.warns(UserWarning, match="export-gt: skipping sample"):  # (its progress bar on stderr too)
+        rc, _, err = env.cli("export-gt", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", "--out", out)
+    assert rc == 2 and "Traceback" not in err, err[-2000:]
+    assert re.search(r"error: every sample of split 'val' in \S+old_maps is bad \(data\.on_bad_sample=skip; see the "
+                     r"warnings\): no GT to write", err), err[-2000:]
+    assert not out.exists()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

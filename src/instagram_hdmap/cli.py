@@ -108,6 +108,9 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
     write_json(sub, args.out)
     n = sum(len(v) for v in sub["results"].values())
     print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines")
+    if len(sub["results"]) < len(dataset):
+        print(f"note: {len(dataset) - len(sub['results'])} bad sample(s) of {len(dataset)} left out "
+              "(data.on_bad_sample=skip; the warnings name them)")
     return 0
 
 

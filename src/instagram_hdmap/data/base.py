@@ -481,6 +481,9 @@ def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
             {"pts": np.round(p["pts"], 4).tolist(), "pts_num": len(p["pts"]), "type": int(p["label"])}
             for p in polylines
         ]
+    if len(dataset) and not results:  # was an empty GT file written with exit 0 ("0 samples, 0 polylines")
+        raise DatasetError(f"every sample of split '{dataset.split}' in {dataset.dataroot} is bad "
+                           "(data.on_bad_sample=skip; see the warnings): no GT to write")
     meta = {
         "use_camera": True,
         "use_lidar": False,

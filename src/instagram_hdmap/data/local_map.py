@@ -296,6 +296,10 @@ def _map_file_problem(path: Path) -> str | None:
     if not isinstance(data, dict):
         return (f"it holds a JSON {type(data).__name__}, not a map expansion (an object of layers: node, line, "
                 "polygon, ...)")
+    version = data.get("version")
+    if isinstance(version, str) and version < "1.3":  # the devkit's own words: "an outdated map version (%s)!"
+        return (f"its version is {version}, an earlier map expansion; the devkit reads version 1.3: download the map "
+                "expansion v1.3 (nuScenes-map-expansion-v1.3.zip) and unpack it into the dataroot's maps/ folder")
     missing = [k for k in ("version", "node", "line", "polygon", *DIVIDER_LAYERS, PED_LAYER, *AREA_LAYERS)
                if k not in data]
     if missing:
