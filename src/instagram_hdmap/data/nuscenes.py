@@ -436,7 +436,8 @@ class NuScenesMapDataset(MapDataset):
         if not samples.is_dir():
             return (f"{self.dataroot} has no samples/ folder: the camera images are not downloaded, only the "
                     f"metadata ({self.data_cfg.version}/); download the nuScenes camera blobs (e.g. "
-                    f"{self.data_cfg.version}01..10_blobs) and extract them into {self.dataroot}")
+                    f"{self.data_cfg.version}01..10_blobs) and extract them into {self.dataroot} (export-gt needs "
+                    "no images)")
         if path.parent.is_dir():
             names = getattr(self, "_folder_names", {})
             self._folder_names = names
