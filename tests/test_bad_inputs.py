@@ -6012,7 +6012,8 @@ def row_nuscenes_unpacked_one_level_off(env):
             "lidar timestamps do not match' (both wrong); it names the .JPG files and says to rename them. A log with "
             "no sensors/cameras at all (the real log of shared/av2_real) was told to choose cameras with "
             "data.av2_cameras; it says the log has no images and that export-gt needs none. A root one level up "
-            "(ROOT/sensor/train, as s5cmd copies the bucket) names the subfolder")
+            "(ROOT/sensor/train, as s5cmd copies the bucket) names the subfolder, and a renamed log folder (every map "
+            "file naming another log) is said to be one")
 def row_av2_camera_images_upper_case_or_absent(env):
     root, log = _av2_copy(env)
     for image in (log / "sensors" / "cameras" / "ring_side_left").iterdir():
@@ -6030,6 +6031,9 @@ def row_av2_camera_images_upper_case_or_absent(env):
     rc, out, err = env.cli("export-gt", env.yaml, "data.dataset=av2", "data.splits_file=null", f"data.dataroot={root}",
                            "--split", "train", "--out", env.tmp / "gt.json")
     assert rc == 0, err[-2000:]
+    log.rename(log.with_name("0" * 8 + log.name[8:]))  # a log folder renamed: its map files name the old id
+    _av2_error(env, root, r"is the map file of another log .*or the log folder was renamed: all its map files name "
+                          r"log ")
 
 
 @row("S29", "a map expansion of an earlier version (1.2) was the devkit's 'outdated map version (%s)!' (its format "

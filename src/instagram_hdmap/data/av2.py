@@ -145,12 +145,17 @@ _MAP_FILE_LOG = re.compile(r"^(?:log_map_archive_)?([0-9a-f]{8}-[0-9a-f]{4}-[0-9
 def check_map_files_of_the_log(log_dir: Path) -> None:
     """A ``MapError`` when a file of ``log_dir/map`` is named after another log: the map of another log copied
     in (another city or another part of it) gave that log's roads as the GT, or none, with no word."""
-    for path in sorted((log_dir / "map").glob("*")) if (log_dir / "map").is_dir() else ():
+    paths = sorted((log_dir / "map").glob("*")) if (log_dir / "map").is_dir() else []
+    named = {m.group(1) for m in map(_MAP_FILE_LOG.match, (p.name for p in paths)) if m}
+    for path in paths:
         m = _MAP_FILE_LOG.match(path.name)
         if m and m.group(1) != log_dir.name and _MAP_FILE_LOG.match(log_dir.name + "_"):
+            # every map file naming one other log: the log folder renamed more likely than three files copied in
+            renamed = (f", or the log folder was renamed: all its map files name log {m.group(1)}, as its "
+                       "other files may" if named == {m.group(1)} and len(paths) > 1 else "")
             raise MapError(f"log {log_dir.name}: {path} is the map file of another log ({m.group(1)}); every log "
                            "has its own map/ files, named after it (re-extract the log's map/ folder from the AV2 "
-                           "sensor dataset)")
+                           f"sensor dataset{renamed})")
 
 
 def load_log_map(log_dir: Path) -> _LocationMap:
