@@ -5932,7 +5932,8 @@ def row_nuscenes_official_split_names_and_v1_0_test(env):
 @row("S29", "nuScenes as downloaded in parts: the metadata alone (no samples/ folder), some blob parts only, images "
             "under upper-case names (.JPG) and 0-byte images (a download cut short) were each one 'camera image not "
             "found' or 'cannot be decoded (corrupt or not an image)'; they say that samples/ is missing, how many of "
-            "the split's images are missing (and data.on_bad_sample=skip), the name in the other case, '0 bytes'")
+            "the split's images are missing (and data.on_bad_sample=skip), the name in the other case, '0 bytes'; a "
+            "samples/ that is a link to a disk not mounted is said to be one")
 def row_nuscenes_images_downloaded_in_parts(env):
     from instagram_hdmap.data.transforms import ImageError
 
@@ -5941,6 +5942,9 @@ def row_nuscenes_images_downloaded_in_parts(env):
     for name in ("maps", "v1.0-trainval"):
         (meta / name).symlink_to(env.world / name)
     env.error(r"has no samples/ folder: the camera images are not downloaded, only the metadata \(v1\.0-trainval/\)",
+              "show-gt", env.yaml, f"data.dataroot={meta}", "--index", "0", "--out", env.tmp / "show")
+    (meta / "samples").symlink_to(env.tmp / "unmounted")  # the blobs on a disk that is not mounted
+    env.error(r"samples is a symbolic link to \S+unmounted, which does not exist \(a disk not mounted",
               "show-gt", env.yaml, f"data.dataroot={meta}", "--index", "0", "--out", env.tmp / "show")
     root = env.shadow_world(copy_samples=True)
     tables = {p.stem: json.loads(p.read_text()) for p in (root / "v1.0-trainval").glob("*.json")}
@@ -6025,8 +6029,13 @@ def row_av2_camera_images_upper_case_or_absent(env):
                         r"data\.dataroot=\S+up/sensor")
     line = _av2_error(env, root, r"ring_side_left: the folder holds no \.jpg images .*\.JPG files: rename them")
     assert "timestamps do not match" not in line
+    cameras = log / "sensors" / "cameras"
+    shutil.rmtree(cameras)
+    cameras.symlink_to(env.tmp / "unmounted")
+    _av2_error(env, root, r"sensors/cameras is a symbolic link to \S+unmounted, which does not exist")
+    cameras.unlink()
     for other in sorted((root / "train").iterdir()):
-        shutil.rmtree(other / "sensors" / "cameras")
+        shutil.rmtree(other / "sensors" / "cameras", ignore_errors=True)
     _av2_error(env, root, r"sensors/cameras does not exist: the log has no camera images at all .*export-gt does not")
     rc, out, err = env.cli("export-gt", env.yaml, "data.dataset=av2", "data.splits_file=null", f"data.dataroot={root}",
                            "--split", "train", "--out", env.tmp / "gt.json")

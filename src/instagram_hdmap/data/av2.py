@@ -53,6 +53,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import re
 from pathlib import Path
 
@@ -405,6 +406,9 @@ class AV2MapDataset(MapDataset):
 
     def _image_path(self, log: str, cam: str, ts: int) -> Path:
         folder = self.split_dir / log / "sensors" / "cameras" / cam
+        if folder.parent.is_symlink() and not folder.parent.exists():  # images on another disk
+            raise DatasetError(f"log {log}: {folder.parent} is a symbolic link to {os.readlink(folder.parent)}, "
+                               "which does not exist (a disk not mounted, or the images moved?)")
         if not folder.parent.is_dir():  # "choose the cameras with data.av2_cameras" offered a way out there is not
             raise DatasetError(f"log {log}: {folder.parent} does not exist: the log has no camera images at all (a "
                                "download without the sensor data's images?); training, evaluate, predict and "

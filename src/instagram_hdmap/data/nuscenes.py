@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import warnings
 from pathlib import Path
 
@@ -433,6 +434,9 @@ class NuScenesMapDataset(MapDataset):
         if path.exists():
             return None
         samples = self.dataroot / "samples"
+        if samples.is_symlink() and not samples.exists():  # the blobs on another disk: not "not downloaded"
+            return (f"{samples} is a symbolic link to {os.readlink(samples)}, which does not exist (a disk not "
+                    "mounted, or the images moved?)")
         if not samples.is_dir():
             return (f"{self.dataroot} has no samples/ folder: the camera images are not downloaded, only the "
                     f"metadata ({self.data_cfg.version}/); download the nuScenes camera blobs (e.g. "
