@@ -16,6 +16,7 @@ refused checks that it runs).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
+``S25`` marks a case found by a twenty-fifth sweep (the issue's own kind, done blind).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -51,7 +52,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S23"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S25"
     what: str
     run: Callable
 
@@ -5699,6 +5700,23 @@ def row_synth_out_empty_string(env):
 
     with pytest.raises(UserError, match=r"--out '': an empty path"):  # the Python API too
         generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
+
+
+@row("S25", "a zero-padded number (train.epochs=010 from `seq -w`, or `epochs: 010` in a YAML) was read as YAML 1.1's "
+            "octal 8, and `time_budget_min: 1:30` as base-60 90, exit 0 with no word; 010 is now 10 (YAML 1.2) and "
+            "1:30 a string, refused for a number key by name")
+def row_zero_padded_and_base_60_numbers(env):
+    assert env.cfg("train.epochs=010").train.epochs == 10
+    assert env.cfg("train.max_steps=1_000", "train.seed=0x10").train.seed == 16  # still read as before
+    path = env.tmp / "padded.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  epochs: 010\n  lr: 0.001\n")
+    assert load_config(path).train.epochs == 10
+    with pytest.raises(UserError, match=r"'train\.time_budget_min': expected float or null, got '1:30'"):
+        env.cfg("train.time_budget_min=1:30")
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  time_budget_min: 1:30\n")
+    with pytest.raises(UserError, match=r"'train\.time_budget_min': expected float or null, got '1:30'"):
+        load_config(path)
+    assert env.cfg("name=1:30").name == "1:30"
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

@@ -538,6 +538,29 @@ _StrictLoader.add_implicit_resolver(
 )
 
 
+def _construct_int(loader: _StrictLoader, node):
+    """YAML 1.2 integers where YAML 1.1 (PyYAML) reads a number otherwise: ``010`` (``seq -w``'s zero-padded 10,
+    an octal 8 to YAML 1.1) is 10, and ``1:30`` (a base-60 90 to YAML 1.1) is the string it looks like, which a
+    number key then refuses, naming it."""
+    text = loader.construct_scalar(node)
+    digits = text.replace("_", "").lstrip("+-")
+    if ":" in text:
+        return text
+    if len(digits) > 1 and digits[0] == "0" and digits.isdigit():
+        return int(text.replace("_", ""), 10)
+    return yaml.SafeLoader.construct_yaml_int(loader, node)
+
+
+def _construct_float(loader: _StrictLoader, node):
+    """``1:30.5``: a base-60 5430.5 to YAML 1.1, a string to YAML 1.2 and to a reader."""
+    text = loader.construct_scalar(node)
+    return text if ":" in text else yaml.SafeLoader.construct_yaml_float(loader, node)
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+_StrictLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
+
+
 def load_yaml(text: str):
     """YAML text -> Python values (safe types only; a key repeated in a mapping is an error)."""
     return yaml.load(text, Loader=_StrictLoader)
