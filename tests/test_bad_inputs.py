@@ -5719,6 +5719,25 @@ def row_zero_padded_and_base_60_numbers(env):
     assert env.cfg("name=1:30").name == "1:30"
 
 
+@row("S25", "export-onnx --out runs/x/best.pt while exporting last.pt (a slip of the file name) replaced the best "
+            "checkpoint with the ONNX graph, exit 0; export-gt and evaluate-json --out did the same with JSON. An "
+            "existing PyTorch checkpoint as an output file is refused before the work")
+def row_output_over_another_checkpoint(env):
+    best = env.tmp / "best.pt"
+    shutil.copy(env.ckpt, best)
+    before = best.read_bytes()
+    gt = env.tmp / "gt.json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err[-2000:]
+    pattern = r"--out .*best\.pt is a PyTorch checkpoint; writing the result there would destroy it"
+    env.error(pattern, "export-gt", env.yaml, "--out", best)
+    env.error(pattern, "evaluate-json", "--gt", gt, "--pred", gt, "--out", best)
+    env.error(pattern, "export-onnx", env.yaml, "--checkpoint", env.ckpt, "--out", best)
+    assert best.read_bytes() == before
+    rc, _, err = env.cli("evaluate-json", "--gt", gt, "--pred", gt, "--out", env.tmp / "metrics.json")  # any other file
+    assert rc == 0, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -127,6 +127,20 @@ def _check_parent(path: Path, flag: str) -> None:
         raise OutputError(f"{flag} {path}: no permission to write in {base}; choose a writable folder")
 
 
+def _is_torch_checkpoint(path: Path) -> bool:
+    """Whether ``path`` is an existing file in torch.save's zip format (an entry ``ARCHIVE/data.pkl``)."""
+    import zipfile
+
+    try:
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":
+                return False
+        with zipfile.ZipFile(path) as archive:
+            return any(name == "data.pkl" or name.endswith("/data.pkl") for name in archive.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
@@ -156,6 +170,9 @@ def check_output_file(path: str | Path, flag: str = "output file",
                               "destroy it: choose another output path")
     if path.is_dir():
         raise OutputError(f"{flag} {path}: is a folder; give a file name (e.g. {path / 'out.json'})")
+    if _is_torch_checkpoint(path):  # export-onnx ... --out runs/x/best.pt: no job here writes a checkpoint
+        raise OutputError(f"{flag} {path} is a PyTorch checkpoint; writing the result there would destroy it: choose "
+                          "another output path (or remove the checkpoint first)")
     if path.exists() and not os.access(path, os.W_OK):
         if read_only_file_system(path):
             raise OutputError(f"{flag} {path}: the file is on a read-only file system; choose a path on a writable one")
