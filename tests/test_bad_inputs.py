@@ -5738,6 +5738,17 @@ def row_output_over_another_checkpoint(env):
     assert rc == 0, err[-2000:]
 
 
+@row("S25", "predict --video --fps 0.001 (one frame per 1000 s, in range '> 0') ended after the model had run in "
+            "'OpenCV cannot write MP4 here; check the folder is writable and OpenCV was built with FFmpeg', the wrong "
+            "cause; the range says where OpenCV's writer stops, before the work, and 0.01 still writes")
+def row_video_fps_below_the_time_base(env):
+    argv = ("predict", env.yaml, "--checkpoint", env.ckpt, "--scene", _val_scene(env))
+    env.error(r"--fps 0\.001: frames per second must be over 0\.001 and at most 1000", *argv, "--video",
+              env.tmp / "v.mp4", "--fps", "0.001")
+    rc, _, err = env.cli(*argv, "--video", env.tmp / "slow.mp4", "--fps", "0.01")
+    assert rc == 0 and (env.tmp / "slow.mp4").stat().st_size > 0, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -499,9 +499,9 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     the left, the cameras with the predictions projected on the right. Frames run through the model in
     order, each with the previous one's ``out["memory"]`` (a temporal model; ``scene_start`` on the
     first). Written atomically. Returns ``{"video", "frames", "scene", "split", "notes"}``."""
-    if not 0 < fps <= MAX_VIDEO_FPS:
-        raise PredictError(f"--fps {fps:g}: frames per second must be > 0 and at most {MAX_VIDEO_FPS:g} (MP4's time "
-                           "base)")
+    if not 1 / MAX_VIDEO_FPS < fps <= MAX_VIDEO_FPS:  # OpenCV's MP4 writer opens for neither 1000.1 nor 0.001
+        raise PredictError(f"--fps {fps:g}: frames per second must be over {1 / MAX_VIDEO_FPS:g} and at most "
+                           f"{MAX_VIDEO_FPS:g} (MP4's time base)")
     video = Path(video)
     if video.suffix.lower() != ".mp4":
         raise PredictError(f"--video {video}: the video is written as MP4; give a file name ending in .mp4")
