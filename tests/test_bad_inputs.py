@@ -5749,6 +5749,18 @@ def row_video_fps_below_the_time_base(env):
     assert rc == 0 and (env.tmp / "slow.mp4").stat().st_size > 0, err[-2000:]
 
 
+@row("S25", "a YAML section whose keys are all commented out (`train:` then `#   epochs: 3`, YAML's null) was refused "
+            "as \"config section 'train' must be a mapping, got None\" (valid input refused); it is an empty section "
+            "now, which keeps what the _base_ file sets there")
+def row_empty_section(env):
+    path = env.tmp / "exp.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  # epochs: 3\nmodel:\n  gnn:\n")
+    cfg, base = load_config(path), load_config(env.yaml)
+    assert config_to_dict(cfg) == config_to_dict(base)
+    rc, _, err = env.cli("model-summary", path)
+    assert rc == 0, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -478,6 +478,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
     """Return a copy of dataclass ``obj`` with the nested ``updates`` applied and checked."""
+    if updates is None and prefix:  # `train:` with every key below commented out: YAML's null, an empty section
+        updates = {}
     if not isinstance(updates, dict):
         raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {updates!r}")
     hints = typing.get_type_hints(type(obj))
@@ -609,6 +611,8 @@ def deep_update(dst: dict, src: dict) -> None:
     for k, v in src.items():
         if isinstance(v, dict) and isinstance(dst.get(k), dict):
             deep_update(dst[k], v)
+        elif v is None and isinstance(dst.get(k), dict):  # an empty section (`train:`, its keys commented out)
+            continue  # adds nothing to the _base_'s
         else:
             dst[k] = v
 
