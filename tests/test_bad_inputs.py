@@ -5761,6 +5761,19 @@ def row_empty_section(env):
     assert rc == 0, err[-2000:]
 
 
+@row("S25", "data.dataroot one folder too deep (the version folder, .../v1.0-trainval) or one too high (the folder "
+            "holding the nuScenes folder) said 'versions in ...: none (set data.version or --version)', pointing at "
+            "the wrong key; each now names the dataroot to set")
+def row_dataroot_one_folder_off(env):
+    version = env.cfg().data.version
+    env.error(rf"is a version folder itself: set data\.dataroot to the folder above it, .*{env.world.name}\)",
+              "export-gt", env.yaml, f"data.dataroot={env.world / version}", "--out", env.tmp / "gt.json")
+    (env.tmp / "data").mkdir()
+    (env.tmp / "data" / "nuscenes").symlink_to(env.world, target_is_directory=True)
+    env.error(rf"the dataroot is the folder that holds {version}: set data\.dataroot to .*data/nuscenes\)",
+              "export-gt", env.yaml, f"data.dataroot={env.tmp / 'data'}", "--out", env.tmp / "gt.json")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

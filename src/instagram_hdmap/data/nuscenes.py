@@ -63,11 +63,15 @@ def open_nuscenes(dataroot: str | Path, version: str):
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
         av2 = not found and any(root.glob("*/*/city_SE3_egovehicle.feather"))  # <split>/<log>/: an AV2 root
+        below = [] if found else sorted(p.parent.parent for p in root.glob(f"*/{version}/sample.json"))
+        hint = ("(it is an Argoverse 2 sensor-dataset root: set data.dataset=av2)" if av2 else
+                f"({root} is a version folder itself: set data.dataroot to the folder above it, {root.parent})"
+                if (root / "sample.json").is_file() else
+                f"(the dataroot is the folder that holds {version}: set data.dataroot to {below[0]})" if below else
+                "(set data.version or --version)")
         raise DatasetError(
             f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; versions "
-            f"in {root}: {', '.join(found) or 'none'} "
-            + ("(it is an Argoverse 2 sensor-dataset root: set data.dataset=av2)" if av2 else
-               "(set data.version or --version)")
+            f"in {root}: {', '.join(found) or 'none'} " + hint
         )
     try:
         nusc = NuScenes(version=version, dataroot=str(root), verbose=False)
