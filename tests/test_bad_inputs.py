@@ -5774,6 +5774,29 @@ def row_dataroot_one_folder_off(env):
               "export-gt", env.yaml, f"data.dataroot={env.tmp / 'data'}", "--out", env.tmp / "gt.json")
 
 
+@row("S25", "a submission whose 'type' and 'pts_num' are whole floats (1.0: numpy's float arrays through tolist(), a "
+            "MATLAB or R writer) was refused as \"'type' must be a class id 0..2, got 1.0\" (valid input refused); "
+            "a whole float is read as its class, 1.5 is still named")
+def row_submission_whole_float_ids(env):
+    gt = env.tmp / "gt.json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err[-2000:]
+    sub = json.loads(gt.read_text())
+    sub["meta"]["ground_truth"] = False
+    for vectors in sub["results"].values():
+        for v in vectors:
+            v.update(type=float(v["type"]), pts_num=float(v["pts_num"]), confidence_level=0.9)
+    pred = env.tmp / "pred.json"
+    pred.write_text(json.dumps(sub))
+    rc, out, err = env.cli("evaluate-json", "--gt", gt, "--pred", pred)
+    assert rc == 0, err[-2000:]
+    assert float(re.search(r"mAP\s+([0-9.]+)", out).group(1)) > 0.5, out
+    token = next(t for t, vectors in sub["results"].items() if vectors)
+    sub["results"][token][0]["type"] = 1.5
+    pred.write_text(json.dumps(sub))
+    env.error(r"'type' must be a class id 0\.\.2 .*got 1\.5", "evaluate-json", "--gt", gt, "--pred", pred)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -160,6 +160,11 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
     return Submission(str(path), meta, samples, notes, counts["confidences"], counts.get("unit_confidences", 0))
 
 
+def _whole(value: object) -> object:
+    """A whole float as the int it is (1.0, from numpy's float arrays or a MATLAB writer: class 1); else as given."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
 def vectors_to_polylines(
     vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str, counts: dict | None = None
 ) -> list[dict]:
@@ -173,13 +178,13 @@ def vectors_to_polylines(
         if not isinstance(v, dict) or "pts" not in v or "type" not in v:
             raise SubmissionError(f"{what}: expected a dict with 'pts' and 'type', got {v!r:.120}")
         pts = _points(v["pts"], what)
-        n = v.get("pts_num", len(pts))
+        n = _whole(v.get("pts_num", len(pts)))
         if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n > len(pts):
             raise SubmissionError(f"{what}: 'pts_num' must be an integer in 0..{len(pts)} (len(pts)), got {n!r}")
         if n < len(pts):
             counts["truncated"] += 1
             pts = pts[:n]
-        k = v["type"]
+        k = _whole(v["type"])
         if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < num_classes:
             raise SubmissionError(f"{what}: 'type' must be a class id 0..{num_classes - 1} "
                                   f"(0 divider, 1 ped_crossing, 2 boundary), got {k!r}")
