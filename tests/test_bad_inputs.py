@@ -5797,6 +5797,25 @@ def row_submission_whole_float_ids(env):
     env.error(r"'type' must be a class id 0\.\.2 .*got 1\.5", "evaluate-json", "--gt", gt, "--pred", pred)
 
 
+@row("S25", "an argument copied from a web page with a non-breaking space (U+00A0) the terminal does not show: "
+            "train.out_dir=runs/x\\xa0 trained into a new folder whose name ends in it (exit 0), --checkpoint "
+            "best.pt\\xa0 was 'not found: best.pt ', model.gnn.layers=3\\xa0 'expected int, got 3.0 (float)'. "
+            "Each names the argument and the character; a file whose name holds one still opens")
+def row_invisible_character_in_an_argument(env):
+    nbsp = "\u00a0"
+    env.error(r"argument 'train\.out_dir=.*run\\xa0' holds a non-breaking space \(U\+00A0\)", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}{nbsp}", "train.max_steps=1")
+    assert not any(p.name.startswith("run") for p in env.tmp.iterdir())
+    env.error(r"argument '.*\.pt\\xa0' holds a non-breaking space", "evaluate", env.yaml, "--checkpoint",
+              f"{env.ckpt}{nbsp}", "--out", env.tmp / "eval")
+    env.error(r"argument 'model\.gnn\.layers=3\\u200b' holds a zero-width space \(U\+200B\)", "model-summary",
+              env.yaml, "model.gnn.layers=3\u200b")
+    named = env.tmp / f"best{nbsp}copy.yaml"  # a file that exists with the character in its name
+    shutil.copy(env.yaml, named)
+    rc, _, err = env.cli("model-summary", named)
+    assert rc == 0, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
