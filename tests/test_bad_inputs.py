@@ -5800,7 +5800,8 @@ def row_submission_whole_float_ids(env):
 @row("S25", "an argument copied from a web page with a non-breaking space (U+00A0) the terminal does not show: "
             "train.out_dir=runs/x\\xa0 trained into a new folder whose name ends in it (exit 0), --checkpoint "
             "best.pt\\xa0 was 'not found: best.pt ', model.gnn.layers=3\\xa0 'expected int, got 3.0 (float)'. "
-            "Each names the argument and the character; a file whose name holds one still opens")
+            "In a YAML file the same said \"unknown config key '  epochs'\" or made an invisible out_dir. Each names "
+            "the argument (or file and line) and the character; a file whose name holds one still opens")
 def row_invisible_character_in_an_argument(env):
     nbsp = "\u00a0"
     env.error(r"argument 'train\.out_dir=.*run\\xa0' holds a non-breaking space \(U\+00A0\)", "train", env.yaml,
@@ -5814,6 +5815,13 @@ def row_invisible_character_in_an_argument(env):
     shutil.copy(env.yaml, named)
     rc, _, err = env.cli("model-summary", named)
     assert rc == 0, err[-2000:]
+    config = env.tmp / "copied.yaml"  # the same in a YAML file: "unknown config key '  epochs'", an invisible out_dir
+    for text, shown in ((f"train:\n{nbsp}{nbsp}epochs: 3\n", r"'\\xa0\\xa0epochs: 3'"),
+                        (f"train:\n  out_dir: runs/x{nbsp}\n", r"'out_dir: runs/x\\xa0'")):
+        config.write_text(f"_base_: {env.yaml}\n" + text)
+        env.error(rf"config file .*copied\.yaml, line 3: {shown} holds a non-breaking space", "model-summary", config)
+    config.write_text(f"_base_: {env.yaml}\n# copied{nbsp}from a page\ntrain:\n  epochs: 3  # a{nbsp}note\n")
+    assert load_config(config).train.epochs == 3  # in a comment it does no harm
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

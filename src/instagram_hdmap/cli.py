@@ -24,6 +24,7 @@ from .data.synthetic.av2_writer import generate_av2_world
 from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
+from .errors import INVISIBLE
 from .evaluation import evaluate_files, format_table
 from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, os_error_in, write_json
 from .geometry import BEVGrid
@@ -545,11 +546,6 @@ def _stdout_to_devnull() -> None:
         os.dup2(devnull, sys.stdout.fileno())
     except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # stdout replaced (tests, notebooks)
         pass
-
-
-# characters a terminal shows as a space or not at all, which a command copied from a web page, a PDF or a chat carries
-INVISIBLE = {"\u00a0": "a non-breaking space", "\u202f": "a narrow non-breaking space", "\u2007": "a figure space",
-             "\u200b": "a zero-width space", "\u2060": "a word joiner", "\ufeff": "a byte-order mark"}
 
 
 def invisible_character(argv: list[str]) -> str | None:

@@ -34,7 +34,7 @@ from typing import Any, Literal, Union
 
 import yaml
 
-from .errors import UserError
+from .errors import INVISIBLE, UserError
 from .files import as_path, write_text
 
 
@@ -582,6 +582,13 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
         what = "a zip archive such as a PyTorch checkpoint" if raw[:4] == b"PK\x03\x04" else "a binary file"
         raise ConfigError(f"config file {path} is not YAML text but {what}; the first argument is the experiment "
                           "YAML (a checkpoint goes with --checkpoint)") from None
+    text = text.removeprefix("\ufeff")  # a byte-order mark (a Windows editor's) opens the file: read as before
+    for number, line in enumerate(text.splitlines(), 1):
+        chars = [c for c in INVISIBLE if c in line.split("#", 1)[0]]  # (in a comment it does no harm)
+        if chars:  # YAML takes it for text: "unknown key '  epochs'", an out_dir whose name ends in it
+            raise ConfigError(f"config file {path}, line {number}: {line.strip(' ')!r} holds {INVISIBLE[chars[0]]} "
+                              f"(U+{ord(chars[0]):04X}), which an editor shows as a space or not at all (text copied "
+                              "from a web page, a PDF or a chat?); type that line again")
     try:
         data = load_yaml(text) or {}
     except _DuplicateKey as e:
