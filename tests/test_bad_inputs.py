@@ -5763,7 +5763,7 @@ def row_empty_section(env):
 
 @row("S25", "data.dataroot one folder too deep (the version folder, .../v1.0-trainval) or one too high (the folder "
             "holding the nuScenes folder) said 'versions in ...: none (set data.version or --version)', pointing at "
-            "the wrong key; each now names the dataroot to set")
+            "the wrong key, and a file given as the dataroot was 'not found'; each now names the dataroot to set")
 def row_dataroot_one_folder_off(env):
     version = env.cfg().data.version
     env.error(rf"is a version folder itself: set data\.dataroot to the folder above it, .*{env.world.name}\)",
@@ -5772,6 +5772,9 @@ def row_dataroot_one_folder_off(env):
     (env.tmp / "data" / "nuscenes").symlink_to(env.world, target_is_directory=True)
     env.error(rf"the dataroot is the folder that holds {version}: set data\.dataroot to .*data/nuscenes\)",
               "export-gt", env.yaml, f"data.dataroot={env.tmp / 'data'}", "--out", env.tmp / "gt.json")
+    (env.tmp / "gt_val.json").write_text("{}")  # a file where the folder goes: it was "not found"
+    env.error(r"dataroot .*gt_val\.json is a file, not a folder", "export-gt", env.yaml,
+              f"data.dataroot={env.tmp / 'gt_val.json'}", "--out", env.tmp / "gt.json")
 
 
 @row("S25", "a submission whose 'type' and 'pts_num' are whole floats (1.0: numpy's float arrays through tolist(), a "
