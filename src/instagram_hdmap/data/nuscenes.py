@@ -58,8 +58,9 @@ def open_nuscenes(dataroot: str | Path, version: str):
     root = Path(dataroot)
     if not root.is_dir():
         if root.exists():  # data.dataroot=gt.json, a file given where the dataset's folder goes
-            raise DatasetError(f"nuScenes dataroot {root} is a file, not a folder; set data.dataroot (or --dataroot) to "
-                               "the folder that holds the version folder (v1.0-trainval, v1.0-mini), maps and samples")
+            raise DatasetError(f"nuScenes dataroot {root} is a file, not a folder; set data.dataroot (or --dataroot) "
+                               "to the folder that holds the version folder (v1.0-trainval, v1.0-mini), maps and "
+                               "samples")
         raise DatasetError(f"nuScenes dataroot not found: {root} (set data.dataroot or --dataroot"
                            f"{relative_path_note(root)})")
     table_root = root / version
