@@ -5827,6 +5827,20 @@ def row_invisible_character_in_an_argument(env):
     assert load_config(config).train.epochs == 3  # in a comment it does no harm
 
 
+@row("S25", "OMP_NUM_THREADS=0 or =abc (a laptop's shell profile): OpenMP said 'Invalid value' and took its default, "
+            "and the training left the threads alone as for a value the user chose, printing '(OMP_NUM_THREADS)'; an "
+            "invalid value now counts as unset (the run chooses its threads), a valid one is still left alone")
+def row_invalid_omp_num_threads(env):
+    from instagram_hdmap.train import cpu_threads
+
+    cfg = env.cfg()
+    for value in ("0", "abc", " "):
+        env.monkeypatch.setenv("OMP_NUM_THREADS", value)
+        assert isinstance(cpu_threads(cfg), int) and cpu_threads(cfg) >= 1, value
+    env.monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert cpu_threads(cfg) is None
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -420,8 +420,8 @@ def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
     decoding and torch's spin-waiting OpenMP threads otherwise fight over the same cores."""
     if cfg.train.cpu_threads is not None:
         return cfg.train.cpu_threads
-    if os.environ.get("OMP_NUM_THREADS"):
-        return None
+    if os.environ.get("OMP_NUM_THREADS", "").strip().isdigit() and int(os.environ["OMP_NUM_THREADS"]) > 0:
+        return None  # (0 or "abc": OpenMP says "Invalid value" and takes its default, so this run chooses)
     return max(1, usable_cores() // max(local_processes, 1) - cfg.data.num_workers)
 
 
