@@ -5841,6 +5841,24 @@ def row_invalid_omp_num_threads(env):
     assert cpu_threads(cfg) is None
 
 
+@row("S25", "a text key given a value that reads as a number or a date on the command line (train.out_dir=2024-12-05, "
+            "train.out_dir=12, name=true: the shell takes any quotes) was refused as \"expected str, got "
+            "datetime.date(2024, 12, 5)\" (valid input refused); it is the text typed now. In a YAML file, where "
+            "quotes stay, the message says to quote it")
+def row_text_key_that_reads_as_a_number(env):
+    cfg = env.cfg("train.out_dir=2024-12-05", "name=0755", "data.val_split=2024", "train.init_from=12")
+    assert (cfg.train.out_dir.endswith("2024-12-05") and cfg.name == "0755" and cfg.data.val_split == "2024"
+            and cfg.train.init_from.endswith("12"))
+    assert env.cfg("name=true").name == "true" and env.cfg("train.lr=3e-3").train.lr == 0.003  # numbers stay numbers
+    with pytest.raises(UserError, match=r"'train\.epochs': expected int, got datetime\.date"):
+        env.cfg("train.epochs=2024-12-05")
+    path = env.tmp / "dated.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  out_dir: 2024-12-05\n")
+    with pytest.raises(UserError, match=r"'train\.out_dir': expected str, got datetime\.date\(2024, 12, 5\) \(date\); "
+                                        r"quote it to mean text \(out_dir: \"\.\.\.\"\)"):
+        load_config(path)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import datetime
 import math
 import os
 import re
@@ -469,6 +470,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         return number
     if tp is str:
         if not isinstance(value, str):
+            if isinstance(value, (int, float, datetime.date)):  # `out_dir: 2024-12-05` in a YAML file: text meant
+                raise ConfigError(f"{bad}; quote it to mean text ({key.rsplit('.', 1)[-1]}: \"...\")") from None
             raise bad
         if not value.strip():  # `train.out_dir=$OUT` with OUT unset: "" would mean the working directory
             raise ConfigError(f"config key '{key}' is empty; give a value (an unset shell variable?)")
@@ -624,6 +627,19 @@ def deep_update(dst: dict, src: dict) -> None:
             dst[k] = v
 
 
+def _text_key(dotted: str) -> bool:
+    """Whether ``dotted`` is a key of ``ExperimentConfig`` that holds text (``str`` or ``str | None``)."""
+    tp: Any = ExperimentConfig
+    for part in dotted.split("."):
+        if not (isinstance(tp, type) and dataclasses.is_dataclass(tp)):
+            return False
+        tp = typing.get_type_hints(tp).get(part)
+        if tp is None:
+            return False
+    return tp is str or (typing.get_origin(tp) in (Union, types.UnionType) and str in typing.get_args(tp)
+                         and all(a in (str, type(None)) for a in typing.get_args(tp)))
+
+
 def parse_overrides(overrides: list[str]) -> dict:
     """``["model.gnn.layers=9", "data.image_size=[256,704]"]`` -> nested dict of YAML values."""
     nested: dict = {}
@@ -640,7 +656,9 @@ def parse_overrides(overrides: list[str]) -> dict:
         if raw.strip() == "~" and key.strip() in HOME_NOT_NULL:  # YAML's null, but these paths cannot be null:
             value = "~"  # the shell's home folder is meant (train.out_dir=~); expand_home reads it
         quoted = raw.strip()[:1] in ("'", '"')  # name="2024": a string is meant
-        if isinstance(value, str) and not quoted:  # YAML 1.1 reads "3e-3" as a string; a number is meant
+        if not quoted and isinstance(value, (int, float, datetime.date)) and _text_key(key.strip()):
+            value = raw.strip()  # train.out_dir=2024-12-05, name=12: the shell took the quotes; a text key means text
+        elif isinstance(value, str) and not quoted:  # YAML 1.1 reads "3e-3" as a string; a number is meant
             try:
                 value = float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "+inf") else value
             except ValueError:
