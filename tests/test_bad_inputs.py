@@ -5859,6 +5859,32 @@ def row_text_key_that_reads_as_a_number(env):
         load_config(path)
 
 
+@row("S25", "a checkpoint as shared or downloaded, packed: best.pt.gz / .xz said 'not a PyTorch file', a zip archive "
+            "holding best.pt 'truncated or corrupt (RuntimeError: Expected hasRecord(\"version\"))', a tar archive "
+            "'not a PyTorch file'; each now says what it is and how to unpack it")
+def row_packed_checkpoint(env):
+    import gzip
+    import lzma
+    import tarfile
+
+    data = env.ckpt.read_bytes()
+    (env.tmp / "best.pt.gz").write_bytes(gzip.compress(data))
+    (env.tmp / "best.pt.xz").write_bytes(lzma.compress(data))
+    with zipfile.ZipFile(env.tmp / "best.zip", "w") as z:
+        z.write(env.ckpt, "run/best.pt")
+    with tarfile.open(env.tmp / "best.tar", "w") as t:
+        t.add(env.ckpt, "run/best.pt")
+    for name, pattern in (("best.pt.gz", r"a gzip-compressed file \(gunzip it first\)"),
+                          ("best.pt.xz", r"a xz-compressed file \(unxz it first\)"),
+                          ("best.zip", r"not a PyTorch checkpoint but a zip archive of 1 file\(s\) \(run/best\.pt\): "
+                                       r"unzip it"),
+                          ("best.tar", r"a tar archive \(tar xf it first\)")):
+        with pytest.raises(CheckpointError, match=pattern):
+            load_checkpoint(env.tmp / name)
+    env.error(r"best\.pt\.gz is not a PyTorch checkpoint: it is a gzip-compressed file", "evaluate", env.yaml,
+              "--checkpoint", env.tmp / "best.pt.gz", "--out", env.tmp / "eval")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
