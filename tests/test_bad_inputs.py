@@ -5885,6 +5885,26 @@ def row_packed_checkpoint(env):
               "--checkpoint", env.tmp / "best.pt.gz", "--out", env.tmp / "eval")
 
 
+@row("S25", "the file's folder given for the file: evaluate-json --pred EVAL_OUT said 'cannot read ([Errno 21] Is a "
+            "directory)', --pred EVAL_OUT/metrics.json 'no results key', --checkpoint RUN_DIR 'not found (it is a "
+            "folder)'; each now names the file in the folder that is meant")
+def row_folder_given_for_its_file(env):
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-2000:]
+    gt = env.tmp / "gt.json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err[-2000:]
+    env.error(r"eval: is a folder, not a submission file; the file in it: .*eval/submission\.json", "evaluate-json",
+              "--gt", gt, "--pred", env.tmp / "eval")
+    env.error(r"metrics\.json: no 'results' key.*this is a metrics file; evaluate writes the submission as "
+              r".*eval/submission\.json", "evaluate-json", "--gt", gt, "--pred", env.tmp / "eval" / "metrics.json")
+    run = env.tmp / "run"
+    run.mkdir()
+    shutil.copy(env.ckpt, run / "best.pt")
+    env.error(r"checkpoint not found: .*run \(it is a folder\); the run's checkpoints in it: .*run/best\.pt",
+              "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval2")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -93,7 +93,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     non-finite tensor)."""
     path = as_path(path, "checkpoint path")
     if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
+        inside = [path / name for name in ("best.pt", "last.pt") if (path / name).is_file()] if path.is_dir() else []
+        raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else "") + (
+            f"; the run's checkpoints in it: {', '.join(map(str, inside))}" if inside else ""))
     with open(path, "rb") as f:
         head = f.read(4)
     if not head:

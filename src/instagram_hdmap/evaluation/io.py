@@ -100,6 +100,10 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise ValueError(f"read_submission: role must be 'pred' (a submission, with confidence_level) or 'gt', got "
                          f"{role!r}")
     path = as_path(path, "the submission file")
+    if path.is_dir():  # evaluate's --out folder: the file in it is meant
+        inside = [path / name for name in ("submission.json", "gt.json") if (path / name).is_file()]
+        raise SubmissionError(f"{path}: is a folder, not a submission file" + (
+            f"; the file in it: {inside[0]}" if inside else " (give the JSON file)"))
     try:
         with open(path, "rb") as f:
             head = f.read(2)
@@ -123,8 +127,11 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: expected a JSON object with 'meta' and 'results', got {type(data).__name__}")
     key = "results" if "results" in data else "GTs" if "GTs" in data else None
     if key is None:
+        metrics = "mAP" in data or "AP" in data  # evaluate's metrics.json, written beside its submission.json
         raise SubmissionError(
             f"{path}: no 'results' key; expected {{'meta': {{...}}, 'results': {{token: [vectors]}}}}"
+            + (f" (this is a metrics file; evaluate writes the submission as {path.parent / 'submission.json'})"
+               if metrics else "")
         )
     results = data[key]
     meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
