@@ -5905,6 +5905,22 @@ def row_folder_given_for_its_file(env):
               "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval2")
 
 
+@row("S25", "a nuScenes table written on Windows (sample_data 'filename' as str() of a WindowsPath, "
+            "samples\\\\CAM_FRONT\\\\x.jpg) was 'camera image not found' on Linux (valid input refused); the "
+            "backslashes are read as the separators they are when no file of the literal name exists")
+def row_windows_separators_in_a_table(env):
+    def backslashes(tables):
+        for record in tables["sample_data"]:
+            record["filename"] = record["filename"].replace("/", "\\")
+
+    root = env.shadow_world(backslashes)
+    windows, plain = _s18_dataset(env, root, "val"), _s18_dataset(env, env.world, "val")
+    assert torch.equal(windows.load_sample(0)["images"], plain.load_sample(0)["images"])
+    rc, _, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt, "--out",
+                         env.tmp / "eval")
+    assert rc == 0, err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -408,6 +408,9 @@ class NuScenesMapDataset(MapDataset):
         sd = self._get("sample_data", data[cam])
         for key in ("filename", "width", "height"):
             _field(sd, key, "sample_data")
+        name = sd["filename"]
+        if isinstance(name, str) and "\\" in name and not (self.dataroot / name).exists():
+            sd = {**sd, "filename": name.replace("\\", "/")}  # a table written on Windows (str() of a WindowsPath)
         for key in ("width", "height"):  # the image's size: it scales the resize and the intrinsics' use
             if isinstance(sd[key], bool) or not isinstance(sd[key], int) or sd[key] < 1:
                 table = self.dataroot / self.data_cfg.version / "sample_data.json"
