@@ -5921,6 +5921,16 @@ def row_windows_separators_in_a_table(env):
     assert rc == 0, err[-2000:]
 
 
+@row("S25", "a YAML file written with the command line's dotted keys (`train.epochs: 3` at the top level) said only "
+            "\"unknown config key 'train.epochs'; valid keys of '<root>': ..., train, ...\", listing the very section; "
+            "it now says to nest the key")
+def row_dotted_key_in_a_yaml_file(env):
+    path = env.tmp / "flat.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain.epochs: 3\n")
+    env.error(r"unknown config key 'train\.epochs'.*\(a dotted key in a YAML file: nest it, train: then epochs: "
+              r"indented below it\)", "model-summary", path)
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -495,8 +495,12 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
             if renamed is not None:
                 raise ConfigError(f"config key '{key}' was renamed '{renamed}'; write {renamed} (checkpoints "
                                   "saved with the old name still load)")
+            head, _, rest = str(name).partition(".")
+            nested = (f" (a dotted key in a YAML file: nest it, {head}: then {rest}: indented below it)"
+                      if rest and head in names else "")
             raise ConfigError(
                 f"unknown config key '{key}'; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
+                + nested
             )
         current = getattr(obj, name)
         if dataclasses.is_dataclass(current):
