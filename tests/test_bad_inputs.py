@@ -5931,6 +5931,21 @@ def row_dotted_key_in_a_yaml_file(env):
               r"indented below it\)", "model-summary", path)
 
 
+@row("S25", "predict-images with a temporal checkpoint ran it on one frame with an empty memory and no word, where "
+            "predict says so for a scene's first frame; it now notes that the frame has no memory and how to carry one")
+def row_predict_images_temporal_model(env):
+    from instagram_hdmap.models import build_model
+
+    cfg = env.cfg("model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3")
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    rig, images = _rig_files(env)
+    rc, out, err = env.cli("predict-images", "--checkpoint", ckpt, "--rig", rig, "--out", env.tmp / "out", *images)
+    assert rc == 0 and "a temporal model (bev memory) on one frame: no memory" in out + err, (out + err)[-2000:]
+    rc, out, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "o2", *images)
+    assert rc == 0 and "temporal" not in out + err, (out + err)[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -448,6 +448,10 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
             "images": [str(p) for p in images]}
     paths = write_together(Path(out), figures, {name: preds}, meta)
     notes = []
+    if mapper.config.model.temporal.memory != "none":  # as predict says for a scene's first frame
+        notes.append(f"a temporal model ({mapper.config.model.temporal.memory} memory) on one frame: no memory, as on "
+                     "a drive's first frame (a single-frame model's prediction; the Python API's mapper.stream() "
+                     "carries the memory from frame to frame)")
     if mapper.config.data.dataset == "av2" and getattr(rig, "ground_height", 0.0) == 0.0:
         # AV2's ego origin (the rear axle) is 0.33-0.43 m above the road, the frame the model was trained in
         notes.append(f"the model was trained on AV2 (ego origin on the rear axle, the road about 0.38 m below it) and "
