@@ -5946,6 +5946,17 @@ def row_predict_images_temporal_model(env):
     assert rc == 0 and "temporal" not in out + err, (out + err)[-2000:]
 
 
+@row("S25", "demo --out a file, or a path below a file: 'cannot write there (File exists)', naming neither the file "
+            "nor the cause (synth's was fixed in sweep 24); the demo takes the output-folder check of the other jobs")
+def row_demo_out_a_file(env):
+    (env.tmp / "notes.txt").write_text("mine")
+    env.error(r"--out .*notes\.txt: is a file, not a folder", "demo", "--out", env.tmp / "notes.txt", "--cache",
+              env.tmp / "cache")
+    env.error(r"--out .*notes\.txt/run: .*notes\.txt is a file", "demo", "--out", env.tmp / "notes.txt" / "run",
+              "--cache", env.tmp / "cache")
+    assert (env.tmp / "notes.txt").read_text() == "mine"
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
