@@ -5957,6 +5957,18 @@ def row_demo_out_a_file(env):
     assert (env.tmp / "notes.txt").read_text() == "mine"
 
 
+@row("S25", "evaluate with data.val_split=train (a debugging override left in a config, or copied) scored the very "
+            "samples the checkpoint was trained on and reported that AP with no word; a note says the split is the "
+            "checkpoint's training split")
+def row_evaluate_on_the_training_split(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "seen",
+                           "data.val_split=train")
+    assert rc == 0, err[-2000:]
+    assert "data.val_split='train' is the split the checkpoint was trained on" in out + err, (out + err)[-2000:]
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "unseen")
+    assert rc == 0 and "the split the checkpoint was trained on" not in out + err, (out + err)[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
