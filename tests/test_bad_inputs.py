@@ -5701,6 +5701,34 @@ def row_synth_out_empty_string(env):
         generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
 
 
+@row("S27", "synth --force over a world that a training (or an evaluation, a prediction) in another process was "
+            "reading replaced it under that process, both exit 0: the new world's images have the old one's file "
+            "names, so the training went on with them and the old world's maps and poses; the synth is now refused, "
+            "naming --out")
+def row_synth_force_over_a_world_being_read(env):
+    world = env.tmp / "w"
+    shutil.copytree(env.world, world)
+    code = ("import sys, time\n"
+            "from instagram_hdmap.config import load_config\n"
+            "from instagram_hdmap.data import build_dataset\n"
+            f"cfg = load_config({str(env.yaml)!r}, ['data.dataroot={world}',\n"
+            f"                  'data.splits_file={world / 'splits.json'}'])\n"
+            "build_dataset(cfg, cfg.data.train_split)\n"
+            "print('reading', flush=True); time.sleep(60)\n")
+    reader = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert reader.stdout.readline().strip() == "reading"
+        before = (world / "world.json").read_text()
+        env.error(r"--out .*w: the world there is being read by another process .*choose another --out", "synth",
+                  "--out", world, "--force", "--seed", "7", "--scenes-train", "1", "--scenes-val", "0",
+                  "--samples-per-scene", "1", "--image-size", "160x90")
+        assert (world / "world.json").read_text() == before
+    finally:
+        reader.kill()
+        reader.wait()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -392,6 +392,69 @@ def unlock_folder(folder: str | Path) -> None:
         handle.close()
 
 
+# A synthetic world's manifest (world.json) that this process reads the world of: a shared lock on it, held for the
+# rest of the process, tells a world generator in another process not to replace the world under it
+_READING: dict[str, object] = {}
+
+
+def hold_world(root: str | Path, manifest: str = "world.json") -> None:
+    """A shared lock (flock) on ``root/manifest`` for the rest of this process, when there is one (a world written
+    by ``synth``): ``claim_world`` in another process (``synth --force`` of that folder) is then refused instead of
+    replacing the world under this one's datasets (the same file names, other scenes: a training went on with the
+    new world's images and the old world's maps and poses, exit 0). Nothing where there is no manifest, no fcntl or
+    no file locks (read-only folders lock too: the file is opened for reading)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return
+    path = Path(root) / manifest
+    try:
+        key = str(path.resolve())
+        if key in _READING or not path.is_file():
+            return
+        handle = open(path, "rb")  # held for the rest of the process
+    except (OSError, RuntimeError):
+        return
+    try:
+        fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:  # a generator replacing it right now, or no locks here: nothing held
+        handle.close()
+        return
+    _READING[key] = handle
+
+
+def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
+    """An exclusive lock on the world at ``root`` that is about to be replaced (None where there is none to lock),
+    held by the caller until the replacement is done. This process's own ``hold_world`` of it is given up (its
+    own doing); another process's is a ``UserError`` naming ``what`` (the argument, e.g. --out)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    path = Path(root) / manifest
+    try:
+        if not path.is_file():
+            return None
+        own = _READING.pop(str(path.resolve()), None)
+        if own is not None:
+            own.close()
+        handle = open(path, "rb")  # the caller closes it
+    except (OSError, RuntimeError):
+        return None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise UserError(f"{what} {root}: the world there is being read by another process (a training, evaluation "
+                        f"or prediction with data.dataroot={root}); replacing it now would change its images under "
+                        "it (the same file names, other scenes): wait for that process to end, or choose another "
+                        f"{what}") from None
+    except OSError:  # no locks on this file system
+        handle.close()
+        return None
+    return handle
+
+
 @contextmanager
 def locked_folder(folder: str | Path, job: str, advice: str, note: Callable[[str], None] = print,
                   enabled: bool = True) -> Iterator[Path]:

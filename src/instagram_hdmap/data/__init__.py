@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ..config import as_config
+from ..files import hold_world
 from .av2 import AV2MapDataset
 from .nuscenes import NuScenesMapDataset
 from .rig import CAMERAS
@@ -18,6 +19,7 @@ def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     if augment is not None and not isinstance(augment, bool):  # augment="no" is truthy: it augmented
         raise TypeError(f"build_dataset: augment must be True, False or None (the split's default), got "
                         f"{augment!r:.40}")
+    hold_world(cfg.data.dataroot)  # a synthetic world: synth --force elsewhere does not replace it under this process
     if cfg.data.dataset == "av2":
         return AV2MapDataset(cfg, split, augment=augment)
     return NuScenesMapDataset(cfg, split, nusc=getattr(like, "nusc", None), augment=augment)
