@@ -5729,6 +5729,30 @@ def row_synth_force_over_a_world_being_read(env):
         reader.wait()
 
 
+@row("S27", "train.out_dir renamed while the run wrote to it: a raw FileNotFoundError traceback from TensorBoard's "
+            "writer thread (or, when the next save came first, a new folder of the old name holding a lone last.pt); "
+            "now one line naming the folder, the step, and where it is now to resume")
+def row_run_folder_renamed_during_training(env):
+    from instagram_hdmap import train as train_module
+
+    run, moved = env.tmp / "run", env.tmp / "run2"
+    save = train_module.save_checkpoint
+
+    def save_then_rename(state, path):  # the user's `mv run run2` right after the first epoch's checkpoint
+        out = save(state, path)
+        if not moved.exists() and Path(path).name == "last.pt":
+            run.rename(moved)
+        return out
+
+    env.monkeypatch.setattr(train_module, "save_checkpoint", save_then_rename)
+    with pytest.raises(UserError, match=rf"train.out_dir {re.escape(str(run))} was moved or removed while this run "
+                                        rf"wrote to it.*stopped at step \d+ .*it is now {re.escape(str(moved))}: "
+                                        rf"resume there with --resume {re.escape(str(moved / 'last.pt'))}"):
+        _toy_run(env, [0.2, 0.3], "train.epochs=2", "train.batch_size=2")
+    assert not run.exists() and (moved / "last.pt").is_file()
+    assert load_checkpoint(moved / "last.pt")["step"] >= 1
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

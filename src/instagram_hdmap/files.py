@@ -455,6 +455,19 @@ def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
     return handle
 
 
+def held_folder_now(folder: str | Path) -> Path | None:
+    """Where the folder this process holds ``lock_folder``'s lock on is now (moved or renamed since: its lock file,
+    followed through /proc); None where that is not known (no lock held, no /proc, the folder removed)."""
+    try:
+        handle = _LOCKS.get(str(Path(folder).resolve()))
+        if handle is None:
+            return None
+        target = os.readlink(f"/proc/self/fd/{handle.fileno()}")
+    except (OSError, RuntimeError, ValueError):
+        return None
+    return None if target.endswith(" (deleted)") else Path(target).parent
+
+
 @contextmanager
 def locked_folder(folder: str | Path, job: str, advice: str, note: Callable[[str], None] = print,
                   enabled: bool = True) -> Iterator[Path]:

@@ -30,6 +30,7 @@ import random
 import re
 import shutil
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -65,7 +66,15 @@ from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
-from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder, write_text
+from .files import (
+    LOCK_FILE,
+    check_output_dir,
+    held_folder_now,
+    lock_folder,
+    remove_stale_temporaries,
+    unlock_folder,
+    write_text,
+)
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .losses import Criterion
@@ -576,6 +585,7 @@ class TrainingRun:
         self.line_due = False
         # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
+        self.out_dir_id = folder_id(out_dir)  # the folder itself: moved or removed during the run, it is named
 
     # --- start --------------------------------------------------------------------------------------
 
@@ -730,12 +740,24 @@ class TrainingRun:
             if self.log_lines is not None:  # the same for the log's lines (a checkpoint that counts them)
                 self.log_lines = purge_log(self.out_dir / "log.jsonl", self.log_lines, du.print_main)
             self.log_file = (self.out_dir / "log.jsonl").open("a")
+        previous_hook = threading.excepthook
+
+        def thread_failed(args):  # TensorBoard's writer thread, once the folder is gone: said once by fit
+            if not (isinstance(args.exc_value, OSError) and self.out_dir_moved()):
+                previous_hook(args)
+
+        threading.excepthook = thread_failed
         try:
             yield
         finally:
+            threading.excepthook = previous_hook
             for handle in (self.log_file, self.writer):
                 if handle is not None:
-                    handle.close()
+                    try:
+                        handle.close()
+                    except OSError:  # the folder moved away: fit said so; its error is not hidden by this one
+                        if not self.out_dir_moved():
+                            raise
 
     def announce(self) -> None:
         """Start the clock, set the first learning rate, print the threads and the schedule."""
@@ -819,6 +841,10 @@ class TrainingRun:
             du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
                           f"{self.out_dir / 'last.pt'})")
             raise
+        except OSError as e:  # the run's folder moved or removed under it: one line, not TensorBoard's traceback
+            if not self.out_dir_moved():
+                raise
+            raise self.moved_error(e) from None
         except RuntimeError as e:  # a data-loader worker killed (the OOM killer): saved as for Ctrl-C, one line
             died = data_worker_died(e)
             if died is None:
@@ -915,6 +941,8 @@ class TrainingRun:
         memories = memory_state(self.memory, gather) if p.step_in_epoch else None
         if not du.is_main_process():
             return
+        if self.out_dir_moved():  # the save would make a new folder of that name, with a checkpoint and nothing else
+            raise self.moved_error(None)
         save_checkpoint({
             "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
             "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
@@ -923,6 +951,22 @@ class TrainingRun:
             "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
             "world": self.world, "log_lines": self.log_lines,
         }, self.out_dir / name)
+
+    def out_dir_moved(self) -> bool:
+        """Whether ``train.out_dir`` is no longer the folder this run started in (renamed, moved or removed)."""
+        return self.out_dir_id is not None and folder_id(self.out_dir) != self.out_dir_id
+
+    def moved_error(self, cause: OSError | None) -> UserError:
+        now = held_folder_now(self.out_dir)
+        where = (f"it is now {now}: resume there with --resume {now / 'last.pt'} train.out_dir={now}" if now else
+                 "its checkpoints went with it: resume from its last.pt where it is now, with train.out_dir set to "
+                 "that folder")
+        name = cause.filename if cause is not None else None
+        why = (f" ({cause.strerror or cause}" + (f": {os.fsdecode(name)}" if isinstance(name, (str, bytes)) else "")
+               + ")") if cause is not None else ""
+        return UserError(f"train.out_dir {self.out_dir} was moved or removed while this run wrote to it{why}; the run "
+                         f"stopped at step {self.position.step} (the steps since its last checkpoint are trained "
+                         f"again on resume); {where}")
 
     def log(self) -> None:
         if self.log_file is not None:
@@ -1000,6 +1044,15 @@ def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | 
             raise UserError(f"train.init_from={path} is the {name} of train.out_dir={out_dir}, which this run "
                             "starts over (--force removes it, the run's own saves replace it): copy it out of the "
                             "folder first, or choose another train.out_dir")
+
+
+def folder_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the folder ``path`` (None where there is none)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _same_path(a: Path, b: Path) -> bool:
