@@ -5753,6 +5753,39 @@ def row_run_folder_renamed_during_training(env):
     assert load_checkpoint(moved / "last.pt")["step"] >= 1
 
 
+@row("S27", "--resume with a model key that leaves the model's computation as it is was refused as 'an incompatible "
+            "config': model.backbone.grad_checkpoint (turned on after running out of memory), the decoding options "
+            "(model.gnn.decoder, read at validation only); now it resumes, and a decoding option is named in the note "
+            "that best.pt's score was measured with another validation")
+def row_resume_with_a_memory_or_decoding_setting(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "model.backbone.grad_checkpoint=false",
+                       "model.gnn.decoder=mutual", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    assert re.search(r"note: the best score so far .*another validation \(model\.gnn\.decoder: checkpoint 'greedy' "
+                     r"vs now 'mutual'\)", out), out
+    assert "grad_checkpoint" not in out  # the same model, the same scores: nothing to say
+
+
+@row("S27", "--resume with another train.lr, train.schedule, train.warmup, data.augment ... went on with no word, and "
+            "config.yaml was rewritten with the new values as if the whole run had been trained with them; now a note "
+            "names each changed training setting and says the steps so far were trained with the checkpoint's")
+def row_resume_with_other_training_settings_noted(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "train.lr=0.01", "train.warmup=0.5",
+                       "train.max_steps=null", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: resumed with training settings")), "")
+    assert "train.lr: checkpoint 0.001 vs now 0.01" in note and "train.warmup: checkpoint 0.0 vs now 0.5" in note, out
+    assert "the 1 step(s) so far trained with the checkpoint's" in note and "max_steps" not in note, note
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -81,7 +81,7 @@ from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
 from .persistence import Persistence
-from .postprocess import decode_options, postprocess_batch
+from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
 # Config keys that must match for a checkpoint to be resumed: those that define the model and those
@@ -96,9 +96,24 @@ RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "da
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
+# the model keys a resume may change: read at inference only (the decoding options, element persistence) or not at
+# all on a resume (the ImageNet weights, which the checkpoint's replace), or a training knob that leaves the model's
+# computation as it is (gradient checkpointing trades memory for time; the memory dropout's rate); a resume with
+# model.backbone.grad_checkpoint=true after running out of memory was refused as "an incompatible config"
+RESUME_FREE = tuple(k for k in NOT_BAKED if k != "data.av2_cameras")  # (the AV2 cameras: which images, in which order)
 # what the validation score that picks best.pt measures: a resume may change them, but its scores are then of another
-# kind than the best score it carries (a raster mAP compared with a vector one, another split's), which a note says
-SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split")
+# kind than the best score it carries (a raster mAP compared with a vector one, another split's, other decoding's),
+# which a note says
+SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split",
+              *DECODE_KEYS, "model.temporal.persist_frames", "model.temporal.persist_decay",
+              "model.temporal.persist_match_m")
+# the training settings a resume may change, which then hold from its position on (the steps so far were trained with
+# the checkpoint's): said in a note, as config.yaml and the next checkpoints record only the new values (a resume with
+# another train.lr, train.schedule or train.warmup went on with no word, the run's record rewritten)
+RESUME_NOTED = ("train.epochs", "train.lr", "train.weight_decay", "train.schedule", "train.lr_step", "train.lr_gamma",
+                "train.warmup", "train.min_lr_factor", "train.grad_clip", "train.amp", "train.on_nonfinite",
+                "train.deterministic", "data.augment", "data.aug_scale", "data.aug_rotate_deg", "data.aug_crop_jitter",
+                "data.camera_dropout", "data.on_bad_sample", "model.temporal.drop_prob")
 
 
 def train_set_fingerprint(loader) -> dict | None:
@@ -247,7 +262,8 @@ def config_differences(old: ExperimentConfig, cfg: ExperimentConfig, keys) -> st
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
     old = saved_config(ckpt_cfg, f"checkpoint {path}")
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
-    lines = config_differences(old, cfg, keys)
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys) and not is_under(k, RESUME_FREE)]
+    lines = config_differences(old, cfg, differ)
     if lines:
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
                               f"the config it was trained with, or start a new run from its weights with "
@@ -635,7 +651,13 @@ class TrainingRun:
                               f"from step {run.position.step} and its next save replaces that last.pt (to continue "
                               f"from step {later} instead, stop now and pass --resume {out_dir / 'last.pt'})")
             best = run.best.get("score", -math.inf)
-            measured = config_differences(saved_config(state["config"], f"checkpoint {resume}"), cfg, SCORE_KEYS)
+            saved = saved_config(state["config"], f"checkpoint {resume}")
+            changed = config_differences(saved, cfg, RESUME_NOTED)
+            if changed and run.clock.last < 1.0:
+                du.print_main(f"note: resumed with training settings other than the checkpoint's ({changed}): the "
+                              f"{run.position.step} step(s) so far trained with the checkpoint's, the rest train with "
+                              "these, and config.yaml and the next checkpoints record only these")
+            measured = config_differences(saved, cfg, SCORE_KEYS)
             if measured and math.isfinite(best):
                 du.print_main(f"note: the best score so far ({best:.4g}, best.pt's) was measured with another "
                               f"validation ({measured}); this run's scores replace best.pt only where they exceed it, "
