@@ -5786,6 +5786,26 @@ def row_resume_with_other_training_settings_noted(env):
     assert "the 1 step(s) so far trained with the checkpoint's" in note and "max_steps" not in note, note
 
 
+@row("S27", "evaluate --out into the folder of a running training (a run folder as the evaluation's output) was "
+            "refused as 'another evaluation is running in RUN': the lock named the job of the process refused, not "
+            "the one holding it; now 'another training is running'")
+def row_lock_names_the_job_that_holds_it(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    code = ("import time\nfrom instagram_hdmap.files import lock_folder\n"
+            f"lock_folder({str(run)!r}, 'training', 'choose another train.out_dir')\n"
+            "print('locked', flush=True); time.sleep(60)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        env.error(rf"another training is running in .*run \(process {holder.pid}\); .*choose another --out",
+                  "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", run)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

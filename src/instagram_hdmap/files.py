@@ -361,9 +361,9 @@ def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str],
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:  # EWOULDBLOCK: another process holds it
-        owner = handle.read().strip()
-        handle.close()
-        raise UserError(f"another {job} is running in {folder} (process {owner or '?'}); wait for it to end "
+        owner, _, theirs = handle.read().strip().partition(" ")  # "PID JOB" (a bare PID: a lock of an older version)
+        handle.close()  # (their job, not ours: an evaluation into a running training's folder was "another evaluation")
+        raise UserError(f"another {theirs or job} is running in {folder} (process {owner or '?'}); wait for it to end "
                         f"(or stop it), or {advice}") from None
     except OSError as e:  # no locks on this file system: was read as "another job is running"
         handle.close()
@@ -374,7 +374,7 @@ def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str],
         return
     handle.seek(0)
     handle.truncate()
-    handle.write(f"{os.getpid()}\n")
+    handle.write(f"{os.getpid()} {job}\n")
     handle.flush()
     _LOCKS[key] = handle
 
