@@ -5806,6 +5806,21 @@ def row_lock_names_the_job_that_holds_it(env):
         holder.wait()
 
 
+@row("S27", "train.init_from of a checkpoint of another model config whose weights have the same names and shapes "
+            "(model.gnn.heads 4 -> 8: each attention projection split into other heads; another model.gnn.nms or "
+            "num_vertices) loaded with no word; now a note names the model keys that differ")
+def row_init_from_other_model_settings_noted(env):
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1")
+    ckpt = shutil.copy(env.tmp / "run" / "last.pt", env.tmp / "heads4.pt")
+    env.capsys.readouterr()
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1", f"train.init_from={ckpt}", "model.gnn.heads=8",
+             "model.gnn.decoder=mutual", force=True)
+    out = env.capsys.readouterr().out
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: the checkpoint of train.init_from")), "")
+    assert "model.gnn.heads: checkpoint 4 vs now 8" in note, out
+    assert "decoder" not in note  # read at inference only: nothing to say
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

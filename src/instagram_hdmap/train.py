@@ -570,6 +570,11 @@ class TrainingRun:
             new = init_weights(self.model, init_state, cfg)
             du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
                                                                   "start from their initialisation)" if new else ""))
+            other = init_model_differences(init_state, cfg)
+            if other:  # weights of the same names and shapes, loaded with no word (8 attention heads from 4)
+                du.print_main(f"note: the checkpoint of train.init_from was trained with other model settings "
+                              f"({other}); its weights have this model's names and shapes and start this run, which "
+                              "trains them under these settings")
             if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
                 du.print_main(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
                               f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
@@ -1099,6 +1104,16 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
             raise UserError(f"train.init_from={path}: the checkpoint was trained with other inputs or geometry "
                             f"({lines}); its weights would mean something else here")
     return state
+
+
+def init_model_differences(state: dict, cfg: ExperimentConfig) -> str:
+    """The ``model.*`` keys (but those an inference reads only, ``NOT_BAKED``) on which the config of
+    ``train.init_from``'s checkpoint and ``cfg`` differ, as ``config_differences`` says them ("" if none)."""
+    if not isinstance(state.get("config"), dict):
+        return ""
+    old = saved_config(state["config"], "the checkpoint of train.init_from")
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
+    return config_differences(old, cfg, differ)
 
 
 def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:
