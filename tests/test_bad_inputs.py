@@ -5821,6 +5821,18 @@ def row_init_from_other_model_settings_noted(env):
     assert "decoder" not in note  # read at inference only: nothing to say
 
 
+@row("S27", "evaluate --checkpoint RUN (a training run's folder, as train.out_dir names it): 'checkpoint not found: "
+            "RUN (it is a folder)', not which file to give; now it names RUN/best.pt and RUN/last.pt")
+def row_checkpoint_given_as_a_run_folder(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    shutil.copy(env.ckpt, run / "best.pt")
+    shutil.copy(env.ckpt, run / "last.pt")
+    env.error(rf"checkpoint not found: .*run \(it is a folder: a training run's; give the checkpoint in it, "
+              rf"{re.escape(str(run / 'best.pt'))} or {re.escape(str(run / 'last.pt'))}\)",
+              "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval")
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
