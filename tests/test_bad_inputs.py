@@ -5833,6 +5833,19 @@ def row_checkpoint_given_as_a_run_folder(env):
               "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval")
 
 
+@row("S27", "--resume with a train.epochs whose schedule ends before the checkpoint's step (3 epochs cut to 1 at "
+            "step 3 of epoch 1): 'done', exit 0, after no step, with last.pt and config.yaml still of the 3-epoch run; "
+            "now refused, naming the step where the new schedule ends and the epochs that would finish it")
+def row_resume_with_fewer_epochs_than_done(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2, 0.25], "train.epochs=3", "train.max_steps=3")  # two steps an epoch: step 3 is in epoch 1
+    with pytest.raises(UserError, match=r"train\.epochs=1 ends the schedule at step 2, before checkpoint .*last\.pt's "
+                                        r"step 3 \(epoch 1 of its 3\): nothing would be trained; resume with "
+                                        r"train\.epochs=2 or more"):
+        _toy_run(env, [], "train.epochs=1", resume=str(run / "last.pt"))
+    assert _toy_run(env, [0.3], "train.epochs=2", resume=str(run / "last.pt"))["step"] == 4  # cut to 2: runs
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -724,9 +724,16 @@ class TrainingRun:
     def check_not_finished(self, state: dict, path: Path) -> None:
         """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
         an error (the schedule's progress cannot be extended), resuming it as it was a note."""
-        if self.clock.last < 1.0:
-            return
         old_epochs = (state.get("config", {}).get("train") or {}).get("epochs")
+        if self.clock.last < 1.0:
+            p = self.position
+            if old_epochs is not None and old_epochs != self.cfg.train.epochs and p.step > self.total_steps:
+                # a shorter schedule that ends before the checkpoint: "done" after no step, exit 0, nothing written
+                raise UserError(f"train.epochs={self.cfg.train.epochs} ends the schedule at step {self.total_steps}, "
+                                f"before checkpoint {path}'s step {p.step} (epoch {p.epoch} of its {old_epochs}): "
+                                f"nothing would be trained; resume with train.epochs={p.epoch + 1} or more (or its "
+                                f"own {old_epochs}) to finish it")
+            return
         if old_epochs is not None and old_epochs != self.cfg.train.epochs:
             raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
                             f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
