@@ -5714,7 +5714,7 @@ def row_synth_force_over_a_world_being_read(env):
             "from instagram_hdmap.data import build_dataset\n"
             f"cfg = load_config({str(env.yaml)!r}, ['data.dataroot={world}',\n"
             f"                  'data.splits_file={world / 'splits.json'}'])\n"
-            "build_dataset(cfg, cfg.data.train_split)\n"
+            "dataset = build_dataset(cfg, cfg.data.train_split)  # held while it lives\n"
             "print('reading', flush=True); time.sleep(60)\n")
     reader = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
                               env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})

@@ -392,35 +392,45 @@ def unlock_folder(folder: str | Path) -> None:
         handle.close()
 
 
-# A synthetic world's manifest (world.json) that this process reads the world of: a shared lock on it, held for the
-# rest of the process, tells a world generator in another process not to replace the world under it
-_READING: dict[str, object] = {}
+# The synthetic worlds' manifests (world.json) that this process reads the world of: a shared lock on each, held while
+# a dataset of it lives, tells a world generator in another process not to replace the world under it
+_READING: dict[str, list] = {}
 
 
-def hold_world(root: str | Path, manifest: str = "world.json") -> None:
-    """A shared lock (flock) on ``root/manifest`` for the rest of this process, when there is one (a world written
-    by ``synth``): ``claim_world`` in another process (``synth --force`` of that folder) is then refused instead of
-    replacing the world under this one's datasets (the same file names, other scenes: a training went on with the
-    new world's images and the old world's maps and poses, exit 0). Nothing where there is no manifest, no fcntl or
-    no file locks (read-only folders lock too: the file is opened for reading)."""
+def hold_world(root: str | Path, manifest: str = "world.json"):
+    """A shared lock (flock) on ``root/manifest`` when there is one (a world written by ``synth``), as an open file
+    (None where none is taken) that the caller gives back with ``release_world`` (``data.build_dataset``: when its
+    dataset is collected). While it is held, ``claim_world`` in another process (``synth --force`` of that folder) is
+    refused instead of replacing the world under this one's datasets (the same file names, other scenes: a training
+    went on with the new world's images and the old world's maps and poses, exit 0). Nothing where there is no
+    manifest, no fcntl or no file locks (read-only folders lock too: the file is opened for reading)."""
     try:
         import fcntl
     except ImportError:  # not POSIX
-        return
-    path = Path(root) / manifest
+        return None
     try:
+        path = Path(root) / manifest
         key = str(path.resolve())
-        if key in _READING or not path.is_file():
-            return
-        handle = open(path, "rb")  # held for the rest of the process
-    except (OSError, RuntimeError):
-        return
+        if not path.is_file():
+            return None
+        handle = open(path, "rb")  # given back by release_world
+    except (OSError, RuntimeError, TypeError, ValueError):  # (a dataroot the dataset itself names)
+        return None
     try:
         fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except OSError:  # a generator replacing it right now, or no locks here: nothing held
         handle.close()
-        return
-    _READING[key] = handle
+        return None
+    _READING.setdefault(key, []).append(handle)
+    return handle
+
+
+def release_world(handle) -> None:
+    """Give back a lock of ``hold_world`` (nothing if already given back)."""
+    for held in _READING.values():
+        if handle in held:
+            held.remove(handle)
+    handle.close()
 
 
 def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
@@ -435,8 +445,7 @@ def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
     try:
         if not path.is_file():
             return None
-        own = _READING.pop(str(path.resolve()), None)
-        if own is not None:
+        for own in _READING.pop(str(path.resolve()), []):  # this process's own datasets: its own doing
             own.close()
         handle = open(path, "rb")  # the caller closes it
     except (OSError, RuntimeError):
