@@ -5747,7 +5747,7 @@ def row_run_folder_renamed_during_training(env):
 
     env.monkeypatch.setattr(train_module, "save_checkpoint", save_then_rename)
     with pytest.raises(UserError, match=rf"train.out_dir {re.escape(str(run))} was moved or removed while this run "
-                                        rf"wrote to it.*stopped at step \d+ .*it is now {re.escape(str(moved))}: "
+                                        rf"wrote to it.*stopped at step \d+; it is now {re.escape(str(moved))}: "
                                         rf"resume there with --resume {re.escape(str(moved / 'last.pt'))}"):
         _toy_run(env, [0.2, 0.3], "train.epochs=2", "train.batch_size=2")
     assert not run.exists() and (moved / "last.pt").is_file()

@@ -464,9 +464,10 @@ def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
     return handle
 
 
-def held_folder_now(folder: str | Path) -> Path | None:
+def held_folder_now(folder: str | Path) -> Path | str | None:
     """Where the folder this process holds ``lock_folder``'s lock on is now (moved or renamed since: its lock file,
-    followed through /proc); None where that is not known (no lock held, no /proc, the folder removed)."""
+    followed through /proc): its path, "removed" when its lock file was deleted (the folder removed), None where
+    that is not known (no lock held, no /proc)."""
     try:
         handle = _LOCKS.get(str(Path(folder).resolve()))
         if handle is None:
@@ -474,7 +475,7 @@ def held_folder_now(folder: str | Path) -> Path | None:
         target = os.readlink(f"/proc/self/fd/{handle.fileno()}")
     except (OSError, RuntimeError, ValueError):
         return None
-    return None if target.endswith(" (deleted)") else Path(target).parent
+    return "removed" if target.endswith(" (deleted)") else Path(target).parent
 
 
 @contextmanager

@@ -992,15 +992,16 @@ class TrainingRun:
 
     def moved_error(self, cause: OSError | None) -> UserError:
         now = held_folder_now(self.out_dir)
-        where = (f"it is now {now}: resume there with --resume {now / 'last.pt'} train.out_dir={now}" if now else
-                 "its checkpoints went with it: resume from its last.pt where it is now, with train.out_dir set to "
-                 "that folder")
+        again = "the steps since its last checkpoint are trained again"
+        where = ("it was removed, and its checkpoints with it: start the run again" if now == "removed" else
+                 f"it is now {now}: resume there with --resume {now / 'last.pt'} train.out_dir={now} ({again})"
+                 if isinstance(now, Path) else "its checkpoints went with it: if it was moved, resume from its "
+                 f"last.pt there, with train.out_dir set to that folder ({again})")
         name = cause.filename if cause is not None else None
         why = (f" ({cause.strerror or cause}" + (f": {os.fsdecode(name)}" if isinstance(name, (str, bytes)) else "")
                + ")") if cause is not None else ""
         return UserError(f"train.out_dir {self.out_dir} was moved or removed while this run wrote to it{why}; the run "
-                         f"stopped at step {self.position.step} (the steps since its last checkpoint are trained "
-                         f"again on resume); {where}")
+                         f"stopped at step {self.position.step}; {where}")
 
     def log(self) -> None:
         if self.log_file is not None:
