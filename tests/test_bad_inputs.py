@@ -17,6 +17,7 @@ refused checks that it runs).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
 ``S26`` marks a case found by a twenty-sixth sweep (the config as users write it: keys, overrides, YAML files).
+``S27`` marks a case found by a twenty-seventh sweep (resume, reuse and runs that meet other runs).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -5899,6 +5900,151 @@ def row_override_written_with_a_flag(env):
     with pytest.raises(SystemExit):
         env.cli("model-summary", env.yaml, "--bogus")
     assert "key=value words" not in env.capsys.readouterr().err
+
+
+@row("S27", "synth --force over a world that a training (or an evaluation, a prediction) in another process was "
+            "reading replaced it under that process, both exit 0: the new world's images have the old one's file "
+            "names, so the training went on with them and the old world's maps and poses; the synth is now refused, "
+            "naming --out")
+def row_synth_force_over_a_world_being_read(env):
+    world = env.tmp / "w"
+    shutil.copytree(env.world, world)
+    code = ("import sys, time\n"
+            "from instagram_hdmap.config import load_config\n"
+            "from instagram_hdmap.data import build_dataset\n"
+            f"cfg = load_config({str(env.yaml)!r}, ['data.dataroot={world}',\n"
+            f"                  'data.splits_file={world / 'splits.json'}'])\n"
+            "dataset = build_dataset(cfg, cfg.data.train_split)  # held while it lives\n"
+            "print('reading', flush=True); time.sleep(60)\n")
+    reader = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert reader.stdout.readline().strip() == "reading"
+        before = (world / "world.json").read_text()
+        env.error(r"--out .*w: the world there is being read by another process .*choose another --out", "synth",
+                  "--out", world, "--force", "--seed", "7", "--scenes-train", "1", "--scenes-val", "0",
+                  "--samples-per-scene", "1", "--image-size", "160x90")
+        assert (world / "world.json").read_text() == before
+    finally:
+        reader.kill()
+        reader.wait()
+
+
+@row("S27", "train.out_dir renamed while the run wrote to it: a raw FileNotFoundError traceback from TensorBoard's "
+            "writer thread (or, when the next save came first, a new folder of the old name holding a lone last.pt); "
+            "now one line naming the folder, the step, and where it is now to resume")
+def row_run_folder_renamed_during_training(env):
+    from instagram_hdmap import train as train_module
+
+    run, moved = env.tmp / "run", env.tmp / "run2"
+    save = train_module.save_checkpoint
+
+    def save_then_rename(state, path):  # the user's `mv run run2` right after the first epoch's checkpoint
+        out = save(state, path)
+        if not moved.exists() and Path(path).name == "last.pt":
+            run.rename(moved)
+        return out
+
+    env.monkeypatch.setattr(train_module, "save_checkpoint", save_then_rename)
+    with pytest.raises(UserError, match=rf"train.out_dir {re.escape(str(run))} was moved or removed while this run "
+                                        rf"wrote to it.*stopped at step \d+; it is now {re.escape(str(moved))}: "
+                                        rf"resume there with --resume {re.escape(str(moved / 'last.pt'))}"):
+        _toy_run(env, [0.2, 0.3], "train.epochs=2", "train.batch_size=2")
+    assert not run.exists() and (moved / "last.pt").is_file()
+    assert load_checkpoint(moved / "last.pt")["step"] >= 1
+
+
+@row("S27", "--resume with a model key that leaves the model's computation as it is was refused as 'an incompatible "
+            "config': model.backbone.grad_checkpoint (turned on after running out of memory), the decoding options "
+            "(model.gnn.decoder, read at validation only); now it resumes, and a decoding option is named in the note "
+            "that best.pt's score was measured with another validation")
+def row_resume_with_a_memory_or_decoding_setting(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "model.backbone.grad_checkpoint=false",
+                       "model.gnn.decoder=mutual", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    assert re.search(r"note: the best score so far .*another validation \(model\.gnn\.decoder: checkpoint 'greedy' "
+                     r"vs now 'mutual'\)", out), out
+    assert "grad_checkpoint" not in out  # the same model, the same scores: nothing to say
+
+
+@row("S27", "--resume with another train.lr, train.schedule, train.warmup, data.augment ... went on with no word, and "
+            "config.yaml was rewritten with the new values as if the whole run had been trained with them; now a note "
+            "names each changed training setting and says the steps so far were trained with the checkpoint's")
+def row_resume_with_other_training_settings_noted(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "train.lr=0.01", "train.warmup=0.5",
+                       "train.max_steps=null", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: resumed with training settings")), "")
+    assert "train.lr: checkpoint 0.001 vs now 0.01" in note and "train.warmup: checkpoint 0.0 vs now 0.5" in note, out
+    assert "the 1 step(s) so far trained with the checkpoint's" in note and "max_steps" not in note, note
+
+
+@row("S27", "evaluate --out into the folder of a running training (a run folder as the evaluation's output) was "
+            "refused as 'another evaluation is running in RUN': the lock named the job of the process refused, not "
+            "the one holding it; now 'another training is running'")
+def row_lock_names_the_job_that_holds_it(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    code = ("import time\nfrom instagram_hdmap.files import lock_folder\n"
+            f"lock_folder({str(run)!r}, 'training', 'choose another train.out_dir')\n"
+            "print('locked', flush=True); time.sleep(60)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        env.error(rf"another training is running in .*run \(process {holder.pid}\); .*choose another --out",
+                  "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", run)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@row("S27", "train.init_from of a checkpoint of another model config whose weights have the same names and shapes "
+            "(model.gnn.heads 4 -> 8: each attention projection split into other heads; another model.gnn.nms or "
+            "num_vertices) loaded with no word; now a note names the model keys that differ")
+def row_init_from_other_model_settings_noted(env):
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1")
+    ckpt = shutil.copy(env.tmp / "run" / "last.pt", env.tmp / "heads4.pt")
+    env.capsys.readouterr()
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1", f"train.init_from={ckpt}", "model.gnn.heads=8",
+             "model.gnn.decoder=mutual", force=True)
+    out = env.capsys.readouterr().out
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: the checkpoint of train.init_from")), "")
+    assert "model.gnn.heads: checkpoint 4 vs now 8" in note, out
+    assert "decoder" not in note  # read at inference only: nothing to say
+
+
+@row("S27", "evaluate --checkpoint RUN (a training run's folder, as train.out_dir names it): 'checkpoint not found: "
+            "RUN (it is a folder)', not which file to give; now it names RUN/best.pt and RUN/last.pt")
+def row_checkpoint_given_as_a_run_folder(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    shutil.copy(env.ckpt, run / "best.pt")
+    shutil.copy(env.ckpt, run / "last.pt")
+    env.error(rf"checkpoint not found: .*run \(it is a folder: a training run's; give the checkpoint in it, "
+              rf"{re.escape(str(run / 'best.pt'))} or {re.escape(str(run / 'last.pt'))}\)",
+              "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval")
+
+
+@row("S27", "--resume with a train.epochs whose schedule ends before the checkpoint's step (3 epochs cut to 1 at "
+            "step 3 of epoch 1): 'done', exit 0, after no step, with last.pt and config.yaml still of the 3-epoch run; "
+            "now refused, naming the step where the new schedule ends and the epochs that would finish it")
+def row_resume_with_fewer_epochs_than_done(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2, 0.25], "train.epochs=3", "train.max_steps=3")  # two steps an epoch: step 3 is in epoch 1
+    with pytest.raises(UserError, match=r"train\.epochs=1 ends the schedule at step 2, before checkpoint .*last\.pt's "
+                                        r"step 3 \(epoch 1 of its 3\): nothing would be trained; resume with "
+                                        r"train\.epochs=2 or more"):
+        _toy_run(env, [], "train.epochs=1", resume=str(run / "last.pt"))
+    assert _toy_run(env, [0.3], "train.epochs=2", resume=str(run / "last.pt"))["step"] == 4  # cut to 2: runs
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

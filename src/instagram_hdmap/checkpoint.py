@@ -88,7 +88,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     non-finite tensor)."""
     path = as_path(path, "checkpoint path")
     if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
+        run = [path / name for name in ("best.pt", "last.pt") if (path / name).is_file()] if path.is_dir() else []
+        raise CheckpointError(f"checkpoint not found: {path}" + (
+            f" (it is a folder: a training run's; give the checkpoint in it, {' or '.join(map(str, run))})" if run
+            else " (it is a folder)" if path.is_dir() else ""))
     with open(path, "rb") as f:
         head = f.read(4)
     if not head:
