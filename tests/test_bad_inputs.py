@@ -17,11 +17,14 @@ refused checks that it runs).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
 ``S25`` marks a case found by a twenty-fifth sweep (the issue's own kind, done blind).
+``S26`` marks a case found by a twenty-sixth sweep (the config as users write it: keys, overrides, YAML files).
+``S27`` marks a case found by a twenty-seventh sweep (resume, reuse and runs that meet other runs).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
@@ -52,7 +55,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S25"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S27"
     what: str
     run: Callable
 
@@ -5702,23 +5705,6 @@ def row_synth_out_empty_string(env):
         generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
 
 
-@row("S25", "a zero-padded number (train.epochs=010 from `seq -w`, or `epochs: 010` in a YAML) was read as YAML 1.1's "
-            "octal 8, and `time_budget_min: 1:30` as base-60 90, exit 0 with no word; 010 is now 10 (YAML 1.2) and "
-            "1:30 a string, refused for a number key by name")
-def row_zero_padded_and_base_60_numbers(env):
-    assert env.cfg("train.epochs=010").train.epochs == 10
-    assert env.cfg("train.max_steps=1_000", "train.seed=0x10").train.seed == 16  # still read as before
-    path = env.tmp / "padded.yaml"
-    path.write_text(f"_base_: {env.yaml}\ntrain:\n  epochs: 010\n  lr: 0.001\n")
-    assert load_config(path).train.epochs == 10
-    with pytest.raises(UserError, match=r"'train\.time_budget_min': expected float or null, got '1:30'"):
-        env.cfg("train.time_budget_min=1:30")
-    path.write_text(f"_base_: {env.yaml}\ntrain:\n  time_budget_min: 1:30\n")
-    with pytest.raises(UserError, match=r"'train\.time_budget_min': expected float or null, got '1:30'"):
-        load_config(path)
-    assert env.cfg("name=1:30").name == "1:30"
-
-
 @row("S25", "export-onnx --out runs/x/best.pt while exporting last.pt (a slip of the file name) replaced the best "
             "checkpoint with the ONNX graph, exit 0; export-gt and evaluate-json --out did the same with JSON. An "
             "existing PyTorch checkpoint as an output file is refused before the work")
@@ -5747,18 +5733,6 @@ def row_video_fps_below_the_time_base(env):
               env.tmp / "v.mp4", "--fps", "0.001")
     rc, _, err = env.cli(*argv, "--video", env.tmp / "slow.mp4", "--fps", "0.01")
     assert rc == 0 and (env.tmp / "slow.mp4").stat().st_size > 0, err[-2000:]
-
-
-@row("S25", "a YAML section whose keys are all commented out (`train:` then `#   epochs: 3`, YAML's null) was refused "
-            "as \"config section 'train' must be a mapping, got None\" (valid input refused); it is an empty section "
-            "now, which keeps what the _base_ file sets there")
-def row_empty_section(env):
-    path = env.tmp / "exp.yaml"
-    path.write_text(f"_base_: {env.yaml}\ntrain:\n  # epochs: 3\nmodel:\n  gnn:\n")
-    cfg, base = load_config(path), load_config(env.yaml)
-    assert config_to_dict(cfg) == config_to_dict(base)
-    rc, _, err = env.cli("model-summary", path)
-    assert rc == 0, err[-2000:]
 
 
 @row("S25", "data.dataroot one folder too deep (the version folder, .../v1.0-trainval) or one too high (the folder "
@@ -5841,24 +5815,6 @@ def row_invalid_omp_num_threads(env):
     assert cpu_threads(cfg) is None
 
 
-@row("S25", "a text key given a value that reads as a number or a date on the command line (train.out_dir=2024-12-05, "
-            "train.out_dir=12, name=true: the shell takes any quotes) was refused as \"expected str, got "
-            "datetime.date(2024, 12, 5)\" (valid input refused); it is the text typed now. In a YAML file, where "
-            "quotes stay, the message says to quote it")
-def row_text_key_that_reads_as_a_number(env):
-    cfg = env.cfg("train.out_dir=2024-12-05", "name=0755", "data.val_split=2024", "train.init_from=12")
-    assert (cfg.train.out_dir.endswith("2024-12-05") and cfg.name == "0755" and cfg.data.val_split == "2024"
-            and cfg.train.init_from.endswith("12"))
-    assert env.cfg("name=true").name == "true" and env.cfg("train.lr=3e-3").train.lr == 0.003  # numbers stay numbers
-    with pytest.raises(UserError, match=r"'train\.epochs': expected int, got datetime\.date"):
-        env.cfg("train.epochs=2024-12-05")
-    path = env.tmp / "dated.yaml"
-    path.write_text(f"_base_: {env.yaml}\ntrain:\n  out_dir: 2024-12-05\n")
-    with pytest.raises(UserError, match=r"'train\.out_dir': expected str, got datetime\.date\(2024, 12, 5\) \(date\); "
-                                        r"quote it to mean text \(out_dir: \"\.\.\.\"\)"):
-        load_config(path)
-
-
 @row("S25", "a checkpoint as shared or downloaded, packed: best.pt.gz / .xz said 'not a PyTorch file', a zip archive "
             "holding best.pt 'truncated or corrupt (RuntimeError: Expected hasRecord(\"version\"))', a tar archive "
             "'not a PyTorch file'; each now says what it is and how to unpack it")
@@ -5886,8 +5842,8 @@ def row_packed_checkpoint(env):
 
 
 @row("S25", "the file's folder given for the file: evaluate-json --pred EVAL_OUT said 'cannot read ([Errno 21] Is a "
-            "directory)', --pred EVAL_OUT/metrics.json 'no results key', --checkpoint RUN_DIR 'not found (it is a "
-            "folder)'; each now names the file in the folder that is meant")
+            "directory)', --pred EVAL_OUT/metrics.json 'no results key'; each now names the file that is meant "
+            "(a checkpoint's run folder: S27-checkpoint_given_as_a_run_folder)")
 def row_folder_given_for_its_file(env):
     rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
     assert rc == 0, err[-2000:]
@@ -5898,11 +5854,6 @@ def row_folder_given_for_its_file(env):
               "--gt", gt, "--pred", env.tmp / "eval")
     env.error(r"metrics\.json: no 'results' key.*this is a metrics file; evaluate writes the submission as "
               r".*eval/submission\.json", "evaluate-json", "--gt", gt, "--pred", env.tmp / "eval" / "metrics.json")
-    run = env.tmp / "run"
-    run.mkdir()
-    shutil.copy(env.ckpt, run / "best.pt")
-    env.error(r"checkpoint not found: .*run \(it is a folder\); the run's checkpoints in it: .*run/best\.pt",
-              "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval2")
 
 
 @row("S25", "a nuScenes table written on Windows (sample_data 'filename' as str() of a WindowsPath, "
@@ -5919,16 +5870,6 @@ def row_windows_separators_in_a_table(env):
     rc, _, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt, "--out",
                          env.tmp / "eval")
     assert rc == 0, err[-2000:]
-
-
-@row("S25", "a YAML file written with the command line's dotted keys (`train.epochs: 3` at the top level) said only "
-            "\"unknown config key 'train.epochs'; valid keys of '<root>': ..., train, ...\", listing the very section; "
-            "it now says to nest the key")
-def row_dotted_key_in_a_yaml_file(env):
-    path = env.tmp / "flat.yaml"
-    path.write_text(f"_base_: {env.yaml}\ntrain.epochs: 3\n")
-    env.error(r"unknown config key 'train\.epochs'.*\(a dotted key in a YAML file: nest it, train: then epochs: "
-              r"indented below it\)", "model-summary", path)
 
 
 @row("S25", "predict-images with a temporal checkpoint ran it on one frame with an empty memory and no word, where "
@@ -5967,6 +5908,347 @@ def row_evaluate_on_the_training_split(env):
     assert "data.val_split='train' is the split the checkpoint was trained on" in out + err, (out + err)[-2000:]
     rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "unseen")
     assert rc == 0 and "the split the checkpoint was trained on" not in out + err, (out + err)[-2000:]
+@row("S26", "a mapping given on the command line after one of its keys (model.gnn.layers=3 model.gnn={dim: 64}) "
+            "replaced the section the first had set: model.gnn.layers silently went back to the YAML's value; the "
+            "mapping now merges into the keys before it, and a key given by both is noted (the last wins); an override "
+            "that is not a string (Python API) was a raw TypeError naming nothing")
+def row_override_mapping_keeps_earlier_keys(env):
+    cfg = env.cfg("model.gnn.layers=3", "model.gnn={dim: 64}")
+    assert (cfg.model.gnn.layers, cfg.model.gnn.dim) == (3, 64)
+    cfg = env.cfg("model.gnn.layers=3", "model={gnn: {heads: 2}}")
+    assert (cfg.model.gnn.layers, cfg.model.gnn.heads) == (3, 2)
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}")
+    assert rc == 0, err
+    assert ("note: model.gnn.layers is given 2 times (model.gnn.layers=3, model.gnn={layers: 1, dim: 64}); the last, "
+            "model.gnn={layers: 1, dim: 64}, is used") in err
+    assert env.cfg("model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}").model.gnn.layers == 1
+    for item in (3, None, b"train.lr=1"):  # an override that is not a string: a raw "argument of type 'int' ..."
+        with pytest.raises(TypeError, match=r"an override is a 'key\.sub=value' string, got"):
+            load_config(env.yaml, ["train.lr=1e-3", item])
+
+
+@row("S26", "YAML 1.1's integers: a leading zero made an octal number (train.seed: 0123 ran with seed 83, "
+            "train.epochs=010 trained 8 epochs) and colons a base-60 one (train.time_budget_min: 1:30:00 was 5400 "
+            "minutes), exit 0; a leading zero is now decimal (YAML 1.2), and 1:30 is text that a number key refuses")
+def row_yaml_leading_zero_and_base_60(env):
+    path = env.tmp / "c.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  seed: 0123\n  epochs: 010\n  max_steps: 0_10\n")
+    cfg = load_config(path)
+    assert (cfg.train.seed, cfg.train.epochs, cfg.train.max_steps) == (123, 10, 10)
+    assert env.cfg("train.epochs=010").train.epochs == 10
+    assert env.cfg("train.seed=0x1F").train.seed == 31  # hexadecimal stays (YAML 1.2 has it too)
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  time_budget_min: 1:30:00\n")
+    env.error(r"config key 'train\.time_budget_min': expected float or null, got '1:30:00'", "model-summary", path)
+    env.error(r"config key 'train\.max_steps': expected int or null, got '1:30'", "model-summary", env.yaml,
+              "train.max_steps=1:30")
+    assert env.cfg("name=1:30").name == "1:30"
+
+
+@row("S26", "a text key whose text reads as a YAML 1.2 float (name: '3e-4', an experiment named after its learning "
+            "rate): save_config wrote it bare (PyYAML's YAML 1.1 sees text), so the run's config.yaml no longer "
+            "loaded ('expected str, got 0.0003'); it is written quoted and loads as saved")
+def row_saved_config_text_that_reads_as_a_number(env):
+    from instagram_hdmap.config import save_config
+
+    for overrides in (["name='3e-4'"], ["name='1e3'", "data.train_split='1e3'"], ["name='010'"], ["name='1:30'"]):
+        cfg = env.cfg(*overrides)
+        save_config(cfg, env.tmp / "saved.yaml")
+        assert load_config(env.tmp / "saved.yaml") == cfg, overrides
+
+
+@row("S26", "a YAML file (or override) nested hundreds of levels deep: a raw RecursionError traceback naming nothing; "
+            "a value of a million items (YAML aliases) given to a number key: a 58 MB error message; now one line "
+            "naming the file and cut short")
+def row_deep_or_huge_yaml_values(env):
+    deep = env.tmp / "deep.yaml"
+    deep.write_text(f"_base_: {env.yaml}\nmodel: " + "[" * 3000 + "]" * 3000 + "\n")
+    env.error(r"config file .*deep\.yaml: its lists or mappings are nested too deeply", "model-summary", deep)
+    env.error(r"override 'model=\[\[.*': its lists or mappings are nested too deeply", "model-summary", env.yaml,
+              "model=" + "[" * 3000 + "]" * 3000)
+    huge = env.tmp / "huge.yaml"  # a list whose last item holds 2^20 leaves, through aliases
+    huge.write_text(f"_base_: {env.yaml}\nmodel:\n  gnn:\n    dim: [&a0 [x, x], "
+                    + ", ".join(f"&a{i} [*a{i - 1}, *a{i - 1}]" for i in range(1, 21)) + "]\n")
+    line = env.error(r"config key 'model\.gnn\.dim': expected int, got \[\[", "model-summary", huge)
+    assert len(line) < 400, len(line)
+
+
+@row("S26", "a text key given a number or a YAML 1.1 word (name: 2024, data.version: 1.0, data.val_split: no) and a "
+            "whole-number key given 1e3: refused saying only 'expected str, got 2024 (int)' (a key `on:`: 'unknown "
+            "key True'; a section of commented-out keys: 'must be a mapping, got None'); the message now says to "
+            "quote the text, how to write the whole number or a list, what YAML did")
+def row_text_key_given_a_number_says_quote_it(env):
+    env.error(r"config key 'name': expected str, got 2024 \(int\); .*quote the text .*name=\"'\.\.\.'\"",
+              "model-summary", env.yaml, "name=2024")
+    env.error(r"config key 'data\.val_split': expected str, got False \(bool\); .*quote", "model-summary", env.yaml,
+              "data.val_split=no")
+    env.error(r"config key 'train\.epochs': expected int, got 1000\.0 \(float\); write the whole number as 1000",
+              "model-summary", env.yaml, "train.epochs=1e3")
+    assert env.cfg("name='2024'").name == "2024"
+    env.error(r"config key 'train\.trainable': expected list of str, got 'temporal' \(str\); a list is written in "
+              r"brackets: \[a, b\] \(one item: \[a\]\)", "model-summary", env.yaml, "train.trainable=temporal")
+    path = env.tmp / "on.yaml"
+    path.write_text(f"_base_: {env.yaml}\non: 1\n")  # a key `on` (a typo, or a CI file's) is YAML 1.1's true
+    env.error(r"unknown config key 'True' \(YAML reads a key on / off / yes / no as true / false\)", "model-summary",
+              path)
+    path.write_text(f"_base_: {env.yaml}\nmodel:\n  # gnn:\n  #   layers: 3\n")  # every key of it commented out
+    env.error(r"config section 'model' must be a mapping, got None \(an empty section: give it keys or delete it\)",
+              "model-summary", path)
+
+
+@row("S26", "eval.flicker_threshold_m in centimetres (100): every GT element counted as detected, the flicker rate 0, "
+            "exit 0, while its siblings eval.cmap_match_m and eval.thresholds refuse more than 10 m; refused the same")
+def row_flicker_threshold_in_centimetres(env):
+    env.error(r"config key 'eval\.flicker_threshold_m' must be in \(0, 10\] \(metres.*centimetres given\?\)",
+              "model-summary", env.yaml, "eval.flicker_threshold_m=100")
+    assert env.cfg("eval.flicker_threshold_m=10").eval.flicker_threshold_m == 10
+
+
+@row("S26", "data.val_split equal to data.train_split (a slip, or an overfitting check): validation and the choice "
+            "of best.pt scored the training scenes with no word; training notes it at the start")
+def row_validation_on_the_training_split_noted(env):
+    from instagram_hdmap.train import setting_notes
+
+    notes = setting_notes(env.cfg("data.val_split=train"))
+    assert any("data.val_split=train is the training split" in n for n in notes), notes
+    assert not any("training split" in n for n in setting_notes(env.cfg()))
+
+
+@row("S26", "a checkpoint whose config is YAML text (written by hand from the experiment YAML) was read as YAML 1.1, "
+            "not as a config file is: lr: 1e-3 was text ('holds a config this version cannot read: expected float, "
+            "got '1e-3''), layers: 010 octal 8; it is read as config files are")
+def row_checkpoint_config_text_read_as_a_config_file(env):
+    import yaml
+
+    from instagram_hdmap.config import config_from_dict
+
+    state = load_checkpoint(env.ckpt)
+    text = yaml.safe_dump(state["config"]).replace("lr: 0.001", "lr: 1e-3").replace("seed: 0\n", "seed: 010\n")
+    assert "lr: 1e-3" in text and "seed: 010" in text
+    path = save_checkpoint({**state, "config": text}, env.tmp / "text_config.pt")
+    cfg = config_from_dict(load_checkpoint(path)["config"])
+    assert (cfg.train.lr, cfg.train.seed) == (1e-3, 10)
+
+
+@row("S26", "a decoder's option given with another decoder (model.gnn.same_class_edges=true with decoder=classwise, "
+            "model.gnn.class_min_prob with greedy): unused with no word, while max_edge_m with mutual is refused; "
+            "evaluate and training's validation note it")
+def row_decoder_option_of_another_decoder_noted(env):
+    from instagram_hdmap.train import unused_meter_keys
+
+    notes = unused_meter_keys(env.cfg("model.gnn.decoder=classwise", "model.gnn.same_class_edges=true"))
+    assert any("model.gnn.same_class_edges=true is not used" in n for n in notes), notes
+    notes = unused_meter_keys(env.cfg("model.gnn.class_min_prob=0.2"))
+    assert any("model.gnn.class_min_prob=0.2 is not used" in n and "decoder=greedy" in n for n in notes), notes
+    assert not unused_meter_keys(env.cfg("model.gnn.decoder=classwise", "model.gnn.class_min_prob=0.2"))
+    assert not unused_meter_keys(env.cfg("model.gnn.same_class_edges=true"))
+
+
+@row("S26", "a key that only another setting reads (train.min_lr_factor under the step schedule, train.lr_step / "
+            "lr_gamma under cosine, model.gnn.vd_sampling without the pe+vd embedding, data.aug_* without "
+            "data.augment, data.av2_* on nuScenes) trained as if unset, with no word; training notes it at the start")
+def row_key_of_another_setting_noted(env):
+    from instagram_hdmap.train import setting_notes
+
+    def notes(*overrides):
+        return " | ".join(setting_notes(env.cfg(*overrides)))
+
+    assert "train.min_lr_factor=0.1 set, but train.schedule=step does not read it" in notes("train.min_lr_factor=0.1")
+    assert "train.lr_step=5, train.lr_gamma=0.5 set, but train.schedule=cosine" in notes(
+        "train.schedule=cosine", "train.lr_step=5", "train.lr_gamma=0.5")
+    assert "model.gnn.vd_sampling=cell set, but model.gnn.embedding=pe+dt" in notes("model.gnn.vd_sampling=cell")
+    assert "data.aug_rotate_deg=10.0 set, but data.augment=false" in notes("data.aug_rotate_deg=10")
+    assert "data.av2_frame_step=2 set, but data.dataset=nuscenes" in notes("data.av2_frame_step=2")
+    for ok in (["train.schedule=cosine", "train.min_lr_factor=0.1"], ["train.lr_step=5", "train.lr_gamma=0.5"],
+               ["model.gnn.vd_sampling=cell", "model.gnn.embedding=pe+vd", "model.bev_heads.distance_head=false"],
+               ["data.aug_rotate_deg=10", "data.augment=true"]):
+        assert "does not read" not in notes(*ok) and "reads it" not in notes(*ok), ok
+
+
+@row("S26", "benchmarks/temporal.py --set model={temporal: {memory: bev}} (the memory as a mapping, not the dotted "
+            "key): the check that --memory alone sets the memory read the dotted key only, so the single-frame "
+            "baseline ran with a memory; it reads the keys the override sets")
+def row_benchmark_temporal_memory_set_as_a_mapping(env):
+    for args in (["--set", "model={temporal: {memory: bev}}"], ["--temporal-set", "model.temporal={memory: bev}"]):
+        p = _benchmark_temporal(env, "--memory", "graph", *args, "--steps", "2")
+        assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+        assert re.search(r"--(temporal-)?set model.*memory: bev}+: the temporal model's memory is --memory \(graph\)",
+                         p.stderr), p.stderr[-2000:]
+    assert not (env.tmp / "cache").exists()
+
+
+@row("S26", "a key one letter off (model.gnn.layer, train.max_step, MODEL.gnn.layers) was refused with the section's "
+            "whole list of keys to read through (model.gnn has 18); the nearest key is named first (and a dotted key "
+            "in a YAML file is told to nest)")
+def row_unknown_key_names_the_nearest(env):
+    for override, near in (("model.gnn.layer=3", "model.gnn.layers"), ("train.max_step=9", "train.max_steps"),
+                           ("MODEL.gnn.layers=3", "model"), ("eval.threshold=[1]", "eval.thresholds")):
+        env.error(rf"unknown config key '[^']+' \(did you mean '{re.escape(near)}'\?\); valid keys of", "model-summary",
+                  env.yaml, override)
+    line = env.error(r"unknown config key 'model\.gnn\.xyz'; valid keys of", "model-summary", env.yaml,
+                     "model.gnn.xyz=3")
+    assert "did you mean" not in line
+    path = env.tmp / "dotted.yaml"
+    path.write_text(f"_base_: {env.yaml}\nmodel.gnn.layers: 3\n")  # the command line's dotted form in a file
+    env.error(r"unknown config key 'model\.gnn\.layers' \(a YAML file nests the keys", "model-summary", path)
+
+
+@row("S26", "an override written with a flag, as the benchmarks' --set or other tools' --model.gnn.layers=9: "
+            "'unrecognized arguments: --set' said nothing of how to write it; it says that overrides are key=value "
+            "words after CONFIG")
+def row_override_written_with_a_flag(env):
+    for argv in (["--set", "model.gnn.layers=3"], ["--model.gnn.layers=3"]):
+        with pytest.raises(SystemExit) as e:
+            env.cli("model-summary", env.yaml, *argv)
+        err = env.capsys.readouterr().err
+        assert e.value.code == 2 and "config overrides are key=value words after CONFIG, without a flag" in err, err
+    with pytest.raises(SystemExit):
+        env.cli("model-summary", env.yaml, "--bogus")
+    assert "key=value words" not in env.capsys.readouterr().err
+
+
+@row("S27", "synth --force over a world that a training (or an evaluation, a prediction) in another process was "
+            "reading replaced it under that process, both exit 0: the new world's images have the old one's file "
+            "names, so the training went on with them and the old world's maps and poses; the synth is now refused, "
+            "naming --out")
+def row_synth_force_over_a_world_being_read(env):
+    world = env.tmp / "w"
+    shutil.copytree(env.world, world)
+    code = ("import sys, time\n"
+            "from instagram_hdmap.config import load_config\n"
+            "from instagram_hdmap.data import build_dataset\n"
+            f"cfg = load_config({str(env.yaml)!r}, ['data.dataroot={world}',\n"
+            f"                  'data.splits_file={world / 'splits.json'}'])\n"
+            "dataset = build_dataset(cfg, cfg.data.train_split)  # held while it lives\n"
+            "print('reading', flush=True); time.sleep(60)\n")
+    reader = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert reader.stdout.readline().strip() == "reading"
+        before = (world / "world.json").read_text()
+        env.error(r"--out .*w: the world there is being read by another process .*choose another --out", "synth",
+                  "--out", world, "--force", "--seed", "7", "--scenes-train", "1", "--scenes-val", "0",
+                  "--samples-per-scene", "1", "--image-size", "160x90")
+        assert (world / "world.json").read_text() == before
+    finally:
+        reader.kill()
+        reader.wait()
+
+
+@row("S27", "train.out_dir renamed while the run wrote to it: a raw FileNotFoundError traceback from TensorBoard's "
+            "writer thread (or, when the next save came first, a new folder of the old name holding a lone last.pt); "
+            "now one line naming the folder, the step, and where it is now to resume")
+def row_run_folder_renamed_during_training(env):
+    from instagram_hdmap import train as train_module
+
+    run, moved = env.tmp / "run", env.tmp / "run2"
+    save = train_module.save_checkpoint
+
+    def save_then_rename(state, path):  # the user's `mv run run2` right after the first epoch's checkpoint
+        out = save(state, path)
+        if not moved.exists() and Path(path).name == "last.pt":
+            run.rename(moved)
+        return out
+
+    env.monkeypatch.setattr(train_module, "save_checkpoint", save_then_rename)
+    with pytest.raises(UserError, match=rf"train.out_dir {re.escape(str(run))} was moved or removed while this run "
+                                        rf"wrote to it.*stopped at step \d+; it is now {re.escape(str(moved))}: "
+                                        rf"resume there with --resume {re.escape(str(moved / 'last.pt'))}"):
+        _toy_run(env, [0.2, 0.3], "train.epochs=2", "train.batch_size=2")
+    assert not run.exists() and (moved / "last.pt").is_file()
+    assert load_checkpoint(moved / "last.pt")["step"] >= 1
+
+
+@row("S27", "--resume with a model key that leaves the model's computation as it is was refused as 'an incompatible "
+            "config': model.backbone.grad_checkpoint (turned on after running out of memory), the decoding options "
+            "(model.gnn.decoder, read at validation only); now it resumes, and a decoding option is named in the note "
+            "that best.pt's score was measured with another validation")
+def row_resume_with_a_memory_or_decoding_setting(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "model.backbone.grad_checkpoint=false",
+                       "model.gnn.decoder=mutual", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    assert re.search(r"note: the best score so far .*another validation \(model\.gnn\.decoder: checkpoint 'greedy' "
+                     r"vs now 'mutual'\)", out), out
+    assert "grad_checkpoint" not in out  # the same model, the same scores: nothing to say
+
+
+@row("S27", "--resume with another train.lr, train.schedule, train.warmup, data.augment ... went on with no word, and "
+            "config.yaml was rewritten with the new values as if the whole run had been trained with them; now a note "
+            "names each changed training setting and says the steps so far were trained with the checkpoint's")
+def row_resume_with_other_training_settings_noted(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "train.lr=0.01", "train.warmup=0.5",
+                       "train.max_steps=null", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: resumed with training settings")), "")
+    assert "train.lr: checkpoint 0.001 vs now 0.01" in note and "train.warmup: checkpoint 0.0 vs now 0.5" in note, out
+    assert "the 1 step(s) so far trained with the checkpoint's" in note and "max_steps" not in note, note
+
+
+@row("S27", "evaluate --out into the folder of a running training (a run folder as the evaluation's output) was "
+            "refused as 'another evaluation is running in RUN': the lock named the job of the process refused, not "
+            "the one holding it; now 'another training is running'")
+def row_lock_names_the_job_that_holds_it(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    code = ("import time\nfrom instagram_hdmap.files import lock_folder\n"
+            f"lock_folder({str(run)!r}, 'training', 'choose another train.out_dir')\n"
+            "print('locked', flush=True); time.sleep(60)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        env.error(rf"another training is running in .*run \(process {holder.pid}\); .*choose another --out",
+                  "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", run)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@row("S27", "train.init_from of a checkpoint of another model config whose weights have the same names and shapes "
+            "(model.gnn.heads 4 -> 8: each attention projection split into other heads; another model.gnn.nms or "
+            "num_vertices) loaded with no word; now a note names the model keys that differ")
+def row_init_from_other_model_settings_noted(env):
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1")
+    ckpt = shutil.copy(env.tmp / "run" / "last.pt", env.tmp / "heads4.pt")
+    env.capsys.readouterr()
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1", f"train.init_from={ckpt}", "model.gnn.heads=8",
+             "model.gnn.decoder=mutual", force=True)
+    out = env.capsys.readouterr().out
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: the checkpoint of train.init_from")), "")
+    assert "model.gnn.heads: checkpoint 4 vs now 8" in note, out
+    assert "decoder" not in note  # read at inference only: nothing to say
+
+
+@row("S27", "evaluate --checkpoint RUN (a training run's folder, as train.out_dir names it): 'checkpoint not found: "
+            "RUN (it is a folder)', not which file to give; now it names RUN/best.pt and RUN/last.pt")
+def row_checkpoint_given_as_a_run_folder(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    shutil.copy(env.ckpt, run / "best.pt")
+    shutil.copy(env.ckpt, run / "last.pt")
+    env.error(rf"checkpoint not found: .*run \(it is a folder: a training run's; give the checkpoint in it, "
+              rf"{re.escape(str(run / 'best.pt'))} or {re.escape(str(run / 'last.pt'))}\)",
+              "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval")
+
+
+@row("S27", "--resume with a train.epochs whose schedule ends before the checkpoint's step (3 epochs cut to 1 at "
+            "step 3 of epoch 1): 'done', exit 0, after no step, with last.pt and config.yaml still of the 3-epoch run; "
+            "now refused, naming the step where the new schedule ends and the epochs that would finish it")
+def row_resume_with_fewer_epochs_than_done(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2, 0.25], "train.epochs=3", "train.max_steps=3")  # two steps an epoch: step 3 is in epoch 1
+    with pytest.raises(UserError, match=r"train\.epochs=1 ends the schedule at step 2, before checkpoint .*last\.pt's "
+                                        r"step 3 \(epoch 1 of its 3\): nothing would be trained; resume with "
+                                        r"train\.epochs=2 or more"):
+        _toy_run(env, [], "train.epochs=1", resume=str(run / "last.pt"))
+    assert _toy_run(env, [0.3], "train.epochs=2", resume=str(run / "last.pt"))["step"] == 4  # cut to 2: runs
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
@@ -5977,3 +6259,16 @@ def test_bad_input(row: Row, shared, tmp_path, capsys, monkeypatch, request):
     world, yaml, ckpt = shared
     monkeypatch.chdir(tmp_path)
     row.run(Env(world, yaml, ckpt, tmp_path, capsys, monkeypatch, request))
+
+
+def test_faults_page_cites_every_row_and_only_rows():
+    """docs/faults.md promises, each backed by a row: every id it cites names a row (or, as `4-*`, some rows) of this
+    table, and every row is cited, so neither a promise without a test nor a test without its promise is left."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "faults.md").read_text(encoding="utf-8")
+    ids = {f"{r.case}-{r.id}" for r in ROWS}
+    cited = set(re.findall(r"`((?:\d+|S\d*)-[A-Za-z0-9_*-]+)`", doc))
+    assert len(cited) > 100, "the citation pattern found almost nothing: has the page's format changed?"
+    unknown = sorted(c for c in cited if not fnmatch.filter(ids, c))
+    assert not unknown, f"docs/faults.md cites ids that are not rows: {unknown}"
+    uncited = sorted(i for i in ids if not any(fnmatch.fnmatchcase(i, c) for c in cited))
+    assert not uncited, f"rows that docs/faults.md does not cite: {uncited}"

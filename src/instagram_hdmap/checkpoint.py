@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .config import UserError
+from .config import UserError, load_yaml
 from .errors import one_line
 from .files import as_path, atomic_path
 
@@ -93,9 +93,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     non-finite tensor)."""
     path = as_path(path, "checkpoint path")
     if not path.is_file():
-        inside = [path / name for name in ("best.pt", "last.pt") if (path / name).is_file()] if path.is_dir() else []
-        raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else "") + (
-            f"; the run's checkpoints in it: {', '.join(map(str, inside))}" if inside else ""))
+        run = [path / name for name in ("best.pt", "last.pt") if (path / name).is_file()] if path.is_dir() else []
+        raise CheckpointError(f"checkpoint not found: {path}" + (
+            f" (it is a folder: a training run's; give the checkpoint in it, {' or '.join(map(str, run))})" if run
+            else " (it is a folder)" if path.is_dir() else ""))
     with open(path, "rb") as f:
         head = f.read(4)
     if not head:
@@ -145,7 +146,7 @@ def _yaml_config(text: str, path: Path) -> dict:
     import yaml
 
     try:
-        config = yaml.safe_load(text)
+        config = load_yaml(text)  # as a config file is read (YAML 1.2 numbers: lr: 1e-3 is a float, not text)
     except yaml.YAMLError as e:
         raise CheckpointError(f"checkpoint {path}: its config is text that is not YAML ({one_line(e)})") from None
     if not isinstance(config, dict):

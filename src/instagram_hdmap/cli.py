@@ -566,7 +566,12 @@ def main(argv: list[str] | None = None) -> int:
     # key=value overrides may also follow the options: ``train CONFIG --resume R model.gnn.layers=9``
     stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
     if stray:
-        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+        flagged = [a for a in stray if a.startswith("-") and (a.lstrip("-") in ("set", "override", "overrides",
+                                                                                 "cfg-options", "options")
+                                                              or "." in a.partition("=")[0])]  # --model.gnn.layers=9
+        parser.error(f"unrecognized arguments: {' '.join(stray)}"
+                     + ("; config overrides are key=value words after CONFIG, without a flag: model.gnn.layers=9"
+                        if flagged and hasattr(args, "overrides") else ""))
     if extra:
         args.overrides = [*args.overrides, *extra]
     if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
