@@ -39,7 +39,7 @@ from typing import Any, Literal, Union
 
 import yaml
 
-from .errors import UserError
+from .errors import INVISIBLE, UserError
 from .files import as_path, write_text
 
 
@@ -438,7 +438,7 @@ def _hint(value: Any, tp: Any, key: str) -> str:
     """What to write instead, where YAML read the value as another type than the key's."""
     args = typing.get_args(tp) if typing.get_origin(tp) in (Union, types.UnionType) else (tp,)
     if str in args and isinstance(value, (bool, int, float, datetime.date)):  # name: 2024, version: 1.0, split: no
-        where = '"..."' if "[" in key else f"{key}: \"...\"; on the command line {key}=\"'...'\""
+        where = '"..."' if "[" in key else f'{key.rpartition(".")[2]}: "..." in the YAML file'
         return f"; YAML reads yes / no / on / off, numbers and dates as such: quote the text to keep it text ({where})"
     if int in args and isinstance(value, float) and value.is_integer():  # epochs: 1e3
         return f"; write the whole number as {int(value)}"
@@ -507,9 +507,10 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
     """Return a copy of dataclass ``obj`` with the nested ``updates`` applied and checked."""
+    if updates is None and prefix:  # `train:` with every key below it commented out: YAML's null, an empty section
+        updates = {}  # (it was refused: "must be a mapping, got None")
     if not isinstance(updates, dict):
-        raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {_show(updates)}"
-                          + (" (an empty section: give it keys or delete it)" if updates is None and prefix else ""))
+        raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {_show(updates)}")
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     changes = {}
@@ -627,6 +628,13 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
         what = "a zip archive such as a PyTorch checkpoint" if raw[:4] == b"PK\x03\x04" else "a binary file"
         raise ConfigError(f"config file {path} is not YAML text but {what}; the first argument is the experiment "
                           "YAML (a checkpoint goes with --checkpoint)") from None
+    text = text.removeprefix("\ufeff")  # a byte-order mark (a Windows editor's) opens the file: read as before
+    for number, line in enumerate(text.splitlines(), 1):
+        chars = [c for c in INVISIBLE if c in line.split("#", 1)[0]]  # (in a comment it does no harm)
+        if chars:  # YAML takes it for text: "unknown key '  epochs'", an out_dir whose name ends in it
+            raise ConfigError(f"config file {path}, line {number}: {line.strip(' ')!r} holds {INVISIBLE[chars[0]]} "
+                              f"(U+{ord(chars[0]):04X}), which an editor shows as a space or not at all (text copied "
+                              "from a web page, a PDF or a chat?); type that line again")
     try:
         data = load_yaml(text) or {}
     except (_DuplicateKey, _TooDeep) as e:
@@ -656,8 +664,32 @@ def deep_update(dst: dict, src: dict) -> None:
     for k, v in src.items():
         if isinstance(v, dict) and isinstance(dst.get(k), dict):
             deep_update(dst[k], v)
+        elif v is None and isinstance(dst.get(k), dict):  # an empty section (`train:`, its keys commented out)
+            continue  # adds nothing to the _base_'s
         else:
             dst[k] = v
+
+
+def _key_type(dotted: str) -> Any:
+    """The annotation of the config key ``dotted`` (``train.out_dir``), a dataclass for a section; None if unknown."""
+    tp: Any = ExperimentConfig
+    for part in dotted.split("."):
+        if not (isinstance(tp, type) and dataclasses.is_dataclass(tp)):
+            return None
+        tp = typing.get_type_hints(tp).get(part)
+        if tp is None:
+            return None
+    return tp
+
+
+def _text_key(dotted: str) -> bool:
+    """Whether the config key ``dotted`` holds text only (``str`` or ``str | None``), so that a command-line value
+    YAML reads as a number, a date or a boolean (``name=2024``, ``train.out_dir=2024-12-05``, ``data.val_split=no``)
+    is the text typed: the shell eats the quotes a YAML file would need, and Hydra's command-line grammar keeps such
+    values text too. A YAML file's value stays as YAML reads it (quote it there)."""
+    tp = _key_type(dotted)
+    args = typing.get_args(tp) if typing.get_origin(tp) in (Union, types.UnionType) else (tp,)
+    return str in args and all(a in (str, type(None)) for a in args)
 
 
 def parse_overrides(overrides: list[str]) -> dict:
@@ -678,7 +710,13 @@ def parse_overrides(overrides: list[str]) -> dict:
         if raw.strip() == "~" and key.strip() in HOME_NOT_NULL:  # YAML's null, but these paths cannot be null:
             value = "~"  # the shell's home folder is meant (train.out_dir=~); expand_home reads it
         quoted = raw.strip()[:1] in ("'", '"')  # name="2024": a string is meant
-        if isinstance(value, str) and not quoted:  # YAML 1.1 reads "3e-3" as a string; a number is meant
+        if value is None and dataclasses.is_dataclass(_key_type(key.strip())):  # a YAML file's empty section is
+            raise ConfigError(f"override '{item}' gives the section {key.strip()} no keys; set its keys "  # no keys;
+                              f"({key.strip()}.KEY=VALUE)")  # here it would be dropped with no word
+        text_key = _text_key(key.strip())
+        if not quoted and isinstance(value, (bool, int, float, datetime.date)) and text_key:
+            value = raw.strip()  # name=2024, train.out_dir=2024-12-05: the text as typed (the shell ate the quotes)
+        elif isinstance(value, str) and not quoted and not text_key:  # YAML 1.1 reads "3e-3" as text: a number
             try:
                 value = float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "+inf") else value
             except ValueError:
