@@ -6329,22 +6329,16 @@ def row_nuscenes_images_downloaded_in_parts(env):
         ds[0]
 
 
-@row("S29", "a nuScenes download unpacked one level off: the dataroot the tar's top folder above it said 'versions "
-            "in X: none', the map expansion unpacked into the dataroot or into maps/ said 'download the map "
-            "expansion', an empty (0-byte) table 'not valid JSON: Expecting value', tables one folder too deep "
-            "(v1.0-trainval/v1.0-trainval) and archives not extracted also 'versions in X: none', no maps/*.png "
+@row("S29", "a nuScenes download unpacked one level off: the map expansion unpacked into the dataroot or into "
+            "maps/ said 'download the map expansion', an empty (0-byte) table 'not valid JSON: Expecting value', "
+            "tables one folder too deep (v1.0-trainval/v1.0-trainval) and archives not extracted 'versions in X: "
+            "none', no maps/*.png "
             "a bare 'AssertionError: map mask'; each names where the files are, what is missing or that the table "
             "is empty")
 def row_nuscenes_unpacked_one_level_off(env):
     from instagram_hdmap.data.base import DatasetError
     from instagram_hdmap.data.local_map import MapError
 
-    top = env.tmp / "top"
-    top.mkdir()
-    (top / "nuscenes").symlink_to(env.world)
-    with pytest.raises(DatasetError, match=r"not found in \S+top, but in its subfolder \S+top/nuscenes: set "
-                                           r"data\.dataroot"):
-        _s18_dataset(env, top)
     for where in ("expansion", "maps"):
         root = env.tmp / f"off_{where}"
         (root / "maps").mkdir(parents=True)

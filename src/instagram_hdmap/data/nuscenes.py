@@ -68,7 +68,6 @@ def open_nuscenes(dataroot: str | Path, version: str):
     table_root = root / version
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
-        below = sorted(p for p in root.iterdir() if (p / version / "sample.json").is_file())
         if (table_root / version / "sample.json").is_file():  # an archive extracted into a folder of its own name
             raise DatasetError(f"nuScenes version '{version}': its tables are one folder too deep, in "
                                f"{table_root / version}: move them up into {table_root}")
@@ -77,10 +76,6 @@ def open_nuscenes(dataroot: str | Path, version: str):
             raise DatasetError(f"nuScenes version '{version}' not found in {root}, which holds the archives "
                                f"{', '.join(archives[:4])}{' ...' if len(archives) > 4 else ''}: extract them there "
                                f"(tar -xzf FILE -C {root}), so that {table_root} holds the tables")
-        if below:  # the tar's extracted top folder one level up: "versions in X: none" said nothing of where
-            raise DatasetError(f"nuScenes version '{version}' not found in {root}, but in its subfolder {below[0]}: "
-                               f"set data.dataroot (or --dataroot) to {below[0]}, the folder that holds {version}/, "
-                               "maps/ and samples/")
         av2 = not found and any(root.glob("*/*/city_SE3_egovehicle.feather"))  # <split>/<log>/: an AV2 root
         below = [] if found else sorted(p.parent.parent for p in root.glob(f"*/{version}/sample.json"))
         hint = ("(it is an Argoverse 2 sensor-dataset root: set data.dataset=av2)" if av2 else
