@@ -5701,6 +5701,48 @@ def row_synth_out_empty_string(env):
         generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
 
 
+# --- the twenty-eighth sweep ---------------------------------------------------------------------------
+
+
+def _strict_json(text: str):
+    """``text`` read as standard JSON: ``NaN`` / ``Infinity`` (Python's extension) refused, as jq, JavaScript and Go
+    refuse them."""
+    def refuse(constant):
+        raise AssertionError(f"{constant} is not JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+@row("S28", "metrics.json (evaluate, evaluate-json) and log.jsonl held NaN (a flicker rate with no pairs, the "
+            "raster AP of a class with no GT): not JSON, jq and JavaScript refuse the file; now null. A NaN score "
+            "given to write_submission is refused (null would read back as the default confidence 1.0)")
+def row_json_outputs_hold_no_nan(env):
+    from instagram_hdmap.evaluation.io import write_submission
+
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=1", "train.checkpoint_every=0")
+    assert rc == 0, err[-2000:]
+    lines = (run / "log.jsonl").read_text().splitlines()
+    assert lines and all(isinstance(_strict_json(ln), dict) for ln in lines)
+    assert _strict_json(lines[-1])["val"]["consistency"]["flicker_detected_mean"] is None  # a random model: no pairs
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-2000:]
+    _strict_json((env.tmp / "eval" / "submission.json").read_text())
+    metrics = _strict_json((env.tmp / "eval" / "metrics.json").read_text())
+    assert metrics["consistency"]["flicker_detected_mean"] is None
+    line = {"pts": [[0.0, 1.0], [5.0, 1.0]], "label": 0, "score": 0.5}
+    write_submission(env.tmp / "gt.json", {"a": [{"pts": line["pts"], "label": 0}]}, {"ground_truth": True})
+    write_submission(env.tmp / "pred.json", {"a": [line]})
+    rc, out, err = env.cli("evaluate-json", "--pred", env.tmp / "pred.json", "--gt", env.tmp / "gt.json", "--protocol",
+                           "raster", "--out", env.tmp / "m.json")
+    assert rc == 0 and "nan" in out, err[-2000:]  # printed as nan on the terminal
+    metrics = _strict_json((env.tmp / "m.json").read_text())
+    assert metrics["AP_class"]["divider"] == 1.0 and metrics["AP_class"]["boundary"] is None and metrics["mAP"] is None
+    with pytest.raises(ValueError, match=r"sample 'a': a polyline's score is nan .*scores must be finite"):
+        write_submission(env.tmp / "nan.json", {"a": [{**line, "score": float("nan")}]})
+    assert not (env.tmp / "nan.json").exists()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -190,7 +190,7 @@ def _cmd_evaluate_json(args: argparse.Namespace) -> int:
     print(format_table(metrics))
     _print_notes(metrics["notes"])
     if args.out:
-        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as NaN (Python's json reads it)
+        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as null (standard JSON)
     return 0
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import shutil
 from collections.abc import Callable, Iterable, Iterator
@@ -326,10 +327,34 @@ def write_text(text: str, path: str | Path) -> Path:
     return path
 
 
+def json_safe(obj):
+    """``obj`` with every NaN or infinite number (a float, or a NumPy / torch scalar) as None: JSON has no NaN, and
+    the ``NaN`` / ``Infinity`` that Python's json writes by default are refused by strict readers (jq, JavaScript,
+    Go, pandas' ``lines=True`` reader in some versions, ``json.loads(..., parse_constant=...)``): they read
+    ``null``. Other scalars become ints or floats; dicts, lists and tuples are copied."""
+    if obj is None or isinstance(obj, (str, bool, int)):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "item") and getattr(obj, "ndim", None) == 0:  # numpy.float32 / int64, a 0-d tensor
+        return json_safe(obj.item())
+    return obj
+
+
+def json_text(obj, indent: int | None = None, **kwargs) -> str:
+    """``obj`` as standard JSON: NaN and infinities as ``null`` (``json_safe``)."""
+    return json.dumps(json_safe(obj), indent=indent, allow_nan=False, **kwargs)
+
+
 def write_json(obj, path: str | Path, indent: int | None = None) -> Path:
-    """Write ``obj`` as JSON atomically; returns the path. NaN and infinity are written as NaN /
-    Infinity (what Python's json reads back)."""
-    return write_text(json.dumps(obj, indent=indent), path)
+    """Write ``obj`` as standard JSON atomically; returns the path. NaN and infinity (e.g. the raster AP of a class
+    with no GT, a flicker rate with no pairs) are written as ``null``, which every JSON reader takes (``NaN`` is not
+    JSON)."""
+    return write_text(json_text(obj, indent=indent), path)
 
 
 LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process whose job writes the folder

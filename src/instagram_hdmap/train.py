@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import math
 import os
 import random
@@ -65,7 +64,16 @@ from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
-from .files import LOCK_FILE, check_output_dir, lock_folder, remove_stale_temporaries, unlock_folder, write_text
+from .files import (
+    LOCK_FILE,
+    check_output_dir,
+    json_safe,
+    json_text,
+    lock_folder,
+    remove_stale_temporaries,
+    unlock_folder,
+    write_text,
+)
 from .geometry import BEVGrid
 from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .losses import Criterion
@@ -926,7 +934,7 @@ class TrainingRun:
 
     def log(self) -> None:
         if self.log_file is not None:
-            self.log_file.write(json.dumps(self.summary, default=float) + "\n")
+            self.log_file.write(json_text(self.summary, default=lambda x: json_safe(float(x))) + "\n")  # standard JSON
             self.log_file.flush()
             if self.log_lines is not None:
                 self.log_lines += 1

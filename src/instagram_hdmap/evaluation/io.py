@@ -236,6 +236,9 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
         v = {"pts": pts.tolist(), "pts_num": len(pts), "type": int(p["label"])}
         if "score" in p:
             v["confidence_level"] = float(p["score"])
+            if not math.isfinite(v["confidence_level"]):  # JSON has no NaN: null would read back as the default 1.0
+                raise ValueError(f"a polyline's score is {v['confidence_level']} (class {v['type']}, {len(pts)} "
+                                 "points); scores must be finite (a diverged model?)")
         out.append(v)
     return out
 
@@ -261,8 +264,13 @@ def submission(samples: Mapping[str, list[dict]], meta: dict | None = None) -> d
     if meta is not None and not isinstance(meta, Mapping):  # ** of it: a raw "'str' object is not a mapping"
         raise TypeError(f"a submission's meta is a dict of its settings (e.g. {{'split': 'val'}}), got "
                         f"{type(meta).__name__} {meta!r:.60}")
-    return {"meta": {"vector": True, **(meta or {})},
-            "results": {str(token): polylines_to_vectors(polys) for token, polys in samples.items()}}
+    results = {}
+    for token, polys in samples.items():
+        try:
+            results[str(token)] = polylines_to_vectors(polys)
+        except ValueError as e:
+            raise ValueError(f"sample {token!r}: {e}") from None
+    return {"meta": {"vector": True, **(meta or {})}, "results": results}
 
 
 def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: dict | None = None) -> None:
