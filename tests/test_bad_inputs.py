@@ -5743,6 +5743,30 @@ def row_json_outputs_hold_no_nan(env):
     assert not (env.tmp / "nan.json").exists()
 
 
+@row("S28", "the reader of the output went away (`evaluate-json ... --out m.json | head -1`, `train ... 2>&1 | head`, "
+            "with PYTHONUNBUFFERED=1 as in many containers): the first message after it stopped the job, exit 141 "
+            "with m.json never written, a training stopped before its first step; now the job goes on, writes its "
+            "files and exits 141")
+def row_output_reader_gone_job_goes_on(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "PYTHONUNBUFFERED": "1"}
+    gt, pred = env.tmp / "gt.json", env.tmp / "pred.json"
+    line = [[0.0, 1.0], [5.0, 1.0]]
+    gt.write_text(json.dumps({"meta": {"ground_truth": True}, "results": {"a": [{"pts": line, "type": 0}]}}))
+    pred.write_text(json.dumps({"results": {"a": [{"pts": line, "type": 0, "confidence_level": 0.5}]}}))
+    jobs = [(["evaluate-json", "--pred", pred, "--gt", gt, "--out", env.tmp / "m.json"], subprocess.PIPE),
+            (["train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=1", "train.checkpoint_every=0"],
+             subprocess.STDOUT)]  # 2>&1: the progress bar's stream has no reader either
+    for argv, stderr in jobs:
+        p = subprocess.Popen([sys.executable, "-m", "instagram_hdmap.cli", *map(str, argv)], stdout=subprocess.PIPE,
+                             stderr=stderr, env=env_vars)
+        p.stdout.close()  # the reader is gone before the first line (`| head -0`)
+        err = p.stderr.read().decode() if p.stderr else ""
+        assert p.wait(timeout=300) == 141, err[-2000:]
+        assert "Traceback" not in err, err[-2000:]
+    assert json.loads((env.tmp / "m.json").read_text())["mAP"] == pytest.approx(1 / 3)  # divider 1, the others 0
+    assert (env.tmp / "run" / "last.pt").is_file() and (env.tmp / "run" / "log.jsonl").read_text().count("\n") == 1
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

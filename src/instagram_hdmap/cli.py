@@ -547,7 +547,56 @@ def _stdout_to_devnull() -> None:
         pass
 
 
+class _Report:
+    """stdout or stderr of a job whose reader may go away (``evaluate-json ... --out m.json | head -1``, ``train ...
+    2>&1 | head``, a ``tee`` that was killed): the job goes on and writes its files, the messages nobody reads are
+    dropped (the descriptor then points at /dev/null, for the interpreter's last flush and for child processes), and
+    ``main`` returns 141 at the end, as SIGPIPE's exit status. Without it the first message after the reader left
+    stopped the job: evaluate-json's metrics file unwritten, a training stopped before its first step."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.gone = False
+
+    def _reader_left(self) -> None:
+        self.gone = True
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # no descriptor (tests, notebooks)
+            pass
+
+    def write(self, text):
+        if not self.gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._reader_left()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._reader_left()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = report = _Report(sys.stdout), _Report(sys.stderr)
+    try:
+        code = _main(argv)
+        return 141 if code == 0 and any(r.gone for r in report) else code  # done; the report had no reader
+    finally:
+        sys.stdout, sys.stderr = streams
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may also follow the options: ``train CONFIG --resume R model.gnn.layers=9``
