@@ -5767,6 +5767,28 @@ def row_output_reader_gone_job_goes_on(env):
     assert (env.tmp / "run" / "last.pt").is_file() and (env.tmp / "run" / "log.jsonl").read_text().count("\n") == 1
 
 
+@row("S28", "stderr closed at the start (`2>&-`, a launcher that closes it): the first progress bar wrote to None, a "
+            "raw AttributeError nobody could see, exit 1, nothing written (export-gt, evaluate, train, synth); now "
+            "the messages are dropped and the job runs")
+def row_standard_error_closed(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    argv = ["export-gt", str(env.yaml), "--out", str(env.tmp / "gt.json")]
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", *argv], stdout=subprocess.PIPE, env=env_vars,
+                       preexec_fn=lambda: os.close(2), timeout=300)
+    assert p.returncode == 0 and b"wrote" in p.stdout, p.stdout[-2000:]
+    assert json.loads((env.tmp / "gt.json").read_text())["results"]
+
+
+@row("S28", "train / evaluate with stderr in a file (`2> log`, nohup, not a terminal): the progress bar was drawn "
+            "twice a step, each drawing a carriage-return line of ~200 bytes: megabytes a day, one `tail` line per "
+            "epoch; now drawn at most once a minute off a terminal")
+def row_progress_bar_in_a_log_file(env):
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=1",
+                         "train.checkpoint_every=0", "train.log_every=1")
+    assert rc == 0, err[-2000:]
+    assert err.count("epoch 0:") <= 2, err  # the bar's start and (a run longer than a minute) its refreshes
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -7,6 +7,7 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import errno
 import io
 import math
 import os
@@ -554,9 +555,11 @@ class _Report:
     ``main`` returns 141 at the end, as SIGPIPE's exit status. Without it the first message after the reader left
     stopped the job: evaluate-json's metrics file unwritten, a training stopped before its first step."""
 
-    def __init__(self, stream):
+    def __init__(self, stream, name: str):
         self._stream = stream
-        self.gone = False
+        self.name = name  # named in an error of the stream: a full disk under `> log` said no file
+        self.gone = False  # its reader went away during the job
+        self.closed = False  # closed before the job (`2>&-`): messages dropped, the exit status kept
 
     def _reader_left(self) -> None:
         self.gone = True
@@ -568,19 +571,30 @@ class _Report:
             pass
 
     def write(self, text):
-        if not self.gone:
+        if not (self.gone or self.closed):
             try:
                 return self._stream.write(text)
-            except BrokenPipeError:
-                self._reader_left()
+            except OSError as e:
+                self._failed(e)
         return len(text)
 
     def flush(self) -> None:
-        if not self.gone:
+        if not (self.gone or self.closed):
             try:
                 self._stream.flush()
-            except BrokenPipeError:
-                self._reader_left()
+            except OSError as e:
+                self._failed(e)
+
+    def _failed(self, e: OSError) -> None:
+        if isinstance(e, BrokenPipeError):
+            self._reader_left()
+        elif e.errno == errno.EBADF:  # closed at the start, another file on its descriptor (a launcher's script)
+            self.closed = True
+        else:
+            raise self._named(e) from e
+
+    def _named(self, e: OSError) -> OSError:
+        return e if e.filename is not None or e.errno is None else OSError(e.errno, e.strerror, self.name)
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
@@ -588,12 +602,21 @@ class _Report:
 
 def main(argv: list[str] | None = None) -> int:
     streams = sys.stdout, sys.stderr
-    sys.stdout, sys.stderr = report = _Report(sys.stdout), _Report(sys.stderr)
+    report, sinks = [], []
+    for attr, name in (("stdout", "the standard output"), ("stderr", "the standard error")):
+        stream = getattr(sys, attr)
+        if stream is None:  # closed at the start (`2>&-`, a launcher's): a progress bar or a warning written to None
+            stream = open(os.devnull, "w")  # was a raw AttributeError that stopped the job, unseen
+            sinks.append(stream)
+        report.append(_Report(stream, name))
+        setattr(sys, attr, report[-1])
     try:
         code = _main(argv)
         return 141 if code == 0 and any(r.gone for r in report) else code  # done; the report had no reader
     finally:
         sys.stdout, sys.stderr = streams
+        for sink in sinks:
+            sink.close()
 
 
 def _main(argv: list[str] | None) -> int:
