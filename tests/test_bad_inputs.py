@@ -5789,6 +5789,28 @@ def row_progress_bar_in_a_log_file(env):
     assert err.count("epoch 0:") <= 2, err  # the bar's start and (a run longer than a minute) its refreshes
 
 
+@row("S28", "evaluate-json of predictions whose scores are all equal (one confidence_level written for every "
+            "vector): the AP followed the order of the vectors in the file (the same file reversed scored another "
+            "AP), no word; now a note says so")
+def row_predictions_with_one_score(env):
+    gt = {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0}, {"pts": [[0.0, -1.0], [5.0, -1.0]], "type": 0}]}
+    pred = {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0, "confidence_level": 0.5},
+                  {"pts": [[0.0, 8.0], [5.0, 8.0]], "type": 0, "confidence_level": 0.5},
+                  {"pts": [[0.0, -9.0], [5.0, -9.0]], "type": 2, "confidence_level": 0.5},
+                  {"pts": [[0.0, -1.0], [5.0, -1.0]], "type": 2, "confidence_level": 0.9}]}
+    (env.tmp / "gt.json").write_text(json.dumps({"meta": {"ground_truth": True}, "results": gt}))
+    aps = []
+    for name, vectors in (("pred.json", pred["a"]), ("reversed.json", pred["a"][::-1])):
+        (env.tmp / name).write_text(json.dumps({"results": {"a": vectors}}))
+        rc, out, err = env.cli("evaluate-json", "--pred", env.tmp / name, "--gt", env.tmp / "gt.json")
+        assert rc == 0, err[-2000:]
+        assert re.search(rf"note: .*{name}: all 2 predictions of divider have the same confidence_level 0\.5: their "
+                         r"ranking, and so the AP, follows their order in the file", out), out
+        assert "predictions of boundary" not in out  # two scores
+        aps.append(re.search(r"^divider .* ([0-9.]+)$", out, re.M).group(1))
+    assert aps[0] != aps[1], aps  # why the note: the order decides
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -25,8 +25,8 @@ value ``{"vectors": [...]}``, and ``GTs`` instead of ``results`` (MapTR's GT fil
   file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
 
-Python's ``json`` reads and writes ``NaN`` (not strict JSON): metrics files use it for the raster
-protocol's 0/0 cases.
+Every file is written as standard JSON (``files.write_json``): a NaN (the raster protocol's 0/0 cases in a metrics
+file) is written as ``null``, and a non-finite score is refused (``null`` would read back as the default 1.0).
 """
 
 from __future__ import annotations
@@ -157,7 +157,28 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         notes.append(
             f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
         )
+    if role == "pred":
+        notes += _tied_score_notes(path, samples)
     return Submission(str(path), meta, samples, notes, counts["confidences"], counts.get("unit_confidences", 0))
+
+
+def _tied_score_notes(path: Path, samples: dict[str, list[dict]]) -> list[str]:
+    """A class whose predictions all carry one score: their ranking, and so the AP, follows their order in the file
+    (the same file reversed scored otherwise), where a score ranks them."""
+    scores: dict[int, set[float]] = {}
+    counts: dict[int, int] = {}
+    for polys in samples.values():
+        for p in polys:
+            scores.setdefault(p["label"], set()).add(p["score"])
+            counts[p["label"]] = counts.get(p["label"], 0) + 1
+    notes = []
+    for k in sorted(scores):
+        if counts[k] > 1 and len(scores[k]) == 1:
+            name = MAP_CLASSES[k] if k < len(MAP_CLASSES) else f"class {k}"
+            notes.append(f"{path}: all {counts[k]} predictions of {name} have the same confidence_level "
+                         f"{next(iter(scores[k])):g}: their ranking, and so the AP, follows their order in the file "
+                         "(reordered, it scores otherwise); give each prediction its model's score")
+    return notes
 
 
 def vectors_to_polylines(
