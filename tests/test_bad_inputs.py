@@ -5811,6 +5811,18 @@ def row_predictions_with_one_score(env):
     assert aps[0] != aps[1], aps  # why the note: the order decides
 
 
+@row("S28", "a non-ASCII path on a terminal that is not UTF-8 (PYTHONIOENCODING=ascii, a Windows console): export-gt "
+            "wrote the file, then its 'wrote ...' line crashed (UnicodeEncodeError traceback, exit 1); now the "
+            "letter is escaped and the exit status is 0")
+def row_non_ascii_path_on_an_ascii_terminal(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "PYTHONIOENCODING": "ascii"}
+    out = env.tmp / "gt \u00e4.json"
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "export-gt", str(env.yaml), "--out", str(out)],
+                       capture_output=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and b"Traceback" not in p.stderr, p.stderr[-2000:]
+    assert b"gt \\xe4.json" in p.stdout and out.is_file(), p.stdout
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

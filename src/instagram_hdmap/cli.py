@@ -573,7 +573,11 @@ class _Report:
     def write(self, text):
         if not (self.gone or self.closed):
             try:
-                return self._stream.write(text)
+                try:
+                    return self._stream.write(text)
+                except UnicodeEncodeError:  # a path with an 'ä' on an ASCII / Latin-1 terminal (PYTHONIOENCODING,
+                    encoding = self._stream.encoding  # a Windows console): was a traceback, exit 1, after the work
+                    return self._stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
             except OSError as e:
                 self._failed(e)
         return len(text)
