@@ -5823,6 +5823,19 @@ def row_non_ascii_path_on_an_ascii_terminal(env):
     assert b"gt \\xe4.json" in p.stdout and out.is_file(), p.stdout
 
 
+@row("S28", "export-onnx under PYTHONWARNINGS=error (-W error, as CI runs): torch's FutureWarning about its own "
+            "internals ('isinstance(treespec, LeafSpec) is deprecated') stopped the export with torch's traceback, "
+            "exit 1, nothing a user could change; now those notices of torch are ignored during the export")
+def row_export_onnx_under_warnings_as_errors(env):
+    import warnings
+
+    pytest.importorskip("onnx")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rc, out, err = env.cli("export-onnx", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "m.onnx")
+    assert rc == 0 and (env.tmp / "m.onnx").is_file(), err[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -42,6 +42,7 @@ from __future__ import annotations
 import copy
 import importlib.metadata
 import json
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -213,7 +214,11 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
         batch.update(frame, **{f"memory_{k}": v for k, v in memory.items()})
     names_in, names_out = input_names(cfg), output_names(cfg)
     args = tuple(batch[k] for k in names_in)
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        # torch's notices about its own internals (FutureWarning "isinstance(treespec, LeafSpec) is deprecated"):
+        # nothing a user can change; under PYTHONWARNINGS=error (-W error) they stopped the export, torch's traceback
+        warnings.filterwarnings("ignore", category=FutureWarning)
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
         expected = interface(*args)
         program = torch.onnx.export(interface, args, input_names=list(names_in), output_names=list(names_out),
                                     opset_version=opset, dynamo=True, optimize=optimize, verbose=False)
