@@ -5852,6 +5852,35 @@ def row_temporal_speed_memory_not_fused(env):
     assert p.returncode == 0 and "fusion alone" in p.stdout, p.stderr[-2000:]
 
 
+@row("S28", "evaluate with data.on_bad_sample=skip under PYTHONWARNINGS=ignore (-W ignore): the samples left out "
+            "were named only by Python warnings, which vanished ('1 bad sample(s) left out; the warnings name them'); "
+            "now the note names their tokens (printed and in metrics.json)")
+def row_skipped_samples_named_without_warnings(env):
+    import warnings
+
+    root = env.shadow_world(copy_samples=True)
+    _break_image(root, root, 0, "CAM_FRONT", "missing")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc, out, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip",
+                               "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-3000:]
+    submission = json.loads((env.tmp / "eval" / "submission.json").read_text())
+    tables = json.loads((root / "v1.0-trainval" / "sample.json").read_text())
+    left = sorted({t["token"] for t in tables} - set(submission["results"]) - _train_tokens(root))
+    assert len(left) == 1, left
+    assert re.search(rf"note: 1 bad sample\(s\) of \d+ left out .*: {left[0]}$", out, re.M), out
+    notes = json.loads((env.tmp / "eval" / "metrics.json").read_text())["meta"]["config_notes"]
+    assert any(left[0] in n for n in notes), notes
+
+
+def _train_tokens(root: Path) -> set[str]:
+    tables = {n: json.loads((root / "v1.0-trainval" / f"{n}.json").read_text()) for n in ("sample", "scene")}
+    train = set(json.loads((root / "splits.json").read_text())["train"])
+    scenes = {s["token"] for s in tables["scene"] if s["name"] in train}
+    return {t["token"] for t in tables["sample"] if t["scene_token"] in scenes}
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

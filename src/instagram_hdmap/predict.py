@@ -681,9 +681,10 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
-    if len(results) < len(dataset):
-        notes.append(f"{len(dataset) - len(results)} bad sample(s) of {len(dataset)} left out "
-                     "(data.on_bad_sample=skip; the warnings name them)")
+    if len(results) < len(dataset):  # named here too: the warnings that say why vanish under -W ignore
+        left = [t for t in dataset.sample_tokens if t not in results]
+        notes.append(f"{len(left)} bad sample(s) of {len(dataset)} left out (data.on_bad_sample=skip; the warnings "
+                     f"say why): {', '.join(left[:5])}{' ...' if len(left) > 5 else ''}")
     metrics = evaluator.compute()
     if flicker is not None:
         metrics["consistency"] = flicker.compute()
