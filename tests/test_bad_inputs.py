@@ -5881,6 +5881,35 @@ def _train_tokens(root: Path) -> set[str]:
     return {t["token"] for t in tables["sample"] if t["scene_token"] in scenes}
 
 
+@row("S28", "export-gt with data.on_bad_sample=skip and unreadable map files: a GT file of 0 samples, 'wrote ...: 0 "
+            "samples', exit 0; samples left out were named only by Python warnings (-W ignore hides them); now every "
+            "sample bad is one error, and a note names the samples left out")
+def row_export_gt_samples_left_out(env):
+    import warnings
+
+    root = env.shadow_world()
+    (root / "maps").unlink()
+    shutil.copytree(env.world / "maps", root / "maps")
+    tables = {n: json.loads((root / "v1.0-trainval" / f"{n}.json").read_text()) for n in ("scene", "log")}
+    location = {t["token"]: t["location"] for t in tables["log"]}
+    train = json.loads((root / "splits.json").read_text())["train"]
+    places = [location[s["log_token"]] for s in tables["scene"] if s["name"] in train]
+    argv = ["export-gt", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", "--split", "train"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        (root / "maps" / "expansion" / f"{places[0]}.json").write_text("{")  # one location's map unreadable
+        rc, out, err = env.cli(*argv, "--out", env.tmp / "gt.json")
+        assert rc == 0, err[-2000:]
+        kept = json.loads((env.tmp / "gt.json").read_text())["results"]
+        note = re.search(r"note: (\d+) bad sample\(s\) of (\d+) left out .*: (\w+)", out)
+        assert note and int(note[1]) + len(kept) == int(note[2]) and note[3] not in kept, out
+        for place in set(places):
+            (root / "maps" / "expansion" / f"{place}.json").write_text("{")
+        env.error(r"every sample of split 'train' in .* is bad \(data\.on_bad_sample=skip\), the first: sample \w+: "
+                  r"cannot read map expansion file", *argv, "--out", env.tmp / "gt2.json")
+    assert not (env.tmp / "gt2.json").exists()
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

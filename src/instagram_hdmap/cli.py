@@ -105,10 +105,14 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
     # the config's split by default, as evaluate's (a literal 'val' ignored data.val_split with no word)
     args.split = args.split or cfg.data.val_split
     dataset = build_dataset(cfg, args.split, augment=False)
-    sub = gt_submission(dataset, progress=True)
+    sub = gt_submission(dataset, progress=sys.stderr.isatty())  # (as evaluate-json: no bar drawn into a log file)
     write_json(sub, args.out)
     n = sum(len(v) for v in sub["results"].values())
     print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines")
+    left = [t for t in dataset.sample_tokens if t not in sub["results"]]
+    if left:  # named here too: the warnings that say why vanish under -W ignore
+        print(f"note: {len(left)} bad sample(s) of {len(dataset)} left out (data.on_bad_sample=skip; the warnings "
+              f"say why): {', '.join(left[:5])}{' ...' if len(left) > 5 else ''}")
     return 0
 
 
