@@ -5910,6 +5910,21 @@ def row_export_gt_samples_left_out(env):
     assert not (env.tmp / "gt2.json").exists()
 
 
+@row("S28", "train with stderr on a full disk (`2> log`, the log's disk full): the progress bar's next write stopped "
+            "the training, exit 1, no checkpoint and no word anywhere; now stderr's messages are dropped, the "
+            "training ends and a note on stdout says the messages were lost")
+def row_standard_error_on_a_full_disk(env):
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full")
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    argv = ["train", str(env.yaml), f"train.out_dir={env.tmp / 'run'}", "train.epochs=1", "train.checkpoint_every=0"]
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", *argv], stdout=subprocess.PIPE, stderr=full,
+                           text=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and (env.tmp / "run" / "last.pt").is_file(), (p.returncode, p.stdout[-2000:])
+    assert "note: the standard error could not be written from some point on (No space left on device)" in p.stdout
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

@@ -557,13 +557,17 @@ class _Report:
     2>&1 | head``, a ``tee`` that was killed): the job goes on and writes its files, the messages nobody reads are
     dropped (the descriptor then points at /dev/null, for the interpreter's last flush and for child processes), and
     ``main`` returns 141 at the end, as SIGPIPE's exit status. Without it the first message after the reader left
-    stopped the job: evaluate-json's metrics file unwritten, a training stopped before its first step."""
+    stopped the job: evaluate-json's metrics file unwritten, a training stopped before its first step. Likewise a
+    stream closed at the start (EBADF) and stderr on a full disk (its messages dropped, a note on stdout at the end);
+    a line that the stream's encoding cannot hold is escaped; stdout's other errors (a full disk: the results are
+    lost) are raised, naming the stream."""
 
     def __init__(self, stream, name: str):
         self._stream = stream
         self.name = name  # named in an error of the stream: a full disk under `> log` said no file
         self.gone = False  # its reader went away during the job
         self.closed = False  # closed before the job (`2>&-`): messages dropped, the exit status kept
+        self.lost: OSError | None = None  # stderr's write that failed (a full disk under `2> log`): the rest dropped
 
     def _reader_left(self) -> None:
         self.gone = True
@@ -598,6 +602,8 @@ class _Report:
             self._reader_left()
         elif e.errno == errno.EBADF:  # closed at the start, another file on its descriptor (a launcher's script)
             self.closed = True
+        elif self.name == "the standard error":  # messages only (progress bars, notes): a full disk under `2> log`
+            self.closed, self.lost = True, e  # stopped a training at its next bar, exit 1, unsaved and unsaid
         else:
             raise self._named(e) from e
 
@@ -620,6 +626,10 @@ def main(argv: list[str] | None = None) -> int:
         setattr(sys, attr, report[-1])
     try:
         code = _main(argv)
+        lost = report[-1].lost
+        if lost is not None and not report[0].gone:
+            print(f"instagram-hdmap: note: the standard error could not be written from some point on ("
+                  f"{lost.strerror or lost}); its messages were dropped")
         return 141 if code == 0 and any(r.gone for r in report) else code  # done; the report had no reader
     finally:
         sys.stdout, sys.stderr = streams
