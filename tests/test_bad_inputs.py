@@ -5925,6 +5925,32 @@ def row_standard_error_on_a_full_disk(env):
     assert "note: the standard error could not be written from some point on (No space left on device)" in p.stdout
 
 
+@row("S28", "benchmarks/temporal.py reads back a finished run's result file (a rerun of the same --out): written "
+            "as standard JSON, a flicker rate with no pairs is null there; the tables took it as a number (TypeError "
+            "formatting None); now it is NaN again when read")
+def row_benchmark_temporal_result_with_null(env):
+    import argparse
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_temporal_s28", REPO / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    from instagram_hdmap.demo import VAL_WORLD
+
+    args = argparse.Namespace(out=str(env.tmp / "out"), steps=100, minutes=15.0, occluders=0.7, override=[],
+                              memory="bev", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None,
+                              threads=None, temporal_override=[])
+    folder = env.tmp / "out" / "single_seed0"
+    folder.mkdir(parents=True)
+    (folder / bench.result_name(args)).write_text(json.dumps(  # as files.write_json writes a NaN: null
+        {"config": "single", "seed": 0, "steps": 100, "mAP": 0.0, "AP_class": {"divider": 0.0}, "flicker_mean": 0.0,
+         "flicker_detected_mean": None}))
+    forbid(env, "instagram_hdmap.train.train", "a training")
+    result = bench.run_one("single", 0, args, (None, None))
+    assert result["flicker_detected_mean"] != result["flicker_detected_mean"]  # NaN
+    assert "nan" in bench.table([result])
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
