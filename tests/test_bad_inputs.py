@@ -5951,6 +5951,32 @@ def row_benchmark_temporal_result_with_null(env):
     assert "nan" in bench.table([result])
 
 
+@row("S28", "export-gt / evaluate-json --out /dev/stdout (what the refusal of --out - advises, for `| jq`): refused "
+            "('cannot write /proc/PID/fd/pipe:[N]', on a terminal 'cannot write /dev/pts/0'); --out /dev/null or "
+            "another device run as root: the device node was replaced by a regular file (a temporary renamed over "
+            "it); now a terminal, pipe or device is written directly, the report goes to stderr")
+def row_output_to_a_pipe_or_device(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    cli = [sys.executable, "-m", "instagram_hdmap.cli"]
+    p = subprocess.run([*cli, "export-gt", str(env.yaml), "--out", "/dev/stdout"], capture_output=True, text=True,
+                       env=env_vars, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    gt = json.loads(p.stdout)  # the JSON alone: "wrote ..." went to stderr
+    assert gt["meta"]["ground_truth"] and gt["results"] and "wrote /dev/stdout" in p.stderr
+    (env.tmp / "gt.json").write_text(p.stdout)
+    p = subprocess.run([*cli, "evaluate-json", "--pred", str(env.tmp / "gt.json"), "--gt", str(env.tmp / "gt.json"),
+                        "--out", "/dev/stdout"], capture_output=True, text=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and "mAP" in p.stderr, p.stderr[-2000:]
+    assert json.loads(p.stdout)["AP_class"]["divider"] == 1.0
+    if os.geteuid() == 0:  # a device node of its own (as /dev/null is): it stays one
+        import stat
+
+        device = env.tmp / "null"
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        rc, out, err = env.cli("export-gt", env.yaml, "--out", device)
+        assert rc == 0 and stat.S_ISCHR(device.stat().st_mode), (err[-2000:], device.stat())
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

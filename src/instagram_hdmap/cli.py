@@ -26,7 +26,15 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .evaluation import evaluate_files, format_table
-from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, os_error_in, write_json
+from .files import (
+    NO_ROOM,
+    check_name_lengths,
+    check_output_dir,
+    check_output_file,
+    is_stream,
+    os_error_in,
+    write_json,
+)
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
@@ -108,11 +116,12 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
     sub = gt_submission(dataset, progress=sys.stderr.isatty())  # (as evaluate-json: no bar drawn into a log file)
     write_json(sub, args.out)
     n = sum(len(v) for v in sub["results"].values())
-    print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines")
+    report = sys.stderr if is_stream(args.out) else sys.stdout  # --out /dev/stdout | jq: the JSON only on stdout
+    print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines", file=report)
     left = [t for t in dataset.sample_tokens if t not in sub["results"]]
     if left:  # named here too: the warnings that say why vanish under -W ignore
         print(f"note: {len(left)} bad sample(s) of {len(dataset)} left out (data.on_bad_sample=skip; the warnings "
-              f"say why): {', '.join(left[:5])}{' ...' if len(left) > 5 else ''}")
+              f"say why): {', '.join(left[:5])}{' ...' if len(left) > 5 else ''}", file=report)
     return 0
 
 
@@ -192,19 +201,20 @@ def _cmd_evaluate_json(args: argparse.Namespace) -> int:
     metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
                              fix_instance_ids=args.fix_instance_ids, device=args.device,
                              ignore_extra_predictions=args.ignore_extra_predictions, progress=sys.stderr.isatty())
-    print(format_table(metrics))
-    _print_notes(metrics["notes"])
+    report = sys.stderr if args.out and is_stream(args.out) else sys.stdout  # --out /dev/stdout | jq: JSON only
+    print(format_table(metrics), file=report)
+    _print_notes(metrics["notes"], report)
     if args.out:
-        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as null (standard JSON)
+        print(f"wrote {write_json(metrics, args.out, indent=2)}", file=report)  # NaN is written as null (JSON)
     return 0
 
 
 # --- inference: evaluate, predict, benchmark -------------------------------------------------
 
 
-def _print_notes(notes: list[str]) -> None:
+def _print_notes(notes: list[str], file=None) -> None:
     for note in notes:
-        print(f"note: {note}")
+        print(f"note: {note}", file=file)
 
 
 def _load_evaluate(args: argparse.Namespace):
