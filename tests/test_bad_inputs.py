@@ -16,6 +16,7 @@ refused checks that it runs).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
+``S28`` marks a case found by a twenty-eighth sweep (the files written as other programs read them, the terminal).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
