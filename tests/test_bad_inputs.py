@@ -5978,6 +5978,22 @@ def row_output_to_a_pipe_or_device(env):
         assert rc == 0 and stat.S_ISCHR(device.stat().st_mode), (err[-2000:], device.stat())
 
 
+@row("S28", "evaluate-json --pred /dev/stdin (`zcat pred.json.gz | evaluate-json --pred /dev/stdin`) or a process "
+            "substitution `<(...)`: refused as 'not valid JSON' (the pipe was opened twice: a look at its first "
+            "bytes, then the read, which found them gone); now it is read once")
+def row_submission_read_from_a_pipe(env):
+    gt = {"meta": {"ground_truth": True}, "results": {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0}]}}
+    pred = {"results": {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0, "confidence_level": 0.5}]}}
+    (env.tmp / "gt.json").write_text(json.dumps(gt))
+    (env.tmp / "pred.json").write_text(json.dumps(pred))
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "evaluate-json", "--pred", "/dev/stdin", "--gt",
+                        str(env.tmp / "gt.json"), "--out", str(env.tmp / "m.json")],
+                       input=(env.tmp / "pred.json").read_bytes(), capture_output=True, env=env_vars, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert json.loads((env.tmp / "m.json").read_text())["AP_class"]["divider"] == 1.0
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 

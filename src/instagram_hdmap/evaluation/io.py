@@ -101,14 +101,14 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
                          f"{role!r}")
     path = as_path(path, "the submission file")
     try:
-        with open(path, "rb") as f:
-            head = f.read(2)
-        kind = {b"\x1f\x8b": "gzip-compressed file (gunzip it)"}.get(head[:2]) or (
-            "Python pickle (mmcv.dump to .pkl; dump to .json)" if head[:1] == b"\x80" else None)  # magic numbers
+        with open(path, "rb") as f:  # read once: a pipe (`--pred /dev/stdin`, `<(zcat pred.json.gz)`) is read only once
+            raw = f.read()
+        kind = {b"\x1f\x8b": "gzip-compressed file (gunzip it)"}.get(raw[:2]) or (
+            "Python pickle (mmcv.dump to .pkl; dump to .json)" if raw[:1] == b"\x80" else None)  # magic numbers
         if kind is not None:
             raise SubmissionError(f"{path}: a {kind}, not JSON; expected the HDMapNet submission format")
-        with open(path, encoding="utf-8-sig") as f:  # a byte-order mark (Windows editors) is not part of the JSON
-            data = json.load(f, object_pairs_hook=_unique_keys)
+        # a byte-order mark (Windows editors) is not part of the JSON
+        data = json.loads(raw.decode("utf-8-sig"), object_pairs_hook=_unique_keys)
     except FileNotFoundError:
         raise SubmissionError(f"{path}: no such file") from None
     except _RepeatedKey as e:
