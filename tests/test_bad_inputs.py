@@ -5994,6 +5994,15 @@ def row_submission_read_from_a_pipe(env):
     assert json.loads((env.tmp / "m.json").read_text())["AP_class"]["divider"] == 1.0
 
 
+@row("S28", "a config given as a pipe (`train <(envsubst < in.yaml)`, `... | model-summary /dev/stdin`): 'config "
+            "file not found: /dev/fd/63', though it was there; now read (once, as a file is)")
+def row_config_from_a_pipe(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "model-summary", "/dev/stdin"],
+                       input=env.yaml.read_bytes(), capture_output=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and b"trainable" in p.stdout, p.stderr[-2000:]
+
+
 # --- the test: every row of the table ---------------------------------------------------------------
 
 
