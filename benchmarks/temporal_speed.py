@@ -32,7 +32,7 @@ def timed(fn) -> float:
 
 
 def main() -> None:
-    from instagram_hdmap.config import load_config
+    from instagram_hdmap.config import UserError, load_config
     from instagram_hdmap.deploy import example_inputs
     from instagram_hdmap.models import build_model
 
@@ -51,8 +51,9 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     cfg = load_config(args.config, ["model.backbone.grad_checkpoint=false", *args.override])
-    if cfg.model.temporal.memory == "none":
-        raise SystemExit(f"{args.config}: model.temporal.memory is none; give a temporal config")
+    if cfg.model.temporal.memory == "none":  # a UserError: one line and exit 2, as a wrong flag (was exit 1)
+        raise UserError(f"{args.config}: model.temporal.memory is none; give a temporal config (or "
+                        "model.temporal.memory=bev)")
     single_cfg = load_config(args.config, ["model.backbone.grad_checkpoint=false", *args.override,
                                            "model.temporal.memory=none"])
     torch.manual_seed(0)
@@ -85,7 +86,6 @@ def main() -> None:
     times: dict[str, list[float]] = {k: [] for k in jobs}
     status = int(outputs["memory_status"].item())
     if status != 0:  # an assert: a raw AssertionError, and under python -O the timings of a model that fuses nothing
-        from instagram_hdmap.config import UserError
         from instagram_hdmap.models.temporal import STATUS_NAMES
 
         raise UserError(f"{args.config}: the memory of the previous frame (1.5 m behind, not turned) is not fused "

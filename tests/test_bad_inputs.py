@@ -5840,7 +5840,8 @@ def row_export_onnx_under_warnings_as_errors(env):
 @row("S28", "benchmarks/temporal_speed.py with model.temporal.max_jump_m=1 (the benchmark's previous frame is 1.5 m "
             "behind): a bare `assert` of the fusion, a raw AssertionError, and under python -O the timings of a "
             "model that fuses nothing with exit 0; now one line naming the key, exit 2. --runs 1 (allowed): a raw "
-            "StatisticsError after the work; its p10 / p90 of a few runs were extrapolated (a p10 of -126 ms)")
+            "StatisticsError after the work; its p10 / p90 of a few runs were extrapolated (a p10 of -126 ms); a "
+            "config without memory: exit 1, now 2 as every wrong input")
 def row_temporal_speed_memory_not_fused(env):
     env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     script = [str(REPO / "benchmarks" / "temporal_speed.py"), "--config", str(TINY_YAML), "--runs", "1", "--warmup",
@@ -5851,6 +5852,8 @@ def row_temporal_speed_memory_not_fused(env):
     assert re.search(r"not fused \(status pose_jump\): model\.temporal\.max_jump_m=1\.0", p.stderr), p.stderr
     p = subprocess.run([sys.executable, *script], capture_output=True, text=True, env=env_vars, timeout=300)
     assert p.returncode == 0 and "fusion alone" in p.stdout, p.stderr[-2000:]
+    p = subprocess.run([sys.executable, *script[:-1]], capture_output=True, text=True, env=env_vars, timeout=300)
+    assert p.returncode == 2 and "model.temporal.memory is none" in p.stderr, (p.returncode, p.stderr[-2000:])
 
 
 @row("S28", "evaluate with data.on_bad_sample=skip under PYTHONWARNINGS=ignore (-W ignore): the samples left out "
