@@ -5973,12 +5973,17 @@ def row_output_to_a_pipe_or_device(env):
     assert p.returncode == 0 and "mAP" in p.stderr, p.stderr[-2000:]
     assert json.loads(p.stdout)["AP_class"]["divider"] == 1.0
     if os.geteuid() == 0:  # a device node of its own (as /dev/null is): it stays one
+        import importlib.util
         import stat
 
         device = env.tmp / "null"
         os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
         rc, out, err = env.cli("export-gt", env.yaml, "--out", device)
         assert rc == 0 and stat.S_ISCHR(device.stat().st_mode), (err[-2000:], device.stat())
+        if importlib.util.find_spec("onnx") is not None:  # it reads its file back: a device is refused first
+            env.error(r"--out .*null: a terminal, pipe or device; export-onnx reads the file back", "export-onnx",
+                      env.yaml, "--checkpoint", env.ckpt, "--out", device)
+            assert stat.S_ISCHR(device.stat().st_mode)
 
 
 @row("S28", "evaluate-json --pred /dev/stdin (`zcat pred.json.gz | evaluate-json --pred /dev/stdin`) or a process "

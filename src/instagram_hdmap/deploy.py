@@ -53,7 +53,7 @@ from .checkpoint import load_checkpoint
 from .config import ExperimentConfig, config_to_dict, flatten, is_under, parse_overrides
 from .data import rig_cameras
 from .data.rig import nuscenes_like_rig
-from .files import atomic_path, check_output_file
+from .files import atomic_path, check_output_file, is_stream
 from .inference import (
     EXPORT_FORMAT,
     INPUT_NAMES,
@@ -278,6 +278,9 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     ``check`` (``compare_outputs`` of onnxruntime against torch) to ``export_onnx``'s result."""
     require_onnx(export=True)
     check_output_file(out, "--out", [(checkpoint, "--checkpoint")])  # before minutes of export
+    if verify and is_stream(out):  # /dev/stdout, /dev/null: written, then the check found nothing to read back
+        raise DeployError(f"--out {out}: a terminal, pipe or device; export-onnx reads the file back to check it in "
+                          "onnxruntime: give a file name (e.g. model.onnx)")
     state = load_checkpoint(checkpoint)
     saved = state.get("config") if isinstance(state.get("config"), dict) else None
     cfg = export_config(cfg, saved, overrides, checkpoint)
