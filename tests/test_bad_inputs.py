@@ -6003,12 +6003,17 @@ def row_submission_read_from_a_pipe(env):
 
 
 @row("S28", "a config given as a pipe (`train <(envsubst < in.yaml)`, `... | model-summary /dev/stdin`): 'config "
-            "file not found: /dev/fd/63', though it was there; now read (once, as a file is)")
+            "file not found: /dev/fd/63', though it was there; now read (once, as a file is). A checkpoint given as "
+            "a pipe: 'checkpoint not found'; now named as a pipe (a zip archive is read by seeking)")
 def row_config_from_a_pipe(env):
     env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "model-summary", "/dev/stdin"],
                        input=env.yaml.read_bytes(), capture_output=True, env=env_vars, timeout=300)
     assert p.returncode == 0 and b"trainable" in p.stdout, p.stderr[-2000:]
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "evaluate", str(env.yaml), "--checkpoint",
+                        "/dev/stdin", "--out", str(env.tmp / "eval")], input=env.ckpt.read_bytes(), capture_output=True,
+                       text=False, env=env_vars, timeout=300)
+    assert p.returncode == 2 and b"checkpoint /dev/stdin is a pipe or a device, not" in p.stderr, p.stderr[-2000:]
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
