@@ -6004,7 +6004,8 @@ def row_submission_read_from_a_pipe(env):
 
 @row("S28", "a config given as a pipe (`train <(envsubst < in.yaml)`, `... | model-summary /dev/stdin`): 'config "
             "file not found: /dev/fd/63', though it was there; now read (once, as a file is). A checkpoint given as "
-            "a pipe: 'checkpoint not found'; now named as a pipe (a zip archive is read by seeking)")
+            "a pipe: 'checkpoint not found'; an image of predict-images as a pipe: 'cannot be read as an image' (a "
+            "named pipe: a hang); both now named as pipes (read by seeking / more than once)")
 def row_config_from_a_pipe(env):
     env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "model-summary", "/dev/stdin"],
@@ -6014,6 +6015,12 @@ def row_config_from_a_pipe(env):
                         "/dev/stdin", "--out", str(env.tmp / "eval")], input=env.ckpt.read_bytes(), capture_output=True,
                        text=False, env=env_vars, timeout=300)
     assert p.returncode == 2 and b"checkpoint /dev/stdin is a pipe or a device, not" in p.stderr, p.stderr[-2000:]
+    rig, images = _rig_files(env)  # an image as a pipe: read by checks, then decoded (a named pipe hung)
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "predict-images", "--checkpoint", str(env.ckpt),
+                        "--rig", str(rig), "--out", str(env.tmp / "out"), "--device", "cpu", "/dev/stdin",
+                        *map(str, images[1:])], input=images[0].read_bytes(), capture_output=True, env=env_vars,
+                       timeout=300)
+    assert p.returncode == 2 and b"image /dev/stdin is a pipe or a device, not a file" in p.stderr, p.stderr[-2000:]
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

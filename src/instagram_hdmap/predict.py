@@ -388,6 +388,10 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
     seen: dict[str, str] = {}
     copies: dict[str, tuple[str, str]] = {}  # a byte-identical copy is the same image under another name
     for cam, path in zip(rig, images):
+        if os.path.exists(path) and not os.path.isfile(path):  # was "cannot be read as an image": the check below
+            raise RigError(f"camera {cam.name}: image {path} is a pipe or a device, not a file (a process "  # read it
+                           "substitution <(...)): an image is read more than once (checks, then the decoding); "
+                           "save it to a file first")
         # one image for two cameras (the same file, a link or a copy) is a mistake, except a blank frame: the
         # cameras that failed (data.camera_dropout's case) may all be given one black image
         other = seen.setdefault(os.path.realpath(path), cam.name)
