@@ -6004,8 +6004,8 @@ def row_submission_read_from_a_pipe(env):
 
 @row("S28", "a config given as a pipe (`train <(envsubst < in.yaml)`, `... | model-summary /dev/stdin`): 'config "
             "file not found: /dev/fd/63', though it was there; now read (once, as a file is). A checkpoint given as "
-            "a pipe: 'checkpoint not found'; an image of predict-images as a pipe: 'cannot be read as an image' (a "
-            "named pipe: a hang); both now named as pipes (read by seeking / more than once)")
+            "a pipe: 'checkpoint not found' (an ONNX file: 'ONNX file not found'); an image of predict-images as a "
+            "pipe: 'cannot be read as an image' (a named pipe: a hang); now named as pipes (read more than once)")
 def row_config_from_a_pipe(env):
     env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "model-summary", "/dev/stdin"],
@@ -6021,6 +6021,13 @@ def row_config_from_a_pipe(env):
                         *map(str, images[1:])], input=images[0].read_bytes(), capture_output=True, env=env_vars,
                        timeout=300)
     assert p.returncode == 2 and b"image /dev/stdin is a pipe or a device, not a file" in p.stderr, p.stderr[-2000:]
+    import importlib.util
+
+    if importlib.util.find_spec("onnx") and importlib.util.find_spec("onnxruntime"):  # --onnx as a pipe
+        p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "predict-images", "--onnx", "/dev/stdin",
+                            "--rig", str(rig), "--out", str(env.tmp / "out"), *map(str, images)], input=b"onnx",
+                           capture_output=True, env=env_vars, timeout=300)
+        assert p.returncode == 2 and b"ONNX file /dev/stdin is a pipe or a device" in p.stderr, p.stderr[-2000:]
 
 
 # --- the test: every row of the table ---------------------------------------------------------------
