@@ -305,7 +305,7 @@ def paired(results: list[dict]) -> str:
 def check_args(p: argparse.ArgumentParser, args) -> None:
     """The options' ranges, the fine-tuning's start and the overrides, before the worlds are generated (minutes):
     a wrong value is one line (argparse's error, exit 2), not a traceback after the generation."""
-    from instagram_hdmap.config import UserError, load_config
+    from instagram_hdmap.config import UserError, flatten, load_config, parse_overrides
     from instagram_hdmap.models import build_model
     from instagram_hdmap.train import check_stream_schedule
 
@@ -344,7 +344,13 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
         if missing:
             p.error(f"--finetune-base {args.finetune_base}: no single-frame checkpoint {', '.join(missing)}")
     for flag, overrides in (("--set", args.override), ("--temporal-set", args.temporal_override)):
-        memory_set = [o for o in overrides if o.split("=", 1)[0].strip() == "model.temporal.memory"]
+        def sets_memory(override: str) -> bool:  # model.temporal={memory: bev} sets it too
+            try:
+                return "model.temporal.memory" in flatten(parse_overrides([override]))
+            except UserError:  # named below, where the config is loaded
+                return False
+
+        memory_set = [o for o in overrides if sets_memory(o)]
         if memory_set:  # --memory names the runs and is what the memory-off check reads: one place for it
             p.error(f"{flag} {memory_set[0]}: the temporal model's memory is --memory ({args.memory}), not a {flag}")
     for name, path in CONFIGS.items():

@@ -16,12 +16,16 @@ refused checks that it runs).
 ``S22`` marks a case found by a twenty-second sweep (the temporal and AV2 workflows end to end, the demo's world cache).
 ``S23`` marks a case found by a twenty-third sweep (valid but unusual inputs checked against independent computations).
 ``S24`` marks a case found by a twenty-fourth sweep (synth's flags, split files written by hand).
+``S25`` marks a case found by a twenty-fifth sweep (the issue's own kind, done blind).
+``S26`` marks a case found by a twenty-sixth sweep (the config as users write it: keys, overrides, YAML files).
+``S27`` marks a case found by a twenty-seventh sweep (resume, reuse and runs that meet other runs).
 ``S28`` marks a case found by a twenty-eighth sweep (the files written as other programs read them, the terminal).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
@@ -52,7 +56,7 @@ TINY_YAML = REPO / "configs" / "synthetic" / "tiny.yaml"
 @dataclass(frozen=True)
 class Row:
     id: str
-    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S23"
+    case: str  # issue 21's case number, "S" (the sweep that fixed them), "S2" (the sweep after it), "S3" ... "S27"
     what: str
     run: Callable
 
@@ -5702,6 +5706,569 @@ def row_synth_out_empty_string(env):
         generate_world("", scenes_train=1, scenes_val=1, samples_per_scene=1, image_size="64x48", progress=False)
 
 
+@row("S25", "export-onnx --out runs/x/best.pt while exporting last.pt (a slip of the file name) replaced the best "
+            "checkpoint with the ONNX graph, exit 0; export-gt and evaluate-json --out did the same with JSON. An "
+            "existing PyTorch checkpoint as an output file is refused before the work")
+def row_output_over_another_checkpoint(env):
+    best = env.tmp / "best.pt"
+    shutil.copy(env.ckpt, best)
+    before = best.read_bytes()
+    gt = env.tmp / "gt.json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err[-2000:]
+    pattern = r"--out .*best\.pt is a PyTorch checkpoint; writing the result there would destroy it"
+    env.error(pattern, "export-gt", env.yaml, "--out", best)
+    env.error(pattern, "evaluate-json", "--gt", gt, "--pred", gt, "--out", best)
+    env.error(pattern, "export-onnx", env.yaml, "--checkpoint", env.ckpt, "--out", best)
+    assert best.read_bytes() == before
+    rc, _, err = env.cli("evaluate-json", "--gt", gt, "--pred", gt, "--out", env.tmp / "metrics.json")  # any other file
+    assert rc == 0, err[-2000:]
+
+
+@row("S25", "predict --video --fps 0.001 (one frame per 1000 s, in range '> 0') ended after the model had run in "
+            "'OpenCV cannot write MP4 here; check the folder is writable and OpenCV was built with FFmpeg', the wrong "
+            "cause; the range says where OpenCV's writer stops, before the work, and 0.01 still writes")
+def row_video_fps_below_the_time_base(env):
+    argv = ("predict", env.yaml, "--checkpoint", env.ckpt, "--scene", _val_scene(env))
+    env.error(r"--fps 0\.001: frames per second must be over 0\.001 and at most 1000", *argv, "--video",
+              env.tmp / "v.mp4", "--fps", "0.001")
+    rc, _, err = env.cli(*argv, "--video", env.tmp / "slow.mp4", "--fps", "0.01")
+    assert rc == 0 and (env.tmp / "slow.mp4").stat().st_size > 0, err[-2000:]
+
+
+@row("S25", "data.dataroot one folder too deep (the version folder, .../v1.0-trainval) or one too high (the folder "
+            "holding the nuScenes folder) said 'versions in ...: none (set data.version or --version)', pointing at "
+            "the wrong key, and a file given as the dataroot was 'not found'; each now names the dataroot to set")
+def row_dataroot_one_folder_off(env):
+    version = env.cfg().data.version
+    env.error(rf"is a version folder itself: set data\.dataroot to the folder above it, .*{env.world.name}\)",
+              "export-gt", env.yaml, f"data.dataroot={env.world / version}", "--out", env.tmp / "gt.json")
+    (env.tmp / "data").mkdir()
+    (env.tmp / "data" / "nuscenes").symlink_to(env.world, target_is_directory=True)
+    env.error(rf"the dataroot is the folder that holds {version}: set data\.dataroot to .*data/nuscenes\)",
+              "export-gt", env.yaml, f"data.dataroot={env.tmp / 'data'}", "--out", env.tmp / "gt.json")
+    (env.tmp / "gt_val.json").write_text("{}")  # a file where the folder goes: it was "not found"
+    env.error(r"dataroot .*gt_val\.json is a file, not a folder", "export-gt", env.yaml,
+              f"data.dataroot={env.tmp / 'gt_val.json'}", "--out", env.tmp / "gt.json")
+
+
+@row("S25", "a submission whose 'type' and 'pts_num' are whole floats (1.0: numpy's float arrays through tolist(), a "
+            "MATLAB or R writer) was refused as \"'type' must be a class id 0..2, got 1.0\" (valid input refused); "
+            "a whole float is read as its class, 1.5 is still named")
+def row_submission_whole_float_ids(env):
+    gt = env.tmp / "gt.json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err[-2000:]
+    sub = json.loads(gt.read_text())
+    sub["meta"]["ground_truth"] = False
+    for vectors in sub["results"].values():
+        for v in vectors:
+            v.update(type=float(v["type"]), pts_num=float(v["pts_num"]), confidence_level=0.9)
+    pred = env.tmp / "pred.json"
+    pred.write_text(json.dumps(sub))
+    rc, out, err = env.cli("evaluate-json", "--gt", gt, "--pred", pred)
+    assert rc == 0, err[-2000:]
+    assert float(re.search(r"mAP\s+([0-9.]+)", out).group(1)) > 0.5, out
+    token = next(t for t, vectors in sub["results"].items() if vectors)
+    sub["results"][token][0]["type"] = 1.5
+    pred.write_text(json.dumps(sub))
+    env.error(r"'type' must be a class id 0\.\.2 .*got 1\.5", "evaluate-json", "--gt", gt, "--pred", pred)
+
+
+@row("S25", "an argument copied from a web page with a non-breaking space (U+00A0) the terminal does not show: "
+            "train.out_dir=runs/x\\xa0 trained into a new folder whose name ends in it (exit 0), --checkpoint "
+            "best.pt\\xa0 was 'not found: best.pt ', model.gnn.layers=3\\xa0 'expected int, got 3.0 (float)'. "
+            "In a YAML file the same said \"unknown config key '  epochs'\" or made an invisible out_dir. Each names "
+            "the argument (or file and line) and the character; a file whose name holds one still opens")
+def row_invisible_character_in_an_argument(env):
+    nbsp = "\u00a0"
+    env.error(r"argument 'train\.out_dir=.*run\\xa0' holds a non-breaking space \(U\+00A0\)", "train", env.yaml,
+              f"train.out_dir={env.tmp / 'run'}{nbsp}", "train.max_steps=1")
+    assert not any(p.name.startswith("run") for p in env.tmp.iterdir())
+    env.error(r"argument '.*\.pt\\xa0' holds a non-breaking space", "evaluate", env.yaml, "--checkpoint",
+              f"{env.ckpt}{nbsp}", "--out", env.tmp / "eval")
+    env.error(r"argument 'model\.gnn\.layers=3\\u200b' holds a zero-width space \(U\+200B\)", "model-summary",
+              env.yaml, "model.gnn.layers=3\u200b")
+    named = env.tmp / f"best{nbsp}copy.yaml"  # a file that exists with the character in its name
+    shutil.copy(env.yaml, named)
+    rc, _, err = env.cli("model-summary", named)
+    assert rc == 0, err[-2000:]
+    config = env.tmp / "copied.yaml"  # the same in a YAML file: "unknown config key '  epochs'", an invisible out_dir
+    for text, shown in ((f"train:\n{nbsp}{nbsp}epochs: 3\n", r"'\\xa0\\xa0epochs: 3'"),
+                        (f"train:\n  out_dir: runs/x{nbsp}\n", r"'out_dir: runs/x\\xa0'")):
+        config.write_text(f"_base_: {env.yaml}\n" + text)
+        env.error(rf"config file .*copied\.yaml, line 3: {shown} holds a non-breaking space", "model-summary", config)
+    config.write_text(f"_base_: {env.yaml}\n# copied{nbsp}from a page\ntrain:\n  epochs: 3  # a{nbsp}note\n")
+    assert load_config(config).train.epochs == 3  # in a comment it does no harm
+
+
+@row("S25", "OMP_NUM_THREADS=0 or =abc (a laptop's shell profile): OpenMP said 'Invalid value' and took its default, "
+            "and the training left the threads alone as for a value the user chose, printing '(OMP_NUM_THREADS)'; an "
+            "invalid value now counts as unset (the run chooses its threads), a valid one is still left alone")
+def row_invalid_omp_num_threads(env):
+    from instagram_hdmap.train import cpu_threads
+
+    cfg = env.cfg()
+    for value in ("0", "abc", " "):
+        env.monkeypatch.setenv("OMP_NUM_THREADS", value)
+        assert isinstance(cpu_threads(cfg), int) and cpu_threads(cfg) >= 1, value
+    env.monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert cpu_threads(cfg) is None
+
+
+@row("S25", "a checkpoint as shared or downloaded, packed: best.pt.gz / .xz said 'not a PyTorch file', a zip archive "
+            "holding best.pt 'truncated or corrupt (RuntimeError: Expected hasRecord(\"version\"))', a tar archive "
+            "'not a PyTorch file'; each now says what it is and how to unpack it")
+def row_packed_checkpoint(env):
+    import gzip
+    import lzma
+    import tarfile
+
+    data = env.ckpt.read_bytes()
+    (env.tmp / "best.pt.gz").write_bytes(gzip.compress(data))
+    (env.tmp / "best.pt.xz").write_bytes(lzma.compress(data))
+    with zipfile.ZipFile(env.tmp / "best.zip", "w") as z:
+        z.write(env.ckpt, "run/best.pt")
+    with tarfile.open(env.tmp / "best.tar", "w") as t:
+        t.add(env.ckpt, "run/best.pt")
+    for name, pattern in (("best.pt.gz", r"a gzip-compressed file \(gunzip it first\)"),
+                          ("best.pt.xz", r"a xz-compressed file \(unxz it first\)"),
+                          ("best.zip", r"not a PyTorch checkpoint but a zip archive of 1 file\(s\) \(run/best\.pt\): "
+                                       r"unzip it"),
+                          ("best.tar", r"a tar archive \(tar xf it first\)")):
+        with pytest.raises(CheckpointError, match=pattern):
+            load_checkpoint(env.tmp / name)
+    env.error(r"best\.pt\.gz is not a PyTorch checkpoint: it is a gzip-compressed file", "evaluate", env.yaml,
+              "--checkpoint", env.tmp / "best.pt.gz", "--out", env.tmp / "eval")
+
+
+@row("S25", "the file's folder given for the file: evaluate-json --pred EVAL_OUT said 'cannot read ([Errno 21] Is a "
+            "directory)', --pred EVAL_OUT/metrics.json 'no results key'; each now names the file that is meant "
+            "(a checkpoint's run folder: S27-checkpoint_given_as_a_run_folder)")
+def row_folder_given_for_its_file(env):
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-2000:]
+    gt = env.tmp / "gt.json"
+    rc, _, err = env.cli("export-gt", env.yaml, "--out", gt)
+    assert rc == 0, err[-2000:]
+    env.error(r"eval: is a folder, not a submission file; the file in it: .*eval/submission\.json", "evaluate-json",
+              "--gt", gt, "--pred", env.tmp / "eval")
+    env.error(r"metrics\.json: no 'results' key.*this is a metrics file; evaluate writes the submission as "
+              r".*eval/submission\.json", "evaluate-json", "--gt", gt, "--pred", env.tmp / "eval" / "metrics.json")
+
+
+@row("S25", "a nuScenes table written on Windows (sample_data 'filename' as str() of a WindowsPath, "
+            "samples\\\\CAM_FRONT\\\\x.jpg) was 'camera image not found' on Linux (valid input refused); the "
+            "backslashes are read as the separators they are when no file of the literal name exists")
+def row_windows_separators_in_a_table(env):
+    def backslashes(tables):
+        for record in tables["sample_data"]:
+            record["filename"] = record["filename"].replace("/", "\\")
+
+    root = env.shadow_world(backslashes)
+    windows, plain = _s18_dataset(env, root, "val"), _s18_dataset(env, env.world, "val")
+    assert torch.equal(windows.load_sample(0)["images"], plain.load_sample(0)["images"])
+    rc, _, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "--checkpoint", env.ckpt, "--out",
+                         env.tmp / "eval")
+    assert rc == 0, err[-2000:]
+
+
+@row("S25", "predict-images with a temporal checkpoint ran it on one frame with an empty memory and no word, where "
+            "predict says so for a scene's first frame; it now notes that the frame has no memory and how to carry one")
+def row_predict_images_temporal_model(env):
+    from instagram_hdmap.models import build_model
+
+    cfg = env.cfg("model.temporal.memory=bev", "model.gnn.sinkhorn_iters=3")
+    ckpt = save_checkpoint({"model": build_model(cfg).state_dict(), "config": config_to_dict(cfg)},
+                           env.tmp / "temporal.pt")
+    rig, images = _rig_files(env)
+    rc, out, err = env.cli("predict-images", "--checkpoint", ckpt, "--rig", rig, "--out", env.tmp / "out", *images)
+    assert rc == 0 and "a temporal model (bev memory) on one frame: no memory" in out + err, (out + err)[-2000:]
+    rc, out, err = env.cli("predict-images", "--checkpoint", env.ckpt, "--rig", rig, "--out", env.tmp / "o2", *images)
+    assert rc == 0 and "temporal" not in out + err, (out + err)[-2000:]
+
+
+@row("S25", "demo --out a file, or a path below a file: 'cannot write there (File exists)', naming neither the file "
+            "nor the cause (synth's was fixed in sweep 24); the demo takes the output-folder check of the other jobs")
+def row_demo_out_a_file(env):
+    (env.tmp / "notes.txt").write_text("mine")
+    env.error(r"--out .*notes\.txt: is a file, not a folder", "demo", "--out", env.tmp / "notes.txt", "--cache",
+              env.tmp / "cache")
+    env.error(r"--out .*notes\.txt/run: .*notes\.txt is a file", "demo", "--out", env.tmp / "notes.txt" / "run",
+              "--cache", env.tmp / "cache")
+    assert (env.tmp / "notes.txt").read_text() == "mine"
+
+
+@row("S25", "evaluate with data.val_split=train (a debugging override left in a config, or copied) scored the very "
+            "samples the checkpoint was trained on and reported that AP with no word; a note says the split is the "
+            "checkpoint's training split")
+def row_evaluate_on_the_training_split(env):
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "seen",
+                           "data.val_split=train")
+    assert rc == 0, err[-2000:]
+    assert "data.val_split='train' is the split the checkpoint was trained on" in out + err, (out + err)[-2000:]
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "unseen")
+    assert rc == 0 and "the split the checkpoint was trained on" not in out + err, (out + err)[-2000:]
+@row("S26", "a mapping given on the command line after one of its keys (model.gnn.layers=3 model.gnn={dim: 64}) "
+            "replaced the section the first had set: model.gnn.layers silently went back to the YAML's value; the "
+            "mapping now merges into the keys before it, and a key given by both is noted (the last wins); an override "
+            "that is not a string (Python API) was a raw TypeError naming nothing")
+def row_override_mapping_keeps_earlier_keys(env):
+    cfg = env.cfg("model.gnn.layers=3", "model.gnn={dim: 64}")
+    assert (cfg.model.gnn.layers, cfg.model.gnn.dim) == (3, 64)
+    cfg = env.cfg("model.gnn.layers=3", "model={gnn: {heads: 2}}")
+    assert (cfg.model.gnn.layers, cfg.model.gnn.heads) == (3, 2)
+    rc, out, err = env.cli("model-summary", env.yaml, "model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}")
+    assert rc == 0, err
+    assert ("note: model.gnn.layers is given 2 times (model.gnn.layers=3, model.gnn={layers: 1, dim: 64}); the last, "
+            "model.gnn={layers: 1, dim: 64}, is used") in err
+    assert env.cfg("model.gnn.layers=3", "model.gnn={layers: 1, dim: 64}").model.gnn.layers == 1
+    for item in (3, None, b"train.lr=1"):  # an override that is not a string: a raw "argument of type 'int' ..."
+        with pytest.raises(TypeError, match=r"an override is a 'key\.sub=value' string, got"):
+            load_config(env.yaml, ["train.lr=1e-3", item])
+
+
+@row("S26", "YAML 1.1's integers: a leading zero made an octal number (train.seed: 0123 ran with seed 83, "
+            "train.epochs=010 trained 8 epochs) and colons a base-60 one (train.time_budget_min: 1:30:00 was 5400 "
+            "minutes), exit 0; a leading zero is now decimal (YAML 1.2), and 1:30 is text that a number key refuses")
+def row_yaml_leading_zero_and_base_60(env):
+    path = env.tmp / "c.yaml"
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  seed: 0123\n  epochs: 010\n  max_steps: 0_10\n")
+    cfg = load_config(path)
+    assert (cfg.train.seed, cfg.train.epochs, cfg.train.max_steps) == (123, 10, 10)
+    assert env.cfg("train.epochs=010").train.epochs == 10
+    assert env.cfg("train.seed=0x1F").train.seed == 31  # hexadecimal stays (YAML 1.2 has it too)
+    path.write_text(f"_base_: {env.yaml}\ntrain:\n  time_budget_min: 1:30:00\n")
+    env.error(r"config key 'train\.time_budget_min': expected float or null, got '1:30:00'", "model-summary", path)
+    env.error(r"config key 'train\.max_steps': expected int or null, got '1:30'", "model-summary", env.yaml,
+              "train.max_steps=1:30")
+    assert env.cfg("name=1:30").name == "1:30"
+
+
+@row("S26", "a text key whose text reads as a YAML 1.2 float (name: '3e-4', an experiment named after its learning "
+            "rate): save_config wrote it bare (PyYAML's YAML 1.1 sees text), so the run's config.yaml no longer "
+            "loaded ('expected str, got 0.0003'); it is written quoted and loads as saved")
+def row_saved_config_text_that_reads_as_a_number(env):
+    from instagram_hdmap.config import save_config
+
+    for overrides in (["name='3e-4'"], ["name='1e3'", "data.train_split='1e3'"], ["name='010'"], ["name='1:30'"]):
+        cfg = env.cfg(*overrides)
+        save_config(cfg, env.tmp / "saved.yaml")
+        assert load_config(env.tmp / "saved.yaml") == cfg, overrides
+
+
+@row("S26", "a YAML file (or override) nested hundreds of levels deep: a raw RecursionError traceback naming nothing; "
+            "a value of a million items (YAML aliases) given to a number key: a 58 MB error message; now one line "
+            "naming the file and cut short")
+def row_deep_or_huge_yaml_values(env):
+    deep = env.tmp / "deep.yaml"
+    deep.write_text(f"_base_: {env.yaml}\nmodel: " + "[" * 3000 + "]" * 3000 + "\n")
+    env.error(r"config file .*deep\.yaml: its lists or mappings are nested too deeply", "model-summary", deep)
+    env.error(r"override 'model=\[\[.*': its lists or mappings are nested too deeply", "model-summary", env.yaml,
+              "model=" + "[" * 3000 + "]" * 3000)
+    huge = env.tmp / "huge.yaml"  # a list whose last item holds 2^20 leaves, through aliases
+    huge.write_text(f"_base_: {env.yaml}\nmodel:\n  gnn:\n    dim: [&a0 [x, x], "
+                    + ", ".join(f"&a{i} [*a{i - 1}, *a{i - 1}]" for i in range(1, 21)) + "]\n")
+    line = env.error(r"config key 'model\.gnn\.dim': expected int, got \[\[", "model-summary", huge)
+    assert len(line) < 400, len(line)
+
+
+@row("S26", "a text key given a number or a YAML 1.1 word (name: 2024, data.version: 1.0, data.val_split: no) and a "
+            "whole-number key given 1e3: refused saying only 'expected str, got 2024 (int)' (a key `on:`: 'unknown "
+            "key True'; a section of commented-out keys: 'must be a mapping, got None'); the message now says to "
+            "quote the text, how to write the whole number or a list, what YAML did")
+def row_text_key_given_a_number_says_quote_it(env):
+    path = env.tmp / "text.yaml"
+    path.write_text(f"_base_: {env.yaml}\nname: 2024\n")  # in a file (command line: S25-text_keys_...)
+    env.error(r"config key 'name': expected str, got 2024 \(int\); .*quote the text .*\(name: \"\.\.\.\" in the YAML",
+              "model-summary", path)
+    path.write_text(f"_base_: {env.yaml}\ndata:\n  val_split: no\n")
+    env.error(r"config key 'data\.val_split': expected str, got False \(bool\); .*quote", "model-summary", path)
+    env.error(r"config key 'train\.epochs': expected int, got 1000\.0 \(float\); write the whole number as 1000",
+              "model-summary", env.yaml, "train.epochs=1e3")
+    assert env.cfg("name='2024'").name == "2024"
+    env.error(r"config key 'train\.trainable': expected list of str, got 'temporal' \(str\); a list is written in "
+              r"brackets: \[a, b\] \(one item: \[a\]\)", "model-summary", env.yaml, "train.trainable=temporal")
+    path = env.tmp / "on.yaml"
+    path.write_text(f"_base_: {env.yaml}\non: 1\n")  # a key `on` (a typo, or a CI file's) is YAML 1.1's true
+    env.error(r"unknown config key 'True' \(YAML reads a key on / off / yes / no as true / false\)", "model-summary",
+              path)
+
+
+@row("S26", "eval.flicker_threshold_m in centimetres (100): every GT element counted as detected, the flicker rate 0, "
+            "exit 0, while its siblings eval.cmap_match_m and eval.thresholds refuse more than 10 m; refused the same")
+def row_flicker_threshold_in_centimetres(env):
+    env.error(r"config key 'eval\.flicker_threshold_m' must be in \(0, 10\] \(metres.*centimetres given\?\)",
+              "model-summary", env.yaml, "eval.flicker_threshold_m=100")
+    assert env.cfg("eval.flicker_threshold_m=10").eval.flicker_threshold_m == 10
+
+
+@row("S26", "data.val_split equal to data.train_split (a slip, or an overfitting check): validation and the choice "
+            "of best.pt scored the training scenes with no word; training notes it at the start")
+def row_validation_on_the_training_split_noted(env):
+    from instagram_hdmap.train import setting_notes
+
+    notes = setting_notes(env.cfg("data.val_split=train"))
+    assert any("data.val_split=train is the training split" in n for n in notes), notes
+    assert not any("training split" in n for n in setting_notes(env.cfg()))
+
+
+@row("S26", "a checkpoint whose config is YAML text (written by hand from the experiment YAML) was read as YAML 1.1, "
+            "not as a config file is: lr: 1e-3 was text ('holds a config this version cannot read: expected float, "
+            "got '1e-3''), layers: 010 octal 8; it is read as config files are")
+def row_checkpoint_config_text_read_as_a_config_file(env):
+    import yaml
+
+    from instagram_hdmap.config import config_from_dict
+
+    state = load_checkpoint(env.ckpt)
+    text = yaml.safe_dump(state["config"]).replace("lr: 0.001", "lr: 1e-3").replace("seed: 0\n", "seed: 010\n")
+    assert "lr: 1e-3" in text and "seed: 010" in text
+    path = save_checkpoint({**state, "config": text}, env.tmp / "text_config.pt")
+    cfg = config_from_dict(load_checkpoint(path)["config"])
+    assert (cfg.train.lr, cfg.train.seed) == (1e-3, 10)
+
+
+@row("S26", "a decoder's option given with another decoder (model.gnn.same_class_edges=true with decoder=classwise, "
+            "model.gnn.class_min_prob with greedy): unused with no word, while max_edge_m with mutual is refused; "
+            "evaluate and training's validation note it")
+def row_decoder_option_of_another_decoder_noted(env):
+    from instagram_hdmap.train import unused_meter_keys
+
+    notes = unused_meter_keys(env.cfg("model.gnn.decoder=classwise", "model.gnn.same_class_edges=true"))
+    assert any("model.gnn.same_class_edges=true is not used" in n for n in notes), notes
+    notes = unused_meter_keys(env.cfg("model.gnn.class_min_prob=0.2"))
+    assert any("model.gnn.class_min_prob=0.2 is not used" in n and "decoder=greedy" in n for n in notes), notes
+    assert not unused_meter_keys(env.cfg("model.gnn.decoder=classwise", "model.gnn.class_min_prob=0.2"))
+    assert not unused_meter_keys(env.cfg("model.gnn.same_class_edges=true"))
+
+
+@row("S26", "a key that only another setting reads (train.min_lr_factor under the step schedule, train.lr_step / "
+            "lr_gamma under cosine, model.gnn.vd_sampling without the pe+vd embedding, data.aug_* without "
+            "data.augment, data.av2_* on nuScenes) trained as if unset, with no word; training notes it at the start")
+def row_key_of_another_setting_noted(env):
+    from instagram_hdmap.train import setting_notes
+
+    def notes(*overrides):
+        return " | ".join(setting_notes(env.cfg(*overrides)))
+
+    assert "train.min_lr_factor=0.1 set, but train.schedule=step does not read it" in notes("train.min_lr_factor=0.1")
+    assert "train.lr_step=5, train.lr_gamma=0.5 set, but train.schedule=cosine" in notes(
+        "train.schedule=cosine", "train.lr_step=5", "train.lr_gamma=0.5")
+    assert "model.gnn.vd_sampling=cell set, but model.gnn.embedding=pe+dt" in notes("model.gnn.vd_sampling=cell")
+    assert "data.aug_rotate_deg=10.0 set, but data.augment=false" in notes("data.aug_rotate_deg=10")
+    assert "data.av2_frame_step=2 set, but data.dataset=nuscenes" in notes("data.av2_frame_step=2")
+    for ok in (["train.schedule=cosine", "train.min_lr_factor=0.1"], ["train.lr_step=5", "train.lr_gamma=0.5"],
+               ["model.gnn.vd_sampling=cell", "model.gnn.embedding=pe+vd", "model.bev_heads.distance_head=false"],
+               ["data.aug_rotate_deg=10", "data.augment=true"]):
+        assert "does not read" not in notes(*ok) and "reads it" not in notes(*ok), ok
+
+
+@row("S26", "benchmarks/temporal.py --set model={temporal: {memory: bev}} (the memory as a mapping, not the dotted "
+            "key): the check that --memory alone sets the memory read the dotted key only, so the single-frame "
+            "baseline ran with a memory; it reads the keys the override sets")
+def row_benchmark_temporal_memory_set_as_a_mapping(env):
+    for args in (["--set", "model={temporal: {memory: bev}}"], ["--temporal-set", "model.temporal={memory: bev}"]):
+        p = _benchmark_temporal(env, "--memory", "graph", *args, "--steps", "2")
+        assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+        assert re.search(r"--(temporal-)?set model.*memory: bev}+: the temporal model's memory is --memory \(graph\)",
+                         p.stderr), p.stderr[-2000:]
+    assert not (env.tmp / "cache").exists()
+
+
+@row("S26", "a key one letter off (model.gnn.layer, train.max_step, MODEL.gnn.layers) was refused with the section's "
+            "whole list of keys to read through (model.gnn has 18); the nearest key is named first (and a dotted key "
+            "in a YAML file is told to nest)")
+def row_unknown_key_names_the_nearest(env):
+    for override, near in (("model.gnn.layer=3", "model.gnn.layers"), ("train.max_step=9", "train.max_steps"),
+                           ("MODEL.gnn.layers=3", "model"), ("eval.threshold=[1]", "eval.thresholds")):
+        env.error(rf"unknown config key '[^']+' \(did you mean '{re.escape(near)}'\?\); valid keys of", "model-summary",
+                  env.yaml, override)
+    line = env.error(r"unknown config key 'model\.gnn\.xyz'; valid keys of", "model-summary", env.yaml,
+                     "model.gnn.xyz=3")
+    assert "did you mean" not in line
+    path = env.tmp / "dotted.yaml"
+    path.write_text(f"_base_: {env.yaml}\nmodel.gnn.layers: 3\n")  # the command line's dotted form in a file
+    env.error(r"unknown config key 'model\.gnn\.layers' \(a YAML file nests the keys", "model-summary", path)
+
+
+@row("S26", "an override written with a flag, as the benchmarks' --set or other tools' --model.gnn.layers=9: "
+            "'unrecognized arguments: --set' said nothing of how to write it; it says that overrides are key=value "
+            "words after CONFIG")
+def row_override_written_with_a_flag(env):
+    for argv in (["--set", "model.gnn.layers=3"], ["--model.gnn.layers=3"]):
+        with pytest.raises(SystemExit) as e:
+            env.cli("model-summary", env.yaml, *argv)
+        err = env.capsys.readouterr().err
+        assert e.value.code == 2 and "config overrides are key=value words after CONFIG, without a flag" in err, err
+    with pytest.raises(SystemExit):
+        env.cli("model-summary", env.yaml, "--bogus")
+    assert "key=value words" not in env.capsys.readouterr().err
+
+
+@row("S27", "synth --force over a world that a training (or an evaluation, a prediction) in another process was "
+            "reading replaced it under that process, both exit 0: the new world's images have the old one's file "
+            "names, so the training went on with them and the old world's maps and poses; the synth is now refused, "
+            "naming --out")
+def row_synth_force_over_a_world_being_read(env):
+    world = env.tmp / "w"
+    shutil.copytree(env.world, world)
+    code = ("import sys, time\n"
+            "from instagram_hdmap.config import load_config\n"
+            "from instagram_hdmap.data import build_dataset\n"
+            f"cfg = load_config({str(env.yaml)!r}, ['data.dataroot={world}',\n"
+            f"                  'data.splits_file={world / 'splits.json'}'])\n"
+            "dataset = build_dataset(cfg, cfg.data.train_split)  # held while it lives\n"
+            "print('reading', flush=True); time.sleep(60)\n")
+    reader = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert reader.stdout.readline().strip() == "reading"
+        before = (world / "world.json").read_text()
+        env.error(r"--out .*w: the world there is being read by another process .*choose another --out", "synth",
+                  "--out", world, "--force", "--seed", "7", "--scenes-train", "1", "--scenes-val", "0",
+                  "--samples-per-scene", "1", "--image-size", "160x90")
+        assert (world / "world.json").read_text() == before
+    finally:
+        reader.kill()
+        reader.wait()
+
+
+@row("S27", "train.out_dir renamed while the run wrote to it: a raw FileNotFoundError traceback from TensorBoard's "
+            "writer thread (or, when the next save came first, a new folder of the old name holding a lone last.pt); "
+            "now one line naming the folder, the step, and where it is now to resume")
+def row_run_folder_renamed_during_training(env):
+    from instagram_hdmap import train as train_module
+
+    run, moved = env.tmp / "run", env.tmp / "run2"
+    save = train_module.save_checkpoint
+
+    def save_then_rename(state, path):  # the user's `mv run run2` right after the first epoch's checkpoint
+        out = save(state, path)
+        if not moved.exists() and Path(path).name == "last.pt":
+            run.rename(moved)
+        return out
+
+    env.monkeypatch.setattr(train_module, "save_checkpoint", save_then_rename)
+    with pytest.raises(UserError, match=rf"train.out_dir {re.escape(str(run))} was moved or removed while this run "
+                                        rf"wrote to it.*stopped at step \d+; it is now {re.escape(str(moved))}: "
+                                        rf"resume there with --resume {re.escape(str(moved / 'last.pt'))}"):
+        _toy_run(env, [0.2, 0.3], "train.epochs=2", "train.batch_size=2")
+    assert not run.exists() and (moved / "last.pt").is_file()
+    assert load_checkpoint(moved / "last.pt")["step"] >= 1
+
+
+@row("S27", "--resume with a model key that leaves the model's computation as it is was refused as 'an incompatible "
+            "config': model.backbone.grad_checkpoint (turned on after running out of memory), the decoding options "
+            "(model.gnn.decoder, read at validation only); now it resumes, and a decoding option is named in the note "
+            "that best.pt's score was measured with another validation")
+def row_resume_with_a_memory_or_decoding_setting(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "model.backbone.grad_checkpoint=false",
+                       "model.gnn.decoder=mutual", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    assert re.search(r"note: the best score so far .*another validation \(model\.gnn\.decoder: checkpoint 'greedy' "
+                     r"vs now 'mutual'\)", out), out
+    assert "grad_checkpoint" not in out  # the same model, the same scores: nothing to say
+
+
+@row("S27", "--resume with another train.lr, train.schedule, train.warmup, data.augment ... went on with no word, and "
+            "config.yaml was rewritten with the new values as if the whole run had been trained with them; now a note "
+            "names each changed training setting and says the steps so far were trained with the checkpoint's")
+def row_resume_with_other_training_settings_noted(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2], "train.epochs=2", "train.max_steps=1")
+    env.capsys.readouterr()
+    summary = _toy_run(env, [0.3, 0.1], "train.epochs=2", "train.lr=0.01", "train.warmup=0.5",
+                       "train.max_steps=null", resume=str(run / "last.pt"))
+    out = env.capsys.readouterr().out
+    assert summary["step"] == 4
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: resumed with training settings")), "")
+    assert "train.lr: checkpoint 0.001 vs now 0.01" in note and "train.warmup: checkpoint 0.0 vs now 0.5" in note, out
+    assert "the 1 step(s) so far trained with the checkpoint's" in note and "max_steps" not in note, note
+
+
+@row("S27", "evaluate --out into the folder of a running training (a run folder as the evaluation's output) was "
+            "refused as 'another evaluation is running in RUN': the lock named the job of the process refused, not "
+            "the one holding it; now 'another training is running'")
+def row_lock_names_the_job_that_holds_it(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    code = ("import time\nfrom instagram_hdmap.files import lock_folder\n"
+            f"lock_folder({str(run)!r}, 'training', 'choose another train.out_dir')\n"
+            "print('locked', flush=True); time.sleep(60)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        env.error(rf"another training is running in .*run \(process {holder.pid}\); .*choose another --out",
+                  "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", run)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@row("S27", "train.init_from of a checkpoint of another model config whose weights have the same names and shapes "
+            "(model.gnn.heads 4 -> 8: each attention projection split into other heads; another model.gnn.nms or "
+            "num_vertices) loaded with no word; now a note names the model keys that differ")
+def row_init_from_other_model_settings_noted(env):
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1")
+    ckpt = shutil.copy(env.tmp / "run" / "last.pt", env.tmp / "heads4.pt")
+    env.capsys.readouterr()
+    _toy_run(env, [0.2], "train.epochs=1", "train.max_steps=1", f"train.init_from={ckpt}", "model.gnn.heads=8",
+             "model.gnn.decoder=mutual", force=True)
+    out = env.capsys.readouterr().out
+    note = next((ln for ln in out.splitlines() if ln.startswith("note: the checkpoint of train.init_from")), "")
+    assert "model.gnn.heads: checkpoint 4 vs now 8" in note, out
+    assert "decoder" not in note  # read at inference only: nothing to say
+
+
+@row("S27", "evaluate --checkpoint RUN (a training run's folder, as train.out_dir names it): 'checkpoint not found: "
+            "RUN (it is a folder)', not which file to give; now it names RUN/best.pt and RUN/last.pt")
+def row_checkpoint_given_as_a_run_folder(env):
+    run = env.tmp / "run"
+    run.mkdir()
+    shutil.copy(env.ckpt, run / "best.pt")
+    shutil.copy(env.ckpt, run / "last.pt")
+    env.error(rf"checkpoint not found: .*run \(it is a folder: a training run's; give the checkpoint in it, "
+              rf"{re.escape(str(run / 'best.pt'))} or {re.escape(str(run / 'last.pt'))}\)",
+              "evaluate", env.yaml, "--checkpoint", run, "--out", env.tmp / "eval")
+
+
+@row("S27", "--resume with a train.epochs whose schedule ends before the checkpoint's step (3 epochs cut to 1 at "
+            "step 3 of epoch 1): 'done', exit 0, after no step, with last.pt and config.yaml still of the 3-epoch run; "
+            "now refused, naming the step where the new schedule ends and the epochs that would finish it")
+def row_resume_with_fewer_epochs_than_done(env):
+    run = env.tmp / "run"
+    _toy_run(env, [0.2, 0.25], "train.epochs=3", "train.max_steps=3")  # two steps an epoch: step 3 is in epoch 1
+    with pytest.raises(UserError, match=r"train\.epochs=1 ends the schedule at step 2, before checkpoint .*last\.pt's "
+                                        r"step 3 \(epoch 1 of its 3\): nothing would be trained; resume with "
+                                        r"train\.epochs=2 or more"):
+        _toy_run(env, [], "train.epochs=1", resume=str(run / "last.pt"))
+    assert _toy_run(env, [0.3], "train.epochs=2", resume=str(run / "last.pt"))["step"] == 4  # cut to 2: runs
+
+
+@row("S25", "a text key given on the command line a value YAML reads as a number, a date or a boolean (name=2024, "
+            "train.out_dir=2024-12-05, data.val_split=no) was refused (the shell eats the quotes the message asked "
+            "for); it is the text typed, as Hydra's grammar keeps it. A YAML section whose keys are all commented "
+            "out is an empty section (it was refused: 'must be a mapping, got None'); an override giving a section "
+            "no keys (model.gnn=~) is named")
+def row_text_keys_on_the_command_line_and_empty_sections(env):
+    cfg = env.cfg("name=2024", "train.out_dir=2024-12-05", "data.val_split=no", "data.version=1.0", "name=3e-4")
+    assert (cfg.name, cfg.train.out_dir, cfg.data.val_split, cfg.data.version) == ("3e-4", "2024-12-05", "no", "1.0")
+    assert env.cfg("train.epochs=010", "train.lr=3e-3").train.epochs == 10  # number keys read numbers
+    path = env.tmp / "empty.yaml"
+    path.write_text(f"_base_: {env.yaml}\nmodel:\n  # gnn:\n  #   layers: 3\ntrain:\n")
+    base = load_config(env.yaml)
+    cfg = load_config(path)
+    assert (cfg.model, cfg.train) == (base.model, base.train)  # the base's sections, not emptied
+    env.error(r"override 'model\.gnn=~' gives the section model\.gnn no keys; set its keys \(model\.gnn\.KEY=VALUE\)",
+              "model-summary", env.yaml, "model.gnn=~")
+
+
 # --- the twenty-eighth sweep ---------------------------------------------------------------------------
 
 
@@ -6038,3 +6605,16 @@ def test_bad_input(row: Row, shared, tmp_path, capsys, monkeypatch, request):
     world, yaml, ckpt = shared
     monkeypatch.chdir(tmp_path)
     row.run(Env(world, yaml, ckpt, tmp_path, capsys, monkeypatch, request))
+
+
+def test_faults_page_cites_every_row_and_only_rows():
+    """docs/faults.md promises, each backed by a row: every id it cites names a row (or, as `4-*`, some rows) of this
+    table, and every row is cited, so neither a promise without a test nor a test without its promise is left."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "faults.md").read_text(encoding="utf-8")
+    ids = {f"{r.case}-{r.id}" for r in ROWS}
+    cited = set(re.findall(r"`((?:\d+|S\d*)-[A-Za-z0-9_*-]+)`", doc))
+    assert len(cited) > 100, "the citation pattern found almost nothing: has the page's format changed?"
+    unknown = sorted(c for c in cited if not fnmatch.filter(ids, c))
+    assert not unknown, f"docs/faults.md cites ids that are not rows: {unknown}"
+    uncited = sorted(i for i in ids if not any(fnmatch.fnmatchcase(i, c) for c in cited))
+    assert not uncited, f"rows that docs/faults.md does not cite: {uncited}"

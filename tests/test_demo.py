@@ -162,7 +162,7 @@ def test_an_unwritable_cache_or_out_folder_is_one_line(tmp_path, capsys):
     assert "cannot create the cache folder" in err and "Traceback" not in err
     argv = ["demo", "--out", str(blocker / "out"), "--cache", str(tmp_path / "c"), "--minutes", "10"]
     assert main(argv) == 2
-    assert "cannot write there" in capsys.readouterr().err
+    assert "a_file is a file, so nothing can be written below it" in capsys.readouterr().err
 
 
 def test_no_time_left_to_train_after_the_worlds_is_an_error(demo_run, tmp_path, monkeypatch):

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .config import UserError
+from .config import UserError, load_yaml
 from .errors import one_line
 from .files import as_path, atomic_path
 
@@ -79,6 +79,11 @@ def save_checkpoint(state: dict, path: str | Path) -> Path:
     return path
 
 
+# a checkpoint as downloaded or shared: compressed (best.pt.gz), which torch.load does not read
+COMPRESSED = ((b"\x1f\x8b", "gzip", "gunzip"), (b"\xfd7zX", "xz", "unxz"), (b"BZh", "bzip2", "bunzip2"),
+              (b"\x28\xb5\x2f\xfd", "zstd", "unzstd"))
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """Load a checkpoint safely; errors name the file and say what is wrong.
 
@@ -92,7 +97,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
                               "/dev/stdin): a checkpoint is a zip archive, read by seeking in it; save it to a file "
                               "first")
     if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
+        run = [path / name for name in ("best.pt", "last.pt") if (path / name).is_file()] if path.is_dir() else []
+        raise CheckpointError(f"checkpoint not found: {path}" + (
+            f" (it is a folder: a training run's; give the checkpoint in it, {' or '.join(map(str, run))})" if run
+            else " (it is a folder)" if path.is_dir() else ""))
     with open(path, "rb") as f:
         head = f.read(4)
     if not head:
@@ -101,7 +109,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if head == b"PK\x03\x04":  # torch's zip format
         _check_archive(path)
     elif head[:1] != b"\x80":  # neither a zip nor a pickle (torch's legacy format)
-        what = "a text file (a config?)" if _is_text(path) else "not a PyTorch file"
+        packed = next((f"a {name}-compressed file ({tool} it first)" for magic, name, tool in COMPRESSED
+                       if head.startswith(magic)), None)
+        what = packed or ("a text file (a config?)" if _is_text(path) else
+                          "a tar archive (tar xf it first)" if _is_tar(path) else "not a PyTorch file")
         raise CheckpointError(f"{path} is not a PyTorch checkpoint: it is {what}; give a checkpoint written by "
                               "instagram-hdmap train (e.g. OUT/best.pt)")  # (--checkpoint, --resume, init_from)
     try:
@@ -139,7 +150,7 @@ def _yaml_config(text: str, path: Path) -> dict:
     import yaml
 
     try:
-        config = yaml.safe_load(text)
+        config = load_yaml(text)  # as a config file is read (YAML 1.2 numbers: lr: 1e-3 is a float, not text)
     except yaml.YAMLError as e:
         raise CheckpointError(f"checkpoint {path}: its config is text that is not YAML ({one_line(e)})") from None
     if not isinstance(config, dict):
@@ -164,6 +175,7 @@ def _check_archive(path: Path) -> None:
     try:
         with zipfile.ZipFile(path) as z:
             bad = z.testzip()
+            names = z.namelist()
     except (zipfile.BadZipFile, OSError, EOFError) as e:
         raise CheckpointError(f"checkpoint {path} is truncated or corrupt and cannot be loaded "
                               f"({type(e).__name__}: {one_line(e)}); was its save interrupted or the copy cut "
@@ -171,9 +183,18 @@ def _check_archive(path: Path) -> None:
     except (zipfile.LargeZipFile, NotImplementedError, RuntimeError) as e:  # damaged headers
         raise CheckpointError(f"checkpoint {path} is damaged ({type(e).__name__}: {one_line(e)}); use another "
                               "copy") from None
+    if bad is None and not any(n == "data.pkl" or n.endswith("/data.pkl") for n in names):  # a zip of files
+        raise CheckpointError(f"{path} is not a PyTorch checkpoint but a zip archive of {len(names)} file(s) "
+                              f"({', '.join(names[:3])}{', ...' if len(names) > 3 else ''}): unzip it and give "
+                              "the checkpoint inside")
     if bad is not None:
         raise CheckpointError(f"checkpoint {path} is damaged: its entry {bad} fails the zip's CRC-32 check (bits "
                               "changed on disk or in a transfer); use another copy of the checkpoint")
+
+
+def _is_tar(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(265)[257:262] == b"ustar"
 
 
 def _is_text(path: Path) -> bool:

@@ -25,6 +25,7 @@ from .data.synthetic.av2_writer import generate_av2_world
 from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
+from .errors import INVISIBLE
 from .evaluation import evaluate_files, format_table
 from .files import (
     NO_ROOM,
@@ -624,6 +625,18 @@ class _Report:
         return getattr(self._stream, name)
 
 
+def invisible_character(argv: list[str]) -> str | None:
+    """The message for the first argument holding an ``INVISIBLE`` character (``train.out_dir=runs/x\\xa0`` made a
+    folder whose name ends in it; ``--checkpoint best.pt\\xa0`` was "not found: best.pt "), unless it names a file
+    that exists so; None if there is none."""
+    for arg in map(str, argv):
+        chars = [c for c in INVISIBLE if c in arg]
+        if chars and not any(Path(part).exists() for part in (arg, arg.split("=", 1)[-1])):
+            return (f"argument {arg!r} holds {INVISIBLE[chars[0]]} (U+{ord(chars[0]):04X}), which the terminal does "
+                    "not show: copied from a web page, a PDF or a chat? type that argument again")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     streams = sys.stdout, sys.stderr
     report, sinks = [], []
@@ -653,7 +666,12 @@ def _main(argv: list[str] | None) -> int:
     # key=value overrides may also follow the options: ``train CONFIG --resume R model.gnn.layers=9``
     stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
     if stray:
-        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+        flagged = [a for a in stray if a.startswith("-") and (a.lstrip("-") in ("set", "override", "overrides",
+                                                                                 "cfg-options", "options")
+                                                              or "." in a.partition("=")[0])]  # --model.gnn.layers=9
+        parser.error(f"unrecognized arguments: {' '.join(stray)}"
+                     + ("; config overrides are key=value words after CONFIG, without a flag: model.gnn.layers=9"
+                        if flagged and hasattr(args, "overrides") else ""))
     if extra:
         args.overrides = [*args.overrides, *extra]
     if os.environ.get("RANK", "0") == "0":  # (under torchrun: once)
@@ -662,6 +680,9 @@ def _main(argv: list[str] | None) -> int:
             _say(f"instagram-hdmap {args.command}: note: {note}")
     _expand_home(args)
     try:
+        invisible = invisible_character(sys.argv[1:] if argv is None else argv)
+        if invisible is not None:
+            raise UserError(invisible)
         code = args.func(args) or 0
         # every rank of a torchrun job got here: destroy the process group before the interpreter exits, where gloo's
         # worker threads, still running, aborted a rank at random (SIGABRT, "terminate called without an active

@@ -9,7 +9,9 @@ A YAML file may name another one to start from with ``_base_: relative/path.yaml
 overrides use dotted keys, ``model.gnn.layers=9``, and are parsed as YAML values.
 
 Unknown keys and values of the wrong type are errors that name the key and list what is valid.
-A YAML key written twice in one mapping is an error (PyYAML would keep the last one silently). Every
+A YAML key written twice in one mapping is an error (PyYAML would keep the last one silently). Numbers are
+read as YAML 1.2 reads them (PyYAML reads YAML 1.1): ``1e-3`` is a float, ``010`` is ten (not octal 8), ``1:30``
+is text (not base 60, 90), and ``save_config`` quotes the text that would read back as a number. Every
 float must be finite, and every numeric key declares its range where it is defined
 (``bounded(default, ge=..., gt=..., le=..., lt=...)``): ``validate_config`` checks them all, so a new
 key gets the check by declaring its bounds (tests/test_config.py checks that every numeric key does).
@@ -22,9 +24,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import datetime
+import difflib
 import math
 import os
 import re
+import reprlib
 import types
 import typing
 from collections.abc import Sequence
@@ -34,7 +39,7 @@ from typing import Any, Literal, Union
 
 import yaml
 
-from .errors import UserError
+from .errors import INVISIBLE, UserError
 from .files import as_path, write_text
 
 
@@ -369,7 +374,7 @@ class EvalConfig:
     # rate, per class the share of GT elements seen in two consecutive frames whose detected / missed
     # status (a prediction within flicker_threshold_m, Chamfer) flips
     flicker: bool = True
-    flicker_threshold_m: float = bounded(1.0, gt=0)
+    flicker_threshold_m: float = bounded(1.0, gt=0, le=10, note="metres, as eval.thresholds (centimetres given?)")
     # MapTracker's consistency-aware mAP next to the AP (evaluation/consistency.py: ConsistentAPMeter,
     # docs/temporal.md) at eval.thresholds: a TP whose predicted instance ID (carried from frame to frame by
     # the persistence matcher) differs from the first ID that matched its GT element counts as an FP
@@ -415,14 +420,38 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+_SHORT = reprlib.Repr()  # (keyword arguments from Python 3.12 on)
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxtuple, _SHORT.maxdict, _SHORT.maxset = 3, 6, 6, 6, 6
+_SHORT.maxstring = _SHORT.maxother = 80
+
+
+def _show(value: Any) -> str:
+    """``repr(value)`` for a message, cut short: a list of a million items (YAML aliases) was printed whole."""
+    return _SHORT.repr(value)
+
+
 class _NotFinite(ConfigError):
     """A number of the right type that is NaN or infinite."""
+
+
+def _hint(value: Any, tp: Any, key: str) -> str:
+    """What to write instead, where YAML read the value as another type than the key's."""
+    args = typing.get_args(tp) if typing.get_origin(tp) in (Union, types.UnionType) else (tp,)
+    if str in args and isinstance(value, (bool, int, float, datetime.date)):  # name: 2024, version: 1.0, split: no
+        where = '"..."' if "[" in key else f'{key.rpartition(".")[2]}: "..." in the YAML file'
+        return f"; YAML reads yes / no / on / off, numbers and dates as such: quote the text to keep it text ({where})"
+    if int in args and isinstance(value, float) and value.is_integer():  # epochs: 1e3
+        return f"; write the whole number as {int(value)}"
+    if any(typing.get_origin(a) is tuple for a in args) and isinstance(value, (str, int, float)):  # trainable=temporal
+        return "; a list is written in brackets: [a, b] (one item: [a])"
+    return ""
 
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Check ``value`` against the annotation ``tp``; return it in canonical form (tuples)."""
     origin = typing.get_origin(tp)
-    bad = ConfigError(f"config key '{key}': expected {_type_name(tp)}, got {value!r} ({type(value).__name__})")
+    bad = ConfigError(f"config key '{key}': expected {_type_name(tp)}, got {_show(value)} ({type(value).__name__})"
+                      + _hint(value, tp, key))
     if origin is Literal:
         if value not in typing.get_args(tp):
             raise bad
@@ -478,8 +507,10 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
     """Return a copy of dataclass ``obj`` with the nested ``updates`` applied and checked."""
+    if updates is None and prefix:  # `train:` with every key below it commented out: YAML's null, an empty section
+        updates = {}  # (it was refused: "must be a mapping, got None")
     if not isinstance(updates, dict):
-        raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {updates!r}")
+        raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {_show(updates)}")
     hints = typing.get_type_hints(type(obj))
     names = [f.name for f in dataclasses.fields(obj)]
     changes = {}
@@ -490,8 +521,15 @@ def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
             if renamed is not None:
                 raise ConfigError(f"config key '{key}' was renamed '{renamed}'; write {renamed} (checkpoints "
                                   "saved with the old name still load)")
+            dotted = "." in str(name)  # model.gnn.layers: 9 in a YAML file
+            near = [] if dotted else difflib.get_close_matches(str(name).lower(), names, n=1, cutoff=0.75)  # Layers
             raise ConfigError(
-                f"unknown config key '{key}'; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
+                f"unknown config key '{key}'"
+                + (f" (did you mean '{prefix}{near[0]}'?)" if near else "")
+                + (" (YAML reads a key on / off / yes / no as true / false)" if isinstance(name, bool) else "")
+                + (" (a YAML file nests the keys, model: {gnn: {layers: 9}}; the dotted form is the command line's)"
+                   if dotted else "")
+                + f"; valid keys of '{prefix.rstrip('.') or '<root>'}': {', '.join(names)}"
             )
         current = getattr(obj, name)
         if dataclasses.is_dataclass(current):
@@ -526,21 +564,54 @@ class _StrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+    def construct_yaml_int(self, node):
+        """YAML 1.2's integers: PyYAML (YAML 1.1) reads ``010`` as octal 8 (``seed: 0123`` was 83) and ``1:30`` as
+        base 60, 90 (``time_budget_min: 1:30:00`` was 5400 minutes); a leading zero is decimal here, and ``1:30``
+        stays text (a number key refuses it, naming it)."""
+        text = self.construct_scalar(node)
+        if ":" in text:
+            return text
+        digits = text.replace("_", "").lstrip("+-")
+        if len(digits) > 1 and digits.isdigit():
+            return int(text.replace("_", ""), 10)
+        return super().construct_yaml_int(node)
+
+    def construct_yaml_float(self, node):
+        text = self.construct_scalar(node)
+        return text if ":" in text else super().construct_yaml_float(node)  # 1:30.5, YAML 1.1's base 60: text
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:int", _StrictLoader.construct_yaml_int)
+_StrictLoader.add_constructor("tag:yaml.org,2002:float", _StrictLoader.construct_yaml_float)
+
 # YAML 1.2 floats: PyYAML (YAML 1.1) reads "1e-3" (no dot, no exponent sign) as a string
-_StrictLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+_FLOAT_12 = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
                   |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
                   |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
                   |[-+]?\.(?:inf|Inf|INF)
-                  |\.(?:nan|NaN|NAN))$""", re.X),
-    list("-+0123456789."),
-)
+                  |\.(?:nan|NaN|NAN))$""", re.X)
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123456789."))
+
+
+class _Dumper(yaml.SafeDumper):
+    """``save_config``'s: a string that ``load_yaml`` reads as a number (``name: '3e-4'``, a YAML 1.2 float that
+    PyYAML writes bare) is quoted, so that the saved config loads again (it was refused: "expected str")."""
+
+
+_Dumper.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123456789."))
+
+
+class _TooDeep(yaml.YAMLError):
+    pass
 
 
 def load_yaml(text: str):
     """YAML text -> Python values (safe types only; a key repeated in a mapping is an error)."""
-    return yaml.load(text, Loader=_StrictLoader)
+    try:
+        return yaml.load(text, Loader=_StrictLoader)
+    except RecursionError:  # a raw RecursionError from PyYAML's composer, naming nothing
+        raise _TooDeep("its lists or mappings are nested too deeply to read (hundreds of levels); a config "
+                       "nests a few") from None
 
 
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
@@ -558,9 +629,16 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
         what = "a zip archive such as a PyTorch checkpoint" if raw[:4] == b"PK\x03\x04" else "a binary file"
         raise ConfigError(f"config file {path} is not YAML text but {what}; the first argument is the experiment "
                           "YAML (a checkpoint goes with --checkpoint)") from None
+    text = text.removeprefix("\ufeff")  # a byte-order mark (a Windows editor's) opens the file: read as before
+    for number, line in enumerate(text.splitlines(), 1):
+        chars = [c for c in INVISIBLE if c in line.split("#", 1)[0]]  # (in a comment it does no harm)
+        if chars:  # YAML takes it for text: "unknown key '  epochs'", an out_dir whose name ends in it
+            raise ConfigError(f"config file {path}, line {number}: {line.strip(' ')!r} holds {INVISIBLE[chars[0]]} "
+                              f"(U+{ord(chars[0]):04X}), which an editor shows as a space or not at all (text copied "
+                              "from a web page, a PDF or a chat?); type that line again")
     try:
         data = load_yaml(text) or {}
-    except _DuplicateKey as e:
+    except (_DuplicateKey, _TooDeep) as e:
         raise ConfigError(f"config file {path}: {e}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"config file {path} is not valid YAML: {' '.join(str(e).split())}") from None
@@ -587,27 +665,59 @@ def deep_update(dst: dict, src: dict) -> None:
     for k, v in src.items():
         if isinstance(v, dict) and isinstance(dst.get(k), dict):
             deep_update(dst[k], v)
+        elif v is None and isinstance(dst.get(k), dict):  # an empty section (`train:`, its keys commented out)
+            continue  # adds nothing to the _base_'s
         else:
             dst[k] = v
+
+
+def _key_type(dotted: str) -> Any:
+    """The annotation of the config key ``dotted`` (``train.out_dir``), a dataclass for a section; None if unknown."""
+    tp: Any = ExperimentConfig
+    for part in dotted.split("."):
+        if not (isinstance(tp, type) and dataclasses.is_dataclass(tp)):
+            return None
+        tp = typing.get_type_hints(tp).get(part)
+        if tp is None:
+            return None
+    return tp
+
+
+def _text_key(dotted: str) -> bool:
+    """Whether the config key ``dotted`` holds text only (``str`` or ``str | None``), so that a command-line value
+    YAML reads as a number, a date or a boolean (``name=2024``, ``train.out_dir=2024-12-05``, ``data.val_split=no``)
+    is the text typed: the shell eats the quotes a YAML file would need, and Hydra's command-line grammar keeps such
+    values text too. A YAML file's value stays as YAML reads it (quote it there)."""
+    tp = _key_type(dotted)
+    args = typing.get_args(tp) if typing.get_origin(tp) in (Union, types.UnionType) else (tp,)
+    return str in args and all(a in (str, type(None)) for a in args)
 
 
 def parse_overrides(overrides: list[str]) -> dict:
     """``["model.gnn.layers=9", "data.image_size=[256,704]"]`` -> nested dict of YAML values."""
     nested: dict = {}
     for item in overrides:
+        if not isinstance(item, str):  # a raw "argument of type 'int' is not iterable"
+            raise TypeError(f"an override is a 'key.sub=value' string, got {_show(item)} ({type(item).__name__})")
         if "=" not in item:
             raise ConfigError(f"override '{item}' must look like key.sub=value")
         key, raw = item.split("=", 1)
         try:
             value = load_yaml(raw) if raw != "" else ""
-        except _DuplicateKey as e:
-            raise ConfigError(f"override '{item}': {e}") from None
+        except (_DuplicateKey, _TooDeep) as e:
+            raise ConfigError(f"override '{item if len(item) < 80 else item[:60] + '...'}': {e}") from None
         except yaml.YAMLError:
             value = raw
         if raw.strip() == "~" and key.strip() in HOME_NOT_NULL:  # YAML's null, but these paths cannot be null:
             value = "~"  # the shell's home folder is meant (train.out_dir=~); expand_home reads it
         quoted = raw.strip()[:1] in ("'", '"')  # name="2024": a string is meant
-        if isinstance(value, str) and not quoted:  # YAML 1.1 reads "3e-3" as a string; a number is meant
+        if value is None and dataclasses.is_dataclass(_key_type(key.strip())):  # a YAML file's empty section is
+            raise ConfigError(f"override '{item}' gives the section {key.strip()} no keys; set its keys "  # no keys;
+                              f"({key.strip()}.KEY=VALUE)")  # here it would be dropped with no word
+        text_key = _text_key(key.strip())
+        if not quoted and isinstance(value, (bool, int, float, datetime.date)) and text_key:
+            value = raw.strip()  # name=2024, train.out_dir=2024-12-05: the text as typed (the shell ate the quotes)
+        elif isinstance(value, str) and not quoted and not text_key:  # YAML 1.1 reads "3e-3" as text: a number
             try:
                 value = float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "+inf") else value
             except ValueError:
@@ -618,7 +728,10 @@ def parse_overrides(overrides: list[str]) -> dict:
             node = node.setdefault(p, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override '{item}' sets a sub-key of a value")
-        node[parts[-1]] = value
+        if isinstance(value, dict) and isinstance(node.get(parts[-1]), dict):
+            deep_update(node[parts[-1]], value)  # model.gnn.layers=4 model.gnn={dim: 64}: both (layers was dropped)
+        else:
+            node[parts[-1]] = value
     return nested
 
 
@@ -629,9 +742,17 @@ def repeated_overrides(overrides: Sequence[str]) -> list[str]:
     for item in overrides:
         if isinstance(item, str) and "=" in item:
             key, raw = item.split("=", 1)
-            values.setdefault(key.strip(), []).append(raw)
-    return [f"{key} is given {len(raw)} times ({', '.join(f'{key}={r}' for r in raw)}); the last, {key}={raw[-1]}, "
-            "is used" for key, raw in values.items() if len(raw) > 1]
+            key, leaves = key.strip(), [""]
+            if raw.strip().startswith("{"):  # model.gnn={layers: 3}: it gives model.gnn.layers too
+                try:
+                    value = load_yaml(raw)
+                except yaml.YAMLError:
+                    value = None
+                leaves = ["." + k for k in flatten(value)] if isinstance(value, dict) and value else leaves
+            for leaf in leaves:
+                values.setdefault(key + leaf, []).append(f"{key}={raw}")
+    return [f"{key} is given {len(given)} times ({', '.join(given)}); the last, {given[-1]}, is used"
+            for key, given in values.items() if len(given) > 1]
 
 
 def load_config(path: str | Path | dict | ExperimentConfig | None = None,
@@ -799,7 +920,7 @@ def config_from_dict(data: dict) -> ExperimentConfig:
 
 def save_config(cfg: ExperimentConfig, path: str | Path) -> None:
     """Write the fully resolved config as YAML (atomically)."""
-    write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False), path)
+    write_text(yaml.dump(config_to_dict(cfg), Dumper=_Dumper, sort_keys=False), path)
 
 
 # --- dotted keys ("model.gnn.layers") of nested config dicts -----------------------------------------

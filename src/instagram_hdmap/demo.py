@@ -42,7 +42,7 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .files import check_no_broken_link, check_not_dash, json_safe, remove_stale_temporaries, write_json
+from .files import check_output_dir, json_safe, remove_stale_temporaries, write_json
 from .inference import saved_config
 from .models import build_model
 from .predict import predict_sample, run_evaluation
@@ -228,8 +228,7 @@ def _budget_left(t0: float, minutes: float) -> float:
 
 
 def _check_out(out: Path) -> None:
-    check_not_dash(out, "--out")
-    check_no_broken_link(out, "--out")
+    check_output_dir(out, "--out")  # a file there, or above it, is named (was "cannot write there (File exists)")
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"

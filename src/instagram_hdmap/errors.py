@@ -14,6 +14,11 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+# characters a terminal or an editor shows as a space or not at all, which text copied from a web page, a PDF or a chat
+# carries (cli.py's arguments, config.py's YAML files)
+INVISIBLE = {"\u00a0": "a non-breaking space", "\u202f": "a narrow non-breaking space", "\u2007": "a figure space",
+             "\u200b": "a zero-width space", "\u2060": "a word joiner", "\ufeff": "a byte-order mark"}
+
 
 class UserError(Exception):
     """An error in what the user gave (a path, a file, an argument): the CLI prints it on one line

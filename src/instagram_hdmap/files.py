@@ -130,6 +130,20 @@ def _check_parent(path: Path, flag: str) -> None:
         raise OutputError(f"{flag} {path}: no permission to write in {base}; choose a writable folder")
 
 
+def _is_torch_checkpoint(path: Path) -> bool:
+    """Whether ``path`` is an existing file in torch.save's zip format (an entry ``ARCHIVE/data.pkl``)."""
+    import zipfile
+
+    try:
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":
+                return False
+        with zipfile.ZipFile(path) as archive:
+            return any(name == "data.pkl" or name.endswith("/data.pkl") for name in archive.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
@@ -171,6 +185,9 @@ def check_output_file(path: str | Path, flag: str = "output file",
                               "destroy it: choose another output path")
     if path.is_dir():
         raise OutputError(f"{flag} {path}: is a folder; give a file name (e.g. {path / 'out.json'})")
+    if _is_torch_checkpoint(path):  # export-onnx ... --out runs/x/best.pt: no job here writes a checkpoint
+        raise OutputError(f"{flag} {path} is a PyTorch checkpoint; writing the result there would destroy it: choose "
+                          "another output path (or remove the checkpoint first)")
     if path.exists() and not os.access(path, os.W_OK):
         if read_only_file_system(path):
             raise OutputError(f"{flag} {path}: the file is on a read-only file system; choose a path on a writable one")
@@ -414,9 +431,9 @@ def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str],
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:  # EWOULDBLOCK: another process holds it
-        owner = handle.read().strip()
-        handle.close()
-        raise UserError(f"another {job} is running in {folder} (process {owner or '?'}); wait for it to end "
+        owner, _, theirs = handle.read().strip().partition(" ")  # "PID JOB" (a bare PID: a lock of an older version)
+        handle.close()  # (their job, not ours: an evaluation into a running training's folder was "another evaluation")
+        raise UserError(f"another {theirs or job} is running in {folder} (process {owner or '?'}); wait for it to end "
                         f"(or stop it), or {advice}") from None
     except OSError as e:  # no locks on this file system: was read as "another job is running"
         handle.close()
@@ -427,7 +444,7 @@ def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str],
         return
     handle.seek(0)
     handle.truncate()
-    handle.write(f"{os.getpid()}\n")
+    handle.write(f"{os.getpid()} {job}\n")
     handle.flush()
     _LOCKS[key] = handle
 
@@ -443,6 +460,92 @@ def unlock_folder(folder: str | Path) -> None:
         with contextlib.suppress(OSError):
             (Path(folder) / LOCK_FILE).unlink()  # while still held: the folder is left as the job wrote it
         handle.close()
+
+
+# The synthetic worlds' manifests (world.json) that this process reads the world of: a shared lock on each, held while
+# a dataset of it lives, tells a world generator in another process not to replace the world under it
+_READING: dict[str, list] = {}
+
+
+def hold_world(root: str | Path, manifest: str = "world.json"):
+    """A shared lock (flock) on ``root/manifest`` when there is one (a world written by ``synth``), as an open file
+    (None where none is taken) that the caller gives back with ``release_world`` (``data.build_dataset``: when its
+    dataset is collected). While it is held, ``claim_world`` in another process (``synth --force`` of that folder) is
+    refused instead of replacing the world under this one's datasets (the same file names, other scenes: a training
+    went on with the new world's images and the old world's maps and poses, exit 0). Nothing where there is no
+    manifest, no fcntl or no file locks (read-only folders lock too: the file is opened for reading)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return None
+    try:
+        path = Path(root) / manifest
+        key = str(path.resolve())
+        if not path.is_file():
+            return None
+        handle = open(path, "rb")  # given back by release_world
+    except (OSError, RuntimeError, TypeError, ValueError):  # (a dataroot the dataset itself names)
+        return None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:  # a generator replacing it right now, or no locks here: nothing held
+        handle.close()
+        return None
+    _READING.setdefault(key, []).append(handle)
+    return handle
+
+
+def release_world(handle) -> None:
+    """Give back a lock of ``hold_world`` (nothing if already given back)."""
+    for held in _READING.values():
+        if handle in held:
+            held.remove(handle)
+    handle.close()
+
+
+def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
+    """An exclusive lock on the world at ``root`` that is about to be replaced (None where there is none to lock),
+    held by the caller until the replacement is done. This process's own ``hold_world`` of it is given up (its
+    own doing); another process's is a ``UserError`` naming ``what`` (the argument, e.g. --out)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    path = Path(root) / manifest
+    try:
+        if not path.is_file():
+            return None
+        for own in _READING.pop(str(path.resolve()), []):  # this process's own datasets: its own doing
+            own.close()
+        handle = open(path, "rb")  # the caller closes it
+    except (OSError, RuntimeError):
+        return None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise UserError(f"{what} {root}: the world there is being read by another process (a training, evaluation "
+                        f"or prediction with data.dataroot={root}); replacing it now would change its images under "
+                        "it (the same file names, other scenes): wait for that process to end, or choose another "
+                        f"{what}") from None
+    except OSError:  # no locks on this file system
+        handle.close()
+        return None
+    return handle
+
+
+def held_folder_now(folder: str | Path) -> Path | str | None:
+    """Where the folder this process holds ``lock_folder``'s lock on is now (moved or renamed since: its lock file,
+    followed through /proc): its path, "removed" when its lock file was deleted (the folder removed), None where
+    that is not known (no lock held, no /proc)."""
+    try:
+        handle = _LOCKS.get(str(Path(folder).resolve()))
+        if handle is None:
+            return None
+        target = os.readlink(f"/proc/self/fd/{handle.fileno()}")
+    except (OSError, RuntimeError, ValueError):
+        return None
+    return "removed" if target.endswith(" (deleted)") else Path(target).parent
 
 
 @contextmanager

@@ -452,6 +452,10 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
             "images": [str(p) for p in images]}
     paths = write_together(Path(out), figures, {name: preds}, meta)
     notes = []
+    if mapper.config.model.temporal.memory != "none":  # as predict says for a scene's first frame
+        notes.append(f"a temporal model ({mapper.config.model.temporal.memory} memory) on one frame: no memory, as on "
+                     "a drive's first frame (a single-frame model's prediction; the Python API's mapper.stream() "
+                     "carries the memory from frame to frame)")
     if mapper.config.data.dataset == "av2" and getattr(rig, "ground_height", 0.0) == 0.0:
         # AV2's ego origin (the rear axle) is 0.33-0.43 m above the road, the frame the model was trained in
         notes.append(f"the model was trained on AV2 (ego origin on the rear axle, the road about 0.38 m below it) and "
@@ -503,9 +507,9 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     the left, the cameras with the predictions projected on the right. Frames run through the model in
     order, each with the previous one's ``out["memory"]`` (a temporal model; ``scene_start`` on the
     first). Written atomically. Returns ``{"video", "frames", "scene", "split", "notes"}``."""
-    if not 0 < fps <= MAX_VIDEO_FPS:
-        raise PredictError(f"--fps {fps:g}: frames per second must be > 0 and at most {MAX_VIDEO_FPS:g} (MP4's time "
-                           "base)")
+    if not 1 / MAX_VIDEO_FPS < fps <= MAX_VIDEO_FPS:  # OpenCV's MP4 writer opens for neither 1000.1 nor 0.001
+        raise PredictError(f"--fps {fps:g}: frames per second must be over {1 / MAX_VIDEO_FPS:g} and at most "
+                           f"{MAX_VIDEO_FPS:g} (MP4's time base)")
     video = Path(video)
     if video.suffix.lower() != ".mp4":
         raise PredictError(f"--video {video}: the video is written as MP4; give a file name ending in .mp4")

@@ -29,6 +29,7 @@ import random
 import re
 import shutil
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,8 +48,11 @@ from .checkpoint import (
     set_rng_state,
 )
 from .config import (
+    DataConfig,
     EvalConfig,
     ExperimentConfig,
+    GraphHeadConfig,
+    TrainConfig,
     UserError,
     as_config,
     config_to_dict,
@@ -67,6 +71,7 @@ from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .files import (
     LOCK_FILE,
     check_output_dir,
+    held_folder_now,
     json_safe,
     json_text,
     lock_folder,
@@ -80,7 +85,7 @@ from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
 from .persistence import Persistence
-from .postprocess import decode_options, postprocess_batch
+from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
 # Config keys that must match for a checkpoint to be resumed: those that define the model and those
@@ -95,9 +100,24 @@ RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "da
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
 # new value walked other pieces from the saved position, or none, and moved the learning rate)
 STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
+# the model keys a resume may change: read at inference only (the decoding options, element persistence) or not at
+# all on a resume (the ImageNet weights, which the checkpoint's replace), or a training knob that leaves the model's
+# computation as it is (gradient checkpointing trades memory for time; the memory dropout's rate); a resume with
+# model.backbone.grad_checkpoint=true after running out of memory was refused as "an incompatible config"
+RESUME_FREE = tuple(k for k in NOT_BAKED if k != "data.av2_cameras")  # (the AV2 cameras: which images, in which order)
 # what the validation score that picks best.pt measures: a resume may change them, but its scores are then of another
-# kind than the best score it carries (a raster mAP compared with a vector one, another split's), which a note says
-SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split")
+# kind than the best score it carries (a raster mAP compared with a vector one, another split's, other decoding's),
+# which a note says
+SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split",
+              *DECODE_KEYS, "model.temporal.persist_frames", "model.temporal.persist_decay",
+              "model.temporal.persist_match_m")
+# the training settings a resume may change, which then hold from its position on (the steps so far were trained with
+# the checkpoint's): said in a note, as config.yaml and the next checkpoints record only the new values (a resume with
+# another train.lr, train.schedule or train.warmup went on with no word, the run's record rewritten)
+RESUME_NOTED = ("train.epochs", "train.lr", "train.weight_decay", "train.schedule", "train.lr_step", "train.lr_gamma",
+                "train.warmup", "train.min_lr_factor", "train.grad_clip", "train.amp", "train.on_nonfinite",
+                "train.deterministic", "data.augment", "data.aug_scale", "data.aug_rotate_deg", "data.aug_crop_jitter",
+                "data.camera_dropout", "data.on_bad_sample", "model.temporal.drop_prob")
 
 
 def train_set_fingerprint(loader) -> dict | None:
@@ -246,7 +266,8 @@ def config_differences(old: ExperimentConfig, cfg: ExperimentConfig, keys) -> st
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
     old = saved_config(ckpt_cfg, f"checkpoint {path}")
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
-    lines = config_differences(old, cfg, keys)
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys) and not is_under(k, RESUME_FREE)]
+    lines = config_differences(old, cfg, differ)
     if lines:
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
                               f"the config it was trained with, or start a new run from its weights with "
@@ -364,8 +385,17 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
 
 
 def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
-    """Notes for a meter's setting given while the meter is off (its default otherwise): it was unused with no word."""
+    """Notes for a meter's setting given while the meter is off (its default otherwise), and for a decoder's option
+    given with another decoder: it was unused with no word."""
     default, notes = EvalConfig(), []
+    gnn, gnn_default = cfg.model.gnn, GraphHeadConfig()
+    if gnn.same_class_edges and gnn.decoder == "classwise":  # classwise builds a graph per class of its own rule
+        notes.append("model.gnn.same_class_edges=true is not used: an option of the greedy decoder, and "
+                     "model.gnn.decoder=classwise (which joins the vertices whose class probability is at least "
+                     "model.gnn.class_min_prob)")
+    if gnn.class_min_prob != gnn_default.class_min_prob and gnn.decoder != "classwise":
+        notes.append(f"model.gnn.class_min_prob={gnn.class_min_prob:g} is not used: an option of the classwise "
+                     f"decoder, and model.gnn.decoder={gnn.decoder}")
     for switch, key in (("cmap", "cmap_match_m"), ("flicker", "flicker_threshold_m")):
         if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
             notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
@@ -428,8 +458,8 @@ def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
     decoding and torch's spin-waiting OpenMP threads otherwise fight over the same cores."""
     if cfg.train.cpu_threads is not None:
         return cfg.train.cpu_threads
-    if os.environ.get("OMP_NUM_THREADS"):
-        return None
+    if os.environ.get("OMP_NUM_THREADS", "").strip().isdigit() and int(os.environ["OMP_NUM_THREADS"]) > 0:
+        return None  # (0 or "abc": OpenMP says "Invalid value" and takes its default, so this run chooses)
     return max(1, usable_cores() // max(local_processes, 1) - cfg.data.num_workers)
 
 
@@ -553,6 +583,11 @@ class TrainingRun:
             new = init_weights(self.model, init_state, cfg)
             du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
                                                                   "start from their initialisation)" if new else ""))
+            other = init_model_differences(init_state, cfg)
+            if other:  # weights of the same names and shapes, loaded with no word (8 attention heads from 4)
+                du.print_main(f"note: the checkpoint of train.init_from was trained with other model settings "
+                              f"({other}); its weights have this model's names and shapes and start this run, which "
+                              "trains them under these settings")
             if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
                 du.print_main(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
                               f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
@@ -584,6 +619,7 @@ class TrainingRun:
         self.line_due = False
         # with train.time_budget_min, every rank reads rank 0's clock (the same stop step everywhere)
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
+        self.out_dir_id = folder_id(out_dir)  # the folder itself: moved or removed during the run, it is named
 
     # --- start --------------------------------------------------------------------------------------
 
@@ -633,7 +669,13 @@ class TrainingRun:
                               f"from step {run.position.step} and its next save replaces that last.pt (to continue "
                               f"from step {later} instead, stop now and pass --resume {out_dir / 'last.pt'})")
             best = run.best.get("score", -math.inf)
-            measured = config_differences(saved_config(state["config"], f"checkpoint {resume}"), cfg, SCORE_KEYS)
+            saved = saved_config(state["config"], f"checkpoint {resume}")
+            changed = config_differences(saved, cfg, RESUME_NOTED)
+            if changed and run.clock.last < 1.0:
+                du.print_main(f"note: resumed with training settings other than the checkpoint's ({changed}): the "
+                              f"{run.position.step} step(s) so far trained with the checkpoint's, the rest train with "
+                              "these, and config.yaml and the next checkpoints record only these")
+            measured = config_differences(saved, cfg, SCORE_KEYS)
             if measured and math.isfinite(best):
                 du.print_main(f"note: the best score so far ({best:.4g}, best.pt's) was measured with another "
                               f"validation ({measured}); this run's scores replace best.pt only where they exceed it, "
@@ -695,9 +737,16 @@ class TrainingRun:
     def check_not_finished(self, state: dict, path: Path) -> None:
         """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
         an error (the schedule's progress cannot be extended), resuming it as it was a note."""
-        if self.clock.last < 1.0:
-            return
         old_epochs = (state.get("config", {}).get("train") or {}).get("epochs")
+        if self.clock.last < 1.0:
+            p = self.position
+            if old_epochs is not None and old_epochs != self.cfg.train.epochs and p.step > self.total_steps:
+                # a shorter schedule that ends before the checkpoint: "done" after no step, exit 0, nothing written
+                raise UserError(f"train.epochs={self.cfg.train.epochs} ends the schedule at step {self.total_steps}, "
+                                f"before checkpoint {path}'s step {p.step} (epoch {p.epoch} of its {old_epochs}): "
+                                f"nothing would be trained; resume with train.epochs={p.epoch + 1} or more (or its "
+                                f"own {old_epochs}) to finish it")
+            return
         if old_epochs is not None and old_epochs != self.cfg.train.epochs:
             raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
                             f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
@@ -738,12 +787,24 @@ class TrainingRun:
             if self.log_lines is not None:  # the same for the log's lines (a checkpoint that counts them)
                 self.log_lines = purge_log(self.out_dir / "log.jsonl", self.log_lines, du.print_main)
             self.log_file = (self.out_dir / "log.jsonl").open("a")
+        previous_hook = threading.excepthook
+
+        def thread_failed(args):  # TensorBoard's writer thread, once the folder is gone: said once by fit
+            if not (isinstance(args.exc_value, OSError) and self.out_dir_moved()):
+                previous_hook(args)
+
+        threading.excepthook = thread_failed
         try:
             yield
         finally:
+            threading.excepthook = previous_hook
             for handle in (self.log_file, self.writer):
                 if handle is not None:
-                    handle.close()
+                    try:
+                        handle.close()
+                    except OSError:  # the folder moved away: fit said so; its error is not hidden by this one
+                        if not self.out_dir_moved():
+                            raise
 
     def announce(self) -> None:
         """Start the clock, set the first learning rate, print the threads and the schedule."""
@@ -827,6 +888,10 @@ class TrainingRun:
             du.print_main(f"interrupted: saved {self.out_dir / 'last.pt'} (resume with --resume "
                           f"{self.out_dir / 'last.pt'})")
             raise
+        except OSError as e:  # the run's folder moved or removed under it: one line, not TensorBoard's traceback
+            if not self.out_dir_moved():
+                raise
+            raise self.moved_error(e) from None
         except RuntimeError as e:  # a data-loader worker killed (the OOM killer): saved as for Ctrl-C, one line
             died = data_worker_died(e)
             if died is None:
@@ -923,6 +988,8 @@ class TrainingRun:
         memories = memory_state(self.memory, gather) if p.step_in_epoch else None
         if not du.is_main_process():
             return
+        if self.out_dir_moved():  # the save would make a new folder of that name, with a checkpoint and nothing else
+            raise self.moved_error(None)
         save_checkpoint({
             "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
             "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
@@ -931,6 +998,23 @@ class TrainingRun:
             "validation_pending": self.validation_pending, "train_set": train_set_fingerprint(self.train_loader),
             "world": self.world, "log_lines": self.log_lines,
         }, self.out_dir / name)
+
+    def out_dir_moved(self) -> bool:
+        """Whether ``train.out_dir`` is no longer the folder this run started in (renamed, moved or removed)."""
+        return self.out_dir_id is not None and folder_id(self.out_dir) != self.out_dir_id
+
+    def moved_error(self, cause: OSError | None) -> UserError:
+        now = held_folder_now(self.out_dir)
+        again = "the steps since its last checkpoint are trained again"
+        where = ("it was removed, and its checkpoints with it: start the run again" if now == "removed" else
+                 f"it is now {now}: resume there with --resume {now / 'last.pt'} train.out_dir={now} ({again})"
+                 if isinstance(now, Path) else "its checkpoints went with it: if it was moved, resume from its "
+                 f"last.pt there, with train.out_dir set to that folder ({again})")
+        name = cause.filename if cause is not None else None
+        why = (f" ({cause.strerror or cause}" + (f": {os.fsdecode(name)}" if isinstance(name, (str, bytes)) else "")
+               + ")") if cause is not None else ""
+        return UserError(f"train.out_dir {self.out_dir} was moved or removed while this run wrote to it{why}; the run "
+                         f"stopped at step {self.position.step}; {where}")
 
     def log(self) -> None:
         if self.log_file is not None:
@@ -977,8 +1061,9 @@ MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.tem
 
 def setting_notes(cfg: ExperimentConfig) -> list[str]:
     """Notes on settings that train, but not as they read: the memory's keys on a model without a memory (the
-    run trained a single-frame model on shuffled frames), an LSS frustum that stops short of the grid (the
-    cells beyond it never get a camera feature)."""
+    run trained a single-frame model on shuffled frames), another schedule's keys, vd_sampling without the pe+vd
+    embedding, augmentation keys without data.augment, AV2 keys on nuScenes, validation on the training split, an
+    LSS frustum that stops short of the grid (the cells beyond it never get a camera feature)."""
     notes = []
     if cfg.model.temporal.memory == "none":
         default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
@@ -987,6 +1072,28 @@ def setting_notes(cfg: ExperimentConfig) -> list[str]:
             notes.append(f"note: {', '.join(unused)} set, but model.temporal.memory=none: only a temporal model reads "
                          "them, so this run trains a single-frame model on shuffled frames (docs/temporal.md: set "
                          "model.temporal.memory, e.g. bev, or start from configs/temporal/)")
+    t, t0 = cfg.train, TrainConfig()
+    own = {"step": ("lr_step", "lr_gamma"), "cosine": ("min_lr_factor",)}  # the keys only that schedule reads
+    unread = [f"train.{k}={getattr(t, k):g}" for other, keys in own.items() if other != t.schedule for k in keys
+              if getattr(t, k) != getattr(t0, k)]
+    if unread:
+        notes.append(f"note: {', '.join(unread)} set, but train.schedule={t.schedule} does not read it "
+                     "(min_lr_factor is the cosine schedule's; lr_step and lr_gamma the step schedule's)")
+    gnn = cfg.model.gnn
+    if gnn.vd_sampling != GraphHeadConfig().vd_sampling and gnn.embedding != "pe+vd":
+        notes.append(f"note: model.gnn.vd_sampling={gnn.vd_sampling} set, but model.gnn.embedding={gnn.embedding}: "
+                     "only the visual-descriptor embedding (pe+vd) reads it")
+    d, d0 = cfg.data, DataConfig()
+    for keys, unread, why in ((("aug_scale", "aug_rotate_deg", "aug_crop_jitter"), not d.augment,
+                               "data.augment=false (set data.augment=true to augment the training images)"),
+                              (("av2_cameras", "av2_frame_step"), d.dataset != "av2",
+                               f"data.dataset={d.dataset}: only the Argoverse 2 loader reads them")):
+        given = [f"data.{k}={config_to_dict(d)[k]}" for k in keys if unread and getattr(d, k) != getattr(d0, k)]
+        if given:
+            notes.append(f"note: {', '.join(given)} set, but {why}")
+    if d.val_split == d.train_split:  # an overfitting check may mean it; a slip made best.pt a pick on training scenes
+        notes.append(f"note: data.val_split={d.val_split} is the training split (data.train_split): validation, and "
+                     "the choice of best.pt, score the scenes this run trains on, not held-out ones")
     vt, g = cfg.model.view_transform, cfg.grid
     reach = max(abs(g.xbound[0]), abs(g.xbound[1]), abs(g.ybound[0]), abs(g.ybound[1]))
     if vt.kind == "lss" and vt.depth_bound[1] < reach:
@@ -1008,6 +1115,15 @@ def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | 
             raise UserError(f"train.init_from={path} is the {name} of train.out_dir={out_dir}, which this run "
                             "starts over (--force removes it, the run's own saves replace it): copy it out of the "
                             "folder first, or choose another train.out_dir")
+
+
+def folder_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the folder ``path`` (None where there is none)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _same_path(a: Path, b: Path) -> bool:
@@ -1032,6 +1148,16 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
             raise UserError(f"train.init_from={path}: the checkpoint was trained with other inputs or geometry "
                             f"({lines}); its weights would mean something else here")
     return state
+
+
+def init_model_differences(state: dict, cfg: ExperimentConfig) -> str:
+    """The ``model.*`` keys (but those an inference reads only, ``NOT_BAKED``) on which the config of
+    ``train.init_from``'s checkpoint and ``cfg`` differ, as ``config_differences`` says them ("" if none)."""
+    if not isinstance(state.get("config"), dict):
+        return ""
+    old = saved_config(state["config"], "the checkpoint of train.init_from")
+    differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
+    return config_differences(old, cfg, differ)
 
 
 def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:

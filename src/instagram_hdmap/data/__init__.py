@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import weakref
+
 from ..config import as_config
+from ..files import hold_world, release_world
 from .av2 import AV2MapDataset
 from .nuscenes import NuScenesMapDataset
 from .rig import CAMERAS
@@ -18,9 +21,20 @@ def build_dataset(cfg, split: str, augment: bool | None = None, like=None):
     if augment is not None and not isinstance(augment, bool):  # augment="no" is truthy: it augmented
         raise TypeError(f"build_dataset: augment must be True, False or None (the split's default), got "
                         f"{augment!r:.40}")
-    if cfg.data.dataset == "av2":
-        return AV2MapDataset(cfg, split, augment=augment)
-    return NuScenesMapDataset(cfg, split, nusc=getattr(like, "nusc", None), augment=augment)
+    # a synthetic world: synth --force in another process does not replace it while the dataset lives
+    lock = hold_world(cfg.data.dataroot)
+    try:
+        if cfg.data.dataset == "av2":
+            dataset = AV2MapDataset(cfg, split, augment=augment)
+        else:
+            dataset = NuScenesMapDataset(cfg, split, nusc=getattr(like, "nusc", None), augment=augment)
+    except BaseException:
+        if lock is not None:
+            release_world(lock)
+        raise
+    if lock is not None:
+        weakref.finalize(dataset, release_world, lock)
+    return dataset
 
 
 def rig_cameras(cfg) -> tuple[str, ...]:

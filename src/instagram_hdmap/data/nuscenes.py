@@ -57,17 +57,25 @@ def open_nuscenes(dataroot: str | Path, version: str):
 
     root = Path(dataroot)
     if not root.is_dir():
+        if root.exists():  # data.dataroot=gt.json, a file given where the dataset's folder goes
+            raise DatasetError(f"nuScenes dataroot {root} is a file, not a folder; set data.dataroot (or --dataroot) "
+                               "to the folder that holds the version folder (v1.0-trainval, v1.0-mini), maps and "
+                               "samples")
         raise DatasetError(f"nuScenes dataroot not found: {root} (set data.dataroot or --dataroot"
                            f"{relative_path_note(root)})")
     table_root = root / version
     if not (table_root / "sample.json").is_file():
         found = sorted(p.name for p in root.iterdir() if (p / "sample.json").is_file())
         av2 = not found and any(root.glob("*/*/city_SE3_egovehicle.feather"))  # <split>/<log>/: an AV2 root
+        below = [] if found else sorted(p.parent.parent for p in root.glob(f"*/{version}/sample.json"))
+        hint = ("(it is an Argoverse 2 sensor-dataset root: set data.dataset=av2)" if av2 else
+                f"({root} is a version folder itself: set data.dataroot to the folder above it, {root.parent})"
+                if (root / "sample.json").is_file() else
+                f"(the dataroot is the folder that holds {version}: set data.dataroot to {below[0]})" if below else
+                "(set data.version or --version)")
         raise DatasetError(
             f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; versions "
-            f"in {root}: {', '.join(found) or 'none'} "
-            + ("(it is an Argoverse 2 sensor-dataset root: set data.dataset=av2)" if av2 else
-               "(set data.version or --version)")
+            f"in {root}: {', '.join(found) or 'none'} " + hint
         )
     try:
         nusc = NuScenes(version=version, dataroot=str(root), verbose=False)
@@ -400,6 +408,9 @@ class NuScenesMapDataset(MapDataset):
         sd = self._get("sample_data", data[cam])
         for key in ("filename", "width", "height"):
             _field(sd, key, "sample_data")
+        name = sd["filename"]
+        if isinstance(name, str) and "\\" in name and not (self.dataroot / name).exists():
+            sd = {**sd, "filename": name.replace("\\", "/")}  # a table written on Windows (str() of a WindowsPath)
         for key in ("width", "height"):  # the image's size: it scales the resize and the intrinsics' use
             if isinstance(sd[key], bool) or not isinstance(sd[key], int) or sd[key] < 1:
                 table = self.dataroot / self.data_cfg.version / "sample_data.json"

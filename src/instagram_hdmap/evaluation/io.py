@@ -100,6 +100,10 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise ValueError(f"read_submission: role must be 'pred' (a submission, with confidence_level) or 'gt', got "
                          f"{role!r}")
     path = as_path(path, "the submission file")
+    if path.is_dir():  # evaluate's --out folder: the file in it is meant
+        inside = [path / name for name in ("submission.json", "gt.json") if (path / name).is_file()]
+        raise SubmissionError(f"{path}: is a folder, not a submission file" + (
+            f"; the file in it: {inside[0]}" if inside else " (give the JSON file)"))
     try:
         with open(path, "rb") as f:  # read once: a pipe (`--pred /dev/stdin`, `<(zcat pred.json.gz)`) is read only once
             raw = f.read()
@@ -123,8 +127,11 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: expected a JSON object with 'meta' and 'results', got {type(data).__name__}")
     key = "results" if "results" in data else "GTs" if "GTs" in data else None
     if key is None:
+        metrics = "mAP" in data or "AP" in data  # evaluate's metrics.json, written beside its submission.json
         raise SubmissionError(
             f"{path}: no 'results' key; expected {{'meta': {{...}}, 'results': {{token: [vectors]}}}}"
+            + (f" (this is a metrics file; evaluate writes the submission as {path.parent / 'submission.json'})"
+               if metrics else "")
         )
     results = data[key]
     meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
@@ -181,6 +188,11 @@ def _tied_score_notes(path: Path, samples: dict[str, list[dict]]) -> list[str]:
     return notes
 
 
+def _whole(value: object) -> object:
+    """A whole float as the int it is (1.0, from numpy's float arrays or a MATLAB writer: class 1); else as given."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
 def vectors_to_polylines(
     vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str, counts: dict | None = None
 ) -> list[dict]:
@@ -194,13 +206,13 @@ def vectors_to_polylines(
         if not isinstance(v, dict) or "pts" not in v or "type" not in v:
             raise SubmissionError(f"{what}: expected a dict with 'pts' and 'type', got {v!r:.120}")
         pts = _points(v["pts"], what)
-        n = v.get("pts_num", len(pts))
+        n = _whole(v.get("pts_num", len(pts)))
         if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n > len(pts):
             raise SubmissionError(f"{what}: 'pts_num' must be an integer in 0..{len(pts)} (len(pts)), got {n!r}")
         if n < len(pts):
             counts["truncated"] += 1
             pts = pts[:n]
-        k = v["type"]
+        k = _whole(v["type"])
         if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < num_classes:
             raise SubmissionError(f"{what}: 'type' must be a class id 0..{num_classes - 1} "
                                   f"(0 divider, 1 ped_crossing, 2 boundary), got {k!r}")

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from ...config import UserError
-from ...files import atomic_path, check_no_broken_link, remove_stale_temporaries
+from ...files import atomic_path, check_no_broken_link, claim_world, remove_stale_temporaries
 from .render import MapPainter
 from .roads import build_network
 from .traffic import place_occluders
@@ -196,15 +196,25 @@ def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> di
         raise _unwritable(out, e) from e
     for stale in remove_stale_temporaries(target, TMP_TAG):
         print(f"removed {stale}: a generation of this world that did not finish (its process is gone)", flush=True)
-    with atomic_path(target, TMP_TAG) as tmp:
-        _make_writable(tmp, out)
-        manifest = write(tmp)
-        if not force and out.is_dir() and any(out.iterdir()):  # filled while this world was rendered: the
-            # rename would replace it (another synth of the same --out, started after this one's check)
-            raise UserError(f"--out {out}: the folder was filled while this world was generated (another synth "
-                            "with the same --out?); it is kept as it is and this world is dropped: choose another "
-                            "--out, or pass --force to replace it")
-        return manifest
+    claim = claim_world(out, "--out", MANIFEST) if force else None  # a world being read is refused before the work
+    if claim is not None:
+        claim.close()
+    held = None
+    try:
+        with atomic_path(target, TMP_TAG) as tmp:
+            _make_writable(tmp, out)
+            manifest = write(tmp)
+            if not force and out.is_dir() and any(out.iterdir()):  # filled while this world was rendered: the
+                # rename would replace it (another synth of the same --out, started after this one's check)
+                raise UserError(f"--out {out}: the folder was filled while this world was generated (another synth "
+                                "with the same --out?); it is kept as it is and this world is dropped: choose another "
+                                "--out, or pass --force to replace it")
+            # and again for the rename (a training started on it meanwhile), held until the world is replaced
+            held = claim_world(out, "--out", MANIFEST) if force else None
+            return manifest
+    finally:
+        if held is not None:
+            held.close()
 
 
 # --- rendering ---------------------------------------------------------------------------------------
