@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -69,7 +70,8 @@ def main() -> None:
         if m is None:
             print(f"{name:<12}{err}")
             continue
-        ap = m["AP_class"]
+        ap = {k: math.nan if v is None else v for k, v in m["AP_class"].items()}  # null: a raster 0/0 (NaN)
+        m["mAP"] = math.nan if m["mAP"] is None else m["mAP"]
         print(f"{name:<12}{ap['divider']:>9.3f}{ap['ped_crossing']:>9.3f}{ap['boundary']:>9.3f}{m['mAP']:>8.3f}  "
               f"{' '.join(overrides)}")
 

@@ -27,7 +27,6 @@ criterion's diagnostics and PASS / FAIL against ``--target`` (0.90); ``--json`` 
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile
@@ -166,7 +165,9 @@ def main(argv=None) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         out = {"args": vars(args), "verdict": verdict, **result}
-        Path(args.json).write_text(json.dumps(out, indent=1, default=str))
+        from instagram_hdmap.files import json_text, write_text
+
+        write_text(json_text(out, indent=1, default=str), args.json)  # standard JSON: NaN as null
     return 0
 
 

@@ -17,7 +17,6 @@ decoding keys (``model.gnn.decoder``, ``match_threshold``, ``class_min_prob``, `
 from __future__ import annotations
 
 import argparse
-import json
 import math
 
 import torch
@@ -96,8 +95,9 @@ def main() -> None:
     for name, r in results.items():
         print(f"| {name} | " + " | ".join(f"{v:.3f}" for v in r["AP"]) + f" | {r['mAP']:.3f} |")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(results, f, indent=1)
+        from instagram_hdmap.files import write_json
+
+        write_json(results, args.json, indent=1)  # standard JSON: a raster AP of NaN is written as null
 
 
 if __name__ == "__main__":

@@ -48,6 +48,21 @@ CONFIGS = {"single": REPO / "configs" / "synthetic" / "demo.yaml",
            "temporal": REPO / "configs" / "temporal" / "synthetic.yaml"}
 
 
+METRICS = {"mAP", "AP_class", "C-mAP", "C-AP_class", "flicker", "flicker_mean", "flicker_detected",
+           "flicker_detected_mean"}
+
+
+def read_result(path: Path) -> dict:
+    """A result file of ``run_one``: its metrics that were NaN (a flicker rate with no pairs) are null in the file
+    (standard JSON, ``files.write_json``) and NaN again here, for the tables' arithmetic and formats."""
+    def nan(value):
+        if isinstance(value, dict):
+            return {k: nan(v) for k, v in value.items()}
+        return math.nan if value is None else value
+
+    return {k: nan(v) if k in METRICS else v for k, v in json.loads(path.read_text()).items()}
+
+
 def budget_overrides(args) -> list[str]:
     """A from-scratch run's training budget: ``--minutes`` of wall time, or ``--steps`` (epochs of 120 steps)."""
     if args.steps is None:
@@ -86,7 +101,7 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
             raise SystemExit(f"temporal.py: error: {path} was trained with {saved}, this command asks for {options}: "
                              "use another --out (or the same options)")
     if done.is_file():
-        return json.loads(done.read_text())
+        return read_result(done)
     trained = [p for p in out.glob("result*.json") if p != done]  # evaluated on another validation world
     steps = 0
     if checkpoint is None and trained:
@@ -148,7 +163,7 @@ def memory_off(results: list[dict], args, val_root) -> str:
                                      overrides=[*off, *persist_overrides(args)])["metrics"]
             write_json({"mAP": metrics["mAP"], "AP_class": metrics["AP_class"],
                         "flicker_mean": metrics["consistency"]["flicker_mean"]}, done, indent=1)  # atomic
-        off = json.loads(done.read_text())
+        off = read_result(done)
         model = torch.load(ckpt, weights_only=True)["model"]
         weights = ""
         if "temporal.mix.0.weight" in model:  # the gated fusion's input: [current, warped memory, validity]

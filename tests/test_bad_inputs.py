@@ -19,6 +19,7 @@ refused checks that it runs).
 ``S25`` marks a case found by a twenty-fifth sweep (the issue's own kind, done blind).
 ``S26`` marks a case found by a twenty-sixth sweep (the config as users write it: keys, overrides, YAML files).
 ``S27`` marks a case found by a twenty-seventh sweep (resume, reuse and runs that meet other runs).
+``S28`` marks a case found by a twenty-eighth sweep (the files written as other programs read them, the terminal).
 ``S29`` marks a case found by a twenty-ninth sweep (the real datasets as downloaded: nuScenes in parts, AV2 as shipped).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
@@ -5909,6 +5910,8 @@ def row_evaluate_on_the_training_split(env):
     assert "data.val_split='train' is the split the checkpoint was trained on" in out + err, (out + err)[-2000:]
     rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "unseen")
     assert rc == 0 and "the split the checkpoint was trained on" not in out + err, (out + err)[-2000:]
+
+
 @row("S26", "a mapping given on the command line after one of its keys (model.gnn.layers=3 model.gnn={dim: 64}) "
             "replaced the section the first had set: model.gnn.layers silently went back to the YAML's value; the "
             "mapping now merges into the keys before it, and a key given by both is noted (the last wins); an override "
@@ -6426,9 +6429,337 @@ def row_map_expansion_of_an_earlier_version(env):
     with pytest.warns(UserWarning, match="export-gt: skipping sample"):  # (its progress bar on stderr too)
         rc, _, err = env.cli("export-gt", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", "--out", out)
     assert rc == 2 and "Traceback" not in err, err[-2000:]
-    assert re.search(r"error: every sample of split 'val' in \S+old_maps is bad \(data\.on_bad_sample=skip; see the "
-                     r"warnings\): no GT to write", err), err[-2000:]
+    assert re.search(r"error: every sample of split 'val' in \S+old_maps is bad \(data\.on_bad_sample=skip\), the "
+                     r"first: .*version is 1\.2", err), err[-2000:]
     assert not out.exists()
+
+
+# --- the twenty-eighth sweep ---------------------------------------------------------------------------
+
+
+def _strict_json(text: str):
+    """``text`` read as standard JSON: ``NaN`` / ``Infinity`` (Python's extension) refused, as jq, JavaScript and Go
+    refuse them."""
+    def refuse(constant):
+        raise AssertionError(f"{constant} is not JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+@row("S28", "metrics.json (evaluate, evaluate-json) and log.jsonl held NaN (a flicker rate with no pairs, the "
+            "raster AP of a class with no GT): not JSON, jq and JavaScript refuse the file; now null. A NaN score "
+            "given to write_submission is refused (null would read back as the default confidence 1.0)")
+def row_json_outputs_hold_no_nan(env):
+    from instagram_hdmap.evaluation.io import write_submission
+
+    run = env.tmp / "run"
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={run}", "train.epochs=1", "train.checkpoint_every=0")
+    assert rc == 0, err[-2000:]
+    lines = (run / "log.jsonl").read_text().splitlines()
+    assert lines and all(isinstance(_strict_json(ln), dict) for ln in lines)
+    assert _strict_json(lines[-1])["val"]["consistency"]["flicker_detected_mean"] is None  # a random model: no pairs
+    rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-2000:]
+    _strict_json((env.tmp / "eval" / "submission.json").read_text())
+    metrics = _strict_json((env.tmp / "eval" / "metrics.json").read_text())
+    assert metrics["consistency"]["flicker_detected_mean"] is None
+    line = {"pts": [[0.0, 1.0], [5.0, 1.0]], "label": 0, "score": 0.5}
+    write_submission(env.tmp / "gt.json", {"a": [{"pts": line["pts"], "label": 0}]}, {"ground_truth": True})
+    write_submission(env.tmp / "pred.json", {"a": [line]})
+    rc, out, err = env.cli("evaluate-json", "--pred", env.tmp / "pred.json", "--gt", env.tmp / "gt.json", "--protocol",
+                           "raster", "--out", env.tmp / "m.json")
+    assert rc == 0 and "nan" in out, err[-2000:]  # printed as nan on the terminal
+    metrics = _strict_json((env.tmp / "m.json").read_text())
+    assert metrics["AP_class"]["divider"] == 1.0 and metrics["AP_class"]["boundary"] is None and metrics["mAP"] is None
+    with pytest.raises(ValueError, match=r"sample 'a': a polyline's score is nan .*scores must be finite"):
+        write_submission(env.tmp / "nan.json", {"a": [{**line, "score": float("nan")}]})
+    assert not (env.tmp / "nan.json").exists()
+
+
+@row("S28", "the reader of the output went away (`evaluate-json ... --out m.json | head -1`, `train ... 2>&1 | head`, "
+            "with PYTHONUNBUFFERED=1 as in many containers): the first message after it stopped the job, exit 141 "
+            "with m.json never written, a training stopped before its first step; now the job goes on, writes its "
+            "files and exits 141")
+def row_output_reader_gone_job_goes_on(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "PYTHONUNBUFFERED": "1"}
+    gt, pred = env.tmp / "gt.json", env.tmp / "pred.json"
+    line = [[0.0, 1.0], [5.0, 1.0]]
+    gt.write_text(json.dumps({"meta": {"ground_truth": True}, "results": {"a": [{"pts": line, "type": 0}]}}))
+    pred.write_text(json.dumps({"results": {"a": [{"pts": line, "type": 0, "confidence_level": 0.5}]}}))
+    jobs = [(["evaluate-json", "--pred", pred, "--gt", gt, "--out", env.tmp / "m.json"], subprocess.PIPE),
+            (["train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=1", "train.checkpoint_every=0"],
+             subprocess.STDOUT)]  # 2>&1: the progress bar's stream has no reader either
+    for argv, stderr in jobs:
+        p = subprocess.Popen([sys.executable, "-m", "instagram_hdmap.cli", *map(str, argv)], stdout=subprocess.PIPE,
+                             stderr=stderr, env=env_vars)
+        p.stdout.close()  # the reader is gone before the first line (`| head -0`)
+        err = p.stderr.read().decode() if p.stderr else ""
+        assert p.wait(timeout=300) == 141, err[-2000:]
+        assert "Traceback" not in err, err[-2000:]
+    assert json.loads((env.tmp / "m.json").read_text())["mAP"] == pytest.approx(1 / 3)  # divider 1, the others 0
+    assert (env.tmp / "run" / "last.pt").is_file() and (env.tmp / "run" / "log.jsonl").read_text().count("\n") == 1
+
+
+@row("S28", "stderr closed at the start (`2>&-`, a launcher that closes it): the first progress bar wrote to None, a "
+            "raw AttributeError nobody could see, exit 1, nothing written (export-gt, evaluate, train, synth); now "
+            "the messages are dropped and the job runs")
+def row_standard_error_closed(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    argv = ["export-gt", str(env.yaml), "--out", str(env.tmp / "gt.json")]
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", *argv], stdout=subprocess.PIPE, env=env_vars,
+                       preexec_fn=lambda: os.close(2), timeout=300)
+    assert p.returncode == 0 and b"wrote" in p.stdout, p.stdout[-2000:]
+    assert json.loads((env.tmp / "gt.json").read_text())["results"]
+
+
+@row("S28", "train / evaluate with stderr in a file (`2> log`, nohup, not a terminal): the progress bar was drawn "
+            "twice a step, each drawing a carriage-return line of ~200 bytes: megabytes a day, one `tail` line per "
+            "epoch; now drawn at most once a minute off a terminal")
+def row_progress_bar_in_a_log_file(env):
+    rc, _, err = env.cli("train", env.yaml, f"train.out_dir={env.tmp / 'run'}", "train.epochs=1",
+                         "train.checkpoint_every=0", "train.log_every=1")
+    assert rc == 0, err[-2000:]
+    assert err.count("epoch 0:") <= 2, err  # the bar's start and (a run longer than a minute) its refreshes
+
+
+@row("S28", "evaluate-json of predictions whose scores are all equal (one confidence_level written for every "
+            "vector): the AP followed the order of the vectors in the file (the same file reversed scored another "
+            "AP), no word; now a note says so")
+def row_predictions_with_one_score(env):
+    gt = {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0}, {"pts": [[0.0, -1.0], [5.0, -1.0]], "type": 0}]}
+    pred = {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0, "confidence_level": 0.5},
+                  {"pts": [[0.0, 8.0], [5.0, 8.0]], "type": 0, "confidence_level": 0.5},
+                  {"pts": [[0.0, -9.0], [5.0, -9.0]], "type": 2, "confidence_level": 0.5},
+                  {"pts": [[0.0, -1.0], [5.0, -1.0]], "type": 2, "confidence_level": 0.9}]}
+    (env.tmp / "gt.json").write_text(json.dumps({"meta": {"ground_truth": True}, "results": gt}))
+    aps = []
+    for name, vectors in (("pred.json", pred["a"]), ("reversed.json", pred["a"][::-1])):
+        (env.tmp / name).write_text(json.dumps({"results": {"a": vectors}}))
+        rc, out, err = env.cli("evaluate-json", "--pred", env.tmp / name, "--gt", env.tmp / "gt.json")
+        assert rc == 0, err[-2000:]
+        assert re.search(rf"note: .*{name}: all 2 predictions of divider have the same confidence_level 0\.5: their "
+                         r"ranking, and so the AP, follows their order in the file", out), out
+        assert "predictions of boundary" not in out  # two scores
+        aps.append(re.search(r"^divider .* ([0-9.]+)$", out, re.M).group(1))
+    assert aps[0] != aps[1], aps  # why the note: the order decides
+
+
+@row("S28", "a non-ASCII path on a terminal that is not UTF-8 (PYTHONIOENCODING=ascii, a Windows console): export-gt "
+            "wrote the file, then its 'wrote ...' line crashed (UnicodeEncodeError traceback, exit 1); now the "
+            "letter is escaped and the exit status is 0")
+def row_non_ascii_path_on_an_ascii_terminal(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "PYTHONIOENCODING": "ascii"}
+    out = env.tmp / "gt \u00e4.json"
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "export-gt", str(env.yaml), "--out", str(out)],
+                       capture_output=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and b"Traceback" not in p.stderr, p.stderr[-2000:]
+    assert b"gt \\xe4.json" in p.stdout and out.is_file(), p.stdout
+
+
+@row("S28", "export-onnx under PYTHONWARNINGS=error (-W error, as CI runs): torch's FutureWarning about its own "
+            "internals ('isinstance(treespec, LeafSpec) is deprecated') stopped the export with torch's traceback, "
+            "exit 1, nothing a user could change; now those notices of torch are ignored during the export")
+def row_export_onnx_under_warnings_as_errors(env):
+    import warnings
+
+    pytest.importorskip("onnx")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rc, out, err = env.cli("export-onnx", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "m.onnx")
+    assert rc == 0 and (env.tmp / "m.onnx").is_file(), err[-2000:]
+
+
+@row("S28", "benchmarks/temporal_speed.py with model.temporal.max_jump_m=1 (the benchmark's previous frame is 1.5 m "
+            "behind): a bare `assert` of the fusion, a raw AssertionError, and under python -O the timings of a "
+            "model that fuses nothing with exit 0; now one line naming the key, exit 2. --runs 1 (allowed): a raw "
+            "StatisticsError after the work; its p10 / p90 of a few runs were extrapolated (a p10 of -126 ms); a "
+            "config without memory: exit 1, now 2 as every wrong input")
+def row_temporal_speed_memory_not_fused(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    script = [str(REPO / "benchmarks" / "temporal_speed.py"), "--config", str(TINY_YAML), "--runs", "1", "--warmup",
+              "0", "model.temporal.memory=bev"]
+    p = subprocess.run([sys.executable, "-O", *script, "model.temporal.max_jump_m=1"], capture_output=True, text=True,
+                       env=env_vars, timeout=300)
+    assert p.returncode == 2 and "Traceback" not in p.stderr, (p.returncode, p.stdout[-1000:], p.stderr[-2000:])
+    assert re.search(r"not fused \(status pose_jump\): model\.temporal\.max_jump_m=1\.0", p.stderr), p.stderr
+    p = subprocess.run([sys.executable, *script], capture_output=True, text=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and "fusion alone" in p.stdout, p.stderr[-2000:]
+    p = subprocess.run([sys.executable, *script[:-1]], capture_output=True, text=True, env=env_vars, timeout=300)
+    assert p.returncode == 2 and "model.temporal.memory is none" in p.stderr, (p.returncode, p.stderr[-2000:])
+
+
+@row("S28", "evaluate with data.on_bad_sample=skip under PYTHONWARNINGS=ignore (-W ignore): the samples left out "
+            "were named only by Python warnings, which vanished ('1 bad sample(s) left out; the warnings name them'); "
+            "now the note names their tokens (printed and in metrics.json)")
+def row_skipped_samples_named_without_warnings(env):
+    import warnings
+
+    root = env.shadow_world(copy_samples=True)
+    _break_image(root, root, 0, "CAM_FRONT", "missing")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc, out, err = env.cli("evaluate", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip",
+                               "--checkpoint", env.ckpt, "--out", env.tmp / "eval")
+    assert rc == 0, err[-3000:]
+    submission = json.loads((env.tmp / "eval" / "submission.json").read_text())
+    tables = json.loads((root / "v1.0-trainval" / "sample.json").read_text())
+    left = sorted({t["token"] for t in tables} - set(submission["results"]) - _train_tokens(root))
+    assert len(left) == 1, left
+    assert re.search(rf"note: 1 bad sample\(s\) of \d+ left out .*: {left[0]}$", out, re.M), out
+    notes = json.loads((env.tmp / "eval" / "metrics.json").read_text())["meta"]["config_notes"]
+    assert any(left[0] in n for n in notes), notes
+
+
+def _train_tokens(root: Path) -> set[str]:
+    tables = {n: json.loads((root / "v1.0-trainval" / f"{n}.json").read_text()) for n in ("sample", "scene")}
+    train = set(json.loads((root / "splits.json").read_text())["train"])
+    scenes = {s["token"] for s in tables["scene"] if s["name"] in train}
+    return {t["token"] for t in tables["sample"] if t["scene_token"] in scenes}
+
+
+@row("S28", "export-gt with data.on_bad_sample=skip and unreadable map files: a GT file of 0 samples, 'wrote ...: 0 "
+            "samples', exit 0; samples left out were named only by Python warnings (-W ignore hides them); now every "
+            "sample bad is one error, and a note names the samples left out")
+def row_export_gt_samples_left_out(env):
+    import warnings
+
+    root = env.shadow_world()
+    (root / "maps").unlink()
+    shutil.copytree(env.world / "maps", root / "maps")
+    tables = {n: json.loads((root / "v1.0-trainval" / f"{n}.json").read_text()) for n in ("scene", "log")}
+    location = {t["token"]: t["location"] for t in tables["log"]}
+    train = json.loads((root / "splits.json").read_text())["train"]
+    places = [location[s["log_token"]] for s in tables["scene"] if s["name"] in train]
+    argv = ["export-gt", env.yaml, f"data.dataroot={root}", "data.on_bad_sample=skip", "--split", "train"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        (root / "maps" / "expansion" / f"{places[0]}.json").write_text("{")  # one location's map unreadable
+        rc, out, err = env.cli(*argv, "--out", env.tmp / "gt.json")
+        assert rc == 0, err[-2000:]
+        kept = json.loads((env.tmp / "gt.json").read_text())["results"]
+        note = re.search(r"note: (\d+) bad sample\(s\) of (\d+) left out .*: (\w+)", out)
+        assert note and int(note[1]) + len(kept) == int(note[2]) and note[3] not in kept, out
+        for place in set(places):
+            (root / "maps" / "expansion" / f"{place}.json").write_text("{")
+        env.error(r"every sample of split 'train' in .* is bad \(data\.on_bad_sample=skip\), the first: sample \w+: "
+                  r"cannot read map expansion file", *argv, "--out", env.tmp / "gt2.json")
+    assert not (env.tmp / "gt2.json").exists()
+
+
+@row("S28", "train with stderr on a full disk (`2> log`, the log's disk full): the progress bar's next write stopped "
+            "the training, exit 1, no checkpoint and no word anywhere; now stderr's messages are dropped, the "
+            "training ends and a note on stdout says the messages were lost")
+def row_standard_error_on_a_full_disk(env):
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full")
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    argv = ["train", str(env.yaml), f"train.out_dir={env.tmp / 'run'}", "train.epochs=1", "train.checkpoint_every=0"]
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", *argv], stdout=subprocess.PIPE, stderr=full,
+                           text=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and (env.tmp / "run" / "last.pt").is_file(), (p.returncode, p.stdout[-2000:])
+    assert "note: the standard error could not be written from some point on (No space left on device)" in p.stdout
+
+
+@row("S28", "benchmarks/temporal.py reads back a finished run's result file (a rerun of the same --out): written "
+            "as standard JSON, a flicker rate with no pairs is null there; the tables took it as a number (TypeError "
+            "formatting None); now it is NaN again when read")
+def row_benchmark_temporal_result_with_null(env):
+    import argparse
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_temporal_s28", REPO / "benchmarks" / "temporal.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    from instagram_hdmap.demo import VAL_WORLD
+
+    args = argparse.Namespace(out=str(env.tmp / "out"), steps=100, minutes=15.0, occluders=0.7, override=[],
+                              memory="bev", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None,
+                              threads=None, temporal_override=[])
+    folder = env.tmp / "out" / "single_seed0"
+    folder.mkdir(parents=True)
+    (folder / bench.result_name(args)).write_text(json.dumps(  # as files.write_json writes a NaN: null
+        {"config": "single", "seed": 0, "steps": 100, "mAP": 0.0, "AP_class": {"divider": 0.0}, "flicker_mean": 0.0,
+         "flicker_detected_mean": None}))
+    forbid(env, "instagram_hdmap.train.train", "a training")
+    result = bench.run_one("single", 0, args, (None, None))
+    assert result["flicker_detected_mean"] != result["flicker_detected_mean"]  # NaN
+    assert "nan" in bench.table([result])
+
+
+@row("S28", "export-gt / evaluate-json --out /dev/stdout (what the refusal of --out - advises, for `| jq`): refused "
+            "('cannot write /proc/PID/fd/pipe:[N]', on a terminal 'cannot write /dev/pts/0'); --out /dev/null or "
+            "another device run as root: the device node was replaced by a regular file (a temporary renamed over "
+            "it); now a terminal, pipe or device is written directly, the report goes to stderr")
+def row_output_to_a_pipe_or_device(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    cli = [sys.executable, "-m", "instagram_hdmap.cli"]
+    p = subprocess.run([*cli, "export-gt", str(env.yaml), "--out", "/dev/stdout"], capture_output=True, text=True,
+                       env=env_vars, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    gt = json.loads(p.stdout)  # the JSON alone: "wrote ..." went to stderr
+    assert gt["meta"]["ground_truth"] and gt["results"] and "wrote /dev/stdout" in p.stderr
+    (env.tmp / "gt.json").write_text(p.stdout)
+    p = subprocess.run([*cli, "evaluate-json", "--pred", str(env.tmp / "gt.json"), "--gt", str(env.tmp / "gt.json"),
+                        "--out", "/dev/stdout"], capture_output=True, text=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and "mAP" in p.stderr, p.stderr[-2000:]
+    assert json.loads(p.stdout)["AP_class"]["divider"] == 1.0
+    if os.geteuid() == 0:  # a device node of its own (as /dev/null is): it stays one
+        import importlib.util
+        import stat
+
+        device = env.tmp / "null"
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        rc, out, err = env.cli("export-gt", env.yaml, "--out", device)
+        assert rc == 0 and stat.S_ISCHR(device.stat().st_mode), (err[-2000:], device.stat())
+        if importlib.util.find_spec("onnx") is not None:  # it reads its file back: a device is refused first
+            env.error(r"--out .*null: a terminal, pipe or device; export-onnx reads the file back", "export-onnx",
+                      env.yaml, "--checkpoint", env.ckpt, "--out", device)
+            assert stat.S_ISCHR(device.stat().st_mode)
+
+
+@row("S28", "evaluate-json --pred /dev/stdin (`zcat pred.json.gz | evaluate-json --pred /dev/stdin`) or a process "
+            "substitution `<(...)`: refused as 'not valid JSON' (the pipe was opened twice: a look at its first "
+            "bytes, then the read, which found them gone); now it is read once")
+def row_submission_read_from_a_pipe(env):
+    gt = {"meta": {"ground_truth": True}, "results": {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0}]}}
+    pred = {"results": {"a": [{"pts": [[0.0, 1.0], [5.0, 1.0]], "type": 0, "confidence_level": 0.5}]}}
+    (env.tmp / "gt.json").write_text(json.dumps(gt))
+    (env.tmp / "pred.json").write_text(json.dumps(pred))
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "evaluate-json", "--pred", "/dev/stdin", "--gt",
+                        str(env.tmp / "gt.json"), "--out", str(env.tmp / "m.json")],
+                       input=(env.tmp / "pred.json").read_bytes(), capture_output=True, env=env_vars, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert json.loads((env.tmp / "m.json").read_text())["AP_class"]["divider"] == 1.0
+
+
+@row("S28", "a config given as a pipe (`train <(envsubst < in.yaml)`, `... | model-summary /dev/stdin`): 'config "
+            "file not found: /dev/fd/63', though it was there; now read (once, as a file is). A checkpoint given as "
+            "a pipe: 'checkpoint not found' (an ONNX file: 'ONNX file not found'); an image of predict-images as a "
+            "pipe: 'cannot be read as an image' (a named pipe: a hang); now named as pipes (read more than once)")
+def row_config_from_a_pipe(env):
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "model-summary", "/dev/stdin"],
+                       input=env.yaml.read_bytes(), capture_output=True, env=env_vars, timeout=300)
+    assert p.returncode == 0 and b"trainable" in p.stdout, p.stderr[-2000:]
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "evaluate", str(env.yaml), "--checkpoint",
+                        "/dev/stdin", "--out", str(env.tmp / "eval")], input=env.ckpt.read_bytes(), capture_output=True,
+                       text=False, env=env_vars, timeout=300)
+    assert p.returncode == 2 and b"checkpoint /dev/stdin is a pipe or a device, not" in p.stderr, p.stderr[-2000:]
+    rig, images = _rig_files(env)  # an image as a pipe: read by checks, then decoded (a named pipe hung)
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "predict-images", "--checkpoint", str(env.ckpt),
+                        "--rig", str(rig), "--out", str(env.tmp / "out"), "--device", "cpu", "/dev/stdin",
+                        *map(str, images[1:])], input=images[0].read_bytes(), capture_output=True, env=env_vars,
+                       timeout=300)
+    assert p.returncode == 2 and b"image /dev/stdin is a pipe or a device, not a file" in p.stderr, p.stderr[-2000:]
+    import importlib.util
+
+    if importlib.util.find_spec("onnx") and importlib.util.find_spec("onnxruntime"):  # --onnx as a pipe
+        p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "predict-images", "--onnx", "/dev/stdin",
+                            "--rig", str(rig), "--out", str(env.tmp / "out"), *map(str, images)], input=b"onnx",
+                           capture_output=True, env=env_vars, timeout=300)
+        assert p.returncode == 2 and b"ONNX file /dev/stdin is a pipe or a device" in p.stderr, p.stderr[-2000:]
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

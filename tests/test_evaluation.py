@@ -693,11 +693,11 @@ def test_cli_evaluate_json(tmp_path, capsys):
     assert main([*args, "--protocol", "raster", "--out", str(out)]) == 0
     m = json.loads(out.read_text())
     assert m["AP_class"] == {"divider": 1.0, "ped_crossing": 0.0, "boundary": 1.0}
-    # NaN is written as NaN: raster with no boundary anywhere.
+    # NaN is written as null (standard JSON): raster with no boundary anywhere.
     write_submission(tmp_path / "gt2.json", {"a": gts["a"]})
     assert main(["evaluate-json", "--pred", str(tmp_path / "pred.json"), "--gt", str(tmp_path / "gt2.json"),
                  "--protocol", "raster", "--out", str(out), "--ignore-extra-predictions"]) == 0
-    assert "NaN" in out.read_text() and math.isnan(json.loads(out.read_text())["mAP"])
+    assert json.loads(out.read_text(), parse_constant=pytest.fail)["mAP"] is None
     # Prediction tokens missing from the GT: an error unless ignored; a bad threshold: an error.
     capsys.readouterr()
     assert main(["evaluate-json", "--pred", str(tmp_path / "pred.json"), "--gt", str(tmp_path / "gt2.json")]) == 2

@@ -92,6 +92,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     the model weights must be finite (a checkpoint of a diverged run is named with the first
     non-finite tensor)."""
     path = as_path(path, "checkpoint path")
+    if path.exists() and not path.is_file() and not path.is_dir():  # said "checkpoint not found", though it is there
+        raise CheckpointError(f"checkpoint {path} is a pipe or a device, not a file (a process substitution <(...), "
+                              "/dev/stdin): a checkpoint is a zip archive, read by seeking in it; save it to a file "
+                              "first")
     if not path.is_file():
         run = [path / name for name in ("best.pt", "last.pt") if (path / name).is_file()] if path.is_dir() else []
         raise CheckpointError(f"checkpoint not found: {path}" + (

@@ -7,6 +7,7 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import errno
 import io
 import math
 import os
@@ -26,7 +27,15 @@ from .demo import run_demo
 from .deploy import export_checkpoint
 from .errors import INVISIBLE
 from .evaluation import evaluate_files, format_table
-from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, os_error_in, write_json
+from .files import (
+    NO_ROOM,
+    check_name_lengths,
+    check_output_dir,
+    check_output_file,
+    is_stream,
+    os_error_in,
+    write_json,
+)
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
@@ -105,13 +114,15 @@ def _cmd_export_gt(args: argparse.Namespace) -> int:
     # the config's split by default, as evaluate's (a literal 'val' ignored data.val_split with no word)
     args.split = args.split or cfg.data.val_split
     dataset = build_dataset(cfg, args.split, augment=False)
-    sub = gt_submission(dataset, progress=True)
+    sub = gt_submission(dataset, progress=sys.stderr.isatty())  # (as evaluate-json: no bar drawn into a log file)
     write_json(sub, args.out)
     n = sum(len(v) for v in sub["results"].values())
-    print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines")
-    if len(sub["results"]) < len(dataset):
-        print(f"note: {len(dataset) - len(sub['results'])} bad sample(s) of {len(dataset)} left out "
-              "(data.on_bad_sample=skip; the warnings name them)")
+    report = sys.stderr if is_stream(args.out) else sys.stdout  # --out /dev/stdout | jq: the JSON only on stdout
+    print(f"wrote {args.out}: {len(sub['results'])} samples, {n} polylines", file=report)
+    left = [t for t in dataset.sample_tokens if t not in sub["results"]]
+    if left:  # named here too: the warnings that say why vanish under -W ignore
+        print(f"note: {len(left)} bad sample(s) of {len(dataset)} left out (data.on_bad_sample=skip; the warnings "
+              f"say why): {', '.join(left[:5])}{' ...' if len(left) > 5 else ''}", file=report)
     return 0
 
 
@@ -191,19 +202,20 @@ def _cmd_evaluate_json(args: argparse.Namespace) -> int:
     metrics = evaluate_files(args.pred, args.gt, args.protocol, args.thresholds, grid=grid, rank_by=args.rank_by,
                              fix_instance_ids=args.fix_instance_ids, device=args.device,
                              ignore_extra_predictions=args.ignore_extra_predictions, progress=sys.stderr.isatty())
-    print(format_table(metrics))
-    _print_notes(metrics["notes"])
+    report = sys.stderr if args.out and is_stream(args.out) else sys.stdout  # --out /dev/stdout | jq: JSON only
+    print(format_table(metrics), file=report)
+    _print_notes(metrics["notes"], report)
     if args.out:
-        print(f"wrote {write_json(metrics, args.out, indent=2)}")  # NaN is written as NaN (Python's json reads it)
+        print(f"wrote {write_json(metrics, args.out, indent=2)}", file=report)  # NaN is written as null (JSON)
     return 0
 
 
 # --- inference: evaluate, predict, benchmark -------------------------------------------------
 
 
-def _print_notes(notes: list[str]) -> None:
+def _print_notes(notes: list[str], file=None) -> None:
     for note in notes:
-        print(f"note: {note}")
+        print(f"note: {note}", file=file)
 
 
 def _load_evaluate(args: argparse.Namespace):
@@ -551,6 +563,68 @@ def _stdout_to_devnull() -> None:
         pass
 
 
+class _Report:
+    """stdout or stderr of a job whose reader may go away (``evaluate-json ... --out m.json | head -1``, ``train ...
+    2>&1 | head``, a ``tee`` that was killed): the job goes on and writes its files, the messages nobody reads are
+    dropped (the descriptor then points at /dev/null, for the interpreter's last flush and for child processes), and
+    ``main`` returns 141 at the end, as SIGPIPE's exit status. Without it the first message after the reader left
+    stopped the job: evaluate-json's metrics file unwritten, a training stopped before its first step. Likewise a
+    stream closed at the start (EBADF) and stderr on a full disk (its messages dropped, a note on stdout at the end);
+    a line that the stream's encoding cannot hold is escaped; stdout's other errors (a full disk: the results are
+    lost) are raised, naming the stream."""
+
+    def __init__(self, stream, name: str):
+        self._stream = stream
+        self.name = name  # named in an error of the stream: a full disk under `> log` said no file
+        self.gone = False  # its reader went away during the job
+        self.closed = False  # closed before the job (`2>&-`): messages dropped, the exit status kept
+        self.lost: OSError | None = None  # stderr's write that failed (a full disk under `2> log`): the rest dropped
+
+    def _reader_left(self) -> None:
+        self.gone = True
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # no descriptor (tests, notebooks)
+            pass
+
+    def write(self, text):
+        if not (self.gone or self.closed):
+            try:
+                try:
+                    return self._stream.write(text)
+                except UnicodeEncodeError:  # a path with an 'ä' on an ASCII / Latin-1 terminal (PYTHONIOENCODING,
+                    encoding = self._stream.encoding  # a Windows console): was a traceback, exit 1, after the work
+                    return self._stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
+            except OSError as e:
+                self._failed(e)
+        return len(text)
+
+    def flush(self) -> None:
+        if not (self.gone or self.closed):
+            try:
+                self._stream.flush()
+            except OSError as e:
+                self._failed(e)
+
+    def _failed(self, e: OSError) -> None:
+        if isinstance(e, BrokenPipeError):
+            self._reader_left()
+        elif e.errno == errno.EBADF:  # closed at the start, another file on its descriptor (a launcher's script)
+            self.closed = True
+        elif self.name == "the standard error":  # messages only (progress bars, notes): a full disk under `2> log`
+            self.closed, self.lost = True, e  # stopped a training at its next bar, exit 1, unsaved and unsaid
+        else:
+            raise self._named(e) from e
+
+    def _named(self, e: OSError) -> OSError:
+        return e if e.filename is not None or e.errno is None else OSError(e.errno, e.strerror, self.name)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def invisible_character(argv: list[str]) -> str | None:
     """The message for the first argument holding an ``INVISIBLE`` character (``train.out_dir=runs/x\\xa0`` made a
     folder whose name ends in it; ``--checkpoint best.pt\\xa0`` was "not found: best.pt "), unless it names a file
@@ -564,6 +638,29 @@ def invisible_character(argv: list[str]) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    streams = sys.stdout, sys.stderr
+    report, sinks = [], []
+    for attr, name in (("stdout", "the standard output"), ("stderr", "the standard error")):
+        stream = getattr(sys, attr)
+        if stream is None:  # closed at the start (`2>&-`, a launcher's): a progress bar or a warning written to None
+            stream = open(os.devnull, "w")  # was a raw AttributeError that stopped the job, unseen
+            sinks.append(stream)
+        report.append(_Report(stream, name))
+        setattr(sys, attr, report[-1])
+    try:
+        code = _main(argv)
+        lost = report[-1].lost
+        if lost is not None and not report[0].gone:
+            print(f"instagram-hdmap: note: the standard error could not be written from some point on ("
+                  f"{lost.strerror or lost}); its messages were dropped")
+        return 141 if code == 0 and any(r.gone for r in report) else code  # done; the report had no reader
+    finally:
+        sys.stdout, sys.stderr = streams
+        for sink in sinks:
+            sink.close()
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may also follow the options: ``train CONFIG --resume R model.gnn.layers=9``

@@ -615,7 +615,8 @@ def load_yaml(text: str):
 
 
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
-    if not path.is_file():
+    # a pipe (`train <(envsubst < in.yaml)`, /dev/stdin) is read once, as a file is; it was "config file not found"
+    if not path.is_file() and not (path.exists() and not path.is_dir()):
         raise ConfigError(f"config file not found: {path}" + (" (it is a folder)" if path.is_dir() else "")
                           + ("; key=value overrides go after the CONFIG file" if not seen and "=" in path.name
                              and not path.exists() else ""))

@@ -42,7 +42,7 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .evaluation import Evaluator
-from .files import check_output_dir, remove_stale_temporaries, write_json
+from .files import check_output_dir, json_safe, remove_stale_temporaries, write_json
 from .inference import saved_config
 from .models import build_model
 from .predict import predict_sample, run_evaluation
@@ -371,7 +371,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     metrics["seconds_total"] = round(time.perf_counter() - t0, 1)
     metrics["learned"] = {c: bool(metrics["vector"]["AP_class"][c] > metrics["baseline_vector"]["AP_class"][c])
                           for c in metrics["vector"]["AP_class"]}
-    metrics = _strict_json(metrics)
+    metrics = json_safe(metrics)  # NaN -> None, as metrics.json holds it
     write_json(metrics, out / "metrics.json")
     print(format_summary(metrics, out))
     return metrics
@@ -387,18 +387,6 @@ def _schedule_report(cfg: ExperimentConfig, state: dict, summary: dict) -> dict:
             "final_lr_reached": bool(progress >= 1.0 and math.isclose(lrs[0], final, rel_tol=1e-6)),
             "time_budget_min": cfg.train.time_budget_min, "epochs": cfg.train.epochs,
             "cpu_threads": summary.get("cpu_threads"), "data_workers": cfg.data.num_workers}
-
-
-def _strict_json(obj):
-    """NaN (e.g. the AP of a class absent from the split under the raster protocol) -> None, so
-    metrics.json is standard JSON."""
-    if isinstance(obj, dict):
-        return {k: _strict_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_strict_json(v) for v in obj]
-    if isinstance(obj, float) and obj != obj:
-        return None
-    return obj
 
 
 def _checkpoint_state(path: Path) -> dict:

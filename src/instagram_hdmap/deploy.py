@@ -42,6 +42,7 @@ from __future__ import annotations
 import copy
 import importlib.metadata
 import json
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -52,7 +53,7 @@ from .checkpoint import load_checkpoint
 from .config import ExperimentConfig, config_to_dict, flatten, is_under, parse_overrides
 from .data import rig_cameras
 from .data.rig import nuscenes_like_rig
-from .files import atomic_path, check_output_file
+from .files import atomic_path, check_output_file, is_stream
 from .inference import (
     EXPORT_FORMAT,
     INPUT_NAMES,
@@ -213,7 +214,11 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
         batch.update(frame, **{f"memory_{k}": v for k, v in memory.items()})
     names_in, names_out = input_names(cfg), output_names(cfg)
     args = tuple(batch[k] for k in names_in)
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        # torch's notices about its own internals (FutureWarning "isinstance(treespec, LeafSpec) is deprecated"):
+        # nothing a user can change; under PYTHONWARNINGS=error (-W error) they stopped the export, torch's traceback
+        warnings.filterwarnings("ignore", category=FutureWarning)
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
         expected = interface(*args)
         program = torch.onnx.export(interface, args, input_names=list(names_in), output_names=list(names_out),
                                     opset_version=opset, dynamo=True, optimize=optimize, verbose=False)
@@ -273,6 +278,9 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     ``check`` (``compare_outputs`` of onnxruntime against torch) to ``export_onnx``'s result."""
     require_onnx(export=True)
     check_output_file(out, "--out", [(checkpoint, "--checkpoint")])  # before minutes of export
+    if verify and is_stream(out):  # /dev/stdout, /dev/null: written, then the check found nothing to read back
+        raise DeployError(f"--out {out}: a terminal, pipe or device; export-onnx reads the file back to check it in "
+                          "onnxruntime: give a file name (e.g. model.onnx)")
     state = load_checkpoint(checkpoint)
     saved = state.get("config") if isinstance(state.get("config"), dict) else None
     cfg = export_config(cfg, saved, overrides, checkpoint)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable
@@ -42,6 +43,17 @@ class StepInfo:
     step_in_epoch: int  # batches of this epoch consumed, after this step
     losses: dict[str, float]
     memory: dict | None = None  # a temporal model's memory after this step (saved for exact resume)
+
+
+
+def bar_interval() -> float:
+    """Seconds between two drawings of a progress bar: 0.1 on a terminal, 60 where stderr is a file or a pipe
+    (``train ... 2> log``, nohup): a bar drawn at every step filled the log of a long training with megabytes of
+    carriage-return-separated lines (one ``tail`` line of a whole epoch)."""
+    try:
+        return 0.1 if sys.stderr.isatty() else 60.0
+    except (AttributeError, ValueError, OSError):  # closed or replaced
+        return 60.0
 
 
 def is_temporal(model: torch.nn.Module) -> bool:
@@ -197,8 +209,10 @@ def train_one_epoch(
     stopped = False
     t_last, n_last = time.perf_counter(), 0
     batches = iter(loader)
+    interval = bar_interval()
     bar = tqdm(batches, total=_length(loader) if total is None else total, initial=step_in_epoch,
-               desc=f"epoch {epoch}", dynamic_ncols=True, disable=not du.is_main_process(), leave=False)
+               desc=f"epoch {epoch}", dynamic_ncols=True, disable=not du.is_main_process(), leave=False,
+               mininterval=interval)
     try:
         for batch in bar:
             batch = move_to(batch, device)
@@ -241,7 +255,7 @@ def train_one_epoch(
                 batch_size = batch["images"].shape[0] * du.get_world_size()
                 throughput = batch_size * (count - n_last) / max(now - t_last, 1e-9)
                 t_last, n_last = now, count
-                bar.set_postfix(loss=f"{logged['loss_total']:.3f}",
+                bar.set_postfix(refresh=interval < 1, loss=f"{logged['loss_total']:.3f}",
                                 **{k[5:]: f"{v:.3f}" for k, v in logged.items()
                                    if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
                 if hooks.writer is not None:
@@ -309,7 +323,8 @@ def evaluate(
     batches = iter(loader)
     try:
         for batch in tqdm(batches, total=_length(loader) if total is None else total, desc="eval",
-                          dynamic_ncols=True, disable=not du.is_main_process(), leave=False):
+                          dynamic_ncols=True, disable=not du.is_main_process(), leave=False,
+                          mininterval=bar_interval()):
             batch = move_to(batch, device)
             with autocast_context(device, amp):
                 outputs = model(batch, memory=memory) if streaming else model(batch)

@@ -23,8 +23,11 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import shutil
+import stat
+import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -156,12 +159,24 @@ def check_not_dash(path: str | Path, flag: str) -> None:
                           "(on Linux, /dev/stdout writes a file's text to the terminal)")
 
 
+def is_stream(path: str | Path) -> bool:
+    """Whether ``path`` is a terminal, a pipe or another device (``/dev/stdout``, ``/dev/null``, a named pipe): no
+    temporary can be renamed over it, so ``atomic_path`` writes it directly."""
+    try:
+        mode = os.stat(path).st_mode  # through links: /dev/stdout -> /proc/self/fd/1 -> a pipe or /dev/pts/N
+    except (OSError, ValueError):
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
+
+
 def check_output_file(path: str | Path, flag: str = "output file",
                       inputs: Iterable[tuple[str | Path | None, str]] = ()) -> Path:
     """Before the work: ``path`` can be written as a file (it is not a folder, and it or the first
     existing folder above it is writable). ``flag`` names the option in the message (``--out``).
     ``inputs``: (path, option) pairs of the job's input files, which the output must not replace."""
     check_not_dash(path, flag)
+    if is_stream(path):  # /dev/stdout (`| jq`), /dev/null: written directly, whatever the folder /dev allows
+        return Path(path)
     path = Path(path)
     check_name_lengths(path, flag)
     for source, option in inputs:
@@ -293,8 +308,22 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
     docstring). The temporaries of ``path`` that killed writers left are removed first
     (``remove_stale_temporaries``): every atomic writer owns its target's leftovers. A symbolic link at
     ``path`` is written through: its target gets the new content (a rename over the link would replace the
-    link and leave the file it points to as it was)."""
+    link and leave the file it points to as it was). A terminal, pipe or device (``/dev/stdout``, ``is_stream``)
+    gets the file's bytes once it is complete (a temporary beside it could not be made: /dev/stdout was refused,
+    though the refusal of ``--out -`` advised it)."""
     path = Path(path)
+    if is_stream(path):
+        folder = Path(tempfile.mkdtemp(prefix=".instagram_hdmap-"))
+        try:
+            yield folder / path.name
+            if (folder / path.name).is_dir():
+                raise OutputError(f"{path}: a terminal, pipe or device takes a file, not a folder; choose a path")
+            if (folder / path.name).is_file():
+                with open(folder / path.name, "rb") as src, open(path, "wb") as dst:
+                    shutil.copyfileobj(src, dst)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        return
     if path.is_symlink() and path.exists():
         path = Path(os.path.realpath(path))
     tmp = temporary_sibling(path, tag, keep_suffix)
@@ -343,10 +372,34 @@ def write_text(text: str, path: str | Path) -> Path:
     return path
 
 
+def json_safe(obj):
+    """``obj`` with every NaN or infinite number (a float, or a NumPy / torch scalar) as None: JSON has no NaN, and
+    the ``NaN`` / ``Infinity`` that Python's json writes by default are refused by strict readers (jq, JavaScript,
+    Go, pandas' ``lines=True`` reader in some versions, ``json.loads(..., parse_constant=...)``): they read
+    ``null``. Other scalars become ints or floats; dicts, lists and tuples are copied."""
+    if obj is None or isinstance(obj, (str, bool, int)):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "item") and getattr(obj, "ndim", None) == 0:  # numpy.float32 / int64, a 0-d tensor
+        return json_safe(obj.item())
+    return obj
+
+
+def json_text(obj, indent: int | None = None, **kwargs) -> str:
+    """``obj`` as standard JSON: NaN and infinities as ``null`` (``json_safe``)."""
+    return json.dumps(json_safe(obj), indent=indent, allow_nan=False, **kwargs)
+
+
 def write_json(obj, path: str | Path, indent: int | None = None) -> Path:
-    """Write ``obj`` as JSON atomically; returns the path. NaN and infinity are written as NaN /
-    Infinity (what Python's json reads back)."""
-    return write_text(json.dumps(obj, indent=indent), path)
+    """Write ``obj`` as standard JSON atomically; returns the path. NaN and infinity (e.g. the raster AP of a class
+    with no GT, a flicker rate with no pairs) are written as ``null``, which every JSON reader takes (``NaN`` is not
+    JSON)."""
+    return write_text(json_text(obj, indent=indent), path)
 
 
 LOCK_FILE = ".instagram_hdmap.lock"  # held (flock) by the process whose job writes the folder

@@ -315,6 +315,10 @@ def read_metadata(path: str | Path) -> dict[str, str]:
     against the SHA-256 its export stored (``META_GRAPH_SHA``)."""
     onnx, _ = require_onnx()
     path = as_path(path, "ONNX file")
+    if path.exists() and not path.is_file() and not path.is_dir():  # said "not found", though it is there
+        raise DeployError(f"ONNX file {path} is a pipe or a device, not a file (a process substitution <(...), "
+                          "/dev/stdin): it is read more than once (its metadata, then onnxruntime); save it to a file "
+                          "first")
     if not path.is_file():
         raise DeployError(f"ONNX file not found: {path}" + (" (it is a folder)" if path.is_dir() else ""))
     try:

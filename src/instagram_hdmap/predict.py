@@ -388,6 +388,10 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
     seen: dict[str, str] = {}
     copies: dict[str, tuple[str, str]] = {}  # a byte-identical copy is the same image under another name
     for cam, path in zip(rig, images):
+        if os.path.exists(path) and not os.path.isfile(path):  # was "cannot be read as an image": the check below
+            raise RigError(f"camera {cam.name}: image {path} is a pipe or a device, not a file (a process "  # read it
+                           "substitution <(...)): an image is read more than once (checks, then the decoding); "
+                           "save it to a file first")
         # one image for two cameras (the same file, a link or a copy) is a mistake, except a blank frame: the
         # cameras that failed (data.camera_dropout's case) may all be given one black image
         other = seen.setdefault(os.path.realpath(path), cam.name)
@@ -685,9 +689,10 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     for part in du.all_gather_object(results)[1:]:
         results.update(part)
     results = {t: results[t] for t in dataset.sample_tokens if t in results}  # dataset order
-    if len(results) < len(dataset):
-        notes.append(f"{len(dataset) - len(results)} bad sample(s) of {len(dataset)} left out "
-                     "(data.on_bad_sample=skip; the warnings name them)")
+    if len(results) < len(dataset):  # named here too: the warnings that say why vanish under -W ignore
+        left = [t for t in dataset.sample_tokens if t not in results]
+        notes.append(f"{len(left)} bad sample(s) of {len(dataset)} left out (data.on_bad_sample=skip; the warnings "
+                     f"say why): {', '.join(left[:5])}{' ...' if len(left) > 5 else ''}")
     metrics = evaluator.compute()
     if flicker is not None:
         metrics["consistency"] = flicker.compute()

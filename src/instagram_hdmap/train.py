@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import math
 import os
 import random
@@ -73,6 +72,8 @@ from .files import (
     LOCK_FILE,
     check_output_dir,
     held_folder_now,
+    json_safe,
+    json_text,
     lock_folder,
     remove_stale_temporaries,
     unlock_folder,
@@ -1017,7 +1018,7 @@ class TrainingRun:
 
     def log(self) -> None:
         if self.log_file is not None:
-            self.log_file.write(json.dumps(self.summary, default=float) + "\n")
+            self.log_file.write(json_text(self.summary, default=lambda x: json_safe(float(x))) + "\n")  # standard JSON
             self.log_file.flush()
             if self.log_lines is not None:
                 self.log_lines += 1

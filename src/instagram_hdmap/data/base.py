@@ -468,6 +468,7 @@ def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
     out (with a warning)."""
     d, g = dataset.data_cfg, dataset.cfg.grid
     results: dict[str, list] = {}
+    first: UserError | None = None
     for i in tqdm(range(len(dataset)), desc="export-gt", disable=not progress):
         token = dataset.sample_tokens[i]
         try:
@@ -475,15 +476,16 @@ def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
         except UserError as e:
             if d.on_bad_sample == "raise":
                 raise
+            first = first or e
             warnings.warn(f"export-gt: skipping sample {token}: {e}", stacklevel=2)
             continue
         results[token] = [
             {"pts": np.round(p["pts"], 4).tolist(), "pts_num": len(p["pts"]), "type": int(p["label"])}
             for p in polylines
         ]
-    if len(dataset) and not results:  # was an empty GT file written with exit 0 ("0 samples, 0 polylines")
+    if first is not None and not results:  # a GT file of no samples, exit 0 (every map unreadable)
         raise DatasetError(f"every sample of split '{dataset.split}' in {dataset.dataroot} is bad "
-                           "(data.on_bad_sample=skip; see the warnings): no GT to write")
+                           f"(data.on_bad_sample=skip), the first: {first}")
     meta = {
         "use_camera": True,
         "use_lidar": False,

@@ -25,8 +25,8 @@ value ``{"vectors": [...]}``, and ``GTs`` instead of ``results`` (MapTR's GT fil
   file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
 
-Python's ``json`` reads and writes ``NaN`` (not strict JSON): metrics files use it for the raster
-protocol's 0/0 cases.
+Every file is written as standard JSON (``files.write_json``): a NaN (the raster protocol's 0/0 cases in a metrics
+file) is written as ``null``, and a non-finite score is refused (``null`` would read back as the default 1.0).
 """
 
 from __future__ import annotations
@@ -105,14 +105,14 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: is a folder, not a submission file" + (
             f"; the file in it: {inside[0]}" if inside else " (give the JSON file)"))
     try:
-        with open(path, "rb") as f:
-            head = f.read(2)
-        kind = {b"\x1f\x8b": "gzip-compressed file (gunzip it)"}.get(head[:2]) or (
-            "Python pickle (mmcv.dump to .pkl; dump to .json)" if head[:1] == b"\x80" else None)  # magic numbers
+        with open(path, "rb") as f:  # read once: a pipe (`--pred /dev/stdin`, `<(zcat pred.json.gz)`) is read only once
+            raw = f.read()
+        kind = {b"\x1f\x8b": "gzip-compressed file (gunzip it)"}.get(raw[:2]) or (
+            "Python pickle (mmcv.dump to .pkl; dump to .json)" if raw[:1] == b"\x80" else None)  # magic numbers
         if kind is not None:
             raise SubmissionError(f"{path}: a {kind}, not JSON; expected the HDMapNet submission format")
-        with open(path, encoding="utf-8-sig") as f:  # a byte-order mark (Windows editors) is not part of the JSON
-            data = json.load(f, object_pairs_hook=_unique_keys)
+        # a byte-order mark (Windows editors) is not part of the JSON
+        data = json.loads(raw.decode("utf-8-sig"), object_pairs_hook=_unique_keys)
     except FileNotFoundError:
         raise SubmissionError(f"{path}: no such file") from None
     except _RepeatedKey as e:
@@ -164,7 +164,28 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         notes.append(
             f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
         )
+    if role == "pred":
+        notes += _tied_score_notes(path, samples)
     return Submission(str(path), meta, samples, notes, counts["confidences"], counts.get("unit_confidences", 0))
+
+
+def _tied_score_notes(path: Path, samples: dict[str, list[dict]]) -> list[str]:
+    """A class whose predictions all carry one score: their ranking, and so the AP, follows their order in the file
+    (the same file reversed scored otherwise), where a score ranks them."""
+    scores: dict[int, set[float]] = {}
+    counts: dict[int, int] = {}
+    for polys in samples.values():
+        for p in polys:
+            scores.setdefault(p["label"], set()).add(p["score"])
+            counts[p["label"]] = counts.get(p["label"], 0) + 1
+    notes = []
+    for k in sorted(scores):
+        if counts[k] > 1 and len(scores[k]) == 1:
+            name = MAP_CLASSES[k] if k < len(MAP_CLASSES) else f"class {k}"
+            notes.append(f"{path}: all {counts[k]} predictions of {name} have the same confidence_level "
+                         f"{next(iter(scores[k])):g}: their ranking, and so the AP, follows their order in the file "
+                         "(reordered, it scores otherwise); give each prediction its model's score")
+    return notes
 
 
 def _whole(value: object) -> object:
@@ -248,6 +269,9 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
         v = {"pts": pts.tolist(), "pts_num": len(pts), "type": int(p["label"])}
         if "score" in p:
             v["confidence_level"] = float(p["score"])
+            if not math.isfinite(v["confidence_level"]):  # JSON has no NaN: null would read back as the default 1.0
+                raise ValueError(f"a polyline's score is {v['confidence_level']} (class {v['type']}, {len(pts)} "
+                                 "points); scores must be finite (a diverged model?)")
         out.append(v)
     return out
 
@@ -273,8 +297,13 @@ def submission(samples: Mapping[str, list[dict]], meta: dict | None = None) -> d
     if meta is not None and not isinstance(meta, Mapping):  # ** of it: a raw "'str' object is not a mapping"
         raise TypeError(f"a submission's meta is a dict of its settings (e.g. {{'split': 'val'}}), got "
                         f"{type(meta).__name__} {meta!r:.60}")
-    return {"meta": {"vector": True, **(meta or {})},
-            "results": {str(token): polylines_to_vectors(polys) for token, polys in samples.items()}}
+    results = {}
+    for token, polys in samples.items():
+        try:
+            results[str(token)] = polylines_to_vectors(polys)
+        except ValueError as e:
+            raise ValueError(f"sample {token!r}: {e}") from None
+    return {"meta": {"vector": True, **(meta or {})}, "results": results}
 
 
 def write_submission(path: str | Path, samples: Mapping[str, list[dict]], meta: dict | None = None) -> None:
