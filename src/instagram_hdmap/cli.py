@@ -653,11 +653,19 @@ def main(argv: list[str] | None = None) -> int:
         if lost is not None and not report[0].gone:
             print(f"instagram-hdmap: note: the standard error could not be written from some point on ("
                   f"{lost.strerror or lost}); its messages were dropped")
-        return 141 if code == 0 and any(r.gone for r in report) else code  # done; the report had no reader
+        code = 141 if code == 0 and any(r.gone for r in report) else code  # done; the report had no reader
     finally:
         sys.stdout, sys.stderr = streams
         for sink in sinks:
             sink.close()
+    if argv is None and du.group_ended():  # a torchrun rank, its job done and its process group destroyed: exit now.
+        for stream in streams:  # Python's own exit runs C++ destructors where gloo's threads still aborted a rank at
+            try:  # random under load ("terminate called without an active exception", SIGABRT: 1 job in 15), and
+                stream.flush()  # torchrun failed the job (exit 1) after its work was done and its files written
+            except (OSError, ValueError, AttributeError):
+                pass
+        os._exit(code)
+    return code
 
 
 def _main(argv: list[str] | None) -> int:

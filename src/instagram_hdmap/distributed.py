@@ -72,9 +72,19 @@ def init_distributed(device_kind: str | None = None) -> torch.device:
     return torch.device("cpu")
 
 
+_ENDED = False  # this process destroyed its process group (a torchrun rank whose job is done)
+
+
 def cleanup() -> None:
+    global _ENDED
     if is_dist():
         dist.destroy_process_group()
+        _ENDED = True
+
+
+def group_ended() -> bool:
+    """Whether ``cleanup`` destroyed this process's process group (it was a rank of a torchrun job)."""
+    return _ENDED
 
 
 def barrier() -> None:
