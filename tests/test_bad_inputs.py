@@ -2251,20 +2251,26 @@ def row_benchmark_temporal_set_against_memory(env):
     assert not (env.tmp / "cache").exists()  # no world generated
 
 
-@row("S8", "benchmarks/temporal.py: a run folder of --out holding a result trained with other options (another "
-          "--steps, --set or --occluders) is refused; it was reported as this command's result, exit 0")
-def row_benchmark_temporal_stale_result(env):
+def _bench_temporal(env, **options):
+    """benchmarks/temporal.py loaded as a module, and its parsed arguments with ``options`` (``--out`` in env.tmp)."""
     import argparse
     import importlib.util
+
+    from instagram_hdmap.demo import VAL_WORLD
 
     spec = importlib.util.spec_from_file_location("bench_temporal", REPO / "benchmarks" / "temporal.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    from instagram_hdmap.demo import VAL_WORLD
+    args = dict(out=str(env.tmp / "out"), steps=200, minutes=15.0, occluders=0.7, override=[], memory="graph",
+                val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None, threads=None,
+                temporal_override=[])
+    return bench, argparse.Namespace(**{**args, **options})
 
-    args = argparse.Namespace(out=str(env.tmp / "out"), steps=200, minutes=15.0, occluders=0.7, override=[],
-                              memory="graph", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None,
-                              threads=None, temporal_override=[])
+
+@row("S8", "benchmarks/temporal.py: a run folder of --out holding a result trained with other options (another "
+          "--steps, --set or --occluders) is refused; it was reported as this command's result, exit 0")
+def row_benchmark_temporal_stale_result(env):
+    bench, args = _bench_temporal(env)
     folder = env.tmp / "out" / "temporal_graph_seed0"
     folder.mkdir(parents=True)
     old = {"config": "temporal_graph", "seed": 0, "mAP": 0.5,
@@ -5486,11 +5492,7 @@ def row_demo_cache_env_tilde(env):
             "the summary divided by max(0, 1e-9): 'flicker x0.00 (target: ... flicker x0.5)', the target met by two "
             "models that found nothing. A ratio over 0 is now 'n/a'")
 def row_benchmark_temporal_flicker_ratio_over_zero(env):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bench_temporal_s22", REPO / "benchmarks" / "temporal.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench, _ = _bench_temporal(env)
     nothing = {"steps": 6, "AP_class": {"divider": 0.0}, "mAP": 0.0, "flicker_mean": 0.0,
                "flicker_detected_mean": float("nan")}
     results = [{**nothing, "config": "single", "seed": 0}, {**nothing, "config": "temporal", "seed": 0}]
@@ -6665,17 +6667,7 @@ def row_standard_error_on_a_full_disk(env):
             "as standard JSON, a flicker rate with no pairs is null there; the tables took it as a number (TypeError "
             "formatting None); now it is NaN again when read")
 def row_benchmark_temporal_result_with_null(env):
-    import argparse
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bench_temporal_s28", REPO / "benchmarks" / "temporal.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    from instagram_hdmap.demo import VAL_WORLD
-
-    args = argparse.Namespace(out=str(env.tmp / "out"), steps=100, minutes=15.0, occluders=0.7, override=[],
-                              memory="bev", val_scenes=VAL_WORLD["scenes_val"], val_occluders=None, val_dropout=None,
-                              threads=None, temporal_override=[])
+    bench, args = _bench_temporal(env, steps=100, memory="bev")
     folder = env.tmp / "out" / "single_seed0"
     folder.mkdir(parents=True)
     (folder / bench.result_name(args)).write_text(json.dumps(  # as files.write_json writes a NaN: null
