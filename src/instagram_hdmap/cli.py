@@ -7,11 +7,8 @@ User errors (``config.UserError``) print one line and exit with code 2.
 from __future__ import annotations
 
 import argparse
-import errno
-import io
 import math
 import os
-import select
 import sys
 from pathlib import Path
 
@@ -39,6 +36,7 @@ from .files import (
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
+from .streams import ReportStream, stdout_gone, to_devnull
 from .train import data_worker_died, train
 from .visualize import write_sample_pngs
 
@@ -543,88 +541,6 @@ def _say(line: str) -> None:
     sys.stderr.flush()
 
 
-def _stdout_gone() -> bool:
-    """Whether stdout's reader has gone (its pipe is closed), not another pipe's (a data-loader worker's): the
-    write end of a pipe without a reader polls as an error."""
-    try:
-        poller = select.poll()
-        poller.register(sys.stdout.fileno(), select.POLLOUT)
-        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
-    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # no file descriptor (tests, notebooks)
-        return True
-
-
-def _stdout_to_devnull() -> None:
-    """Point stdout at /dev/null, so that the interpreter's last flush does not fail on the closed pipe again."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # stdout replaced (tests, notebooks)
-        pass
-
-
-class _Report:
-    """stdout or stderr of a job whose reader may go away (``evaluate-json ... --out m.json | head -1``, ``train ...
-    2>&1 | head``, a ``tee`` that was killed): the job goes on and writes its files, the messages nobody reads are
-    dropped (the descriptor then points at /dev/null, for the interpreter's last flush and for child processes), and
-    ``main`` returns 141 at the end, as SIGPIPE's exit status. Without it the first message after the reader left
-    stopped the job: evaluate-json's metrics file unwritten, a training stopped before its first step. Likewise a
-    stream closed at the start (EBADF) and stderr on a full disk (its messages dropped, a note on stdout at the end);
-    a line that the stream's encoding cannot hold is escaped; stdout's other errors (a full disk: the results are
-    lost) are raised, naming the stream."""
-
-    def __init__(self, stream, name: str):
-        self._stream = stream
-        self.name = name  # named in an error of the stream: a full disk under `> log` said no file
-        self.gone = False  # its reader went away during the job
-        self.closed = False  # closed before the job (`2>&-`): messages dropped, the exit status kept
-        self.lost: OSError | None = None  # stderr's write that failed (a full disk under `2> log`): the rest dropped
-
-    def _reader_left(self) -> None:
-        self.gone = True
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, self._stream.fileno())
-            os.close(devnull)
-        except (OSError, ValueError, AttributeError, io.UnsupportedOperation):  # no descriptor (tests, notebooks)
-            pass
-
-    def write(self, text):
-        if not (self.gone or self.closed):
-            try:
-                try:
-                    return self._stream.write(text)
-                except UnicodeEncodeError:  # a path with an 'ä' on an ASCII / Latin-1 terminal (PYTHONIOENCODING,
-                    encoding = self._stream.encoding  # a Windows console): was a traceback, exit 1, after the work
-                    return self._stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
-            except OSError as e:
-                self._failed(e)
-        return len(text)
-
-    def flush(self) -> None:
-        if not (self.gone or self.closed):
-            try:
-                self._stream.flush()
-            except OSError as e:
-                self._failed(e)
-
-    def _failed(self, e: OSError) -> None:
-        if isinstance(e, BrokenPipeError):
-            self._reader_left()
-        elif e.errno == errno.EBADF:  # closed at the start, another file on its descriptor (a launcher's script)
-            self.closed = True
-        elif self.name == "the standard error":  # messages only (progress bars, notes): a full disk under `2> log`
-            self.closed, self.lost = True, e  # stopped a training at its next bar, exit 1, unsaved and unsaid
-        else:
-            raise self._named(e) from e
-
-    def _named(self, e: OSError) -> OSError:
-        return e if e.filename is not None or e.errno is None else OSError(e.errno, e.strerror, self.name)
-
-    def __getattr__(self, name):
-        return getattr(self._stream, name)
-
-
 def invisible_character(argv: list[str]) -> str | None:
     """The message for the first argument holding an ``INVISIBLE`` character (``train.out_dir=runs/x\\xa0`` made a
     folder whose name ends in it; ``--checkpoint best.pt\\xa0`` was "not found: best.pt "), unless it names a file
@@ -645,7 +561,7 @@ def main(argv: list[str] | None = None) -> int:
         if stream is None:  # closed at the start (`2>&-`, a launcher's): a progress bar or a warning written to None
             stream = open(os.devnull, "w")  # was a raw AttributeError that stopped the job, unseen
             sinks.append(stream)
-        report.append(_Report(stream, name))
+        report.append(ReportStream(stream, name))
         setattr(sys, attr, report[-1])
     try:
         code = _main(argv)
@@ -660,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
             sink.close()
     if argv is None and du.group_ended():  # a torchrun rank, its job done and its process group destroyed: exit now.
         for stream in streams:  # Python's own exit runs C++ destructors where gloo's threads still aborted a rank at
-            try:  # random under load ("terminate called without an active exception", SIGABRT: 1 job in 15), and
+            try:  # random under load ("terminate called without an active exception", SIGABRT: 1 job in 51), and
                 stream.flush()  # torchrun failed the job (exit 1) after its work was done and its files written
             except (OSError, ValueError, AttributeError):
                 pass
@@ -706,8 +622,8 @@ def _main(argv: list[str] | None) -> int:
         _say(f"instagram-hdmap {args.command}: interrupted")
         return 130
     except Exception as e:  # a full disk outside the atomic writes (a log line, TensorBoard events)
-        if isinstance(e, BrokenPipeError) and _stdout_gone():  # the reader of the output went away (`model-summary
-            _stdout_to_devnull()  # CONFIG | head -1`): stop quietly, as Unix tools do (exit 141, as by SIGPIPE)
+        if isinstance(e, BrokenPipeError) and stdout_gone():  # the reader of the output went away (`model-summary
+            to_devnull(sys.stdout)  # CONFIG | head -1`): stop quietly, as Unix tools do (exit 141, as by SIGPIPE)
             return 141
         cause = os_error_in(e)
         died = data_worker_died(e)
