@@ -21,6 +21,7 @@ refused checks that it runs).
 ``S27`` marks a case found by a twenty-seventh sweep (resume, reuse and runs that meet other runs).
 ``S28`` marks a case found by a twenty-eighth sweep (the files written as other programs read them, the terminal).
 ``S29`` marks a case found by a twenty-ninth sweep (the real datasets as downloaded: nuScenes in parts, AV2 as shipped).
+``S30`` marks a case found by a thirtieth sweep (the issue's own kind done blind a second time).
 Everything runs on the tiny synthetic world of conftest.py and a random tiny model: no training longer than a few steps.
 """
 
@@ -6752,6 +6753,52 @@ def row_config_from_a_pipe(env):
                             "--rig", str(rig), "--out", str(env.tmp / "out"), *map(str, images)], input=b"onnx",
                            capture_output=True, env=env_vars, timeout=300)
         assert p.returncode == 2 and b"ONNX file /dev/stdin is a pipe or a device" in p.stderr, p.stderr[-2000:]
+
+
+@row("S30", "an option copied from a formatted page with a typographic dash (`\u2014force`, `\u2013-checkpoint R`): "
+            "'override must look like key.sub=value', or '--checkpoint is required' though it was given; now the dash "
+            "is named and the option to type")
+def row_typographic_dash_in_an_option(env):
+    for argv, option in ((["train", env.yaml, "\u2014force"], "--force"),
+                         (["evaluate", env.yaml, "\u2013-checkpoint", env.ckpt], "--checkpoint"),
+                         (["evaluate", env.yaml, f"\u2212\u2212checkpoint={env.ckpt}"], "--checkpoint=")):
+        with pytest.raises(SystemExit) as e:
+            env.cli(*argv)
+        err = env.capsys.readouterr().err
+        assert e.value.code == 2 and "a dash that only looks like '-'" in err and f"type {option}" in err, err[-2000:]
+    rc, out, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "\u2014eval")  # a value
+    assert rc == 0, err[-2000:]
+
+
+@row("S30", "evaluate-json --pred gt.json --gt gt.json (export-gt's file, flagged meta.ground_truth, given as the "
+            "predictions): a perfect mAP, exit 0, the only note 'predictions without confidence_level scored 1.0'; "
+            "still scored (a sanity check), with a note that it scores the GT, not a model")
+def row_ground_truth_file_given_as_predictions(env):
+    gt, doc, pred = _gt_and_pred(env)
+    rc, out, err = env.cli("evaluate-json", "--pred", gt, "--gt", gt)
+    assert rc == 0 and re.search(r"gt\.json is a ground-truth file .*the --gt file itself.*not a model", out + err), \
+        out + err
+    rc, out, err = env.cli("evaluate-json", "--pred", pred, "--gt", gt)
+    assert rc == 0 and "ground-truth file" not in out + err, out + err
+
+
+@row("S30", "a checkpoint that is a plain pickle (not torch's zip) of protocol 4 with an object that runs code: the "
+            "one-line refusal came under torch's 'Detected pickle protocol 4' UserWarning and its source line")
+def row_plain_pickle_checkpoint_one_line(env):
+    import pickle
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, ("true",))
+
+    bad = env.tmp / "evil.pt"
+    bad.write_bytes(pickle.dumps({"model": Evil()}, protocol=4))
+    env_vars = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}  # a process of its own: pytest catches warnings
+    p = subprocess.run([sys.executable, "-m", "instagram_hdmap.cli", "evaluate", str(env.yaml), "--checkpoint",
+                        str(bad), "--out", str(env.tmp / "eval")], capture_output=True, text=True, env=env_vars,
+                       timeout=300)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2 and len(lines) == 1 and "evil.pt was refused by the safe loader" in lines[0], p.stderr
 
 
 # --- the test: every row of the table ---------------------------------------------------------------

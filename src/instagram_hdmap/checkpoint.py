@@ -17,6 +17,7 @@ import contextlib
 import pickle
 import random
 import re
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -116,7 +117,10 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise CheckpointError(f"{path} is not a PyTorch checkpoint: it is {what}; give a checkpoint written by "
                               "instagram-hdmap train (e.g. OUT/best.pt)")  # (--checkpoint, --resume, init_from)
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():  # a plain pickle (not torch's zip) of protocol > 2: torch's UserWarning with
+            # its own source line printed above the one-line message (or above nothing, where the file then loads)
+            warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+            state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
         raise CheckpointError(
             f"checkpoint {path} was refused by the safe loader (torch.load with weights_only=True): it holds "

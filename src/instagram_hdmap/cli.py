@@ -584,8 +584,32 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
+# dashes that look like '-' in a web page, a PDF or a word processor (which turn '--' into an en or em dash)
+_LOOKALIKE_DASHES = "\u2010\u2011\u2012\u2013\u2014\u2015\u2212\ufe63\uff0d"
+
+
+def _check_lookalike_dashes(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """``—force`` or ``–-checkpoint`` copied from a formatted page: argparse took it for an override ("must look like
+    key.sub=value") or a positional and then asked for the option the user had given; name the dash instead."""
+    options, todo = set(), [parser]
+    while todo:
+        p = todo.pop()
+        for action in p._actions:
+            options.update(o.lstrip("-") for o in action.option_strings if o.startswith("--"))
+            if isinstance(action, argparse._SubParsersAction):
+                todo.extend(action.choices.values())
+    for arg in argv:
+        if arg[:1] in _LOOKALIKE_DASHES and arg[:1]:
+            name = arg.lstrip(_LOOKALIKE_DASHES + "-").partition("=")[0]
+            if name in options:
+                parser.error(f"argument {arg!r} starts with {arg[0]!r} (U+{ord(arg[0]):04X}), a dash that only looks "
+                             f"like '-': type --{arg.lstrip(_LOOKALIKE_DASHES + '-')} with plain hyphens (a command "
+                             "copied from a web page or a document often carries such dashes)")
+
+
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
+    _check_lookalike_dashes(parser, sys.argv[1:] if argv is None else list(argv))
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may also follow the options: ``train CONFIG --resume R model.gnn.layers=9``
     stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]

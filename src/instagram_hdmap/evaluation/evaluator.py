@@ -530,6 +530,11 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
         raise SubmissionError(f"evaluating {pred_path} against {gt_path}: {e}") from None
     metrics = ev.compute()
     notes = [*gt.notes, *pred.notes]
+    if pred.meta.get("ground_truth") is True:  # export-gt's file given as --pred: a perfect score that said nothing
+        same = Path(pred_path).resolve() == Path(gt_path).resolve()
+        notes.insert(0, f"{pred_path} is a ground-truth file (meta.ground_truth true, as export-gt writes), "
+                     f"{'the --gt file itself' if same else 'not a submission'}: these figures score the GT, not a "
+                     "model; give evaluate's submission.json as --pred")
     if missing:
         notes.append(f"{missing} of {len(tokens)} GT samples have no entry in {pred_path}: scored as samples "
                      "without predictions")
