@@ -22,7 +22,7 @@ from .data.synthetic.av2_writer import generate_av2_world
 from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
-from .errors import INVISIBLE
+from .errors import invisible_character, lookalike_dash
 from .evaluation import evaluate_files, format_table
 from .files import (
     NO_ROOM,
@@ -541,18 +541,6 @@ def _say(line: str) -> None:
     sys.stderr.flush()
 
 
-def invisible_character(argv: list[str]) -> str | None:
-    """The message for the first argument holding an ``INVISIBLE`` character (``train.out_dir=runs/x\\xa0`` made a
-    folder whose name ends in it; ``--checkpoint best.pt\\xa0`` was "not found: best.pt "), unless it names a file
-    that exists so; None if there is none."""
-    for arg in map(str, argv):
-        chars = [c for c in INVISIBLE if c in arg]
-        if chars and not any(Path(part).exists() for part in (arg, arg.split("=", 1)[-1])):
-            return (f"argument {arg!r} holds {INVISIBLE[chars[0]]} (U+{ord(chars[0]):04X}), which the terminal does "
-                    "not show: copied from a web page, a PDF or a chat? type that argument again")
-    return None
-
-
 def main(argv: list[str] | None = None) -> int:
     streams = sys.stdout, sys.stderr
     report, sinks = [], []
@@ -584,13 +572,8 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
-# dashes that look like '-' in a web page, a PDF or a word processor (which turn '--' into an en or em dash)
-_LOOKALIKE_DASHES = "\u2010\u2011\u2012\u2013\u2014\u2015\u2212\ufe63\uff0d"
-
-
-def _check_lookalike_dashes(parser: argparse.ArgumentParser, argv: list[str]) -> None:
-    """``—force`` or ``–-checkpoint`` copied from a formatted page: argparse took it for an override ("must look like
-    key.sub=value") or a positional and then asked for the option the user had given; name the dash instead."""
+def _long_options(parser: argparse.ArgumentParser) -> set[str]:
+    """Every ``--option`` name of ``parser`` and its subcommands, without the dashes."""
     options, todo = set(), [parser]
     while todo:
         p = todo.pop()
@@ -598,18 +581,14 @@ def _check_lookalike_dashes(parser: argparse.ArgumentParser, argv: list[str]) ->
             options.update(o.lstrip("-") for o in action.option_strings if o.startswith("--"))
             if isinstance(action, argparse._SubParsersAction):
                 todo.extend(action.choices.values())
-    for arg in argv:
-        if arg[:1] in _LOOKALIKE_DASHES and arg[:1]:
-            name = arg.lstrip(_LOOKALIKE_DASHES + "-").partition("=")[0]
-            if name in options:
-                parser.error(f"argument {arg!r} starts with {arg[0]!r} (U+{ord(arg[0]):04X}), a dash that only looks "
-                             f"like '-': type --{arg.lstrip(_LOOKALIKE_DASHES + '-')} with plain hyphens (a command "
-                             "copied from a web page or a document often carries such dashes)")
+    return options
 
 
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
-    _check_lookalike_dashes(parser, sys.argv[1:] if argv is None else list(argv))
+    dash = lookalike_dash(sys.argv[1:] if argv is None else list(argv), _long_options(parser))
+    if dash is not None:
+        parser.error(dash)
     args, extra = parser.parse_known_args(argv)
     # key=value overrides may also follow the options: ``train CONFIG --resume R model.gnn.layers=9``
     stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]

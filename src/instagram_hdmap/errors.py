@@ -11,6 +11,7 @@ from __future__ import annotations
 import numbers
 import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -18,6 +19,35 @@ import numpy as np
 # carries (cli.py's arguments, config.py's YAML files)
 INVISIBLE = {"\u00a0": "a non-breaking space", "\u202f": "a narrow non-breaking space", "\u2007": "a figure space",
              "\u200b": "a zero-width space", "\u2060": "a word joiner", "\ufeff": "a byte-order mark"}
+# dashes that look like '-' in a web page, a PDF or a word processor (which turn '--' into an en or em dash)
+LOOKALIKE_DASHES = "\u2010\u2011\u2012\u2013\u2014\u2015\u2212\ufe63\uff0d"
+
+
+def invisible_character(argv: Sequence[str]) -> str | None:
+    """The message for the first argument holding an ``INVISIBLE`` character (``train.out_dir=runs/x\\xa0`` made a
+    folder whose name ends in it; ``--checkpoint best.pt\\xa0`` was "not found: best.pt "), unless it names a file
+    that exists so; None if there is none."""
+    for arg in map(str, argv):
+        chars = [c for c in INVISIBLE if c in arg]
+        if chars and not any(Path(part).exists() for part in (arg, arg.split("=", 1)[-1])):
+            return (f"argument {arg!r} holds {INVISIBLE[chars[0]]} (U+{ord(chars[0]):04X}), which the terminal does "
+                    "not show: copied from a web page, a PDF or a chat? type that argument again")
+    return None
+
+
+def lookalike_dash(argv: Sequence[str], options: set[str]) -> str | None:
+    """The message for the first argument that is one of ``options`` (long option names, without dashes) written
+    with a ``LOOKALIKE_DASHES`` dash (``—force``, ``–-checkpoint`` copied from a formatted page: argparse took it for
+    an override, "must look like key.sub=value", or a positional, then asked for the option the user had given);
+    None if there is none. A value such as ``--out —eval`` is not an option name, so it is left alone."""
+    for arg in map(str, argv):
+        if arg[:1] and arg[:1] in LOOKALIKE_DASHES:
+            written = arg.lstrip(LOOKALIKE_DASHES + "-")
+            if written.partition("=")[0] in options:
+                return (f"argument {arg!r} starts with {arg[0]!r} (U+{ord(arg[0]):04X}), a dash that only looks like "
+                        f"'-': type --{written} with plain hyphens (a command copied from a web page or a document "
+                        "often carries such dashes)")
+    return None
 
 
 class UserError(Exception):
