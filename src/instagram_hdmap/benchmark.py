@@ -39,6 +39,7 @@ from .geometry import BEVGrid
 from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
+from .resources import check_fits
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
 DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
@@ -174,6 +175,7 @@ def run_benchmark(
         with torch.random.fork_rng(devices=[]):  # reproducible random weights, global RNG untouched
             torch.manual_seed(seed)
             model = build_model(cfg).eval().to(dev)
+    check_fits(cfg, "infer", dev, batch=1)  # before the warm-up runs
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)
     h, w = cfg.data.image_size

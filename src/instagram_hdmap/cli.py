@@ -36,6 +36,7 @@ from .files import (
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .predict import predict_images, predict_sample, predict_video, run_evaluation
+from .resources import size_notes, summary_lines
 from .streams import ReportStream, stdout_gone, to_devnull
 from .train import data_worker_died, train
 from .visualize import write_sample_pngs
@@ -144,6 +145,7 @@ def _cmd_show_gt(args: argparse.Namespace) -> int:
 def _cmd_model_summary(args: argparse.Namespace) -> int:
     cfg = _load(args)
     print(summarize_parameters(build_model(cfg)))
+    print("\n".join(summary_lines(cfg) + size_notes(cfg)))
     return 0
 
 

@@ -100,7 +100,7 @@ class GridConfig:
     xbound: tuple[float, float] = bounded((-30.0, 30.0), ge=-1000, le=1000)  # along the driving direction
     ybound: tuple[float, float] = bounded((-15.0, 15.0), ge=-1000, le=1000)  # lateral
     resolution: float = bounded(0.15, gt=0)  # metres per BEV pixel
-    cell_size: int = bounded(8, ge=1)  # S: one vertex per SxS cell
+    cell_size: int = bounded(8, ge=1, le=256)  # S: one vertex per SxS cell
 
 
 # The seven ring cameras of the Argoverse 2 sensor dataset, clockwise from the front left (data/av2.py)
@@ -121,7 +121,7 @@ class DataConfig:
     splits_file: str | None = None
     train_split: str = "train"
     val_split: str = "val"
-    image_size: tuple[int, int] = bounded((128, 352), ge=1)  # (h, w) fed to the backbone
+    image_size: tuple[int, int] = bounded((128, 352), ge=1, le=8192)  # (h, w) fed to the backbone
     # cover: resize to cover (h, w), crop (lift-splat-shoot); contain: resize to fit inside, pad with
     # black (for cameras of different aspect ratios, e.g. AV2's portrait ring_front_center); stretch:
     # resize the whole image to (h, w), each axis on its own (the official InstaGraM / HDMapNet
@@ -165,7 +165,7 @@ class BackboneConfig:
     from_scratch: bool = False
     # C of the per-camera features handed to the view transform (reduction 4 + 5 fused by an up-block).
     # The official code uses 256 with LSS and 64 with IPM / MLP (configs/paper/table5_*.yaml).
-    out_channels: int = bounded(256, ge=1)
+    out_channels: int = bounded(256, ge=1, le=8192)
     # Activation checkpointing of the EfficientNet's MBConv blocks (training only): keep each block's
     # input for backward and recompute the block there, with the same drop-connect masks and without
     # updating BatchNorm statistics twice, so gradients and buffers are bit-identical to the plain run.
@@ -194,10 +194,10 @@ class ViewTransformConfig:
 
 @dataclass
 class BEVHeadsConfig:
-    channels: int = bounded(256, ge=1)  # F_bev channels
+    channels: int = bounded(256, ge=1, le=8192)  # F_bev channels
     # "3 residual blocks": ResNet-18 stages layer1..3, two BasicBlocks each, strides 1, 2, 2
-    stage_channels: tuple[int, ...] = bounded((64, 128, 256), ge=1)
-    head_channels: int = bounded(128, ge=1)  # hidden width of the vertex and distance-transform heads
+    stage_channels: tuple[int, ...] = bounded((64, 128, 256), ge=1, le=8192)
+    head_channels: int = bounded(128, ge=1, le=8192)  # hidden width of the vertex and distance-transform heads
     # the distance-transform (edge map) head and its loss; false: no head, no pred_distance, no
     # loss_distance (the official visual-descriptor variant of Fig. 7, which needs embedding pe+vd)
     distance_head: bool = True
@@ -218,11 +218,11 @@ class GraphHeadConfig:
     # pe+vd: where the visual descriptor is read from F_bev: "vertex" (bilinear at the vertex) or
     # "cell" (F_bev resized to the cell grid, the vertex's cell: the official code)
     vd_sampling: Literal["vertex", "cell"] = "vertex"
-    dim: int = bounded(256, ge=1)  # D
-    pe_frequencies: int = bounded(10, ge=0)  # sinusoidal positional encoding bands per coordinate
-    layers: int = bounded(7, ge=0)  # L attentional message-passing layers (0-11 in the paper)
-    heads: int = bounded(4, ge=1)
-    sinkhorn_iters: int = bounded(100, ge=1, note="0 iterations leave the score matrix unnormalised")
+    dim: int = bounded(256, ge=1, le=8192)  # D
+    pe_frequencies: int = bounded(10, ge=0, le=64)  # sinusoidal positional encoding bands per coordinate
+    layers: int = bounded(7, ge=0, le=64)  # L attentional message-passing layers (0-11 in the paper)
+    heads: int = bounded(4, ge=1, le=64)
+    sinkhorn_iters: int = bounded(100, ge=1, le=10000, note="0 iterations leave the score matrix unnormalised")
     # gradient through the Sinkhorn: "implicit" (fixed-point differentiation: one small solve per
     # sample, ~none of the memory) or "unrolled" (through every iteration, as SuperGlue); the
     # forward is the same (models/matching.py)

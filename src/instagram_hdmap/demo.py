@@ -41,11 +41,13 @@ from .data import build_dataset
 from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
+from .distributed import resolve_device
 from .evaluation import Evaluator
 from .files import check_output_dir, json_safe, remove_stale_temporaries, write_json
 from .inference import saved_config
 from .models import build_model
 from .predict import predict_sample, run_evaluation
+from .resources import check_fits
 from .schedule import final_lr_factor
 from .train import RESUME_KEYS, STREAM_RESUME_KEYS, config_differences, train
 
@@ -296,6 +298,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     # the checks across model keys (data.image_size, grid.cell_size, ...) live in build_model
     planned = load_config(config, [*world_overrides(cache_dir / "world"), *overrides])
     build_model(planned)
+    check_fits(planned, "train", resolve_device(planned.train.device))  # a step that cannot fit: before the worlds
     _check_earlier_run(out / "run" / "last.pt", planned, config)
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)

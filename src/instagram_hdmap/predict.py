@@ -52,6 +52,7 @@ from .geometry import BEVGrid
 from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
+from .resources import check_fits, data_workers, size_notes
 from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
 from .visualize import (
     figure_rgb,
@@ -620,7 +621,8 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
-    notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg)
+    notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg) + size_notes(cfg)
+    check_fits(cfg, "infer", device)  # an eval.batch_size (or N, grid) that cannot fit: before the data workers
     grid = BEVGrid.from_config(cfg.grid)
     split = cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
@@ -631,12 +633,13 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     if is_temporal(model):
         sampler = StreamingBatchSampler(dataset.scenes.runs, cfg.eval.batch_size, shuffle=False, rank=rank,
                                         world_size=world)
-        loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_fn, num_workers=cfg.data.num_workers)
+        loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_fn,
+                            num_workers=data_workers(cfg.data.num_workers, len(dataset)))
         owned = sampler.owned()
     else:
         sampler = du.ResumableSampler(len(dataset), shuffle=False)
         loader = DataLoader(dataset, batch_size=cfg.eval.batch_size, sampler=sampler, collate_fn=collate_fn,
-                            num_workers=cfg.data.num_workers)
+                            num_workers=data_workers(cfg.data.num_workers, len(dataset)))
     evaluator = Evaluator.from_config(cfg)
     flicker = make_flicker_meter(cfg)
     cmap = make_cmap_meter(cfg)

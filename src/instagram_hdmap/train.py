@@ -86,6 +86,7 @@ from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
 from .persistence import Persistence
 from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
+from .resources import check_fits, data_workers, size_notes, usable_cores
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 
 # Config keys that must match for a checkpoint to be resumed: those that define the model and those
@@ -326,7 +327,8 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     open_files_for_workers(cfg.data.num_workers)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     streaming = cfg.model.temporal.memory != "none"
-    common = {"collate_fn": collate_fn, "num_workers": cfg.data.num_workers, "worker_init_fn": _worker_init,
+    common = {"collate_fn": collate_fn, "num_workers": data_workers(cfg.data.num_workers, len(train_set)),
+              "worker_init_fn": _worker_init,
               "persistent_workers": False,
               # its own generator: making an iterator must not draw from the global torch RNG, whose
               # state the checkpoint restores for exact resume
@@ -363,11 +365,11 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
             val_sampler = StreamingBatchSampler(val_set.scenes.runs, cfg.eval.batch_size, shuffle=False,
                                                 rank=du.get_rank(), world_size=world_size)
             val_loader = DataLoader(val_set, batch_sampler=val_sampler, collate_fn=collate_fn,
-                                    num_workers=cfg.data.num_workers)
+                                    num_workers=data_workers(cfg.data.num_workers, len(val_set)))
         else:
             val_sampler = ResumableSampler(len(val_set), shuffle=False)
             val_loader = DataLoader(val_set, batch_size=cfg.eval.batch_size, sampler=val_sampler,
-                                    collate_fn=collate_fn, num_workers=cfg.data.num_workers)
+                                    collate_fn=collate_fn, num_workers=data_workers(cfg.data.num_workers, len(val_set)))
     return train_loader, sampler, val_loader
 
 
@@ -441,14 +443,6 @@ def resumed_memory(saved: list | None, world: int, device: torch.device) -> dict
 
 
 ResumableSampler = du.ResumableSampler
-
-
-def usable_cores() -> int:
-    """The CPU cores this process may run on (its affinity mask; all cores where there is none)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
 
 
 def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
@@ -632,6 +626,7 @@ class TrainingRun:
         for note in setting_notes(cfg):
             du.print_main(note)
         check_batch_over_ranks(cfg, du.get_world_size())
+        check_fits(cfg, "train", device)  # a step that cannot fit the memory: one line, before any worker starts
         prepare_out_dir(out_dir, resume, force)
         du.barrier()
         state = load_resume_state(resume, cfg)
@@ -1101,7 +1096,7 @@ def setting_notes(cfg: ExperimentConfig) -> list[str]:
                      f"(grid.xbound, grid.ybound) reaches {reach:g} m from the ego: its cells beyond "
                      f"{vt.depth_bound[1]:g} m never get a camera feature (the paper's 60 m x 30 m grid: "
                      "depth_bound [4, 45, 1])")
-    return notes
+    return notes + size_notes(cfg)
 
 
 def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:

@@ -1,0 +1,256 @@
+"""What a job needs of the machine, known before it starts: memory and data workers.
+
+``estimate(cfg, job)`` is the peak memory of one training step (``job="train"``) or one inference
+batch (``"infer"``) of a config, in bytes, from the config's shapes alone: nothing of that size is
+allocated (the parameters are counted on a model built on the meta device). It is the sum of named
+terms, each a shape product times the bytes a sample keeps of it, the factors fitted to peaks measured
+on this package's models (benchmarks/memory_estimate.py prints estimate against measured peak):
+
+- ``base``: the Python process with torch and the libraries loaded (host memory only);
+- ``params``: weights, and for training their gradients and Adam's two moments (4 copies);
+- ``images``: the batch's camera images, B x V x 3 x H x W;
+- ``backbone``: the image encoder's activations kept for backward, per input pixel and camera
+  (``BACKBONE_BYTES_PER_PIXEL``: fewer with ``model.backbone.grad_checkpoint``, which recomputes them);
+- ``lift``: LSS's frustum, B x V x D x C x H/16 x W/16;
+- ``bev``: the BEV encoder and heads over the grid's cells, B x cells x their width;
+- ``graph``: the attentional GNN's N x N attention in each layer, the (N+1)^2 score matrix and
+  Sinkhorn (its 100 iterations kept with ``sinkhorn_grad=unrolled``), the N x D vertex features.
+
+``check_fits(cfg, job, device)`` compares the estimate with the memory the process may use
+(``memory_available``: a cgroup's limit, else the kernel's MemAvailable; on a GPU its free memory) and
+raises one ``UserError`` naming the key whose size dominates, before any data worker starts.
+``data_workers(requested, samples)`` lowers ``data.num_workers`` to the usable cores and the samples.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import torch
+
+from . import distributed as du
+from .config import ExperimentConfig, config_to_dict, flatten, load_config, set_key
+from .errors import UserError
+from .models import build_model
+
+GB = 1e9
+BASE_BYTES = 0.38 * GB  # python + torch + numpy/cv2/shapely imported: a tiny model's step peaks at 0.39 GB
+# bytes kept per input pixel of one camera image in a training step: (no recomputation, grad_checkpoint)
+BACKBONE_BYTES_PER_PIXEL = {"efficientnet-b0": (2500.0, 700.0), "efficientnet-b4": (6800.0, 1600.0),
+                            "tiny": (600.0, 300.0)}
+BEV_FLOATS_PER_CHANNEL = 5.0  # floats kept per BEV cell and channel of the widest BEV layer in a training step
+INFER_SHARE = 0.35  # an inference batch keeps no activations for backward: this share of a training sample's
+WORKER_BYTES = 0.1 * GB  # a data-loader worker's own pages (the rest is shared with the parent)
+# the keys whose size the terms read: the one whose reset to its default lowers the estimate most is named
+SIZE_KEYS = ("model.gnn.num_vertices", "train.batch_size", "eval.batch_size", "data.image_size", "grid.resolution",
+             "grid.xbound", "grid.ybound", "model.bev_heads.channels", "model.bev_heads.stage_channels",
+             "model.bev_heads.head_channels", "model.backbone.out_channels", "model.backbone.name",
+             "model.backbone.grad_checkpoint", "model.gnn.dim", "model.gnn.layers", "model.gnn.heads",
+             "model.gnn.sinkhorn_iters", "model.gnn.sinkhorn_grad", "model.view_transform.depth_bound",
+             "data.av2_cameras", "data.num_workers")
+# the key named for a term when no key's reset lowers the estimate (every size key at its default, or defaults that do
+# not fit the rest of the config: a grid resolution that does not divide its extents)
+TERM_KEYS = {"images": "data.image_size", "backbone": "data.image_size", "lift": "model.view_transform.depth_bound",
+             "bev": "grid.resolution", "graph": "model.gnn.num_vertices", "params": "model.bev_heads.channels",
+             "base": "train.batch_size", "workers": "data.num_workers"}
+_MODEL_SECTIONS = ("model.", "data.image_size", "grid.", "data.av2_cameras", "data.dataset")
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask; all cores where there is none)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def num_cameras(cfg: ExperimentConfig) -> int:
+    """The cameras of a sample: AV2's chosen ring cameras, else the MLP view transform's count (the rig's)."""
+    return len(cfg.data.av2_cameras) if cfg.data.dataset == "av2" else cfg.model.view_transform.num_cameras
+
+
+def count_parameters(cfg: ExperimentConfig) -> int:
+    """The model's parameter count, built on the meta device (no weight is allocated)."""
+    with torch.device("meta"), torch.random.fork_rng(devices=[]):
+        model = build_model(cfg, pretrained=False)
+    return sum(p.numel() for p in model.parameters())
+
+
+def terms(cfg: ExperimentConfig, job: str = "train", *, host: bool = True, params: int | None = None,
+          batch: int | None = None) -> dict:
+    """The estimate's named terms in bytes (module docstring); ``job``: train | infer; ``host``: with the
+    process's own base and its data workers (CPU), or the device's share only (GPU); ``batch``: samples per
+    process (default: ``train.batch_size`` over the processes, ``eval.batch_size`` for inference)."""
+    training = job == "train"
+    b = max(cfg.train.batch_size // du.get_world_size(), 1) if training else cfg.eval.batch_size
+    b = b if batch is None else batch
+    V, (h, w) = num_cameras(cfg), cfg.data.image_size
+    mb, g, gnn = cfg.model.backbone, cfg.grid, cfg.model.gnn
+    off, on = BACKBONE_BYTES_PER_PIXEL.get(mb.name, BACKBONE_BYTES_PER_PIXEL["efficientnet-b4"])
+    cells = (g.xbound[1] - g.xbound[0]) * (g.ybound[1] - g.ybound[0]) / g.resolution**2
+    heads = cfg.model.bev_heads
+    width = max(heads.channels, heads.head_channels, *heads.stage_channels, mb.out_channels)
+    vt = cfg.model.view_transform
+    depths = max(math.ceil((vt.depth_bound[1] - vt.depth_bound[0]) / vt.depth_bound[2]), 1)
+    n = gnn.num_vertices
+    iters = gnn.sinkhorn_iters if gnn.sinkhorn_grad == "unrolled" and training else 4
+    per_sample = {
+        "images": V * 3 * h * w * 4 * 3,
+        "backbone": V * h * w * (on if mb.grad_checkpoint else off),
+        "lift": V * depths * mb.out_channels * (h // 16) * (w // 16) * 4 * 2 if vt.kind == "lss" else 0,
+        "bev": cells * width * 4 * BEV_FLOATS_PER_CHANNEL * (1.5 if cfg.model.temporal.memory != "none" else 1),
+        "graph": ((gnn.layers + 1) * gnn.heads * n * n * 12 + (n + 1) ** 2 * 4 * (4 + 2 * iters)
+                  + n * gnn.dim * 4 * 8 * max(gnn.layers, 1)),
+    }
+    share = 1.0 if training else INFER_SHARE
+    out = {k: v * b * share for k, v in per_sample.items()}
+    out["params"] = (count_parameters(cfg) if params is None else params) * 4 * (4 if training else 1)
+    if host:
+        out["base"] = BASE_BYTES
+        out["workers"] = min(cfg.data.num_workers, usable_cores()) * WORKER_BYTES
+    return out
+
+
+def estimate(cfg: ExperimentConfig, job: str = "train", *, host: bool = True, batch: int | None = None) -> float:
+    """Peak bytes of one training step / inference batch of ``cfg`` (the sum of ``terms``)."""
+    return sum(terms(cfg, job, host=host, batch=batch).values())
+
+
+def _read(path: str) -> str | None:
+    try:
+        return Path(path).read_text().strip()
+    except OSError:
+        return None
+
+
+def _cgroup_room() -> float | None:
+    """Bytes this process's cgroup still allows (v2 memory.max - memory.current, or v1's), None without a limit."""
+    own = (_read("/proc/self/cgroup") or "").splitlines()
+    v2 = next((line.split("::", 1)[1] for line in own if line.startswith("0::")), None)
+    own_dir = f"/sys/fs/cgroup{v2.rstrip('/')}" if v2 else None
+    pairs = [(f"{own_dir}/memory.max", f"{own_dir}/memory.current")] if own_dir else []
+    pairs += [("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+              ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")]
+    for limit_path, usage_path in pairs:
+        limit, usage = _read(limit_path), _read(usage_path)
+        if limit and limit.isdigit() and int(limit) < 2**60:  # v1 writes "no limit" as a huge number
+            return float(int(limit) - int(usage or 0))
+    return None
+
+
+def memory_available(device: torch.device | None = None) -> tuple[float, str]:
+    """(bytes the job may still use, where that figure comes from): a GPU's free memory, else the smaller of the
+    kernel's MemAvailable and a cgroup's room, plus what this process holds already (its base is in the estimate)."""
+    if device is not None and device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return float(free), f"{torch.cuda.get_device_name(device)} has"
+    meminfo = dict(line.split(":", 1) for line in (_read("/proc/meminfo") or "").splitlines() if ":" in line)
+    avail = float(meminfo["MemAvailable"].split()[0]) * 1024 if "MemAvailable" in meminfo else math.inf
+    room = _cgroup_room()
+    what = "this machine has"
+    if room is not None and room < avail:
+        avail, what = room, "this process's cgroup allows"
+    statm = (_read("/proc/self/statm") or "0 0").split()
+    held = int(statm[1]) * os.sysconf("SC_PAGE_SIZE") if len(statm) > 1 and hasattr(os, "sysconf") else 0
+    return avail + held, what
+
+
+def human(n: float) -> str:
+    """Bytes as people read them: 1.2 TB, 22 GB, 0.46 GB."""
+    for unit, size in (("EB", 1e18), ("PB", 1e15), ("TB", 1e12)):
+        if n >= size:
+            return f"{n / size:.2g} {unit}" if n < 10 * size else f"{n / size:.0f} {unit}"
+    return f"{n / GB:.2g} GB" if n < 10 * GB else f"{n / GB:.0f} GB"
+
+
+def dominant_key(cfg: ExperimentConfig, job: str, host: bool, batch: int | None = None) -> str:
+    """The size key whose reset to its default lowers the estimate most (``TERM_KEYS`` of the largest term if none
+    does)."""
+    default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
+    params = count_parameters(cfg)
+    parts = terms(cfg, job, host=host, params=params, batch=batch)
+    best, best_key = sum(parts.values()), TERM_KEYS[max(parts, key=parts.get)]  # no reset helps: the largest term's
+    for key in SIZE_KEYS:
+        if key not in now or now[key] == default[key]:
+            continue
+        values = config_to_dict(cfg)
+        set_key(values, key, default[key])  # the same config with this one key at its default
+        reuse = None if any(key.startswith(s) for s in _MODEL_SECTIONS) else params
+        try:
+            size = sum(terms(load_config(values), job, host=host, params=reuse, batch=batch).values())
+        except (UserError, ValueError):  # its default does not fit the rest (a grid, heads vs dim): not this key
+            continue
+        if size < best:
+            best, best_key = size, key
+    return best_key
+
+
+def _override_value(value) -> str:
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(map(str, value)) + "]"
+    return "null" if value is None else str(value)
+
+
+def check_fits(cfg: ExperimentConfig, job: str = "train", device: torch.device | None = None,
+               batch: int | None = None) -> float:
+    """Raise one ``UserError`` when ``estimate(cfg, job)`` exceeds ``memory_available(device)``, naming the key that
+    dominates, e.g. "model.gnn.num_vertices=100000000: one training step needs ~1.2 TB, this machine has 22 GB";
+    return the estimate otherwise."""
+    host = device is None or device.type != "cuda"
+    need = estimate(cfg, job, host=host, batch=batch)
+    have, what = memory_available(device)
+    if need > have:
+        key = dominant_key(cfg, job, host, batch)
+        value = flatten(config_to_dict(cfg))[key]
+        step = "one training step" if job == "train" else "one inference batch"
+        change = {"grid.resolution": "raise it", "grid.xbound": "narrow it", "grid.ybound": "narrow it",
+                  "model.backbone.grad_checkpoint": "set it to true", "model.backbone.name": "choose a smaller one",
+                  "model.gnn.sinkhorn_grad": "set it to implicit"}.get(key, "lower it")
+        raise UserError(f"{key}={_override_value(value)}: {step} needs ~{human(need)}, {what} {human(have)} "
+                        f"available; {change} (the estimate per part: instagram-hdmap model-summary CONFIG)")
+    return need
+
+
+_noted: set[tuple[int, int]] = set()
+
+
+def data_workers(requested: int, samples: int | None = None) -> int:
+    """``data.num_workers`` lowered to the usable cores (and to the loader's samples): more workers than cores only
+    wait for each other (a thousand take minutes to start for one batch), and torch warns of them. One note per
+    setting and process."""
+    fitted = min(requested, usable_cores(), requested if samples is None else max(samples, 1))
+    if fitted < requested and (requested, fitted) not in _noted:
+        _noted.add((requested, fitted))
+        why = f"{usable_cores()} usable CPU cores" if fitted == usable_cores() else f"{samples} samples"
+        du.print_main(f"note: data.num_workers={requested} lowered to {fitted}: this process has {why}")
+    return fitted
+
+
+def size_notes(cfg: ExperimentConfig) -> list[str]:
+    """Notes on sizes that run, but not as they read: more vertices than the grid has cells (the top-N takes at most
+    one vertex per cell; the rest is padding)."""
+    g = cfg.grid
+    cells = round((g.xbound[1] - g.xbound[0]) / g.resolution / g.cell_size) * round(
+        (g.ybound[1] - g.ybound[0]) / g.resolution / g.cell_size)
+    n = cfg.model.gnn.num_vertices
+    if n > cells:
+        return [f"note: model.gnn.num_vertices={n} is more than the grid's {cells} cells of "
+                f"grid.cell_size={g.cell_size}: at most {cells} vertices are found (one per cell), the other "
+                f"{n - cells} rows are padding"]
+    return []
+
+
+def summary_lines(cfg: ExperimentConfig) -> list[str]:
+    """``model-summary``'s memory lines: the estimate of a training step and of an inference batch, per term."""
+    lines = []
+    for job, what in (("train", f"training step (train.batch_size={cfg.train.batch_size})"),
+                      ("infer", f"inference batch (eval.batch_size={cfg.eval.batch_size})")):
+        parts = terms(cfg, job)
+        big = sorted((kv for kv in parts.items() if kv[1] >= 0.005 * GB), key=lambda kv: -kv[1])
+        detail = ", ".join(f"{k} {human(v)}" for k, v in big)
+        lines.append(f"memory of one {what}: ~{human(sum(parts.values()))} ({detail})")
+    have, where = memory_available()
+    lines.append(f"memory available: {where} {human(have)} (CPU; a GPU's free memory is checked on it)")
+    return lines
