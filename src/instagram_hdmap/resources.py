@@ -42,6 +42,13 @@ BACKBONE_BYTES_PER_PIXEL = {"efficientnet-b0": (2500.0, 700.0), "efficientnet-b4
                             "tiny": (600.0, 300.0)}
 BEV_FLOATS_PER_CHANNEL = 5.0  # floats kept per BEV cell and channel of the widest BEV layer in a training step
 INFER_SHARE = 0.35  # an inference batch keeps no activations for backward: this share of a training sample's
+# the estimate runs up to ~1.3x over the peaks measured (benchmarks/memory_estimate.py): a config is refused only when
+# it exceeds the memory by more than that, and noted when it comes close
+REFUSE_OVER = 1.3
+NOTE_OVER = 0.8
+# a GPU step's max allocated memory against the terms fitted to CPU peaks (which hold the allocator's caches too):
+# B0 / B4 LSS 128x352, batch 8, fp32 (benchmarks/README.md, train_speed.py --device cuda) 8.16 / 14.69 GB allocated
+GPU_SHARE = 0.75
 WORKER_BYTES = 0.1 * GB  # a data-loader worker's own pages (the rest is shared with the parent)
 # the keys whose size the terms read: the one whose reset to its default lowers the estimate most is named
 SIZE_KEYS = ("model.gnn.num_vertices", "train.batch_size", "eval.batch_size", "data.image_size", "grid.resolution",
@@ -104,7 +111,7 @@ def terms(cfg: ExperimentConfig, job: str = "train", *, host: bool = True, param
         "graph": ((gnn.layers + 1) * gnn.heads * n * n * 12 + (n + 1) ** 2 * 4 * (4 + 2 * iters)
                   + n * gnn.dim * 4 * 8 * max(gnn.layers, 1)),
     }
-    share = 1.0 if training else INFER_SHARE
+    share = (1.0 if training else INFER_SHARE) * (1.0 if host else GPU_SHARE)
     out = {k: v * b * share for k, v in per_sample.items()}
     out["params"] = (count_parameters(cfg) if params is None else params) * 4 * (4 if training else 1)
     if host:
@@ -166,12 +173,15 @@ def human(n: float) -> str:
 
 
 def dominant_key(cfg: ExperimentConfig, job: str, host: bool, batch: int | None = None) -> str:
-    """The size key whose reset to its default lowers the estimate most (``TERM_KEYS`` of the largest term if none
-    does)."""
+    """The size key whose reset to its default lowers the estimate most (else ``TERM_KEYS`` of the largest term, or
+    the batch)."""
     default, now = flatten(config_to_dict(ExperimentConfig())), flatten(config_to_dict(cfg))
     params = count_parameters(cfg)
     parts = terms(cfg, job, host=host, params=params, batch=batch)
-    best, best_key = sum(parts.values()), TERM_KEYS[max(parts, key=parts.get)]  # no reset helps: the largest term's
+    # if no reset helps: the largest term's key where it is not its default, else the batch (the first lever)
+    best, best_key = sum(parts.values()), TERM_KEYS[max(parts, key=parts.get)]
+    if now[best_key] == default[best_key]:
+        best_key = "train.batch_size" if job == "train" else "eval.batch_size"
     for key in SIZE_KEYS:
         if key not in now or now[key] == default[key]:
             continue
@@ -195,13 +205,17 @@ def _override_value(value) -> str:
 
 def check_fits(cfg: ExperimentConfig, job: str = "train", device: torch.device | None = None,
                batch: int | None = None) -> float:
-    """Raise one ``UserError`` when ``estimate(cfg, job)`` exceeds ``memory_available(device)``, naming the key that
-    dominates, e.g. "model.gnn.num_vertices=100000000: one training step needs ~1.2 TB, this machine has 22 GB";
-    return the estimate otherwise."""
+    """Raise one ``UserError`` when ``estimate(cfg, job)`` exceeds ``memory_available(device)`` by more than the
+    estimate's error (``REFUSE_OVER``; a note when it comes close), naming the key that dominates, e.g.
+    "model.gnn.num_vertices=100000000: one training step needs ~61 EB, this machine has 22 GB available"; return
+    the estimate otherwise."""
     host = device is None or device.type != "cuda"
     need = estimate(cfg, job, host=host, batch=batch)
     have, what = memory_available(device)
-    if need > have:
+    if NOTE_OVER * have < need <= REFUSE_OVER * have:
+        du.print_main(f"note: {'one training step' if job == 'train' else 'one inference batch'} may need "
+                      f"~{human(need)} and {what} {human(have)} available: it may run out of memory")
+    if need > REFUSE_OVER * have:
         key = dominant_key(cfg, job, host, batch)
         value = flatten(config_to_dict(cfg))[key]
         step = "one training step" if job == "train" else "one inference batch"
@@ -223,8 +237,9 @@ def data_workers(requested: int, samples: int | None = None) -> int:
     fitted = min(requested, usable_cores(), requested if samples is None else max(samples, 1))
     if fitted < requested and (requested, fitted) not in _noted:
         _noted.add((requested, fitted))
-        why = f"{usable_cores()} usable CPU cores" if fitted == usable_cores() else f"{samples} samples"
-        du.print_main(f"note: data.num_workers={requested} lowered to {fitted}: this process has {why}")
+        why = (f"this process may use {fitted} CPU cores" if fitted == usable_cores()
+               else f"the split has {samples} sample(s)")
+        du.print_main(f"note: data.num_workers={requested} lowered to {fitted}: {why}")
     return fitted
 
 
