@@ -27,7 +27,7 @@ clipped and resampled every ``data.sample_dist`` like data/local_map.py), turned
 sample on the paper grid, so assignment and graph losses do the work of a real batch.
 
 Memory. CPU: each variant runs in a fresh subprocess (this script with ``--one``) and the figure is
-that process's peak resident set size, ``resource.getrusage(RUSAGE_SELF).ru_maxrss``: everything
+that process's peak resident set size (``resources.peak_resident_bytes``, Linux's VmHWM): everything
 the process ever held (Python, the torch libraries, model, optimizer state, batch, activations and
 the allocator's caches), measured over model building, warm-up and timed steps. GPU: also
 ``torch.cuda.max_memory_allocated`` over the warm-up and timed steps (tensors only, not the
@@ -51,7 +51,6 @@ import io
 import json
 import math
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -72,6 +71,7 @@ from instagram_hdmap.engine import EpochHooks, Position, StepSettings, move_to, 
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.losses import Criterion
 from instagram_hdmap.models import build_model
+from instagram_hdmap.resources import peak_resident_bytes
 from instagram_hdmap.targets import build_targets
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -241,7 +241,7 @@ def measure_training(cfg: ExperimentConfig, batch_size: int, *, steps: int, warm
         "samples_per_s": batch_size / median,
         "cpu_s": float(np.median(cpu_times)),
         "times_s": [round(float(t), 4) for t in times],
-        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,  # Linux: KiB
+        "peak_rss_gb": peak_resident_bytes() / 1e9,
         "peak_allocated_gb": torch.cuda.max_memory_allocated(dev) / 1e9 if dev.type == "cuda" else None,
     }
 
@@ -275,7 +275,7 @@ def measure_official(cfg: ExperimentConfig, batch_size: int, official_dir: str, 
         "losses": {"loss_total": loss}, "step_s": median, "p10_s": float(np.percentile(times, 10)),
         "p90_s": float(np.percentile(times, 90)), "samples_per_s": batch_size / median,
         "cpu_s": float(np.median(cpu_times)), "times_s": [round(float(t), 4) for t in times],
-        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,
+        "peak_rss_gb": peak_resident_bytes() / 1e9,
         "peak_allocated_gb": None, "standins": uses_standins(), "official": str(code.root),
     }
 
@@ -350,7 +350,7 @@ def format_cpu_table(rows: list[dict]) -> str:
         lines.append(cells)
     lines.append("step s: wall time (median over every timed step of every round); CPU s: the process's CPU time per "
                  "step (median; with 1 thread ~ the wall time of an idle machine, with more it includes OpenMP "
-                 "spinning). peak GB: the process's peak RSS (ru_maxrss), 1 GB = 1e9 B. ckpt: "
+                 "spinning). peak GB: the process's peak RSS (VmHWM), 1 GB = 1e9 B. ckpt: "
                  "model.backbone.grad_checkpoint (recompute the EfficientNet blocks in backward). x offic.: our row / "
                  "the official row of the same config and batch in this run (verdicts at batch 1 only)")
     standins = sorted({s for r in official.values() for s in r.get("standins", [])})

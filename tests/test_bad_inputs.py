@@ -370,7 +370,8 @@ for _name, _override, _key in (
 ):
     def _run(env, override=_override, key=_key):
         forbid(env, "instagram_hdmap.train.train_one_epoch", "training")
-        env.error(rf"'{re.escape(key)}'.*>= ?[01]", "train", env.yaml, override, f"train.out_dir={env.tmp / 'r'}")
+        env.error(rf"'{re.escape(key)}'.*(>= ?[01]|in \[[01], )", "train", env.yaml, override,
+                  f"train.out_dir={env.tmp / 'r'}")
 
     ROWS.append(Row(_name, "4", f"config: {_override}", _run))
 

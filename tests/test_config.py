@@ -169,7 +169,7 @@ def test_every_numeric_key_declares_its_range():
     ("data.aug_scale=[1.0,.nan]", r"'data\.aug_scale\[1\]': expected a finite number"),
     ("train.lr=0", r"'train\.lr' must be > 0, got 0\.0"),
     ("train.seed=-1", r"'train\.seed' must be in \[0, 4294967296\)"),
-    ("data.image_size=[0,352]", r"'data\.image_size\[0\]' must be >= 1"),
+    ("data.image_size=[0,352]", r"'data\.image_size\[0\]' must be in \[1, 8192\], got 0"),
     ("model.gnn.conf_threshold=1", r"'model\.gnn\.conf_threshold' must be in \[0, 1\)"),
     ("data.aug_scale=[1.1,0.9]", r"data\.aug_scale.*low <= high"),
     ("data.classes=[boundary,ped_crossing,divider]", r"data\.classes.*order"),

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from pathlib import Path
 
 import torch
@@ -159,9 +160,31 @@ def memory_available(device: torch.device | None = None) -> tuple[float, str]:
     what = "this machine has"
     if room is not None and room < avail:
         avail, what = room, "this process's cgroup allows"
-    statm = (_read("/proc/self/statm") or "0 0").split()
-    held = int(statm[1]) * os.sysconf("SC_PAGE_SIZE") if len(statm) > 1 and hasattr(os, "sysconf") else 0
-    return avail + held, what
+    return avail + resident_bytes(), what
+
+
+def _status_bytes(field: str) -> int | None:
+    """A memory field of /proc/self/status (kB there) in bytes; None off Linux."""
+    for line in (_read("/proc/self/status") or "").splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    return None
+
+
+def resident_bytes() -> int:
+    """The memory this process holds now (its resident set)."""
+    return _status_bytes("VmRSS") or 0
+
+
+def peak_resident_bytes() -> int:
+    """The most memory this program has held since it started (VmHWM). Not ``getrusage``'s ``ru_maxrss``: Linux
+    carries that across ``exec`` from the process that spawned this one, so a child of a 2 GB parent reports 2 GB."""
+    peak = _status_bytes("VmHWM")
+    if peak is not None:
+        return peak
+    import resource  # not on Windows; macOS reports bytes, Linux kB
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss if sys.platform == "darwin" else rss * 1024
 
 
 def human(n: float) -> str:
