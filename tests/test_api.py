@@ -92,7 +92,7 @@ def predicted(world, checkpoint, sample, tmp_path_factory) -> list[dict]:
 
 def readme_example() -> str:
     text = (REPO / "README.md").read_text()
-    section = text[text.index("## Use it from Python"):]
+    section = text[text.index("## From Python"):]
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
@@ -108,7 +108,9 @@ def _error_line(capsys) -> str:
 def test_readme_example_runs_verbatim_on_plain_arrays_and_equals_predict(checkpoint, sample, predicted,
                                                                           monkeypatch):
     code = readme_example()
-    assert len([line for line in code.splitlines() if line.strip()]) == 5
+    code_lines = [line for line in code.splitlines() if line.strip() and not line.startswith("#")]
+    shown = [line[2:] for line in code.splitlines() if line.startswith("# MapElement(")]
+    assert len(code_lines) == 5 and shown, code
     monkeypatch.chdir(checkpoint.parents[3])  # where runs/demo/run/last.pt is
     names = {"images": sample["images"], "intrinsics": sample["intrinsics"], "cam_to_ego": sample["cam_to_ego"]}
     assert all(isinstance(v, np.ndarray) for field in names.values() for v in field.values())
@@ -119,6 +121,8 @@ def test_readme_example_runs_verbatim_on_plain_arrays_and_equals_predict(checkpo
     assert predicted, "the random model decodes no element: the comparison would be empty"
     assert to_hdmapnet({sample["token"]: elements})["results"][sample["token"]] == predicted
     assert len(printed.getvalue().splitlines()) == len(elements)
+    form = r"MapElement\((divider|ped_crossing|boundary), \d+ points, (open|closed), score \d\.\d\d\)"
+    assert all(re.fullmatch(form, line) for line in [*printed.getvalue().splitlines(), *shown]), printed.getvalue()
     assert all(isinstance(e, MapElement) and e.label in ("divider", "ped_crossing", "boundary") for e in elements)
 
 
@@ -417,8 +421,8 @@ def test_onnx_runs_through_the_same_class_and_checks_its_config(exported, sample
 
 
 def test_the_readme_rig_example_reads(tmp_path):
-    """The example rig of the README is valid JSON once its ellipses are filled in."""
-    text = (REPO / "README.md").read_text()
+    """The example rig of docs/guide.md is valid JSON once its ellipses are filled in."""
+    text = (REPO / "docs" / "guide.md").read_text()
     block = re.search(r"```json\n(.*?)```", text[text.index("## Your own cameras"):], re.S).group(1)
     first = block.split('"CAM_FRONT":')[0].rstrip().rstrip(",") + "}}"
     data = json.loads(first)
@@ -430,8 +434,8 @@ def test_the_readme_rig_example_reads(tmp_path):
 
 
 def test_a_misspelt_frame_field_lists_every_field():
-    """mapper(images=..., intrinsic=...): the message lists every field of a Frame, the optional ones too (sweep 11
-    found ego_pose, which a temporal model needs, left out of the list)."""
+    """mapper(images=..., intrinsic=...): the message lists every field of a Frame, the optional ones too (ego_pose,
+    which a temporal model needs, among them)."""
     import dataclasses
 
     with pytest.raises(TypeError) as info:

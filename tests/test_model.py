@@ -814,7 +814,7 @@ def test_neighbour_suppression_equals_a_loop_over_cells(radius):
 
 
 # ---------------------------------------------------------------------------------------------
-# Paper fidelity (issue 18): SuperPoint NMS, no distance head, the official visual descriptor,
+# Paper fidelity: SuperPoint NMS, no distance head, the official visual descriptor,
 # ImageNet weights
 # ---------------------------------------------------------------------------------------------
 

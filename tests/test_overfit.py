@@ -1,4 +1,4 @@
-"""Training acceptance (issue 6): the tiny config memorises four synthetic samples on the CPU, and the
+"""Training acceptance: the tiny config memorises four synthetic samples on the CPU, and the
 training-speed benchmark's code path runs.
 
 The functions are the benchmarks' own (benchmarks/overfit.py ``run_overfit``, benchmarks/train_speed.py

@@ -351,7 +351,7 @@ def test_interrupt_leaves_nothing_behind(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-# --- crossings overlap at junction corners, as real ones do (issue 18) ------------------------------
+# --- crossings overlap at junction corners, as real ones do --------------------------------------
 
 
 def test_crossings_overlap_at_junction_corners_as_in_real_maps(nets):
@@ -380,7 +380,7 @@ def test_crossings_overlap_at_junction_corners_as_in_real_maps(nets):
 def test_world_gt_keeps_every_crossing_edge_at_overlapping_junctions(world, nets):
     """At every junction whose crossings overlap, the world's GT under ``union`` and ``each`` keeps >= 0.97
     of the crossing outline (union: the union's rings; each: every crossing's ring) within 0.3 m, where
-    the former exterior-only union (issue 18, fault 1) misses a junction's inner outline: the synthetic
+    an exterior-only union misses a junction's inner outline: the synthetic
     world catches that fault. Resampled every 0.5 m (the demo's data.sample_dist): at 1.5 m the chords
     cut a ring's corners by up to 0.53 m, a property of the resampling, not of the convention."""
     import shapely

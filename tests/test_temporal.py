@@ -236,7 +236,7 @@ def _warp_iou(dist_t, dist_t1, cur_to_prev, grid, erode_px: int = 3, band_m: flo
 
 
 def test_warp_overlays_the_gt_of_the_next_frame_on_turns(tiny_world):
-    # GT BEV raster of frame t, warped by the relative pose, against the GT of frame t+1 (issue 19:
+    # GT BEV raster of frame t, warped by the relative pose, against the GT of frame t+1 (the temporal
     # IoU >= 0.9 on the region both see), along a drive that turns through a junction of the world's map
     from instagram_hdmap.data.local_map import LocalMapBuilder
     from instagram_hdmap.data.synthetic.roads import LOCATIONS, build_network

@@ -41,7 +41,7 @@ def signals_deferred():
     the middle of ``torch.save`` (Ctrl-C's KeyboardInterrupt, training's SIGTERM interrupt, torch's "data-loader
     worker killed" on SIGCHLD when a scheduler's SIGTERM kills the process group) leaves its zip writer half
     done, and its cleanup then raises "unexpected pos" in place of the interrupt: the run ended with exit 1
-    instead of saving (seen under load in S9-sigterm_saves_last_pt)."""
+    instead of saving (seen under load in the row runs::sigterm-saves-last-pt)."""
     import signal
     import threading
 

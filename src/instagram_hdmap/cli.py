@@ -163,7 +163,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     summary = train(cfg, resume=args.resume, force=args.force)
     if int(os.environ.get("RANK", "0")) == 0:  # under torchrun each rank returns here: one line, as the run's others
         print(f"done: epoch {summary.get('epoch')}, step {summary.get('step')}; outputs in {summary['out_dir']}")
-        if cfg.train.max_steps is not None and summary.get("schedule_complete") is False:  # README: "and says so"
+        # docs/guide.md, "Schedules": a run cut by train.max_steps ends before its final LR "and says so"
+        if cfg.train.max_steps is not None and summary.get("schedule_complete") is False:
             print(f"note: train.max_steps={cfg.train.max_steps} stopped the run before the end of its schedule "
                   f"(progress {summary.get('progress', 0):.3f}; lr {summary.get('lr', 0):.3g}, final "
                   f"{summary.get('final_lr', 0):.3g}): resume with a larger train.max_steps (or none) to finish it")
@@ -464,9 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("predict-images", help="map elements from your own cameras: a rig file and one image per camera",
                        description="Runs a checkpoint (or an export-onnx file) on one frame of your own cameras, "
-                       "described by a rig file (README, 'Your own cameras': camera names, intrinsics, camera-to-ego "
-                       "rotation and translation, image size), and writes OUT/prediction.json (HDMapNet format) and "
-                       "predict's pictures.")
+                       "described by a rig file (docs/guide.md, 'Your own cameras': camera names, intrinsics, "
+                       "camera-to-ego rotation and translation, image size), and writes OUT/prediction.json "
+                       "(HDMapNet format) and predict's pictures.")
     p.add_argument("images", nargs="+", help="one image file per camera of the rig file, in its order")
     p.add_argument("--rig", required=True, help="rig file (JSON)")
     p.add_argument("--checkpoint", help="model checkpoint (its saved config describes the model)")

@@ -41,8 +41,8 @@ dustbin.
    after ~3500 steps) gives true edges probabilities of only ~0.02-0.3 and its crossings touch
    the kerbs: it decodes ``classwise`` with ``match_threshold`` 0.02, ``class_min_prob`` 0.05,
    ``model.gnn.max_edge_m`` 2.5 and ``min_vertices`` 4 (configs/synthetic/demo.yaml;
-   benchmarks/README.md, "Decoding": +0.08 to +0.19 mAP over the class-agnostic mutual rule of
-   before issue 18 on five demo models).
+   benchmarks/README.md, "Decoding": +0.08 to +0.19 mAP over the class-agnostic mutual rule on
+   five demo models).
 2. Tracing (``trace_graphs``, every graph of the batch at once): paths are walked from their
    lower-index end; cycles from their lowest-index vertex in the direction of that vertex's first
    neighbour. Vertices without an edge (none above the threshold, or none accepted) are dropped;

@@ -276,7 +276,7 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
 
 
 def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
-    """``train.batch_size`` is the total over all processes (README, "Distributed"): each rank takes
+    """``train.batch_size`` is the total over all processes (docs/guide.md, "Distributed training"): each rank takes
     ``batch_size / world``. One that the ranks do not divide trained with another total and no word (3 over 2
     ranks: 2; 1 over 2 ranks: 2), the learning rate and schedule set for the other."""
     b = cfg.train.batch_size

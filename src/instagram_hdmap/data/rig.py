@@ -295,7 +295,7 @@ class RigCameras(list):
 
 
 def read_rig_file(path) -> RigCameras:
-    """The cameras of a rig file (README, "Your own cameras"), in its order:
+    """The cameras of a rig file (docs/guide.md, "Your own cameras"), in its order:
 
         {"image_size": [W, H],                       # every camera's, unless a camera gives its own
          "cameras": {"CAM_FRONT": {"intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],

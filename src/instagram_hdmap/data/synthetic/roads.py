@@ -377,7 +377,7 @@ def _junctions(chains, pos, arms, rng) -> dict:
 
 # Real crossings overlap where two of them meet at a junction corner: in the real AV2 log of
 # ../shared/av2_real, all 9 pairs of crossings on adjacent arms of a junction overlap, by 1.1-4.7 m^2
-# (median 2.9 m^2; 10 of its 11 crossings overlap a neighbour); issue 18 quotes 1-12 m^2 over more logs.
+# (median 2.9 m^2; 10 of its 11 crossings overlap a neighbour); AV2 logs show 1-12 m^2 over more junctions.
 OVERLAP_FILLET_M = (0.5, 1.5)  # kerb radii of a junction whose crossings overlap (a tight city corner)
 OVERLAP_GAP_M = 0.3  # there, the crossings start this far past the kerb corner (elsewhere 1 m)
 OVERLAP_DEPTH_M = (1.0, 2.2)  # how far each crossing reaches into the other's band: 1.0-4.8 m^2
