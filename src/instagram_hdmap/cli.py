@@ -359,10 +359,7 @@ def out_of_memory(e: BaseException) -> bool:
     return isinstance(e, RuntimeError) and ("can't allocate memory" in str(e) or "out of memory" in str(e).lower())
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="instagram-hdmap", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _synth_parser(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic world in the nuScenes (or Argoverse 2) on-disk format")
     p.add_argument("--out", required=True, help="output dataroot (must be empty or absent)")
     p.add_argument("--format", choices=["nuscenes", "av2"], default="nuscenes",
@@ -381,12 +378,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="processes rendering scenes in parallel (0: one per CPU core); same output for any value")
     p.set_defaults(func=_cmd_synth)
 
+
+def _synth_preview_parser(sub) -> None:
     p = sub.add_parser("synth-preview", help="PNG of one synthetic sample: cameras with map lines, and BEV")
     p.add_argument("dataroot")
     p.add_argument("--out", required=True)
     p.add_argument("--index", type=int, default=0, help="sample index in the dataroot (negative counts from the end)")
     p.set_defaults(func=_cmd_synth_preview)
 
+
+def _gt_parser(sub) -> None:
     for name, help_ in (("export-gt", "write a split's GT polylines as HDMapNet submission JSON"),
                         ("show-gt", "PNGs of one sample's GT: polylines, vertex cells, DT, cameras")):
         p = sub.add_parser(name, help=help_)
@@ -402,10 +403,14 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--augment", action="store_true", help="apply the train-time image augmentation")
             p.set_defaults(func=_cmd_show_gt)
 
-    p = sub.add_parser("model-summary", help="parameters per component and in total")
+
+def _model_summary_parser(sub) -> None:
+    p = sub.add_parser("model-summary", help="parameters per component and in total, and the memory a step needs")
     _add_config_args(p)
     p.set_defaults(func=_cmd_model_summary)
 
+
+def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="train a model; torchrun-aware")
     _add_config_args(p)
     p.add_argument("--resume", help="checkpoint to continue from (e.g. OUT/last.pt)")
@@ -414,6 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "TensorBoard events, nothing else)")
     p.set_defaults(func=_cmd_train)
 
+
+def _evaluate_json_parser(sub) -> None:
     p = sub.add_parser("evaluate-json", help="AP of a submission JSON against a GT JSON (vector or raster protocol)",
                        description="Chamfer AP of PRED against GT, both in the HDMapNet submission format. Prints a "
                        "table and writes --out as JSON (NaN, where the protocol yields 0/0, is written as NaN).")
@@ -435,6 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ignore prediction tokens that are not in the GT file (default: error)")
     p.set_defaults(func=_cmd_evaluate_json)
 
+
+def _evaluate_parser(sub) -> None:
     p = sub.add_parser("evaluate", help="run a checkpoint on the validation split: submission JSON + AP metrics",
                        description="Runs CKPT on data.val_split, writes OUT/submission.json (HDMapNet format) and "
                        "OUT/metrics.json, prints the AP table. The model settings come from the checkpoint's "
@@ -445,6 +454,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="eval", help="output folder (default ./eval)")
     p.set_defaults(func=_cmd_evaluate)
 
+
+def _predict_parser(sub) -> None:
     p = sub.add_parser("predict", help="PNGs of one sample: prediction vs GT in BEV, cameras, intermediate results",
                        description="Writes OUT/prediction_bev.png, prediction_cameras.png, "
                        "prediction_intermediate.png (the paper's Fig. 6) and prediction.json for one sample.")
@@ -463,6 +474,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
     p.set_defaults(func=_cmd_predict)
 
+
+def _predict_images_parser(sub) -> None:
     p = sub.add_parser("predict-images", help="map elements from your own cameras: a rig file and one image per camera",
                        description="Runs a checkpoint (or an export-onnx file) on one frame of your own cameras, "
                        "described by a rig file (docs/guide.md, 'Your own cameras': camera names, intrinsics, "
@@ -480,6 +493,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
     p.set_defaults(func=_cmd_predict_images)
 
+
+def _benchmark_parser(sub) -> None:
     p = sub.add_parser("benchmark", help="inference FPS, batch 1, six cameras, with and without post-processing")
     _add_config_args(p)
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: train.device)")
@@ -491,6 +506,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cuda-graphs", action="store_true", help="capture the forward in a CUDA graph and replay it")
     p.set_defaults(func=_cmd_benchmark)
 
+
+def _export_onnx_parser(sub) -> None:
     p = sub.add_parser("export-onnx", help="export a checkpoint as one static ONNX graph for onnxruntime",
                        description="Writes the whole model (images + calibration in, the model's output dict out, "
                        "batch 1, a fixed number of Sinkhorn iterations, standard ops only) to --out, checks it in "
@@ -501,6 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--opset", type=int, default=18, help="ONNX opset (default 18, the lowest the exporter writes)")
     p.set_defaults(func=_cmd_export_onnx)
 
+
+def _demo_parser(sub) -> None:
     p = sub.add_parser("demo", help="the whole pipeline on the synthetic world on a CPU: train, evaluate, draw",
                        description="Generates (once, cached) a synthetic world, trains configs/synthetic/demo.yaml "
                        "within --minutes, evaluates it (vector and raster protocols, and a random-training-map "
@@ -516,6 +535,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="key=value config overrides")
     p.set_defaults(func=_cmd_demo)
 
+
+SUBCOMMANDS = (  # each adds one subcommand (or two alike) to the parser, in the order --help lists them
+    _synth_parser,
+    _synth_preview_parser,
+    _gt_parser,
+    _model_summary_parser,
+    _train_parser,
+    _evaluate_json_parser,
+    _evaluate_parser,
+    _predict_parser,
+    _predict_images_parser,
+    _benchmark_parser,
+    _export_onnx_parser,
+    _demo_parser,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="instagram-hdmap", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in SUBCOMMANDS:
+        add(sub)
     return parser
 
 
