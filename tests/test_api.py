@@ -449,13 +449,13 @@ def test_stream_keeps_an_element_the_model_misses_with_persistence(checkpoint, s
     """model.temporal.persist_frames: MapStream.step keeps an element of the previous frame that this one's output
     misses, moved by the ego motion between the frames' poses and with its score decayed; reset() forgets it;
     a frame without an ego pose is named (the kept elements move with the ego)."""
-    import instagram_hdmap.inference as inference
+    import instagram_hdmap.mapper as mapper_module
 
     mapper = Mapper.from_checkpoint(checkpoint, overrides=["model.temporal.persist_frames=1",
                                                            "model.temporal.persist_decay=0.5"])
     line = {"pts": np.array([[1.0, 2.0], [5.0, 2.0]], np.float32), "label": 0, "closed": False, "score": 0.8}
     outputs = iter([[[line]], [[]], [[line]], [[]]])
-    monkeypatch.setattr(inference, "postprocess_batch", lambda *a, **k: next(outputs))
+    monkeypatch.setattr(mapper_module, "postprocess_batch", lambda *a, **k: next(outputs))
     at = np.eye(4)
     moved = np.eye(4)
     moved[:3, 3] = [2.0, 0.0, 0.0]  # the ego drove 2 m forward

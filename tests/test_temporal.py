@@ -707,7 +707,8 @@ def test_evaluation_counts_pose_jumps_and_missing_frames():
 def test_map_stream_carries_a_temporal_models_memory():
     from instagram_hdmap.data.rig import RigError, nuscenes_like_rig
     from instagram_hdmap.data.rig import rig as scaled_rig
-    from instagram_hdmap.inference import Frame, Mapper, run_model
+    from instagram_hdmap.inference import run_model
+    from instagram_hdmap.mapper import Frame, Mapper
 
     cfg = load_config("configs/synthetic/tiny.yaml", ["model.temporal.memory=bev"])
     torch.manual_seed(0)

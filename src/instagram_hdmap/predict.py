@@ -49,7 +49,8 @@ from .engine import evaluate, is_temporal
 from .evaluation import Evaluator, write_submission
 from .files import OutputError, atomic_path, check_output_dir, check_output_file, locked_folder, write_json
 from .geometry import BEVGrid
-from .inference import Frame, Mapper, OnnxModel, gt_outputs, image_size_of, load_model, run_model
+from .inference import OnnxModel, gt_outputs, load_model, run_model
+from .mapper import Frame, Mapper, image_size_of
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
 from .resources import check_fits, data_workers, size_notes

@@ -634,7 +634,7 @@ def row_predict_images_folder(env):
             "'ground_height' in the file was an unknown field. The rig file takes \"ground_height\" and passes it to "
             "the model")
 def row_predict_images_rig_ground_height(env):
-    from instagram_hdmap.inference import Mapper
+    from instagram_hdmap.mapper import Mapper
 
     rig, images = rig_files(env, lambda d: d.__setitem__("ground_height", -0.38))
     seen = []

@@ -263,7 +263,7 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
     present)."""
     out = []
     for p in polylines:
-        if hasattr(p, "as_polyline"):  # a MapElement (inference.py), what Mapper returns
+        if hasattr(p, "as_polyline"):  # a MapElement (mapper.py), what Mapper returns
             p = p.as_polyline()
         pts = np.asarray(p["pts"], dtype=np.float64)
         v = {"pts": pts.tolist(), "pts_num": len(pts), "type": int(p["label"])}
