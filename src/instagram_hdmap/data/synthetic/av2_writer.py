@@ -89,8 +89,8 @@ from .jobs import (
     world_folder,
     write_world,
 )
+from .network import LOCATIONS, RoadNetwork
 from .render import MapPainter, SceneRenderer, scene_look
-from .roads import LOCATIONS, RoadNetwork
 from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
@@ -330,7 +330,7 @@ def _xyz(xy: np.ndarray) -> list[dict]:
 
 
 def _row_mark(net: RoadNetwork, stretch: int, row: int) -> str:
-    """AV2 mark type of the paint along row ``row`` of a stretch (what _paint_stretch draws there)."""
+    """AV2 mark type of the paint along row ``row`` of a stretch (what paint.paint_stretch draws there)."""
     st = net.stretches[stretch]
     kind = st.kinds[row]
     if kind == "lane":

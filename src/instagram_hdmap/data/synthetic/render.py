@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from ..rig import Sensor
-from .roads import Box, RoadNetwork, as_polygons
+from .network import Box, RoadNetwork, as_polygons
 
 JPEG_QUALITY = 90
 FINE_RES, FINE_HALF = 0.025, 20.0  # m/px, half extent (m) of the near ground texture

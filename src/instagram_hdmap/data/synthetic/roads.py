@@ -18,204 +18,31 @@ exterior and interior (island) rings. Painted markings are drawn from the same p
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
-from shapely import prepared
-from shapely.geometry import LineString, MultiPolygon, Polygon, box
+from shapely.geometry import LineString, Polygon, box
 from shapely.ops import unary_union
 
+from .crossings import OVERLAP_GAP_M, crossing_band, crossing_corners, drop_far_overlaps, overlapping_corners
 from .map_writer import MapRecords, Ref, make_token
+from .network import (
+    DIRS,
+    LOCATIONS,
+    STOP_LINE_WIDTH,
+    Chain,
+    Connector,
+    Junction,
+    Lane,
+    MapStyle,
+    Markings,
+    RoadNetwork,
+    Stretch,
+    as_polygons,
+    left_of,
+    yaw_of,
+)
+from .paint import add_patches, paint_stretch, place_props, zebra
 from .paths import Path, Turtle, connect
-
-LOCATIONS = ("boston-seaport", "singapore-onenorth", "singapore-hollandvillage", "singapore-queenstown")
-DIRS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])  # direction codes 0..3 (E, N, W, S)
-STOP_LINE_WIDTH = 0.4
-
-
-def _left(code: int) -> np.ndarray:
-    """Unit normal to the left of direction `code`."""
-    return DIRS[(code + 1) % 4]
-
-
-def _yaw(code: int) -> float:
-    return code * math.pi / 2
-
-
-def as_polygons(geom) -> list[Polygon]:
-    """The non-empty polygons of a shapely geometry (Polygon, MultiPolygon or collection)."""
-    if geom.is_empty:
-        return []
-    if isinstance(geom, Polygon):
-        return [geom]
-    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
-
-
-# ---------------------------------------------------------------------------------------------
-# Data model
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class MapStyle:
-    """Per-map painting and street-furniture parameters (scene-level colours live in render.py)."""
-
-    dash: float  # dashed lane divider: painted length (m)
-    gap: float  # dashed lane divider: gap (m)
-    line_width: float  # painted line width (m)
-    double_gap: float  # gap between the two lines of a double divider (m)
-    sidewalk: float  # sidewalk (walkway) width (m)
-    kerb: float  # kerb width (m)
-    island_ground: str  # 'grass' | 'paved'
-
-
-@dataclass
-class Chain:
-    """A road between two junctions (or a junction and the map edge) through corner nodes."""
-
-    nodes: list[tuple[int, int]]  # grid nodes from a junction to a junction (a stub: just its junction)
-    dirs: list[int]  # direction code leaving each node but the last (a stub: towards the map edge)
-    stub: bool
-    n_right: int = 0  # lanes right of the centre path
-    n_left: int = 0
-    lane_width: float = 3.5
-    median: float = 0.0  # median width (m), 0: none
-    divider: str = "double_yellow"  # double_yellow | single_yellow | single_white
-
-    @property
-    def w_right(self) -> float:
-        return self.median / 2 + self.n_right * self.lane_width
-
-    @property
-    def w_left(self) -> float:
-        return self.median / 2 + self.n_left * self.lane_width
-
-
-@dataclass
-class Stretch:
-    chain: Chain
-    path: Path  # centre path from the start junction arm (or map edge) to the end one
-    s: np.ndarray  # [n] sample arc lengths
-    pts: np.ndarray  # [n, 2] centre samples
-    nrm: np.ndarray  # [n, 2] left unit normals
-    rows: np.ndarray  # [J] lateral offsets, ascending
-    kinds: list[str]  # [J] 'edge' | 'lane' | 'median' | 'centre'
-    ids: np.ndarray  # [J, n] node ids, -1 where the row is absent (centre row across an island)
-    island: tuple[float, float] | None  # (s_a, s_b) nose tips of the island
-    start: tuple[tuple[int, int], int] | None  # (junction node, arm code) at s = 0
-    end: tuple[tuple[int, int], int] | None  # at s = length; None: map edge
-    shape: Polygon | None = None
-    segment: Ref | None = None
-    tone: float = 0.0  # asphalt tone offset of this stretch (render)
-
-
-@dataclass
-class Lane:
-    index: int
-    stretch: int
-    lo: int  # row index of the lower-offset boundary
-    hi: int
-    forward: bool  # travels along the stretch path
-    path: Path  # centre line in the direction of travel
-    kerb_rank: int  # 0 = next to the kerb
-    start: tuple[tuple[int, int], int] | None  # (junction, arm) where the lane begins, None: map edge
-    end: tuple[tuple[int, int], int] | None
-    width: float
-    ref: Ref | None = None
-
-
-@dataclass
-class Connector:
-    index: int
-    path: Path
-    src: int  # lane index
-    dst: int
-    turn: str  # straight | left | right
-    ref: Ref | None = None
-
-
-@dataclass
-class Junction:
-    node: tuple[int, int]
-    centre: np.ndarray
-    arms: list[int]
-    D: dict[int, float]  # arm end distance from the centre
-    wl: dict[int, float]  # half-width left of the outward direction
-    wr: dict[int, float]
-    crossing: dict[int, bool]
-    fillet: dict[int, float]  # kerb radius of the corner between arm a and arm a + 1
-    # corner a (between arms a and a + 1) whose two crossings overlap: (depth along arm a, depth along
-    # arm a + 1) of the overlap, metres (_overlapping_corners)
-    overlap: dict[int, tuple[float, float]] = field(default_factory=dict)
-    shape: Polygon | None = None
-    segment: Ref | None = None
-    tone: float = 0.0
-
-
-@dataclass
-class Box:
-    """An upright box: centre (x, y), yaw, length along yaw, width, z range, BGR colour, kind."""
-
-    x: float
-    y: float
-    yaw: float
-    length: float
-    width: float
-    z0: float
-    z1: float
-    color: tuple[int, int, int]
-    kind: str  # building | tree | trunk | pole | vehicle
-
-    def footprint(self) -> np.ndarray:
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        hl, hw = self.length / 2, self.width / 2
-        local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
-        return local @ np.array([[c, s], [-s, c]]) + [self.x, self.y]
-
-
-@dataclass
-class Markings:
-    """Painted world-frame polygons (each [P, 2], not closed) by paint colour."""
-
-    white: list[np.ndarray] = field(default_factory=list)
-    yellow: list[np.ndarray] = field(default_factory=list)
-    patches: list[tuple[np.ndarray, float]] = field(default_factory=list)  # (polygon, tone offset)
-
-
-@dataclass
-class RoadNetwork:
-    location: str
-    seed: int
-    canvas: tuple[float, float]  # map extent (w, h) in metres: nuScenes canvas_edge
-    drive_right: bool
-    style: MapStyle
-    stretches: list[Stretch]
-    junctions: dict[tuple[int, int], Junction]
-    lanes: list[Lane]
-    connectors: list[Connector]
-    records: MapRecords
-    road: Polygon | MultiPolygon  # drivable road surface (holes: city blocks and median islands)
-    road_filled: Polygon | MultiPolygon  # the same without the median islands
-    islands: list[Polygon]
-    walkway: Polygon | MultiPolygon
-    ground: list[tuple[Polygon, str]]  # city blocks outside the sidewalks: (shape, 'grass'|'dirt'|'paved')
-    kerb: Polygon | MultiPolygon
-    markings: Markings
-    props: list[Box]
-
-    def lines(self, layer: str) -> list[LineString]:
-        """The generator's own road_divider / lane_divider lines, as written to the map."""
-        return [LineString(self.records.node_xy(self.records.lines[r["line_token"].index]))
-                for r in self.records.layers[layer]]
-
-    def polygons(self, layer: str) -> list[Polygon]:
-        """The generator's own polygons of a polygon layer (drivable_area: every polygon of it)."""
-        out = []
-        for r in self.records.layers[layer]:
-            refs = r["polygon_tokens"] if layer == "drivable_area" else [r["polygon_token"]]
-            out.extend(self.records.shape_of(ref.index) for ref in refs)
-        return out
-
 
 # ---------------------------------------------------------------------------------------------
 # Layout
@@ -359,7 +186,7 @@ def _junctions(chains, pos, arms, rng) -> dict:
         crossing = {a: bool(rng.random() < 0.75) for a in codes}
         if not any(crossing.values()):
             crossing[codes[int(rng.integers(len(codes)))]] = True
-        overlap = _overlapping_corners(codes, crossing, fillet, rng)
+        overlap = overlapping_corners(codes, crossing, fillet, rng)
         D = {}
         for a in codes:
             ext = 2.0
@@ -371,73 +198,8 @@ def _junctions(chains, pos, arms, rng) -> dict:
             D[a] = ext + (gap + 4.0 + 0.8 + STOP_LINE_WIDTH + 0.3 if crossing[a] else 1.0 + STOP_LINE_WIDTH + 0.3)
         out[n] = Junction(node=n, centre=pos[n], arms=codes, D=D, wl={a: wl[(n, a)] for a in codes},
                           wr={a: wr[(n, a)] for a in codes}, crossing=crossing, fillet=fillet, overlap=overlap)
-        _drop_far_overlaps(out[n])
+        drop_far_overlaps(out[n])
     return out
-
-
-# Real crossings overlap where two of them meet at a junction corner: in the real AV2 log of
-# ../shared/av2_real, all 9 pairs of crossings on adjacent arms of a junction overlap, by 1.1-4.7 m^2
-# (median 2.9 m^2; 10 of its 11 crossings overlap a neighbour); AV2 logs show 1-12 m^2 over more junctions.
-OVERLAP_FILLET_M = (0.5, 1.5)  # kerb radii of a junction whose crossings overlap (a tight city corner)
-OVERLAP_GAP_M = 0.3  # there, the crossings start this far past the kerb corner (elsewhere 1 m)
-OVERLAP_DEPTH_M = (1.0, 2.2)  # how far each crossing reaches into the other's band: 1.0-4.8 m^2
-# ... but a crossing is stretched at most this far past the kerb: where the roads' widths differ a lot,
-# the other crossing lies too far out and the corner's crossings stay apart
-OVERLAP_MAX_REACH_M = 8.0
-CITY_JUNCTION_P = 0.5  # a 4-way junction has a crossing on every arm with this probability (else 0.75 each)
-
-
-def _overlapping_corners(codes: list[int], crossing: dict[int, bool], fillet: dict[int, float],
-                         rng: np.random.Generator) -> dict[int, tuple[float, float]]:
-    """The junction corners whose two arms (a, a + 1) both have a crossing (every arm of a 4-way junction
-    has one with probability ``CITY_JUNCTION_P``, where the four crossings ring the junction as in the
-    real log) get crossings that overlap there, as real ones do (the rate above): the overlap's depths
-    along the two arms (``_crossing_corners`` stretches both crossings past the kerb that far into each
-    other's band), and the junction tight kerb radii (``fillet`` set in place) so that the crossings lie
-    near the corner.
-    Returns {corner a: (depth along a, depth along a + 1)}; ``_drop_far_overlaps`` keeps the reachable."""
-    if len(codes) == 4 and rng.random() < CITY_JUNCTION_P:  # a crossing on every arm (``crossing`` in place)
-        crossing.update({a: True for a in codes})
-    out = {}
-    for a in codes:
-        b = (a + 1) % 4
-        if b in codes and crossing[a] and crossing[b]:
-            out[a] = (float(rng.uniform(*OVERLAP_DEPTH_M)), float(rng.uniform(*OVERLAP_DEPTH_M)))
-    if out:
-        fillet.update({a: float(rng.uniform(*OVERLAP_FILLET_M)) for a in codes})
-    return out
-
-
-def _drop_far_overlaps(jn: Junction) -> None:
-    """Keep the overlapping corners of ``jn`` whose two crossings reach each other within
-    ``OVERLAP_MAX_REACH_M`` past the kerb."""
-    def reach(a: int) -> float:
-        b = (a + 1) % 4
-        depth_a, depth_b = jn.overlap[a]
-        return max(_crossing_band(jn, b)[0] + depth_b - jn.wl[a], _crossing_band(jn, a)[0] + depth_a - jn.wr[b])
-
-    jn.overlap = {a: d for a, d in jn.overlap.items() if reach(a) <= OVERLAP_MAX_REACH_M}
-
-
-def _crossing_band(jn: Junction, a: int) -> tuple[float, float]:
-    """(t0, t1): distances from the junction centre along arm a between which its crossing lies (4 m
-    wide, 0.8 m before the stop line)."""
-    t1 = jn.D[a] - 0.3 - STOP_LINE_WIDTH - 0.8
-    return t1 - 4.0, t1
-
-
-def _crossing_corners(jn: Junction, a: int) -> list[tuple[float, float]]:
-    """The crossing polygon of arm a as (t along the arm, lateral offset to its left) corners: across the
-    road (-wr to wl), and, at a corner whose crossings overlap, past the kerb into the neighbouring
-    crossing's band (``Junction.overlap``; the zebra paint stays on the road)."""
-    t0, t1 = _crossing_band(jn, a)
-    left, right = jn.wl[a], -jn.wr[a]
-    if a in jn.overlap:  # corner (a, a + 1): arm a + 1 runs along the left of arm a
-        left = _crossing_band(jn, (a + 1) % 4)[0] + jn.overlap[a][1]
-    prev = (a - 1) % 4
-    if prev in jn.overlap:  # corner (a - 1, a): arm a - 1 runs along the right of arm a
-        right = -(_crossing_band(jn, prev)[0] + jn.overlap[prev][0])
-    return [(t0, right), (t1, right), (t1, left), (t0, left)]
 
 
 def _straight_with_bend(t: Turtle, length: float, half_width: float, rng) -> None:
@@ -459,7 +221,7 @@ def _chain_path(ch: Chain, pos, junctions, canvas, rng):
     """Centre path of a chain and its exact end poses ((x, y), code)."""
     j0, a0 = ch.nodes[0], ch.dirs[0]
     start = pos[j0] + junctions[j0].D[a0] * DIRS[a0]
-    t = Turtle(float(start[0]), float(start[1]), _yaw(a0))
+    t = Turtle(float(start[0]), float(start[1]), yaw_of(a0))
     cur = start.copy()
     half = max(ch.w_left, ch.w_right)
     for k in range(1, len(ch.nodes) - 1):
@@ -502,8 +264,8 @@ def _stretch(ch: Chain, path: Path, start, end, rng) -> Stretch:
     poses = path.pose_at(s)
     pts = poses[:, :2].copy()
     nrm = np.stack([-np.sin(poses[:, 2]), np.cos(poses[:, 2])], axis=-1)
-    pts[0], nrm[0] = start[0], _left(start[1])
-    pts[-1], nrm[-1] = end[0], _left(end[1])
+    pts[0], nrm[0] = start[0], left_of(start[1])
+    pts[-1], nrm[-1] = end[0], left_of(end[1])
 
     rows: list[tuple[float, str]] = [(-ch.w_right, "edge"), (ch.w_left, "edge")]
     rows += [(-(r + k * ch.lane_width), "lane") for k in range(1, ch.n_right)]
@@ -616,14 +378,14 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
     connectors = _connect_lanes(lanes, junctions, drive_right, rec)
     outer, walkway, ground, kerb = _add_sidewalks_and_ground(road, road_filled, canvas, style, rec, rng)
     for st in stretches:
-        _paint_stretch(st, style, markings)
-    _add_patches(stretches, style, markings, rng)
+        paint_stretch(st, style, markings)
+    add_patches(stretches, style, markings, rng)
     net = RoadNetwork(
         location=location, seed=seed, canvas=canvas, drive_right=drive_right, style=style, stretches=stretches,
         junctions=junctions, lanes=lanes, connectors=connectors, records=rec, road=road, road_filled=road_filled,
         islands=islands, walkway=walkway, ground=ground, kerb=kerb, markings=markings, props=[],
     )
-    net.props = _place_props(net, outer, rng)
+    net.props = place_props(net, outer, rng)
     return net
 
 
@@ -764,16 +526,16 @@ def _add_crossings_and_stop_lines(stretches: list[Stretch], junctions: dict, rec
     for jn in junctions.values():
         for a in jn.arms:
             ch = chain_of_arm[(jn.node, a)]
-            u, n = DIRS[a], _left(a)
+            u, n = DIRS[a], left_of(a)
             wl, wr = jn.wl[a], jn.wr[a]
             t_stop = jn.D[a] - 0.3 - STOP_LINE_WIDTH
             crossing_ref = None
             if jn.crossing[a]:
-                t0, t1 = _crossing_band(jn, a)
-                xy = np.array([jn.centre + t * u + lat * n for t, lat in _crossing_corners(jn, a)])
+                t0, t1 = crossing_band(jn, a)
+                xy = np.array([jn.centre + t * u + lat * n for t, lat in crossing_corners(jn, a)])
                 poly = rec.add_polygon(rec.add_nodes(xy), (), "ped_crossing")
                 crossing_ref = rec.add("ped_crossing", polygon_token=poly, road_segment_token=jn.segment)
-                markings.white.extend(_zebra(jn.centre, u, n, t0, t1, -wr, wl))
+                markings.white.extend(zebra(jn.centre, u, n, t0, t1, -wr, wl))
             # incoming traffic drives towards the junction (-u): its lanes are on the outward-left
             # side when driving on the right, on the outward-right side when driving on the left
             half_m = ch.median / 2
@@ -886,129 +648,6 @@ def _connect_lanes(lanes: list[Lane], junctions, drive_right: bool, rec: MapReco
         rec.connectivity[src]["outgoing"].append(con.ref)
         rec.connectivity[dst]["incoming"].append(con.ref)
     return connectors
-
-
-# ---------------------------------------------------------------------------------------------
-# Paint
-# ---------------------------------------------------------------------------------------------
-
-
-def _strip(path: Path, s0: float, s1: float, d: float, width: float) -> np.ndarray:
-    """Polygon [P, 2] of a painted strip of `width` centred `d` m left of `path`, over s in [s0, s1]."""
-    n = max(2, int(math.ceil((s1 - s0) / 0.5)) + 1)
-    poses = path.pose_at(np.linspace(s0, s1, n))
-    nrm = np.stack([-np.sin(poses[:, 2]), np.cos(poses[:, 2])], axis=-1)
-    left = poses[:, :2] + (d + width / 2) * nrm
-    right = poses[:, :2] + (d - width / 2) * nrm
-    return np.concatenate([left, right[::-1]])
-
-
-def _paint_stretch(st: Stretch, style: MapStyle, out: Markings) -> None:
-    w = style.line_width
-    for j, kind in enumerate(st.kinds):
-        if kind != "lane":
-            continue
-        s = 0.5
-        while s + style.dash <= st.path.length - 0.5:
-            out.white.append(_strip(st.path, s, s + style.dash, float(st.rows[j]), w))
-            s += style.dash + style.gap
-    spans = [(0.0, st.path.length)]
-    if st.island is not None:
-        spans = [(0.0, st.island[0]), (st.island[1], st.path.length)]
-    for s0, s1 in spans:
-        if s1 - s0 < 0.2:
-            continue
-        if st.chain.divider == "double_yellow":
-            off = (style.double_gap + w) / 2
-            out.yellow += [_strip(st.path, s0, s1, off, w), _strip(st.path, s0, s1, -off, w)]
-        elif st.chain.divider == "single_yellow":
-            out.yellow.append(_strip(st.path, s0, s1, 0.0, w))
-        else:
-            out.white.append(_strip(st.path, s0, s1, 0.0, w))
-
-
-def _zebra(c, u, n, t0, t1, lat0, lat1, bar: float = 0.5, gap: float = 0.5) -> list[np.ndarray]:
-    span = lat1 - lat0 - 0.4
-    count = int((span + gap) // (bar + gap))
-    first = lat0 + 0.2 + (span - (count * bar + (count - 1) * gap)) / 2
-    out = []
-    for k in range(count):
-        l0 = first + k * (bar + gap)
-        corners = [(t0, l0), (t1, l0), (t1, l0 + bar), (t0, l0 + bar)]
-        out.append(np.array([c + t * u + lat * n for t, lat in corners]))
-    return out
-
-
-def _add_patches(stretches: list[Stretch], style: MapStyle, out: Markings, rng) -> None:
-    """Asphalt repair patches (world-fixed): they darken/lighten the road and wear markings away."""
-    for st in stretches:
-        for _ in range(int(rng.integers(0, 4))):
-            s0 = float(rng.uniform(0.0, max(st.path.length - 4.0, 0.1)))
-            s1 = min(st.path.length, s0 + float(rng.uniform(1.0, 4.0)))
-            d0 = float(rng.uniform(st.rows[0], st.rows[-1] - 1.0))
-            d1 = min(float(st.rows[-1]), d0 + float(rng.uniform(0.8, 3.0)))
-            poly = np.concatenate([_strip(st.path, s0, s1, (d0 + d1) / 2, d1 - d0)])
-            out.patches.append((poly, float(rng.uniform(-20.0, 12.0))))
-
-
-# ---------------------------------------------------------------------------------------------
-# Static props: buildings, trees, poles
-# ---------------------------------------------------------------------------------------------
-
-BUILDING_COLORS = [(150, 160, 170), (120, 130, 150), (90, 110, 160), (170, 175, 180), (140, 120, 100),
-                   (200, 190, 170), (110, 100, 95), (160, 140, 120)]
-TREE_COLORS = [(40, 90, 50), (30, 80, 60), (50, 110, 70), (35, 70, 45)]
-
-
-def _place_props(net: RoadNetwork, outer, rng) -> list[Box]:
-    props: list[Box] = []
-    free = prepared.prep(box(0, 0, *net.canvas).difference(outer.buffer(1.0)))
-    road_near = prepared.prep(net.road_filled.buffer(0.3))
-    placed: list[tuple[np.ndarray, float, Polygon]] = []  # (centre, radius, footprint)
-    for st in net.stretches:
-        for side in (-1.0, 1.0):
-            half = st.chain.w_left if side > 0 else st.chain.w_right
-            s = float(rng.uniform(0.0, 10.0))
-            while s < st.path.length:
-                front, depth = float(rng.uniform(8.0, 30.0)), float(rng.uniform(8.0, 25.0))
-                setback = float(rng.uniform(1.0, 6.0))
-                x, y, yaw = st.path.pose_at(s + front / 2)[0]
-                nrm = np.array([-math.sin(yaw), math.cos(yaw)])
-                c = np.array([x, y]) + side * (half + net.style.sidewalk + setback + depth / 2) * nrm
-                b = Box(float(c[0]), float(c[1]), float(yaw), front, depth, 0.0, float(rng.uniform(6.0, 30.0)),
-                        BUILDING_COLORS[int(rng.integers(len(BUILDING_COLORS)))], "building")
-                fp = Polygon(b.footprint())
-                radius = math.hypot(front, depth) / 2
-                clear = all(np.hypot(*(c - c2)) > radius + r2 + 1.0 or fp.distance(p2) >= 1.0
-                            for c2, r2, p2 in placed)
-                if clear and free.contains(fp):
-                    placed.append((c, radius, fp))
-                    props.append(b)
-                s += front + float(rng.uniform(2.0, 15.0))
-            s = float(rng.uniform(0.0, 15.0))
-            while s < st.path.length:  # trees on the sidewalk, poles at the kerb
-                x, y, yaw = st.path.pose_at(s)[0]
-                nrm = np.array([-math.sin(yaw), math.cos(yaw)])
-                if rng.random() < 0.5:
-                    c = np.array([x, y]) + side * (half + net.style.sidewalk - 0.7) * nrm
-                    if not road_near.intersects(_square(c, yaw, 0.4)):
-                        top = float(rng.uniform(4.5, 8.0))
-                        size = float(rng.uniform(2.5, 4.5))
-                        props.append(Box(float(c[0]), float(c[1]), float(yaw), 0.35, 0.35, 0.0, 2.8, (40, 60, 80),
-                                         "trunk"))
-                        props.append(Box(float(c[0]), float(c[1]), float(yaw + rng.uniform(0, 1)), size, size,
-                                         2.4, top, TREE_COLORS[int(rng.integers(len(TREE_COLORS)))], "tree"))
-                else:
-                    c = np.array([x, y]) + side * (half + 0.6) * nrm
-                    if not road_near.intersects(_square(c, yaw, 0.3)):
-                        props.append(Box(float(c[0]), float(c[1]), float(yaw), 0.25, 0.25, 0.0,
-                                         float(rng.uniform(4.5, 7.5)), (120, 125, 128), "pole"))
-                s += float(rng.uniform(12.0, 30.0))
-    return props
-
-
-def _square(c: np.ndarray, yaw: float, size: float) -> Polygon:
-    return Polygon(Box(float(c[0]), float(c[1]), yaw, size, size, 0.0, 1.0, (0, 0, 0), "").footprint())
 
 
 def map_token(location: str, seed: int) -> str:

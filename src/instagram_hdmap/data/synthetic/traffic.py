@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .network import Box, RoadNetwork
 from .paths import Path
-from .roads import Box, RoadNetwork
 
 KEYFRAME_INTERVAL_S = 0.5  # nuScenes key frames at 2 Hz
 ANNOTATION_RANGE_M = 60.0

@@ -62,7 +62,7 @@ from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, pl
 
 VERSION = "v1.0-trainval"
 FORMAT = "instagram-hdmap synthetic nuScenes world"
-FORMAT_VERSION = 2  # 2: crossings overlap at junction corners (roads._overlapping_corners)
+FORMAT_VERSION = 2  # 2: crossings overlap at junction corners (crossings.overlapping_corners)
 
 
 def scene_names(n_train: int, n_val: int) -> tuple[list[str], list[str]]:
