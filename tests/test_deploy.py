@@ -193,10 +193,10 @@ def test_the_whole_model_is_one_graph_for_torch_compile():
 
 @pytest.mark.slow
 def test_compiled_model_equals_eager():
-    cfg = tiny_cfg()
+    cfg = tiny_cfg("model.gnn.sinkhorn_iters=3")  # the unrolled iterations only lengthen the compilation
     model = random_model(cfg)
     with torch.inference_mode():
-        forward = deploy.fast_forward(model, batch_for(cfg, 0), compile=True)  # compiles (minutes on 2 cores)
+        forward = deploy.fast_forward(model, batch_for(cfg, 0), compile=True)  # compiles (a minute on 2 cores)
         other = batch_for(cfg, 1)
         assert_parity(model(other), forward(other))
 

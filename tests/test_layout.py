@@ -116,7 +116,7 @@ def test_no_import_cycles():
 
 def test_imports_run_down_the_floors():
     floors = floors_from_readme()
-    assert floors[0][:2] == ["config", "geometry"] and "cli" in floors[-1]
+    assert {"config", "geometry"} <= set(floors[0]) and "cli" in floors[-1]
     upward = [f"{m} (floor {floor_of(m, floors)}) imports {t} (floor {floor_of(t, floors)})"
               for m, targets in GRAPH.items() for t in targets if floor_of(t, floors) > floor_of(m, floors)]
     assert upward == []

@@ -64,6 +64,10 @@ class UserError(Exception):
         super().__init__(*args)
 
 
+class ConfigError(UserError, ValueError):
+    """A configuration key or value the user must fix."""
+
+
 def _worker_message(text: str, name: str) -> str:
     """The original message inside torch's DataLoader worker wrapping (see ``UserError``), or ``text``."""
     head, _, rest = text.partition("\n")
