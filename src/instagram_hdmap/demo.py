@@ -48,8 +48,9 @@ from .inference import saved_config
 from .models import build_model
 from .predict import predict_sample, run_evaluation
 from .resources import check_fits
+from .resume import RESUME_KEYS, STREAM_RESUME_KEYS, config_differences
 from .schedule import final_lr_factor
-from .train import RESUME_KEYS, STREAM_RESUME_KEYS, config_differences, train
+from .train import train
 
 # The demo's worlds: 480 x 270 camera images (the network sees 64 x 192), about 0.1 s per sample on
 # one core. Training uses WORLD's train split. Validation uses VAL_WORLD, a world of another seed:

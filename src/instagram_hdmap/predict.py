@@ -54,7 +54,7 @@ from .mapper import Frame, Mapper, image_size_of
 from .persistence import Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
 from .resources import check_fits, data_workers, size_notes
-from .train import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
+from .training_data import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
 from .visualize import (
     figure_rgb,
     intermediate_figure,

@@ -22,26 +22,19 @@ history, as at a scene start (``memory_status`` no_memory), until their next sce
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import math
 import os
 import random
-import re
-import shutil
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
 
 from . import distributed as du
 from .checkpoint import (
     CheckpointError,
-    check_resumable,
-    load_checkpoint,
     rng_preserved,
     rng_state,
     save_checkpoint,
@@ -49,230 +42,71 @@ from .checkpoint import (
 )
 from .config import (
     DataConfig,
-    EvalConfig,
     ExperimentConfig,
     GraphHeadConfig,
     TrainConfig,
     UserError,
     as_config,
     config_to_dict,
-    diff_configs,
     flatten,
-    get_key,
-    is_under,
     save_config,
 )
-from .data import build_dataset
-from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
-from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .files import (
-    LOCK_FILE,
-    check_output_dir,
     held_folder_now,
     json_safe,
     json_text,
-    lock_folder,
-    remove_stale_temporaries,
     unlock_folder,
-    write_text,
 )
 from .geometry import BEVGrid
-from .inference import MODEL_KEYS, NOT_BAKED, saved_config
+from .inference import saved_config
 from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
 from .persistence import Persistence
-from .postprocess import DECODE_KEYS, decode_options, postprocess_batch
-from .resources import check_fits, data_workers, size_notes, usable_cores
+from .postprocess import decode_options, postprocess_batch
+from .resources import check_fits, size_notes, usable_cores
+from .resume import (
+    MEMORY_ONLY_KEYS,
+    RESUME_NOTED,
+    SCORE_KEYS,
+    best_score_in,
+    check_frozen_are_trained,
+    check_init_from_outside,
+    check_same_train_set,
+    config_differences,
+    folder_id,
+    freeze_parameters,
+    init_model_differences,
+    init_weights,
+    later_last_step,
+    load_init_state,
+    load_resume_state,
+    memory_state,
+    resumed_memory,
+    same_path,
+    train_set_fingerprint,
+)
+from .run_folder import prepare_out_dir, purge_log
 from .schedule import ProgressClock, final_lr_factor, lr_factor
-
-# Config keys that must match for a checkpoint to be resumed: those that define the model and those
-# that define its training targets (training knobs may change).
-# train.batch_size: the position in an epoch and the schedule's length are counted in its batches (a new
-# one skipped the rest of the epoch and moved the learning rate along the schedule)
-# train.seed: the epochs' sample order (the saved position counts batches of that order)
-# data.ped_crossing: the crossings' targets (edges or rings), data.image_fit: the images the model learns from (a
-# resume with another one switched them mid-run with no word)
-RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "data.image_fit", "train.batch_size",
-               "train.trainable", "train.seed")
-# a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
-# new value walked other pieces from the saved position, or none, and moved the learning rate)
-STREAM_RESUME_KEYS = ("train.stream_frames", "train.stream_warmup")
-# the model keys a resume may change: read at inference only (the decoding options, element persistence) or not at
-# all on a resume (the ImageNet weights, which the checkpoint's replace), or a training knob that leaves the model's
-# computation as it is (gradient checkpointing trades memory for time; the memory dropout's rate); a resume with
-# model.backbone.grad_checkpoint=true after running out of memory was refused as "an incompatible config"
-RESUME_FREE = tuple(k for k in NOT_BAKED if k != "data.av2_cameras")  # (the AV2 cameras: which images, in which order)
-# what the validation score that picks best.pt measures: a resume may change them, but its scores are then of another
-# kind than the best score it carries (a raster mAP compared with a vector one, another split's, other decoding's),
-# which a note says
-SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split",
-              *DECODE_KEYS, "model.temporal.persist_frames", "model.temporal.persist_decay",
-              "model.temporal.persist_match_m")
-# the training settings a resume may change, which then hold from its position on (the steps so far were trained with
-# the checkpoint's): said in a note, as config.yaml and the next checkpoints record only the new values (a resume with
-# another train.lr, train.schedule or train.warmup went on with no word, the run's record rewritten)
-RESUME_NOTED = ("train.epochs", "train.lr", "train.weight_decay", "train.schedule", "train.lr_step", "train.lr_gamma",
-                "train.warmup", "train.min_lr_factor", "train.grad_clip", "train.amp", "train.on_nonfinite",
-                "train.deterministic", "data.augment", "data.aug_scale", "data.aug_rotate_deg", "data.aug_crop_jitter",
-                "data.camera_dropout", "data.on_bad_sample", "model.temporal.drop_prob")
-
-
-def train_set_fingerprint(loader) -> dict | None:
-    """The training split a run walks, as its sample count and a hash of its sample tokens in order (None for
-    a dataset without tokens). A checkpoint keeps it: its position and schedule count batches of that split."""
-    tokens = getattr(getattr(loader, "dataset", None), "sample_tokens", None)
-    if not isinstance(tokens, list) or not all(isinstance(t, str) for t in tokens):
-        return None
-    return {"samples": len(tokens), "sha256": hashlib.sha256("\n".join(tokens).encode()).hexdigest()[:16]}
-
-
-def check_same_train_set(saved: dict | None, now: dict | None, path: Path | str) -> None:
-    """A resume walks the training split its checkpoint counted batches of (``train_set_fingerprint``): another
-    one (scenes added or removed, another ``data.splits_file`` or ``data.dataroot``) ended the schedule early
-    ("done" after no step when the split shrank) or late, and the saved position skipped or repeated samples,
-    with exit 0 and no word."""
-    if not isinstance(saved, dict) or now is None or saved == now:
-        return
-    before, after = saved.get("samples"), now["samples"]
-    what = (f"{before} samples then, {after} now" if before != after else
-            f"{after} samples then and now, but other samples or another order")
-    raise CheckpointError(f"checkpoint {path} was trained on another training split ({what}: data.dataroot, "
-                          "data.splits_file or the split's scenes changed); its position and schedule count "
-                          "batches of that split, so a resume would skip or repeat samples and end the schedule "
-                          "early or late: resume with the data it was trained on, or start a new run from its "
-                          f"weights (train.init_from={path})")
-
-
-WORKER_DIED = re.compile(r"DataLoader worker \(pids?\(?s?\)? ?[\d, ]+\)? (is killed by signal|exited unexpectedly)")
-
-
-def data_worker_died(e: BaseException) -> str | None:
-    """torch's message when a data-loader worker process died (the out-of-memory killer's choice, a ``kill -9``),
-    first line only; None for another exception."""
-    text = str(e).strip()
-    return text.splitlines()[0] if isinstance(e, RuntimeError) and WORKER_DIED.search(text) else None
-
-
-class DataWorkerError(UserError):
-    """A data-loader worker died during a training: ``last.pt`` was saved at the last completed step."""
+from .training_data import (
+    DataWorkerError,
+    ResumableSampler,
+    build_loaders,
+    data_worker_died,
+    loader_batch_size,
+    make_cmap_meter,
+    make_flicker_meter,
+    unused_meter_keys,
+)
 
 
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)  # noqa: NPY002 (seeds the global stream third-party code uses)
     torch.manual_seed(seed)
-
-
-def _worker_init(worker_id: int) -> None:
-    # Each worker's NumPy/random streams derive from torch's per-worker seed (itself a function of
-    # the base seed drawn in the main process, which is part of the checkpointed RNG state).
-    seed = torch.initial_seed() % 2**32
-    np.random.seed(seed)  # noqa: NPY002 (seeds the global stream third-party code uses)
-    random.seed(seed)
-
-
-# What a run writes in its output folder (``--force`` removes these and nothing else)
-RUN_FILES = ("config.yaml", "log.jsonl", "tb", "last.pt", "best.pt")
-CHECKPOINTS = ("last.pt", "best.pt")
-
-
-def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> None:
-    """The output folder, checked before anything is built: a folder (not a file) that can be written;
-    one that holds a run (a checkpoint) only with ``--resume`` or ``--force`` (which removes that run's
-    files, ``RUN_FILES``, and nothing else); one whose run stopped before its first checkpoint (only
-    config.yaml, log.jsonl, tb/) is started over. Partial files of killed saves of this folder's run
-    are removed when their process is gone."""
-    if force and resume:
-        raise UserError("--force starts a run over and --resume continues one; pass one of them, not both")
-    check_output_dir(out_dir, "train.out_dir")
-    if not du.is_main_process():
-        return
-    out_dir.mkdir(parents=True, exist_ok=True)
-    lock_out_dir(out_dir)  # before anything in it is removed
-    if out_dir.is_dir():
-        for name in RUN_FILES:
-            remove_stale_temporaries(out_dir / name)
-        content = [p.name for p in out_dir.iterdir() if p.name != LOCK_FILE]
-        has_checkpoint = any(name in content for name in CHECKPOINTS)
-        only_run_files = all(name in RUN_FILES for name in content)
-        if content and not (resume or force):
-            if not has_checkpoint and not only_run_files:  # no run to continue: --resume of a checkpoint not there
-                raise UserError(f"output folder {out_dir} holds files that are not a run's "
-                                f"({', '.join(sorted(content)[:5])}); choose another train.out_dir (a new or empty "
-                                "folder), or pass --force to train among them (it removes only a run's own files)")
-            if has_checkpoint:
-                # a save that failed after best.pt (a full disk) leaves no last.pt; best.pt resumes as well
-                ckpt = out_dir / ("last.pt" if "last.pt" in content else "best.pt")
-                raise UserError(f"output folder {out_dir} already holds a run; pass --resume {ckpt} to continue it, "
-                                "--force to start over in it, or choose another train.out_dir")
-            du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
-            force = True
-        # the folder of the checkpoint itself: a symbolic link to it (latest.pt -> run/last.pt) names the run it is in
-        source = Path(resume).resolve().parent if resume and Path(resume).is_file() else None
-        if source is not None and has_checkpoint and source.resolve() != out_dir.resolve():
-            raise UserError(f"--resume {resume} continues the run of {source}, but train.out_dir={out_dir} holds a "
-                            "run of its own, whose checkpoints and log it would overwrite; set "
-                            f"train.out_dir={source} (or an empty folder to continue it elsewhere)")
-        if force:
-            for name in RUN_FILES:
-                target = out_dir / name
-                if target.is_dir() and not target.is_symlink():
-                    shutil.rmtree(target)
-                elif target.exists() or target.is_symlink():
-                    target.unlink()
-        # what the run appends to or writes in must be of its kind (they raised a raw FileExistsError from
-        # TensorBoard or an IsADirectoryError from open() once the model and loaders were built)
-        for name, folder, what in (("tb", True, "TensorBoard events"), ("log.jsonl", False, "log"),
-                                   ("config.yaml", False, "resolved config")):
-            target = out_dir / name
-            if target.exists() and target.is_dir() != folder:
-                raise UserError(f"train.out_dir {out_dir}: {name} is a {'folder' if target.is_dir() else 'file'}, "
-                                f"where the run keeps its {what} in a {'folder' if folder else 'file'}; move it away "
-                                "(or pass --force to start the run over)")
-
-
-def purge_log(path: Path, lines: int, note: Callable[[str], None]) -> int:
-    """Keep the first ``lines`` lines of a resumed run's ``log.jsonl``, the lines written before the checkpoint
-    it resumes from (its ``log_lines``): a killed run's lines after it (an epoch's line is written before the
-    checkpoint of that epoch, so a kill between the two loses none) go, as the resume trains those steps again
-    and logs them anew, where they showed twice. Returns how many lines the log holds after."""
-    if not path.is_file():
-        return 0
-    text = path.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
-    keep = [line for line in text[:lines] if line.endswith("\n")]  # not a line the kill cut short
-    if len(keep) < len(text):
-        write_text("".join(keep), path)
-        note(f"{path}: dropped {len(text) - len(keep)} line(s) written after the checkpoint by the run that was "
-             "stopped; the resume trains those steps again and logs them anew")
-    return len(keep)
-
-
-def lock_out_dir(out_dir: Path) -> None:
-    """``files.lock_folder`` of ``train.out_dir``: a second training started there is refused before it removes
-    or overwrites anything of the first one's."""
-    lock_folder(out_dir, "training", "choose another train.out_dir", du.print_main)
-
-
-def config_differences(old: ExperimentConfig, cfg: ExperimentConfig, keys) -> str:
-    """The keys under ``keys`` whose values differ, as "key: checkpoint X vs now Y; ..." ("" if none)."""
-    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys)]
-    old_d, new_d = config_to_dict(old), config_to_dict(cfg)
-    return "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
-
-
-def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
-    old = saved_config(ckpt_cfg, f"checkpoint {path}")
-    keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
-    differ = [k for k in diff_configs(old, cfg) if is_under(k, keys) and not is_under(k, RESUME_FREE)]
-    lines = config_differences(old, cfg, differ)
-    if lines:
-        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
-                              f"the config it was trained with, or start a new run from its weights with "
-                              f"train.init_from={path} and another train.out_dir")
 
 
 def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
@@ -286,163 +120,6 @@ def check_batch_over_ranks(cfg: ExperimentConfig, world_size: int) -> None:
                         f"which it does not divide (each would take {b / world_size:g} samples); use "
                         + (f"{lower} or {upper}" if lower != upper and lower < b else f"{upper}")
                         + f" ({world_size} processes), or run {b} process(es)")
-
-
-OPEN_FILES_FOR_WORKERS = 4096  # the open-file limit under which data-loader workers hand tensors over by name
-
-
-def open_files_for_workers(num_workers: int) -> None:
-    """Data-loader workers hand each batch's tensors to this process through file descriptors (torch's
-    sharing strategy ``file_descriptor``: one per tensor in flight, received over a socket). Under a low
-    limit on open files (``ulimit -n``) they ran out: the run hung for good, a thread printing "OSError:
-    [Errno 24] Too many open files" tracebacks without end. The soft limit is raised towards the hard one (up
-    to ``OPEN_FILES_FOR_WORKERS``); where it stays below that, the tensors go through named shared memory
-    (``file_system``), which holds no descriptor."""
-    if num_workers <= 0:
-        return
-    try:
-        import resource
-    except ImportError:  # not POSIX: torch's default there needs no descriptors
-        return
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    unlimited = resource.RLIM_INFINITY
-    if soft == unlimited or soft >= OPEN_FILES_FOR_WORKERS:
-        return
-    raised = OPEN_FILES_FOR_WORKERS if hard == unlimited else min(hard, OPEN_FILES_FOR_WORKERS)
-    if raised > soft:
-        with contextlib.suppress(ValueError, OSError):
-            resource.setrlimit(resource.RLIMIT_NOFILE, (raised, hard))
-            soft = raised
-    if soft < OPEN_FILES_FOR_WORKERS and torch.multiprocessing.get_sharing_strategy() == "file_descriptor":
-        torch.multiprocessing.set_sharing_strategy("file_system")
-
-
-def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
-    """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
-    reads drives: each rank's batch rows are streams walking whole scenes in order
-    (``data.streaming.StreamingBatchSampler``, ``train.batch_size / world`` streams per rank, in pieces
-    of ``train.stream_frames``, after ``train.stream_warmup`` of the epochs on shuffled single frames;
-    the validation loader ``eval.batch_size`` streams of whole scenes)."""
-    train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
-    open_files_for_workers(cfg.data.num_workers)
-    per_rank = max(cfg.train.batch_size // world_size, 1)
-    streaming = cfg.model.temporal.memory != "none"
-    common = {"collate_fn": collate_fn, "num_workers": data_workers(cfg.data.num_workers, len(train_set)),
-              "worker_init_fn": _worker_init,
-              "persistent_workers": False,
-              # its own generator: making an iterator must not draw from the global torch RNG, whose
-              # state the checkpoint restores for exact resume
-              "generator": torch.Generator().manual_seed(cfg.train.seed)}
-    if streaming:
-        sampler = StreamingBatchSampler(train_set.scenes.runs, per_rank, shuffle=True, seed=cfg.train.seed,
-                                        rank=du.get_rank(), world_size=world_size,
-                                        piece_frames=cfg.train.stream_frames,
-                                        single_epochs=round(cfg.train.stream_warmup * cfg.train.epochs))
-        train_loader = DataLoader(train_set, batch_sampler=sampler, **common)
-        k, runs = cfg.train.stream_frames, train_set.scenes.runs
-        if runs and max(len(r) for r in runs) < 2:  # every frame starts a scene: the memory is never fused
-            du.print_main(f"note: every scene of the training split '{cfg.data.train_split}' has one frame, so the "
-                          f"temporal model (model.temporal.memory={cfg.model.temporal.memory}) never fuses a memory: "
-                          "this trains its single-frame parts only (train on drives of several frames)")
-        walks = sum(-(-len(r) // k) for r in runs) if k > 0 else len(runs)
-        if walks < per_rank * world_size:  # the streams without a scene of their own repeat others' frames (padding)
-            what = f"{walks} pieces of train.stream_frames={k} frames" if k > 0 else f"{walks} scenes"
-            du.print_main(f"note: train.batch_size={cfg.train.batch_size} streams, but the training split has "
-                          f"{what}: {per_rank * world_size - walks} streams walk no scene of their own and repeat "
-                          f"others' frames in every batch (padding); a batch of at most {walks} streams trains as much")
-    else:
-        sampler = ResumableSampler(len(train_set), shuffle=True, seed=cfg.train.seed)
-        train_loader = DataLoader(train_set, batch_size=per_rank, sampler=sampler, drop_last=False, **common)
-    val_loader = None
-    if with_val:
-        val_set = build_dataset(cfg, cfg.data.val_split, augment=False, like=train_set)
-        shared = set(train_set.sample_tokens) & set(val_set.sample_tokens)
-        if shared:  # a custom splits file listing a scene in both: the validation score is not on unseen data
-            du.print_main(f"warning: {len(shared)} of the {len(val_set)} samples of split '{cfg.data.val_split}' are "
-                          f"also in the training split '{cfg.data.train_split}'; the validation score is not measured "
-                          "on unseen data (check data.splits_file)")
-        if streaming:
-            val_sampler = StreamingBatchSampler(val_set.scenes.runs, cfg.eval.batch_size, shuffle=False,
-                                                rank=du.get_rank(), world_size=world_size)
-            val_loader = DataLoader(val_set, batch_sampler=val_sampler, collate_fn=collate_fn,
-                                    num_workers=data_workers(cfg.data.num_workers, len(val_set)))
-        else:
-            val_sampler = ResumableSampler(len(val_set), shuffle=False)
-            val_loader = DataLoader(val_set, batch_size=cfg.eval.batch_size, sampler=val_sampler,
-                                    collate_fn=collate_fn, num_workers=data_workers(cfg.data.num_workers, len(val_set)))
-    return train_loader, sampler, val_loader
-
-
-def loader_batch_size(loader: DataLoader) -> int:
-    """Samples per batch of this rank (a streaming loader's batch sampler holds it)."""
-    return loader.batch_size or loader.batch_sampler.batch_size
-
-
-def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
-    """The flicker-rate meter of ``eval.flicker`` (evaluation/consistency.py), or None when it is off."""
-    if not cfg.eval.flicker:
-        return None
-    return FlickerMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
-                        threshold_m=cfg.eval.flicker_threshold_m)
-
-
-def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
-    """Notes for a meter's setting given while the meter is off (its default otherwise), and for a decoder's option
-    given with another decoder: it was unused with no word."""
-    default, notes = EvalConfig(), []
-    gnn, gnn_default = cfg.model.gnn, GraphHeadConfig()
-    if gnn.same_class_edges and gnn.decoder == "classwise":  # classwise builds a graph per class of its own rule
-        notes.append("model.gnn.same_class_edges=true is not used: an option of the greedy decoder, and "
-                     "model.gnn.decoder=classwise (which joins the vertices whose class probability is at least "
-                     "model.gnn.class_min_prob)")
-    if gnn.class_min_prob != gnn_default.class_min_prob and gnn.decoder != "classwise":
-        notes.append(f"model.gnn.class_min_prob={gnn.class_min_prob:g} is not used: an option of the classwise "
-                     f"decoder, and model.gnn.decoder={gnn.decoder}")
-    for switch, key in (("cmap", "cmap_match_m"), ("flicker", "flicker_threshold_m")):
-        if not getattr(cfg.eval, switch) and getattr(cfg.eval, key) != getattr(default, key):
-            notes.append(f"eval.{key}={getattr(cfg.eval, key):g} is not used: eval.{switch} is off (set "
-                         f"eval.{switch}=true for that meter)")
-    if "raster" not in (cfg.eval.protocol, *cfg.eval.also_protocols):  # evaluate-json refuses them with the vector one
-        for key in ("rank_by", "fix_instance_ids"):
-            if getattr(cfg.eval, key) != getattr(default, key):
-                notes.append(f"eval.{key}={getattr(cfg.eval, key)} is not used: an option of the raster protocol, and "
-                             f"eval.protocol={cfg.eval.protocol} (set eval.protocol=raster, or "
-                             "eval.also_protocols=[raster])")
-    return notes
-
-
-def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
-    """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
-    predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
-    if not cfg.eval.cmap:
-        return None
-    t = cfg.model.temporal
-    return ConsistentAPMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
-                             thresholds=cfg.eval.thresholds, match_m=cfg.eval.cmap_match_m, max_jump_m=t.max_jump_m,
-                             max_turn_deg=t.max_turn_deg)
-
-
-def memory_state(memory: dict | None, gather: bool = True) -> list | None:
-    """A temporal model's memory for a checkpoint: one CPU dict per rank (rank order), or None. Under
-    torchrun ``gather`` collects every rank's (a collective); without it only a single process's is kept."""
-    mine = None if memory is None else {k: v.detach().cpu() for k, v in memory.items()}
-    if du.get_world_size() == 1:
-        return None if mine is None else [mine]
-    if not gather:
-        return None
-    states = du.all_gather_object(mine)
-    return None if any(m is None for m in states) else states
-
-
-def resumed_memory(saved: list | None, world: int, device: torch.device) -> dict | None:
-    """This rank's memory from a checkpoint's ``memory`` (None where the checkpoint holds none for it:
-    its streams then start without history, as at a scene start)."""
-    if not saved or len(saved) != world:
-        return None
-    return {k: v.to(device) for k, v in saved[du.get_rank()].items()}
-
-
-ResumableSampler = du.ResumableSampler
 
 
 def cpu_threads(cfg: ExperimentConfig, local_processes: int = 1) -> int | None:
@@ -654,7 +331,7 @@ class TrainingRun:
             du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
                           f"({run.position.step_in_epoch} into the epoch)")
             run_dir = Path(resume).resolve().parent  # a symbolic link to the checkpoint: the run it is in
-            if run.clock.last < 1.0 and not _same_path(run_dir, out_dir):  # (a finished one says so itself)
+            if run.clock.last < 1.0 and not same_path(run_dir, out_dir):  # (a finished one says so itself)
                 du.print_main(f"note: {resume} is a checkpoint of the run in {run_dir}; this run goes on in "
                               f"train.out_dir={out_dir} (its checkpoints, log and TensorBoard events go there, the "
                               f"earlier ones stay in {run_dir}; to continue there, pass train.out_dir={run_dir})")
@@ -747,7 +424,7 @@ class TrainingRun:
                             f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
                             "schedule: start a new run (another train.out_dir)")
         run_dir = Path(path).resolve().parent  # a symbolic link to the checkpoint: the run it is in
-        elsewhere = not _same_path(run_dir, self.out_dir)
+        elsewhere = not same_path(run_dir, self.out_dir)
         du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
                       + (" but its final validation, which was interrupted" if self.validation_pending else "")
                       + (f"; its run's outputs stay in {run_dir}, train.out_dir={self.out_dir} gets no "
@@ -1024,12 +701,6 @@ class TrainingRun:
                 **self.summary, **self.schedule_summary(), "out_dir": str(self.out_dir)}
 
 
-# the config keys a checkpoint that starts a fine-tuning (train.init_from) must share with the run: what
-# the weights mean (the geometry, the inputs, the outputs); the architecture is checked by the weights'
-# names and shapes, and the temporal memory may be new
-INIT_KEYS = ("grid", "data.image_size", "data.classes", "data.dt_clip", "data.av2_cameras", "model.view_transform")
-
-
 def check_stream_schedule(cfg: ExperimentConfig) -> None:
     """A temporal training whose schedule never streams is refused: pieces of one frame
     (``train.stream_frames=1``), or ``train.stream_warmup`` rounding to every epoch of ``train.epochs``
@@ -1046,12 +717,6 @@ def check_stream_schedule(cfg: ExperimentConfig) -> None:
                         f"{single} single-frame epoch(s) of {cfg.train.epochs}: the temporal model would never train "
                         "with its memory (it is empty on single frames); raise train.epochs or lower "
                         "train.stream_warmup")
-
-
-# the keys that only a temporal model (model.temporal.memory not none) reads: set on a single-frame model they are
-# ignored (element persistence, model.temporal.persist_* and the pose-jump limits it shares, works on any model)
-MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.temporal.drop_prob",
-                    "model.temporal.edge_samples", "train.stream_frames", "train.stream_warmup")
 
 
 def setting_notes(cfg: ExperimentConfig) -> list[str]:
@@ -1099,92 +764,6 @@ def setting_notes(cfg: ExperimentConfig) -> list[str]:
     return notes + size_notes(cfg)
 
 
-def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:
-    """``train.init_from`` must not be a checkpoint of ``out_dir``'s run: starting over there (``--force``)
-    removes it before it is read, and the new run's saves replace it."""
-    path = cfg.train.init_from
-    if not path or resume is not None:  # a resumed run has its own weights; init_from is not read
-        return
-    for name in CHECKPOINTS:
-        if _same_path(Path(path), out_dir / name):  # a link to it, too
-            raise UserError(f"train.init_from={path} is the {name} of train.out_dir={out_dir}, which this run "
-                            "starts over (--force removes it, the run's own saves replace it): copy it out of the "
-                            "folder first, or choose another train.out_dir")
-
-
-def folder_id(path: Path) -> tuple[int, int] | None:
-    """(device, inode) of the folder ``path`` (None where there is none)."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return st.st_dev, st.st_ino
-
-
-def _same_path(a: Path, b: Path) -> bool:
-    try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
-def load_init_state(cfg: ExperimentConfig) -> dict | None:
-    """``train.init_from``'s checkpoint (None without one), its config checked against ``cfg`` (``INIT_KEYS``)."""
-    path = cfg.train.init_from
-    if not path:
-        return None
-    try:
-        state = load_checkpoint(path)
-    except CheckpointError as e:  # named as this key (not --checkpoint)
-        raise CheckpointError(f"train.init_from: {str(e).replace(' with --checkpoint', '')}") from None
-    if isinstance(state.get("config"), dict):
-        lines = config_differences(saved_config(state["config"], f"checkpoint {path}"), cfg, INIT_KEYS)
-        if lines:
-            raise UserError(f"train.init_from={path}: the checkpoint was trained with other inputs or geometry "
-                            f"({lines}); its weights would mean something else here")
-    return state
-
-
-def init_model_differences(state: dict, cfg: ExperimentConfig) -> str:
-    """The ``model.*`` keys (but those an inference reads only, ``NOT_BAKED``) on which the config of
-    ``train.init_from``'s checkpoint and ``cfg`` differ, as ``config_differences`` says them ("" if none)."""
-    if not isinstance(state.get("config"), dict):
-        return ""
-    old = saved_config(state["config"], "the checkpoint of train.init_from")
-    differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
-    return config_differences(old, cfg, differ)
-
-
-def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:
-    """``state``'s model weights into ``model`` (``train.init_from``); every weight must match by name and
-    shape except the temporal fusion's, which the checkpoint may lack (returned: those left as built). A
-    checkpoint whose fusion does not fit this model's (another memory or fusion kind: other names or shapes)
-    lends none of it: the whole fusion starts from its initialisation (the gated one then is the identity),
-    never half trained. A fusion for a model without one is an error (the run's config is not temporal). With
-    ``cfg`` the error names the ``model.*`` keys on which the checkpoint's config and ``cfg`` differ."""
-    own, theirs = model.state_dict(), state["model"]
-    fusion = [k for k in theirs if k.startswith("temporal.")]
-    if (any(k.startswith("temporal.") for k in own)  # (into a single-frame model a fusion is an error, below)
-            and any(k not in own or own[k].shape != theirs[k].shape for k in fusion)):
-        theirs = {k: v for k, v in theirs.items() if not k.startswith("temporal.")}
-    missing = [k for k in own if k not in theirs]
-    wrong = ([f"{k} (not in this model)" for k in theirs if k not in own]
-             + [f"{k} (missing)" for k in missing if not k.startswith("temporal.")]
-             + [f"{k} ({tuple(theirs[k].shape)} vs {tuple(own[k].shape)} here)" for k in own
-                if k in theirs and theirs[k].shape != own[k].shape])
-    if wrong:
-        more = f" and {len(wrong) - 3} more" if len(wrong) > 3 else ""
-        keys = ""  # the weights' names alone did not say which setting differs (another backbone, memory, depth)
-        if cfg is not None and isinstance(state.get("config"), dict):
-            old = saved_config(state["config"], "the checkpoint of train.init_from")
-            differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
-            keys = f", as the configs differ in {config_differences(old, cfg, differ)}" if differ else ""
-        raise UserError(f"train.init_from: the checkpoint's weights do not fit this model's architecture "
-                        f"({'; '.join(wrong[:3])}{more}){keys}; start from a checkpoint of the same model config")
-    model.load_state_dict(theirs, strict=False)
-    return missing
-
-
 def param_groups(model: torch.nn.Module, params: list[torch.nn.Parameter], weight_decay: float) -> list[dict]:
     """Adam's parameter groups: ``weight_decay`` (the paper's L2, added to the gradient as the official code
     does) on all but the temporal fusion's parameters, which get none. Adam normalises each step by the
@@ -1199,83 +778,3 @@ def param_groups(model: torch.nn.Module, params: list[torch.nn.Parameter], weigh
             if g["params"]]
 
 
-def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Parameter]:
-    """Only the parameters under ``prefixes`` (``train.trainable``; empty: all) keep ``requires_grad``;
-    returns them. A prefix naming no parameter is an error listing the model's parts."""
-    named = dict(model.named_parameters())
-    if not prefixes:
-        return list(named.values())
-    unused = [p for p in prefixes if not any(is_under(n, [p]) for n in named)]
-    if unused:
-        parts = sorted({n.split(".")[0] for n in named})
-        raise UserError(f"train.trainable: {unused} name no parameter of this model (its parts: {', '.join(parts)}; "
-                        "a prefix is a dotted module path, e.g. temporal or bev_heads.encoder)")
-    kept = []
-    for name, param in named.items():
-        param.requires_grad_(is_under(name, prefixes))
-        if param.requires_grad:
-            kept.append(param)
-    return kept
-
-
-def check_frozen_are_trained(model: torch.nn.Module, cfg: ExperimentConfig, fresh: bool) -> None:
-    """A fresh run (no ``train.init_from``, no resume) with ``train.trainable`` would keep the frozen
-    parameters at their random initialisation: only a backbone with ``model.backbone.weights`` starts trained."""
-    if not fresh or not cfg.train.trainable:
-        return
-    pretrained = ("backbone",) if cfg.model.backbone.weights else ()
-    frozen = sorted({n.split(".")[0] for n, p in model.named_parameters()
-                     if not p.requires_grad and not is_under(n, pretrained)})
-    if frozen:
-        raise UserError(f"train.trainable={list(cfg.train.trainable)} without train.init_from: the frozen parts "
-                        f"({', '.join(frozen)}) keep their random initialisation; give train.init_from=CHECKPOINT "
-                        "(the weights to fine-tune), or drop train.trainable")
-
-
-def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
-    """The checkpoint to resume (None: a fresh run), checked against ``cfg`` (``RESUME_KEYS``)."""
-    if resume is None:
-        return None
-    path = Path(resume)
-    if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in RUN_FILES):
-        raise CheckpointError(f"checkpoint not found: {path}; {path.parent} holds no training run (no checkpoint, "
-                              "config.yaml or log.jsonl): check the path (a run's checkpoints are OUT/last.pt and "
-                              "OUT/best.pt, OUT its train.out_dir)")
-    if not path.exists() and path.parent.is_dir() and not any((path.parent / n).exists() for n in CHECKPOINTS):
-        raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before its first "
-                              "checkpoint, so there is nothing to resume: run the same command without --resume")
-    if not path.exists() and path.name == "last.pt" and (path.parent / "best.pt").is_file():
-        raise CheckpointError(f"checkpoint not found: {path}; the run in {path.parent} stopped before it saved it "
-                              f"(a full disk?), after best.pt: resume from that one, "
-                              f"--resume {path.parent / 'best.pt'}")
-    state = load_checkpoint(path)
-    check_resumable(state, path)
-    check_resume_config(state["config"], cfg, path)
-    return state
-
-
-def later_last_step(out_dir: Path, resume: Path, step: int) -> int | None:
-    """The step of ``out_dir/last.pt`` when it is another file than ``resume`` and later than ``step`` (a run
-    resumed from its ``best.pt`` replaces it at its next save), else None."""
-    last = out_dir / "last.pt"
-    try:
-        if not last.is_file() or last.resolve() == resume.resolve():
-            return None
-        saved = load_checkpoint(last).get("step")
-    except (CheckpointError, OSError):
-        return None  # an unreadable last.pt is nothing to lose
-    return saved if isinstance(saved, int) and saved > step else None
-
-
-def best_score_in(out_dir: Path) -> float:
-    """The validation score of the ``best.pt`` in ``out_dir`` (-inf without a readable one): a resume
-    must not replace it with a worse model, whatever the checkpoint it resumes from remembers."""
-    path = out_dir / "best.pt"
-    if not path.is_file():
-        return -math.inf
-    try:
-        best = load_checkpoint(path).get("best") or {}
-    except CheckpointError:
-        return -math.inf  # an unreadable best.pt is no model to keep
-    score = best.get("score", -math.inf)
-    return float(score) if isinstance(score, (int, float)) and not math.isnan(score) else -math.inf

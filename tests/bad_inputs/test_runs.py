@@ -145,7 +145,7 @@ def row_out_of_memory(env):
 
 @row("a second training in the folder of a running one is refused (it deleted the first one's log)")
 def row_second_training_in_a_running_folder(env):
-    from instagram_hdmap.train import LOCK_FILE
+    from instagram_hdmap.files import LOCK_FILE
 
     run = env.tmp / "run"
     (run / "tb").mkdir(parents=True)
