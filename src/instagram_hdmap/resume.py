@@ -29,6 +29,7 @@ from .config import (
 from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .postprocess import DECODE_KEYS
 from .run_folder import CHECKPOINTS, RUN_FILES
+from .training_data import ResumableSampler
 
 # Config keys that must match for a checkpoint to be resumed: those that define the model and those
 # that define its training targets (training knobs may change).
@@ -39,7 +40,6 @@ from .run_folder import CHECKPOINTS, RUN_FILES
 # resume with another one switched them mid-run with no word)
 RESUME_KEYS = (*MODEL_KEYS, "loss", "data.sample_dist", "data.ped_crossing", "data.image_fit", "train.batch_size",
                "train.trainable", "train.seed")
-
 
 
 # a temporal model's epoch is a schedule of streams: its length and the memory rows depend on these too (a
@@ -58,7 +58,6 @@ SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_inst
               "model.temporal.persist_match_m")
 
 
-
 # the training settings a resume may change, which then hold from its position on (the steps so far were trained with
 # the checkpoint's): said in a note, as config.yaml and the next checkpoints record only the new values (a resume with
 # another train.lr, train.schedule or train.warmup went on with no word, the run's record rewritten)
@@ -68,7 +67,6 @@ RESUME_NOTED = ("train.epochs", "train.lr", "train.weight_decay", "train.schedul
                 "data.camera_dropout", "data.on_bad_sample", "model.temporal.drop_prob")
 
 
-
 def train_set_fingerprint(loader) -> dict | None:
     """The training split a run walks, as its sample count and a hash of its sample tokens in order (None for
     a dataset without tokens). A checkpoint keeps it: its position and schedule count batches of that split."""
@@ -76,7 +74,6 @@ def train_set_fingerprint(loader) -> dict | None:
     if not isinstance(tokens, list) or not all(isinstance(t, str) for t in tokens):
         return None
     return {"samples": len(tokens), "sha256": hashlib.sha256("\n".join(tokens).encode()).hexdigest()[:16]}
-
 
 
 def check_same_train_set(saved: dict | None, now: dict | None, path: Path | str) -> None:
@@ -96,13 +93,11 @@ def check_same_train_set(saved: dict | None, now: dict | None, path: Path | str)
                           f"weights (train.init_from={path})")
 
 
-
 def config_differences(old: ExperimentConfig, cfg: ExperimentConfig, keys) -> str:
     """The keys under ``keys`` whose values differ, as "key: checkpoint X vs now Y; ..." ("" if none)."""
     differ = [k for k in diff_configs(old, cfg) if is_under(k, keys)]
     old_d, new_d = config_to_dict(old), config_to_dict(cfg)
     return "; ".join(f"{k}: checkpoint {get_key(old_d, k)!r} vs now {get_key(new_d, k)!r}" for k in differ)
-
 
 
 def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> None:
@@ -114,7 +109,6 @@ def check_resume_config(ckpt_cfg: dict, cfg: ExperimentConfig, path: Path) -> No
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config ({lines}); resume it with "
                               f"the config it was trained with, or start a new run from its weights with "
                               f"train.init_from={path} and another train.out_dir")
-
 
 
 def memory_state(memory: dict | None, gather: bool = True) -> list | None:
@@ -129,14 +123,12 @@ def memory_state(memory: dict | None, gather: bool = True) -> list | None:
     return None if any(m is None for m in states) else states
 
 
-
 def resumed_memory(saved: list | None, world: int, device: torch.device) -> dict | None:
     """This rank's memory from a checkpoint's ``memory`` (None where the checkpoint holds none for it:
     its streams then start without history, as at a scene start)."""
     if not saved or len(saved) != world:
         return None
     return {k: v.to(device) for k, v in saved[du.get_rank()].items()}
-
 
 
 # the config keys a checkpoint that starts a fine-tuning (train.init_from) must share with the run: what
@@ -147,7 +139,6 @@ INIT_KEYS = ("grid", "data.image_size", "data.classes", "data.dt_clip", "data.av
 # ignored (element persistence, model.temporal.persist_* and the pose-jump limits it shares, works on any model)
 MEMORY_ONLY_KEYS = ("model.temporal.fusion", "model.temporal.kernel", "model.temporal.drop_prob",
                     "model.temporal.edge_samples", "train.stream_frames", "train.stream_warmup")
-
 
 
 def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | None) -> None:
@@ -163,7 +154,6 @@ def check_init_from_outside(cfg: ExperimentConfig, out_dir: Path, resume: str | 
                             "folder first, or choose another train.out_dir")
 
 
-
 def folder_id(path: Path) -> tuple[int, int] | None:
     """(device, inode) of the folder ``path`` (None where there is none)."""
     try:
@@ -173,13 +163,11 @@ def folder_id(path: Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
-
 def same_path(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
     except OSError:
         return False
-
 
 
 def load_init_state(cfg: ExperimentConfig) -> dict | None:
@@ -199,7 +187,6 @@ def load_init_state(cfg: ExperimentConfig) -> dict | None:
     return state
 
 
-
 def init_model_differences(state: dict, cfg: ExperimentConfig) -> str:
     """The ``model.*`` keys (but those an inference reads only, ``NOT_BAKED``) on which the config of
     ``train.init_from``'s checkpoint and ``cfg`` differ, as ``config_differences`` says them ("" if none)."""
@@ -208,7 +195,6 @@ def init_model_differences(state: dict, cfg: ExperimentConfig) -> str:
     old = saved_config(state["config"], "the checkpoint of train.init_from")
     differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
     return config_differences(old, cfg, differ)
-
 
 
 def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | None = None) -> list[str]:
@@ -241,7 +227,6 @@ def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | No
     return missing
 
 
-
 def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Parameter]:
     """Only the parameters under ``prefixes`` (``train.trainable``; empty: all) keep ``requires_grad``;
     returns them. A prefix naming no parameter is an error listing the model's parts."""
@@ -261,7 +246,6 @@ def freeze_parameters(model: torch.nn.Module, prefixes) -> list[torch.nn.Paramet
     return kept
 
 
-
 def check_frozen_are_trained(model: torch.nn.Module, cfg: ExperimentConfig, fresh: bool) -> None:
     """A fresh run (no ``train.init_from``, no resume) with ``train.trainable`` would keep the frozen
     parameters at their random initialisation: only a backbone with ``model.backbone.weights`` starts trained."""
@@ -274,7 +258,6 @@ def check_frozen_are_trained(model: torch.nn.Module, cfg: ExperimentConfig, fres
         raise UserError(f"train.trainable={list(cfg.train.trainable)} without train.init_from: the frozen parts "
                         f"({', '.join(frozen)}) keep their random initialisation; give train.init_from=CHECKPOINT "
                         "(the weights to fine-tune), or drop train.trainable")
-
 
 
 def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
@@ -299,7 +282,6 @@ def load_resume_state(resume: str | None, cfg: ExperimentConfig) -> dict | None:
     return state
 
 
-
 def later_last_step(out_dir: Path, resume: Path, step: int) -> int | None:
     """The step of ``out_dir/last.pt`` when it is another file than ``resume`` and later than ``step`` (a run
     resumed from its ``best.pt`` replaces it at its next save), else None."""
@@ -311,7 +293,6 @@ def later_last_step(out_dir: Path, resume: Path, step: int) -> int | None:
     except (CheckpointError, OSError):
         return None  # an unreadable last.pt is nothing to lose
     return saved if isinstance(saved, int) and saved > step else None
-
 
 
 def best_score_in(out_dir: Path) -> float:
@@ -326,3 +307,99 @@ def best_score_in(out_dir: Path) -> float:
         return -math.inf  # an unreadable best.pt is no model to keep
     score = best.get("score", -math.inf)
     return float(score) if isinstance(score, (int, float)) and not math.isnan(score) else -math.inf
+
+
+def resume_notes(run, state: dict, path: Path) -> list[str]:
+    """What a user resuming ``path`` into ``run`` should know: another run's folder, a later ``last.pt``
+    that the next save replaces, training or validation settings other than the checkpoint's, an unread
+    ``train.init_from``."""
+    notes: list[str] = []
+    run_dir = path.resolve().parent  # a symbolic link to the checkpoint: the run it is in
+    if run.clock.last < 1.0 and not same_path(run_dir, run.out_dir):  # (a finished one says so itself)
+        notes.append(f"note: {path} is a checkpoint of the run in {run_dir}; this run goes on in "
+                     f"train.out_dir={run.out_dir} (its checkpoints, log and TensorBoard events go there, the "
+                     f"earlier ones stay in {run_dir}; to continue there, pass train.out_dir={run_dir})")
+    later = later_last_step(run.out_dir, path, run.position.step)
+    if later is not None:  # resuming best.pt on purpose is fine; replacing a later last.pt unsaid is not
+        notes.append(f"note: {run.out_dir / 'last.pt'} is at step {later}, later than {path}; this run goes on "
+                     f"from step {run.position.step} and its next save replaces that last.pt (to continue "
+                     f"from step {later} instead, stop now and pass --resume {run.out_dir / 'last.pt'})")
+    best = run.best.get("score", -math.inf)
+    saved = saved_config(state["config"], f"checkpoint {path}")
+    changed = config_differences(saved, run.cfg, RESUME_NOTED)
+    if changed and run.clock.last < 1.0:
+        notes.append(f"note: resumed with training settings other than the checkpoint's ({changed}): the "
+                     f"{run.position.step} step(s) so far trained with the checkpoint's, the rest train with "
+                     "these, and config.yaml and the next checkpoints record only these")
+    measured = config_differences(saved, run.cfg, SCORE_KEYS)
+    if measured and math.isfinite(best):
+        notes.append(f"note: the best score so far ({best:.4g}, best.pt's) was measured with another "
+                     f"validation ({measured}); this run's scores replace best.pt only where they exceed it, "
+                     "a number of another kind")
+    if run.cfg.train.init_from:
+        notes.append(f"note: train.init_from={run.cfg.train.init_from} is not read on a resume: the weights are "
+                     f"{path}'s (the run's own checkpoint)")
+    return notes
+
+
+def world_change_note(run, saved_world: int | None, path: Path | str) -> str | None:
+    """A checkpoint saved part-way through an epoch by another number of processes. The shuffled
+    sampler goes on exactly (``ResumableSampler.set_epoch``: its order does not depend on the ranks);
+    the streaming one deals the scenes over the streams of all ranks, so under another number its
+    epoch is another walk: said, not hidden. Checkpoints written before the world size was saved
+    (None) get none."""
+    p = run.position
+    if saved_world is None or saved_world == run.world or not p.step_in_epoch:
+        return None
+    if isinstance(run.sampler, ResumableSampler):
+        return (f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
+                f"{p.epoch}, resumed by {run.world}: the epoch goes on from the same sample (the batch "
+                f"over all processes, train.batch_size={run.cfg.train.batch_size}, is the same)")
+    return (f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
+            f"{p.epoch}, resumed by {run.world}: the streams' scenes are dealt over the processes, so "
+            f"the rest of epoch {p.epoch} follows the dealing of {run.world} (some of its frames are "
+            "walked twice, some not at all) and the streams start without memory; exact from the next "
+            "epoch on (to keep this epoch exact, resume with the same number of processes)")
+
+
+def check_not_finished(run, state: dict, path: Path) -> None:
+    """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
+    an error (the schedule's progress cannot be extended), resuming it as it was a note."""
+    old_epochs = (state.get("config", {}).get("train") or {}).get("epochs")
+    if run.clock.last < 1.0:
+        p = run.position
+        if old_epochs is not None and old_epochs != run.cfg.train.epochs and p.step > run.total_steps:
+            # a shorter schedule that ends before the checkpoint: "done" after no step, exit 0, nothing written
+            raise UserError(f"train.epochs={run.cfg.train.epochs} ends the schedule at step {run.total_steps}, "
+                            f"before checkpoint {path}'s step {p.step} (epoch {p.epoch} of its {old_epochs}): "
+                            f"nothing would be trained; resume with train.epochs={p.epoch + 1} or more (or its "
+                            f"own {old_epochs}) to finish it")
+        return
+    if old_epochs is not None and old_epochs != run.cfg.train.epochs:
+        raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
+                        f"{run.position.step}); train.epochs={run.cfg.train.epochs} cannot extend a finished "
+                        "schedule: start a new run (another train.out_dir)")
+    run_dir = Path(path).resolve().parent  # a symbolic link to the checkpoint: the run it is in
+    elsewhere = not same_path(run_dir, run.out_dir)
+    du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
+                  + (" but its final validation, which was interrupted" if run.validation_pending else "")
+                  + (f"; its run's outputs stay in {run_dir}, train.out_dir={run.out_dir} gets no "
+                     "checkpoint (to train on from it, start a new run with train.init_from=" + str(path) + ")"
+                     if elsewhere else ""))
+
+
+def init_notes(cfg, init_state: dict, new: list[str]) -> list[str]:
+    """What a run started from ``train.init_from`` says: the weights' source (and the new tensors of a temporal
+    fusion), model settings other than the checkpoint's, an unread ``model.backbone.weights``."""
+    notes: list[str] = []
+    notes.append(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
+                                                         "start from their initialisation)" if new else ""))
+    other = init_model_differences(init_state, cfg)
+    if other:  # weights of the same names and shapes, loaded with no word (8 attention heads from 4)
+        notes.append(f"note: the checkpoint of train.init_from was trained with other model settings "
+                     f"({other}); its weights have this model's names and shapes and start this run, which "
+                     "trains them under these settings")
+    if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
+        notes.append(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
+                     f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
+    return notes

@@ -4,17 +4,17 @@ resumed one, its log cut back to the resumed step, and the lock that keeps a sec
 
 from __future__ import annotations
 
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
 
 from . import distributed as du
-from .config import (
-    UserError,
-)
+from .errors import UserError
 from .files import (
     LOCK_FILE,
     check_output_dir,
+    held_folder_now,
     lock_folder,
     remove_stale_temporaries,
     write_text,
@@ -23,7 +23,6 @@ from .files import (
 # What a run writes in its output folder (``--force`` removes these and nothing else)
 RUN_FILES = ("config.yaml", "log.jsonl", "tb", "last.pt", "best.pt")
 CHECKPOINTS = ("last.pt", "best.pt")
-
 
 
 def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> None:
@@ -81,7 +80,6 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
                                 "(or pass --force to start the run over)")
 
 
-
 def purge_log(path: Path, lines: int, note: Callable[[str], None]) -> int:
     """Keep the first ``lines`` lines of a resumed run's ``log.jsonl``, the lines written before the checkpoint
     it resumes from (its ``log_lines``): a killed run's lines after it (an epoch's line is written before the
@@ -98,8 +96,23 @@ def purge_log(path: Path, lines: int, note: Callable[[str], None]) -> int:
     return len(keep)
 
 
-
 def lock_out_dir(out_dir: Path) -> None:
     """``files.lock_folder`` of ``train.out_dir``: a second training started there is refused before it removes
     or overwrites anything of the first one's."""
     lock_folder(out_dir, "training", "choose another train.out_dir", du.print_main)
+
+
+def moved_folder_error(out_dir: Path, step: int, cause: OSError | None) -> UserError:
+    """The error of a run whose ``train.out_dir`` was moved or removed while it wrote there, saying where it
+    is now (when it can be found) and how to resume."""
+    now = held_folder_now(out_dir)
+    again = "the steps since its last checkpoint are trained again"
+    where = ("it was removed, and its checkpoints with it: start the run again" if now == "removed" else
+             f"it is now {now}: resume there with --resume {now / 'last.pt'} train.out_dir={now} ({again})"
+             if isinstance(now, Path) else "its checkpoints went with it: if it was moved, resume from its "
+             f"last.pt there, with train.out_dir set to that folder ({again})")
+    name = cause.filename if cause is not None else None
+    why = (f" ({cause.strerror or cause}" + (f": {os.fsdecode(name)}" if isinstance(name, (str, bytes)) else "")
+           + ")") if cause is not None else ""
+    return UserError(f"train.out_dir {out_dir} was moved or removed while this run wrote to it{why}; the run "
+                     f"stopped at step {step}; {where}")

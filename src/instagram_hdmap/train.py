@@ -55,13 +55,11 @@ from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
 from .files import (
-    held_folder_now,
     json_safe,
     json_text,
     unlock_folder,
 )
 from .geometry import BEVGrid
-from .inference import saved_config
 from .losses import Criterion
 from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
@@ -70,26 +68,24 @@ from .postprocess import decode_options, postprocess_batch
 from .resources import check_fits, size_notes, usable_cores
 from .resume import (
     MEMORY_ONLY_KEYS,
-    RESUME_NOTED,
-    SCORE_KEYS,
     best_score_in,
     check_frozen_are_trained,
     check_init_from_outside,
+    check_not_finished,
     check_same_train_set,
-    config_differences,
     folder_id,
     freeze_parameters,
-    init_model_differences,
+    init_notes,
     init_weights,
-    later_last_step,
     load_init_state,
     load_resume_state,
     memory_state,
+    resume_notes,
     resumed_memory,
-    same_path,
     train_set_fingerprint,
+    world_change_note,
 )
-from .run_folder import prepare_out_dir, purge_log
+from .run_folder import moved_folder_error, prepare_out_dir, purge_log
 from .schedule import ProgressClock, final_lr_factor, lr_factor
 from .training_data import (
     DataWorkerError,
@@ -141,8 +137,8 @@ def train(cfg: ExperimentConfig, *, resume: str | None = None, force: bool = Fal
     ``ExperimentConfig`` or a YAML file."""
     cfg = as_config(cfg, "train")
     try:
-        run = TrainingRun.start(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
-        with run.threads(), run.outputs():
+        run = start_run(cfg, resume=resume, force=force, loaders=loaders, validate=validate)
+        with run_threads(run), run_outputs(run):
             run.announce()
             run.fit()
         return run.final_summary()
@@ -252,16 +248,8 @@ class TrainingRun:
             du.print_main(f"note: {note}")
         if init_state is not None:
             new = init_weights(self.model, init_state, cfg)
-            du.print_main(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
-                                                                  "start from their initialisation)" if new else ""))
-            other = init_model_differences(init_state, cfg)
-            if other:  # weights of the same names and shapes, loaded with no word (8 attention heads from 4)
-                du.print_main(f"note: the checkpoint of train.init_from was trained with other model settings "
-                              f"({other}); its weights have this model's names and shapes and start this run, which "
-                              "trains them under these settings")
-            if cfg.model.backbone.weights and cfg.model.backbone.name != "tiny":  # unread, with no word
-                du.print_main(f"note: model.backbone.weights={cfg.model.backbone.weights} is not loaded: the backbone "
-                              f"starts from the weights of train.init_from={cfg.train.init_from}, as every other part")
+            for note in init_notes(cfg, init_state, new):
+                du.print_main(note)
         trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
         self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
@@ -292,74 +280,6 @@ class TrainingRun:
         self.sync = device if self.world > 1 and cfg.train.time_budget_min is not None else None
         self.out_dir_id = folder_id(out_dir)  # the folder itself: moved or removed during the run, it is named
 
-    # --- start --------------------------------------------------------------------------------------
-
-    @classmethod
-    def start(cls, cfg: ExperimentConfig, *, resume: str | None, force: bool, loaders, validate: bool) -> TrainingRun:
-        device = du.init_distributed(du.resolve_device(cfg.train.device).type)
-        out_dir = Path(cfg.train.out_dir)
-        check_init_from_outside(cfg, out_dir, resume)
-        check_stream_schedule(cfg)
-        for note in setting_notes(cfg):
-            du.print_main(note)
-        check_batch_over_ranks(cfg, du.get_world_size())
-        check_fits(cfg, "train", device)  # a step that cannot fit the memory: one line, before any worker starts
-        prepare_out_dir(out_dir, resume, force)
-        du.barrier()
-        state = load_resume_state(resume, cfg)
-        seed_everything(cfg.train.seed + du.get_rank())
-        if cfg.train.deterministic:
-            torch.use_deterministic_algorithms(True)
-        init_state = load_init_state(cfg) if state is None else None  # fails fast, before the loaders
-        if init_state is not None or cfg.train.trainable:  # so do the weights' fit and the prefixes (a model: ~1 s)
-            with torch.random.fork_rng(devices=[]):  # the run's own model is initialised as without the probe
-                probe = build_model(cfg, pretrained=False)
-            if init_state is not None:
-                init_weights(probe, init_state, cfg)
-            freeze_parameters(probe, cfg.train.trainable)
-            check_frozen_are_trained(probe, cfg, fresh=state is None and init_state is None)
-            del probe
-        if (state is None and init_state is None and cfg.model.backbone.name != "tiny"
-                and cfg.model.backbone.weights == "imagenet"):
-            imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
-        if loaders is None:
-            loaders = build_loaders(cfg, du.get_world_size(), with_val=validate)
-        run = cls(cfg, device, out_dir, loaders, validate, fresh=state is None, init_state=init_state)
-        if state is not None:
-            run.restore(state, Path(resume))
-            run.check_not_finished(state, Path(resume))
-            du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
-                          f"({run.position.step_in_epoch} into the epoch)")
-            run_dir = Path(resume).resolve().parent  # a symbolic link to the checkpoint: the run it is in
-            if run.clock.last < 1.0 and not same_path(run_dir, out_dir):  # (a finished one says so itself)
-                du.print_main(f"note: {resume} is a checkpoint of the run in {run_dir}; this run goes on in "
-                              f"train.out_dir={out_dir} (its checkpoints, log and TensorBoard events go there, the "
-                              f"earlier ones stay in {run_dir}; to continue there, pass train.out_dir={run_dir})")
-            later = later_last_step(out_dir, Path(resume), run.position.step)
-            if later is not None:  # resuming best.pt on purpose is fine; replacing a later last.pt unsaid is not
-                du.print_main(f"note: {out_dir / 'last.pt'} is at step {later}, later than {resume}; this run goes on "
-                              f"from step {run.position.step} and its next save replaces that last.pt (to continue "
-                              f"from step {later} instead, stop now and pass --resume {out_dir / 'last.pt'})")
-            best = run.best.get("score", -math.inf)
-            saved = saved_config(state["config"], f"checkpoint {resume}")
-            changed = config_differences(saved, cfg, RESUME_NOTED)
-            if changed and run.clock.last < 1.0:
-                du.print_main(f"note: resumed with training settings other than the checkpoint's ({changed}): the "
-                              f"{run.position.step} step(s) so far trained with the checkpoint's, the rest train with "
-                              "these, and config.yaml and the next checkpoints record only these")
-            measured = config_differences(saved, cfg, SCORE_KEYS)
-            if measured and math.isfinite(best):
-                du.print_main(f"note: the best score so far ({best:.4g}, best.pt's) was measured with another "
-                              f"validation ({measured}); this run's scores replace best.pt only where they exceed it, "
-                              "a number of another kind")
-            if cfg.train.init_from:
-                du.print_main(f"note: train.init_from={cfg.train.init_from} is not read on a resume: the weights are "
-                              f"{resume}'s (the run's own checkpoint)")
-        if run.world > 1:
-            run.net = torch.nn.parallel.DistributedDataParallel(
-                run.model, device_ids=[device.index] if device.type == "cuda" else None)
-        return run
-
     def restore(self, state: dict, path: Path | str = "the checkpoint") -> None:
         """The full state of a checkpoint: weights, optimizer, clock, scaler, position, best, RNGs."""
         self.model.load_state_dict(state["model"])
@@ -380,103 +300,13 @@ class TrainingRun:
         self.log_lines = lines if isinstance(lines, int) and not isinstance(lines, bool) and lines >= 0 else None
         check_same_train_set(state.get("train_set"), train_set_fingerprint(self.train_loader), path)
         self.memory = resumed_memory(state.get("memory"), self.world, self.device)
-        self.note_world_change(state.get("world"), path)
+        note = world_change_note(self, state.get("world"), path)
+        if note:
+            du.print_main(note)
         on_disk = best_score_in(self.out_dir)  # saved after the checkpoint resumed from (a kill in between)
         if on_disk > self.best.get("score", -math.inf):
             self.best = {**self.best, "score": on_disk}
         set_rng_state(state["rng"])
-
-    def note_world_change(self, saved_world: int | None, path: Path | str) -> None:
-        """A checkpoint saved part-way through an epoch by another number of processes. The shuffled
-        sampler goes on exactly (``ResumableSampler.set_epoch``: its order does not depend on the ranks);
-        the streaming one deals the scenes over the streams of all ranks, so under another number its
-        epoch is another walk: said, not hidden. Checkpoints written before the world size was saved
-        (None) say nothing."""
-        p = self.position
-        if saved_world is None or saved_world == self.world or not p.step_in_epoch:
-            return
-        if isinstance(self.sampler, ResumableSampler):
-            du.print_main(f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
-                          f"{p.epoch}, resumed by {self.world}: the epoch goes on from the same sample (the batch "
-                          f"over all processes, train.batch_size={self.cfg.train.batch_size}, is the same)")
-        else:
-            du.print_main(f"note: {path} was saved by {saved_world} process(es) at step {p.step_in_epoch} of epoch "
-                          f"{p.epoch}, resumed by {self.world}: the streams' scenes are dealt over the processes, so "
-                          f"the rest of epoch {p.epoch} follows the dealing of {self.world} (some of its frames are "
-                          "walked twice, some not at all) and the streams start without memory; exact from the next "
-                          "epoch on (to keep this epoch exact, resume with the same number of processes)")
-
-    def check_not_finished(self, state: dict, path: Path) -> None:
-        """A checkpoint whose schedule is complete has nothing to resume: asking it for more epochs is
-        an error (the schedule's progress cannot be extended), resuming it as it was a note."""
-        old_epochs = (state.get("config", {}).get("train") or {}).get("epochs")
-        if self.clock.last < 1.0:
-            p = self.position
-            if old_epochs is not None and old_epochs != self.cfg.train.epochs and p.step > self.total_steps:
-                # a shorter schedule that ends before the checkpoint: "done" after no step, exit 0, nothing written
-                raise UserError(f"train.epochs={self.cfg.train.epochs} ends the schedule at step {self.total_steps}, "
-                                f"before checkpoint {path}'s step {p.step} (epoch {p.epoch} of its {old_epochs}): "
-                                f"nothing would be trained; resume with train.epochs={p.epoch + 1} or more (or its "
-                                f"own {old_epochs}) to finish it")
-            return
-        if old_epochs is not None and old_epochs != self.cfg.train.epochs:
-            raise UserError(f"checkpoint {path} completed its schedule ({old_epochs} epochs, step "
-                            f"{self.position.step}); train.epochs={self.cfg.train.epochs} cannot extend a finished "
-                            "schedule: start a new run (another train.out_dir)")
-        run_dir = Path(path).resolve().parent  # a symbolic link to the checkpoint: the run it is in
-        elsewhere = not same_path(run_dir, self.out_dir)
-        du.print_main(f"checkpoint {path} completed its schedule: nothing left to train"
-                      + (" but its final validation, which was interrupted" if self.validation_pending else "")
-                      + (f"; its run's outputs stay in {run_dir}, train.out_dir={self.out_dir} gets no "
-                         "checkpoint (to train on from it, start a new run with train.init_from=" + str(path) + ")"
-                         if elsewhere else ""))
-
-    @contextlib.contextmanager
-    def threads(self):
-        """torch's intra-op threads for a CPU run (``cpu_threads``), restored afterwards."""
-        before = torch.get_num_threads()
-        threads = (cpu_threads(self.cfg, int(os.environ.get("LOCAL_WORLD_SIZE", 1)))
-                   if self.device.type == "cpu" else None)
-        self.chosen_threads = threads
-        if threads is not None:
-            torch.set_num_threads(threads)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(before)
-
-    @contextlib.contextmanager
-    def outputs(self):
-        """Rank 0 writes config.yaml, TensorBoard events (tb/) and log.jsonl; closed at the end."""
-        if du.is_main_process():
-            save_config(self.cfg, self.out_dir / "config.yaml")
-            from torch.utils.tensorboard import SummaryWriter  # slow to import; training only
-
-            # a resumed run hides the events its killed predecessor wrote after the checkpoint (TensorBoard's
-            # purge_step): they showed as a second curve over the steps the resume trains again
-            purge = self.position.step + 1 if self.position.step else None
-            self.writer = SummaryWriter(str(self.out_dir / "tb"), purge_step=purge)
-            if self.log_lines is not None:  # the same for the log's lines (a checkpoint that counts them)
-                self.log_lines = purge_log(self.out_dir / "log.jsonl", self.log_lines, du.print_main)
-            self.log_file = (self.out_dir / "log.jsonl").open("a")
-        previous_hook = threading.excepthook
-
-        def thread_failed(args):  # TensorBoard's writer thread, once the folder is gone: said once by fit
-            if not (isinstance(args.exc_value, OSError) and self.out_dir_moved()):
-                previous_hook(args)
-
-        threading.excepthook = thread_failed
-        try:
-            yield
-        finally:
-            threading.excepthook = previous_hook
-            for handle in (self.log_file, self.writer):
-                if handle is not None:
-                    try:
-                        handle.close()
-                    except OSError:  # the folder moved away: fit said so; its error is not hidden by this one
-                        if not self.out_dir_moved():
-                            raise
 
     def announce(self) -> None:
         """Start the clock, set the first learning rate, print the threads and the schedule."""
@@ -563,7 +393,7 @@ class TrainingRun:
         except OSError as e:  # the run's folder moved or removed under it: one line, not TensorBoard's traceback
             if not self.out_dir_moved():
                 raise
-            raise self.moved_error(e) from None
+            raise moved_folder_error(self.out_dir, self.position.step, e) from None
         except RuntimeError as e:  # a data-loader worker killed (the OOM killer): saved as for Ctrl-C, one line
             died = data_worker_died(e)
             if died is None:
@@ -661,7 +491,7 @@ class TrainingRun:
         if not du.is_main_process():
             return
         if self.out_dir_moved():  # the save would make a new folder of that name, with a checkpoint and nothing else
-            raise self.moved_error(None)
+            raise moved_folder_error(self.out_dir, self.position.step, None)
         save_checkpoint({
             "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
             "clock": self.clock.state_dict(), "scaler": self.scaler.state_dict() if self.scaler else None,
@@ -675,19 +505,6 @@ class TrainingRun:
         """Whether ``train.out_dir`` is no longer the folder this run started in (renamed, moved or removed)."""
         return self.out_dir_id is not None and folder_id(self.out_dir) != self.out_dir_id
 
-    def moved_error(self, cause: OSError | None) -> UserError:
-        now = held_folder_now(self.out_dir)
-        again = "the steps since its last checkpoint are trained again"
-        where = ("it was removed, and its checkpoints with it: start the run again" if now == "removed" else
-                 f"it is now {now}: resume there with --resume {now / 'last.pt'} train.out_dir={now} ({again})"
-                 if isinstance(now, Path) else "its checkpoints went with it: if it was moved, resume from its "
-                 f"last.pt there, with train.out_dir set to that folder ({again})")
-        name = cause.filename if cause is not None else None
-        why = (f" ({cause.strerror or cause}" + (f": {os.fsdecode(name)}" if isinstance(name, (str, bytes)) else "")
-               + ")") if cause is not None else ""
-        return UserError(f"train.out_dir {self.out_dir} was moved or removed while this run wrote to it{why}; the run "
-                         f"stopped at step {self.position.step}; {where}")
-
     def log(self) -> None:
         if self.log_file is not None:
             self.log_file.write(json_text(self.summary, default=lambda x: json_safe(float(x))) + "\n")  # standard JSON
@@ -699,6 +516,101 @@ class TrainingRun:
     def final_summary(self) -> dict:
         return {"epoch": self.position.epoch, "step": self.position.step,  # a resume that trained nothing
                 **self.summary, **self.schedule_summary(), "out_dir": str(self.out_dir)}
+
+
+@contextlib.contextmanager
+def run_threads(run: TrainingRun):
+    """torch's intra-op threads for a CPU run (``cpu_threads``), restored afterwards."""
+    before = torch.get_num_threads()
+    threads = (cpu_threads(run.cfg, int(os.environ.get("LOCAL_WORLD_SIZE", 1)))
+               if run.device.type == "cpu" else None)
+    run.chosen_threads = threads
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+@contextlib.contextmanager
+def run_outputs(run: TrainingRun):
+    """Rank 0 writes config.yaml, TensorBoard events (tb/) and log.jsonl; closed at the end."""
+    if du.is_main_process():
+        save_config(run.cfg, run.out_dir / "config.yaml")
+        from torch.utils.tensorboard import SummaryWriter  # slow to import; training only
+
+        # a resumed run hides the events its killed predecessor wrote after the checkpoint (TensorBoard's
+        # purge_step): they showed as a second curve over the steps the resume trains again
+        purge = run.position.step + 1 if run.position.step else None
+        run.writer = SummaryWriter(str(run.out_dir / "tb"), purge_step=purge)
+        if run.log_lines is not None:  # the same for the log's lines (a checkpoint that counts them)
+            run.log_lines = purge_log(run.out_dir / "log.jsonl", run.log_lines, du.print_main)
+        run.log_file = (run.out_dir / "log.jsonl").open("a")
+    previous_hook = threading.excepthook
+
+    def thread_failed(args):  # TensorBoard's writer thread, once the folder is gone: said once by fit
+        if not (isinstance(args.exc_value, OSError) and run.out_dir_moved()):
+            previous_hook(args)
+
+    threading.excepthook = thread_failed
+    try:
+        yield
+    finally:
+        threading.excepthook = previous_hook
+        for handle in (run.log_file, run.writer):
+            if handle is not None:
+                try:
+                    handle.close()
+                except OSError:  # the folder moved away: fit said so; its error is not hidden by this one
+                    if not run.out_dir_moved():
+                        raise
+
+
+
+def start_run(cfg: ExperimentConfig, *, resume: str | None, force: bool, loaders, validate: bool) -> TrainingRun:
+    """The run of ``cfg``, set up in the order the RNG streams of an exact resume depend on: the checks that
+    need no data, the output folder, the checkpoint to resume, seeds, the initial weights' fit, loaders, model
+    and optimizer, the restored state."""
+    device = du.init_distributed(du.resolve_device(cfg.train.device).type)
+    out_dir = Path(cfg.train.out_dir)
+    check_init_from_outside(cfg, out_dir, resume)
+    check_stream_schedule(cfg)
+    for note in setting_notes(cfg):
+        du.print_main(note)
+    check_batch_over_ranks(cfg, du.get_world_size())
+    check_fits(cfg, "train", device)  # a step that cannot fit the memory: one line, before any worker starts
+    prepare_out_dir(out_dir, resume, force)
+    du.barrier()
+    state = load_resume_state(resume, cfg)
+    seed_everything(cfg.train.seed + du.get_rank())
+    if cfg.train.deterministic:
+        torch.use_deterministic_algorithms(True)
+    init_state = load_init_state(cfg) if state is None else None  # fails fast, before the loaders
+    if init_state is not None or cfg.train.trainable:  # so do the weights' fit and the prefixes (a model: ~1 s)
+        with torch.random.fork_rng(devices=[]):  # the run's own model is initialised as without the probe
+            probe = build_model(cfg, pretrained=False)
+        if init_state is not None:
+            init_weights(probe, init_state, cfg)
+        freeze_parameters(probe, cfg.train.trainable)
+        check_frozen_are_trained(probe, cfg, fresh=state is None and init_state is None)
+        del probe
+    if (state is None and init_state is None and cfg.model.backbone.name != "tiny"
+            and cfg.model.backbone.weights == "imagenet"):
+        imagenet_state(cfg.model.backbone.name)  # fail fast (one line) before the loaders' long setup
+    if loaders is None:
+        loaders = build_loaders(cfg, du.get_world_size(), with_val=validate)
+    run = TrainingRun(cfg, device, out_dir, loaders, validate, fresh=state is None, init_state=init_state)
+    if state is not None:
+        run.restore(state, Path(resume))
+        check_not_finished(run, state, Path(resume))
+        du.print_main(f"resumed from {resume}: epoch {run.position.epoch}, step {run.position.step} "
+                      f"({run.position.step_in_epoch} into the epoch)")
+        for note in resume_notes(run, state, Path(resume)):
+            du.print_main(note)
+    if run.world > 1:
+        run.net = torch.nn.parallel.DistributedDataParallel(
+            run.model, device_ids=[device.index] if device.type == "cuda" else None)
+    return run
 
 
 def check_stream_schedule(cfg: ExperimentConfig) -> None:

@@ -30,7 +30,6 @@ from .resources import data_workers
 WORKER_DIED = re.compile(r"DataLoader worker \(pids?\(?s?\)? ?[\d, ]+\)? (is killed by signal|exited unexpectedly)")
 
 
-
 def data_worker_died(e: BaseException) -> str | None:
     """torch's message when a data-loader worker process died (the out-of-memory killer's choice, a ``kill -9``),
     first line only; None for another exception."""
@@ -38,10 +37,8 @@ def data_worker_died(e: BaseException) -> str | None:
     return text.splitlines()[0] if isinstance(e, RuntimeError) and WORKER_DIED.search(text) else None
 
 
-
 class DataWorkerError(UserError):
     """A data-loader worker died during a training: ``last.pt`` was saved at the last completed step."""
-
 
 
 def _worker_init(worker_id: int) -> None:
@@ -52,9 +49,7 @@ def _worker_init(worker_id: int) -> None:
     random.seed(seed)
 
 
-
 OPEN_FILES_FOR_WORKERS = 4096  # the open-file limit under which data-loader workers hand tensors over by name
-
 
 
 def open_files_for_workers(num_workers: int) -> None:
@@ -81,7 +76,6 @@ def open_files_for_workers(num_workers: int) -> None:
             soft = raised
     if soft < OPEN_FILES_FOR_WORKERS and torch.multiprocessing.get_sharing_strategy() == "file_descriptor":
         torch.multiprocessing.set_sharing_strategy("file_system")
-
 
 
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
@@ -140,11 +134,9 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     return train_loader, sampler, val_loader
 
 
-
 def loader_batch_size(loader: DataLoader) -> int:
     """Samples per batch of this rank (a streaming loader's batch sampler holds it)."""
     return loader.batch_size or loader.batch_sampler.batch_size
-
 
 
 def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
@@ -153,7 +145,6 @@ def make_flicker_meter(cfg: ExperimentConfig) -> FlickerMeter | None:
         return None
     return FlickerMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
                         threshold_m=cfg.eval.flicker_threshold_m)
-
 
 
 def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
@@ -181,7 +172,6 @@ def unused_meter_keys(cfg: ExperimentConfig) -> list[str]:
     return notes
 
 
-
 def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
     """The consistency-aware mAP meter of ``eval.cmap`` (evaluation/consistency.py), or None when it is off; the
     predicted instance IDs pass on within ``eval.cmap_match_m`` and start anew at ``model.temporal``'s pose jumps."""
@@ -191,7 +181,6 @@ def make_cmap_meter(cfg: ExperimentConfig) -> ConsistentAPMeter | None:
     return ConsistentAPMeter(BEVGrid.from_config(cfg.grid), len(cfg.data.classes), cfg.data.classes,
                              thresholds=cfg.eval.thresholds, match_m=cfg.eval.cmap_match_m, max_jump_m=t.max_jump_m,
                              max_turn_deg=t.max_turn_deg)
-
 
 
 ResumableSampler = du.ResumableSampler
