@@ -173,6 +173,40 @@ def shut_down_workers(batches) -> None:
             raise
 
 
+def _skip_nonfinite(losses: dict, settings: StepSettings, epoch: int, global_step: int) -> None:
+    """A step whose loss is not finite: raised under ``train.on_nonfinite=stop``, else said and skipped."""
+    terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items() if k.startswith("loss_"))
+    if settings.on_nonfinite == "stop":
+        raise NonFiniteLossError(
+            f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
+            "train.amp=none, or set train.on_nonfinite=skip to skip such steps"
+        )
+    du.print_main(f"warning: skipping step {global_step} with non-finite loss ({terms})")
+
+
+def _step_values(losses: dict, grad_norm, outputs: dict) -> dict[str, float]:
+    """What a step logs: its losses, the gradient norm, the memory statuses and the vertices per sample."""
+    values = _scalars(losses)
+    values["grad_norm"] = float(grad_norm)
+    values.update(memory_counts(outputs))
+    if "pred_vertex_mask" in outputs:
+        values["num_vertices"] = float(outputs["pred_vertex_mask"].sum(1).float().mean())
+    return values
+
+
+def _log_step(bar, writer, values: dict, throughput: float, lr: float, step: int, device: torch.device) -> None:
+    """A logged step's values (averaged over the ranks) on the progress bar and in TensorBoard."""
+    logged = du.reduce_dict(values, device if device.type == "cuda" else None)
+    bar.set_postfix(refresh=bar_interval() < 1, loss=f"{logged['loss_total']:.3f}",
+                    **{k[5:]: f"{v:.3f}" for k, v in logged.items()
+                       if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
+    if writer is not None:
+        for k, v in logged.items():
+            writer.add_scalar(f"train/{k}", v, step)
+        writer.add_scalar("train/lr", lr, step)
+        writer.add_scalar("train/samples_per_s", throughput, step)
+
+
 def train_one_epoch(
     model: torch.nn.Module,
     criterion: Callable[[dict, dict], dict],
@@ -209,10 +243,9 @@ def train_one_epoch(
     stopped = False
     t_last, n_last = time.perf_counter(), 0
     batches = iter(loader)
-    interval = bar_interval()
     bar = tqdm(batches, total=_length(loader) if total is None else total, initial=step_in_epoch,
                desc=f"epoch {epoch}", dynamic_ncols=True, disable=not du.is_main_process(), leave=False,
-               mininterval=interval)
+               mininterval=bar_interval())
     try:
         for batch in bar:
             batch = move_to(batch, device)
@@ -223,46 +256,24 @@ def train_one_epoch(
             if streaming:
                 memory = outputs["memory"]
             losses = criterion(outputs, batch)  # the criterion casts to float32 where it matters
-            loss = losses["loss_total"]
             global_step += 1
             step_in_epoch += 1
-            if not torch.isfinite(loss):
-                terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items() if k.startswith("loss_"))
-                if settings.on_nonfinite == "stop":
-                    raise NonFiniteLossError(
-                        f"non-finite loss at epoch {epoch}, step {global_step}: {terms}. Lower train.lr, try "
-                        "train.amp=none, or set train.on_nonfinite=skip to skip such steps"
-                    )
-                du.print_main(f"warning: skipping step {global_step} with non-finite loss ({terms})")
+            if not torch.isfinite(losses["loss_total"]):
+                _skip_nonfinite(losses, settings, epoch, global_step)
                 optimizer.zero_grad(set_to_none=True)
                 memory = None  # a memory of non-finite features would poison the next steps
                 continue
-
-            grad_norm = optimisation_step(loss, model, optimizer, scaler, settings.grad_clip)
-            values = _scalars(losses)
-            values["grad_norm"] = float(grad_norm)
-            values.update(memory_counts(outputs))
-            if "pred_vertex_mask" in outputs:
-                values["num_vertices"] = float(outputs["pred_vertex_mask"].sum(1).float().mean())
+            grad_norm = optimisation_step(losses["loss_total"], model, optimizer, scaler, settings.grad_clip)
+            values = _step_values(losses, grad_norm, outputs)
             for k, v in values.items():
                 sums[k] += v
             count += 1
             n_samples += batch["images"].shape[0] * du.get_world_size()
-
             if global_step % settings.log_every == 0 or step_in_epoch == 1:
-                logged = du.reduce_dict(values, device if device.type == "cuda" else None)
                 now = time.perf_counter()
-                batch_size = batch["images"].shape[0] * du.get_world_size()
-                throughput = batch_size * (count - n_last) / max(now - t_last, 1e-9)
+                throughput = batch["images"].shape[0] * du.get_world_size() * (count - n_last) / max(now - t_last, 1e-9)
                 t_last, n_last = now, count
-                bar.set_postfix(refresh=interval < 1, loss=f"{logged['loss_total']:.3f}",
-                                **{k[5:]: f"{v:.3f}" for k, v in logged.items()
-                                   if k.startswith("loss_") and k != "loss_total" and not k.endswith("_weighted")})
-                if hooks.writer is not None:
-                    for k, v in logged.items():
-                        hooks.writer.add_scalar(f"train/{k}", v, global_step)
-                    hooks.writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], global_step)
-                    hooks.writer.add_scalar("train/samples_per_s", throughput, global_step)
+                _log_step(bar, hooks.writer, values, throughput, optimizer.param_groups[0]["lr"], global_step, device)
             if hooks.on_step is not None:
                 hooks.on_step(StepInfo(epoch, global_step, step_in_epoch, values, memory))
             if hooks.should_stop is not None and hooks.should_stop(global_step):
@@ -272,14 +283,70 @@ def train_one_epoch(
         shut_down_workers(batches)
         raise
     bar.close()
-    stats = du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
-                           device if device.type == "cuda" else None)
+    stats = _reduced(sums, count, None, device)["losses"]  # (the mean of every logged value)
     seconds = time.perf_counter() - t_epoch
     return {"stats": stats, "global_step": global_step, "step_in_epoch": step_in_epoch, "stopped": stopped,
             "seconds": seconds, "samples_per_s": n_samples / max(seconds, 1e-9), "memory": memory}
 
 
 @torch.no_grad()
+def _rows_to_score(batch: dict, owned: set | None, streaming: bool) -> tuple[list[int], list[int]]:
+    """The rows of ``batch`` to score and, for a temporal model, those whose memory status counts. A streaming
+    loader's padding is not scored: each sample it ``owned`` once (even twice in a batch), and a stand-in for a
+    bad frame is scored in its own place; a bad frame counts as a missing one, once (not in padding)."""
+    tokens, keep = batch.get("sample_token"), list(range(batch["images"].shape[0]))
+    replaced = batch["replaced"].tolist() if streaming and "replaced" in batch else [False] * len(keep)
+    if owned is not None:
+        keep = []
+        for b, t in enumerate(tokens):
+            if t in owned and not replaced[b]:
+                keep.append(b)
+                owned.discard(t)
+    counted = list(keep)
+    if streaming:
+        for b, r in enumerate(replaced):
+            if r and (owned is None or batch["stands_for"][b] in owned):
+                counted.append(b)
+                if owned is not None:
+                    owned.discard(batch["stands_for"][b])
+    return keep, counted
+
+
+def _scored_predictions(preds: list[list[dict]], batch: dict, keep: list[int], persist) -> tuple[list, int]:
+    """The predictions of the rows ``keep``, with the elements ``persist`` keeps from earlier frames, and how many
+    it kept. The scored samples only: a stream's padding walks a scene again (at the same time as the stream that
+    owns it, when there are more streams than scenes) and would overwrite that scene's remembered elements
+    between its frames."""
+    persisted = 0
+    if persist is not None and keep:
+        with_kept = persist([preds[b] for b in keep], [batch["scene"][b] for b in keep],
+                            batch["frame_index"][keep], batch["ego_pose"][keep])
+        for b, p in zip(keep, with_kept):
+            persisted += len(p) - len(preds[b])  # the kept ones come last
+            preds[b] = p
+    return [preds[b] for b in keep], persisted
+
+
+def _reduced(sums: dict, count: int, status_counts: dict | None, device: torch.device) -> dict:
+    """The mean losses over the batches and the memory status counts (summed over the ranks)."""
+    on = device if device.type == "cuda" else None
+    result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()}, on)}
+    if status_counts is not None:
+        result["memory"] = {k: int(round(v * du.get_world_size()))  # the mean over ranks, times the ranks
+                            for k, v in du.reduce_dict(dict(status_counts), on).items()}
+    return result
+
+
+def _meter_results(flicker, cmap, evaluator) -> dict:
+    """Each meter's result over all ranks: the flicker rate, the consistency-aware mAP and the AP metrics."""
+    result = {}
+    for key, meter in (("consistency", flicker), ("cmap", cmap), ("metrics", evaluator)):
+        if meter is not None:
+            meter.gather()
+            result[key] = meter.compute()
+    return result
+
+
 def evaluate(
     model: torch.nn.Module,
     criterion: Callable[[dict, dict], dict] | None,
@@ -328,22 +395,9 @@ def evaluate(
             batch = move_to(batch, device)
             with autocast_context(device, amp):
                 outputs = model(batch, memory=memory) if streaming else model(batch)
-            tokens, keep = batch.get("sample_token"), list(range(batch["images"].shape[0]))
-            replaced = batch["replaced"].tolist() if streaming and "replaced" in batch else [False] * len(keep)
-            if owned is not None:  # streaming padding: score each owned sample once (even twice in a batch)
-                keep = []
-                for b, t in enumerate(tokens):
-                    if t in owned and not replaced[b]:  # a stand-in for a bad frame: scored in its own place
-                        keep.append(b)
-                        owned.discard(t)
+            keep, counted = _rows_to_score(batch, owned, streaming)
             if streaming:
                 memory = outputs["memory"]
-                counted = list(keep)
-                for b, r in enumerate(replaced):  # a bad frame counts as a missing one, once (not in padding)
-                    if r and (owned is None or batch["stands_for"][b] in owned):
-                        counted.append(b)
-                        if owned is not None:
-                            owned.discard(batch["stands_for"][b])
                 for k, v in memory_counts({"memory_status": outputs["memory_status"][counted]}).items():
                     status_counts[k] += v
             if criterion is not None:
@@ -352,17 +406,9 @@ def evaluate(
                 count += 1
             n_samples += batch["images"].shape[0]
             if postprocess is not None:
-                preds = postprocess(outputs)
-                if persist is not None and keep:  # the scored samples only: a stream's padding walks a scene again
-                    # (at the same time as the stream that owns it, when there are more streams than scenes) and would
-                    # overwrite that scene's remembered elements between its frames
-                    with_kept = persist([preds[b] for b in keep], [batch["scene"][b] for b in keep],
-                                        batch["frame_index"][keep], batch["ego_pose"][keep])
-                    for b, p in zip(keep, with_kept):
-                        persisted += len(p) - len(preds[b])  # the kept ones come last
-                        preds[b] = p
-                preds, tokens, gts = [preds[b] for b in keep], [tokens[b] for b in keep], [batch["gt_polylines"][b]
-                                                                                           for b in keep]
+                preds, kept = _scored_predictions(postprocess(outputs), batch, keep, persist)
+                persisted += kept
+                tokens, gts = [batch["sample_token"][b] for b in keep], [batch["gt_polylines"][b] for b in keep]
                 if evaluator is not None:
                     evaluator.update(preds, gts, tokens=tokens)
                 if on_predictions is not None:
@@ -374,21 +420,9 @@ def evaluate(
     except BaseException:
         shut_down_workers(batches)
         raise
-    result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()},
-                                       device if device.type == "cuda" else None)}
-    if streaming:
-        result["memory"] = {k: int(round(v * du.get_world_size())) for k, v in du.reduce_dict(  # sums over ranks
-            dict(status_counts), device if device.type == "cuda" else None).items()}
-    if flicker is not None:
-        flicker.gather()
-        result["consistency"] = flicker.compute()
-    if cmap is not None:
-        cmap.gather()
-        result["cmap"] = cmap.compute()
+    result = _reduced(sums, count, status_counts if streaming else None, device)
+    result.update(_meter_results(flicker, cmap, evaluator))
     if persist is not None:  # summed over ranks (under torchrun a temporal model's scenes are spread over them)
         result["persisted"] = sum(du.all_gather_object(persisted))
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)
-    if evaluator is not None:
-        evaluator.gather()
-        result["metrics"] = evaluator.compute()
     return result
