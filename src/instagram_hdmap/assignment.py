@@ -105,6 +105,51 @@ def _next_represented(step: torch.Tensor, represented: torch.Tensor, skip_missed
 
 
 @torch.no_grad()
+def _check_shapes(pred_vertices_px, pred_vertex_mask, gt_vertices_px, gt_vertex_mask, gt_vertex_labels, gt_vertex_next,
+                  gt_vertex_prev) -> tuple[int, int, int]:
+    """B, N and M of ``assign``'s inputs, whose shapes must agree."""
+    B, N = pred_vertex_mask.shape
+    if pred_vertices_px.shape != (B, N, 2):
+        raise ValueError(f"pred_vertices_px must be [B, N, 2] = [{B}, {N}, 2], "
+                         f"got {list(pred_vertices_px.shape)}")
+    if gt_vertices_px.dim() != 3 or gt_vertices_px.shape[0] != B or gt_vertices_px.shape[2] != 2:
+        raise ValueError(f"gt_vertices_px must be [B={B}, M, 2], got {list(gt_vertices_px.shape)}")
+    M = gt_vertices_px.shape[1]
+    for name, t in (("gt_vertex_mask", gt_vertex_mask), ("gt_vertex_labels", gt_vertex_labels),
+                    ("gt_vertex_next", gt_vertex_next), ("gt_vertex_prev", gt_vertex_prev)):
+        if t.shape != (B, M):
+            raise ValueError(f"{name} must be [B, M] = [{B}, {M}], got {list(t.shape)}")
+    return B, N, M
+
+
+def _in_matching_space(pred_vertices_px: torch.Tensor, gt_vertices_px: torch.Tensor, grid: BEVGrid,
+                       match_dist_m: float, match_space: str) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The vertices in the space where Eq. 6 measures distances, and D0 there: pixels (``metres``), or the
+    official GraphLoss's normalised coordinates (``patch``, module docstring)."""
+    pred_xy, gt_xy = pred_vertices_px.float(), gt_vertices_px.float()
+    if match_space == "patch":
+        pred_xy = pred_xy / pred_xy.new_tensor([grid.W - 1, grid.H - 1])
+        gt_xy = (gt_xy + 0.5) / gt_xy.new_tensor([grid.W, grid.H])
+        limit = match_dist_m * math.hypot(1 / (grid.W * grid.resolution), 1 / (grid.H * grid.resolution))
+    elif match_space == "metres":
+        limit = match_dist_m / grid.resolution
+    else:
+        raise ValueError(f"match_space must be 'metres' or 'patch', got {match_space!r}")
+    return pred_xy, gt_xy, limit
+
+
+def _class_targets(gt_vertex_labels: torch.Tensor, nearest: torch.Tensor, nearest_d: torch.Tensor,
+                   matched: torch.Tensor, class_targets: str) -> torch.Tensor:
+    """Each predicted vertex's class target [B, N]: its nearest GT vertex's class where it matched one
+    (``matched``), or wherever the sample has a GT vertex (``nearest``); IGNORE_INDEX elsewhere."""
+    if class_targets not in ("matched", "nearest"):
+        raise ValueError(f"class_targets must be 'matched' or 'nearest', got {class_targets!r}")
+    M = gt_vertex_labels.shape[1]
+    target = gt_vertex_labels.long().gather(1, nearest.clamp(max=max(M - 1, 0))) if M > 0 else nearest
+    has_class = matched if class_targets == "matched" else torch.isfinite(nearest_d)
+    return torch.where(has_class, target, torch.full_like(nearest, IGNORE_INDEX))
+
+
 def assign(
     pred_vertices_px: torch.Tensor,
     pred_vertex_mask: torch.Tensor,
@@ -127,33 +172,14 @@ def assign(
     int64 (next/prev: index within the sample, -1 for none; docs/conventions.md).
     Returns the dict described in the module docstring.
     """
-    B, N = pred_vertex_mask.shape
-    if pred_vertices_px.shape != (B, N, 2):
-        raise ValueError(f"pred_vertices_px must be [B, N, 2] = [{B}, {N}, 2], "
-                         f"got {list(pred_vertices_px.shape)}")
-    if gt_vertices_px.dim() != 3 or gt_vertices_px.shape[0] != B or gt_vertices_px.shape[2] != 2:
-        raise ValueError(f"gt_vertices_px must be [B={B}, M, 2], got {list(gt_vertices_px.shape)}")
-    M = gt_vertices_px.shape[1]
-    for name, t in (("gt_vertex_mask", gt_vertex_mask), ("gt_vertex_labels", gt_vertex_labels),
-                    ("gt_vertex_next", gt_vertex_next), ("gt_vertex_prev", gt_vertex_prev)):
-        if t.shape != (B, M):
-            raise ValueError(f"{name} must be [B, M] = [{B}, {M}], got {list(t.shape)}")
+    B, N, M = _check_shapes(pred_vertices_px, pred_vertex_mask, gt_vertices_px, gt_vertex_mask, gt_vertex_labels,
+                            gt_vertex_next, gt_vertex_prev)
     device = pred_vertices_px.device
     pred_mask = pred_vertex_mask.bool()
     gt_mask = gt_vertex_mask.bool()
 
     # --- Eq. 6: nearest real GT vertex within D0 ----------------------------------------------
-    pred_xy, gt_xy = pred_vertices_px.float(), gt_vertices_px.float()
-    if match_space == "patch":  # the official GraphLoss's normalised coordinates (module docstring)
-        pred_xy = pred_xy / pred_xy.new_tensor([grid.W - 1, grid.H - 1])
-        gt_xy = (gt_xy + 0.5) / gt_xy.new_tensor([grid.W, grid.H])
-        limit = match_dist_m * math.hypot(1 / (grid.W * grid.resolution), 1 / (grid.H * grid.resolution))
-    elif match_space == "metres":
-        limit = match_dist_m / grid.resolution
-    else:
-        raise ValueError(f"match_space must be 'metres' or 'patch', got {match_space!r}")
-    if class_targets not in ("matched", "nearest"):
-        raise ValueError(f"class_targets must be 'matched' or 'nearest', got {class_targets!r}")
+    pred_xy, gt_xy, limit = _in_matching_space(pred_vertices_px, gt_vertices_px, grid, match_dist_m, match_space)
     if M > 0:
         dist = torch.cdist(pred_xy, gt_xy, compute_mode="donot_use_mm_for_euclid_dist")  # [B, N, M], exact
         dist = dist.masked_fill(~(pred_mask[:, :, None] & gt_mask[:, None, :]), math.inf)
@@ -191,9 +217,6 @@ def assign(
         out = torch.where(is_rep, out, torch.full_like(out, N))  # ...and go to the dustbin
         return torch.where(pred_mask, out, torch.full_like(out, IGNORE_INDEX))
 
-    target_class = gt_vertex_labels.long().gather(1, nearest.clamp(max=max(M - 1, 0))) if M > 0 else slot
-    has_class = matched if class_targets == "matched" else torch.isfinite(nearest_d)
-    target_class = torch.where(has_class, target_class, torch.full_like(slot, IGNORE_INDEX))
 
     return {
         "pred_to_gt": pred_to_gt,
@@ -202,7 +225,7 @@ def assign(
         "gt_to_pred": gt_to_pred,
         "target_next": targets(gt_vertex_next),
         "target_prev": targets(gt_vertex_prev),
-        "target_class": target_class,
+        "target_class": _class_targets(gt_vertex_labels, nearest, nearest_d, matched, class_targets),
     }
 
 
