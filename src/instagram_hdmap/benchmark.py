@@ -131,6 +131,57 @@ def time_runs(fn: Callable[[], object], runs: int, warmup: int, sync: Callable[[
     return times
 
 
+def _checked_settings(cfg: ExperimentConfig, device: str | None, amp: str, runs: int | None,
+                      warmup: int | None) -> tuple[torch.device, int, int]:
+    """The device, runs and warm-up runs of a benchmark, each checked (one line naming the option)."""
+    if device is None:
+        device = str(resolve_device(cfg.train.device))
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):  # "tpu", "gpu": not a torch device string
+        raise BenchmarkError(f"--device {device}: choose cpu or cuda (cuda:INDEX)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise BenchmarkError("--device cuda but no CUDA device is available; use --device cpu")
+    if dev.type not in DEFAULT_RUNS:
+        raise BenchmarkError(f"--device {device}: choose cpu or cuda")
+    if amp not in ("none", "bf16", "fp16"):
+        raise BenchmarkError(f"--amp {amp}: choose none, bf16 or fp16")
+    runs = DEFAULT_RUNS[dev.type] if runs is None else runs
+    warmup = DEFAULT_WARMUP[dev.type] if warmup is None else warmup
+    if runs < 1 or warmup < 0:
+        raise BenchmarkError(f"--runs must be >= 1 and --warmup >= 0 (got {runs}, {warmup})")
+    return dev, runs, warmup
+
+
+def _random_batch(model, cfg: ExperimentConfig, rig: dict, dev: torch.device, seed: int, notes: list[str]) -> dict:
+    """One frame of random images on the benchmark rig (batch 1); a temporal model gets the frame's pose."""
+    h, w = cfg.data.image_size
+    gen = torch.Generator().manual_seed(seed)
+    batch = {k: v[None].to(dev) for k, v in rig.items()}
+    V = rig["intrinsics"].shape[0]
+    batch["images"] = torch.randn(1, V, 3, h, w, generator=gen).to(dev)
+    if getattr(model, "is_temporal", False):  # a temporal model reads the frame's pose (it was a raw KeyError)
+        batch["ego_pose"] = torch.eye(4)[None].to(dev)
+        notes.append("a temporal model: timed on a scene's first frame (an empty memory); its warp and fusion cost "
+                     "the same on every frame")
+    return batch
+
+
+def _timed(forward, forward_post, runs: int, warmup: int, sync, amp: str, dev: torch.device) -> tuple[list, list, dict]:
+    """The times of ``runs`` calls of the model and of the model + decoding (after ``warmup``), and one output;
+    an autocast the torch build does not support is one line naming ``--amp``."""
+    try:
+        with torch.inference_mode():
+            model_times = time_runs(forward, runs, warmup, sync)
+            full_times = time_runs(forward_post, runs, warmup, sync)
+            return model_times, full_times, forward()
+    except RuntimeError as e:
+        if amp != "none" and ("autocast" in str(e).lower() or "not implemented" in str(e).lower()):
+            raise BenchmarkError(f"--amp {amp} is not supported on {dev.type} by this torch build: "
+                                 f"{str(e).splitlines()[0][:200]}") from None
+        raise
+
+
 def run_benchmark(
     cfg: ExperimentConfig,
     *,
@@ -151,23 +202,7 @@ def run_benchmark(
     statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``). ``compile`` / ``cuda_graphs``: time
     ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
     """
-    if device is None:
-        device = str(resolve_device(cfg.train.device))
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):  # "tpu", "gpu": not a torch device string
-        raise BenchmarkError(f"--device {device}: choose cpu or cuda (cuda:INDEX)") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise BenchmarkError("--device cuda but no CUDA device is available; use --device cpu")
-    if dev.type not in DEFAULT_RUNS:
-        raise BenchmarkError(f"--device {device}: choose cpu or cuda")
-    if amp not in ("none", "bf16", "fp16"):
-        raise BenchmarkError(f"--amp {amp}: choose none, bf16 or fp16")
-    runs = DEFAULT_RUNS[dev.type] if runs is None else runs
-    warmup = DEFAULT_WARMUP[dev.type] if warmup is None else warmup
-    if runs < 1 or warmup < 0:
-        raise BenchmarkError(f"--runs must be >= 1 and --warmup >= 0 (got {runs}, {warmup})")
-
+    dev, runs, warmup = _checked_settings(cfg, device, amp, runs, warmup)
     notes: list[str] = []
     if checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides, device=dev)
@@ -178,15 +213,9 @@ def run_benchmark(
     check_fits(cfg, "infer", dev, batch=1)  # before the warm-up runs
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)
+    batch = _random_batch(model, cfg, rig, dev, seed, notes)
     h, w = cfg.data.image_size
-    gen = torch.Generator().manual_seed(seed)
-    batch = {k: v[None].to(dev) for k, v in rig.items()}
     V = rig["intrinsics"].shape[0]
-    batch["images"] = torch.randn(1, V, 3, h, w, generator=gen).to(dev)
-    if getattr(model, "is_temporal", False):  # a temporal model reads the frame's pose (it was a raw KeyError)
-        batch["ego_pose"] = torch.eye(4)[None].to(dev)
-        notes.append("a temporal model: timed on a scene's first frame (an empty memory); its warp and fusion cost "
-                     "the same on every frame")
     decode = decode_options(cfg.model.gnn, grid)
 
     def sync() -> None:
@@ -206,18 +235,9 @@ def run_benchmark(
     def forward_post() -> list:
         return postprocess_batch(forward(), grid, **decode)
 
-    try:
-        with torch.inference_mode():
-            model_times = time_runs(forward, runs, warmup, sync)
-            full_times = time_runs(forward_post, runs, warmup, sync)
-            outputs = forward()
-            num_vertices = int(outputs["pred_vertex_mask"].sum())
-            num_instances = len(postprocess_batch(outputs, grid, **decode)[0])
-    except RuntimeError as e:
-        if amp != "none" and ("autocast" in str(e).lower() or "not implemented" in str(e).lower()):
-            raise BenchmarkError(f"--amp {amp} is not supported on {dev.type} by this torch build: "
-                                 f"{str(e).splitlines()[0][:200]}") from None
-        raise
+    model_times, full_times, outputs = _timed(forward, forward_post, runs, warmup, sync, amp, dev)
+    num_vertices = int(outputs["pred_vertex_mask"].sum())
+    num_instances = len(postprocess_batch(outputs, grid, **decode)[0])
     if checkpoint is None:
         notes.append("random weights: few edges pass the match threshold, so post-processing is cheaper than "
                       "with a trained model (pass --checkpoint)")
