@@ -271,23 +271,14 @@ def _check_overrides(overrides) -> None:
                             "and evaluate with your own settings)")
 
 
-def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | None = None,
-             config: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
-             world: dict | None = None, val_world: dict | None = None, workers: int = 1, raster: bool = True,
-             progress: bool = True) -> dict:
-    """Generate or reuse the worlds (default ``WORLD`` for training, ``VAL_WORLD`` for validation),
-    train (resuming ``OUT/run/last.pt``) within the budget, evaluate, draw. Returns the metrics
-    dict also written to ``OUT/metrics.json``."""
-    t0 = time.perf_counter()
-    world = WORLD if world is None else world
-    val_world = VAL_WORLD if val_world is None else val_world
+def _check_before_the_worlds(out: Path, minutes: float, cache_dir: Path, config: Path, overrides) -> None:
+    """What can be wrong before minutes of world generation, each one line: the budget, the output folder, the
+    overrides, the config (its keys, its dataset, the model it builds, the memory of a step) and an earlier
+    run in ``out`` of another config."""
     if not (math.isfinite(minutes) and minutes > EVAL_RESERVE_MIN + MIN_TRAIN_MIN):  # inf: no time_budget_min
         raise DemoError(f"--minutes {minutes}: the budget must be a finite number of minutes that exceeds "
                         f"{EVAL_RESERVE_MIN + MIN_TRAIN_MIN:g} min "
                         f"({EVAL_RESERVE_MIN:g} min are kept for evaluation, and training needs some time)")
-    out = Path(out)
-    cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
-    config = Path(config) if config is not None else default_config_path()
     _check_out(out)
     _check_overrides(overrides)
     # a wrong config file, key or model setting is named before minutes of world generation
@@ -301,6 +292,22 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     build_model(planned)
     check_fits(planned, "train", resolve_device(planned.train.device))  # a step that cannot fit: before the worlds
     _check_earlier_run(out / "run" / "last.pt", planned, config)
+
+
+def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | None = None,
+             config: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
+             world: dict | None = None, val_world: dict | None = None, workers: int = 1, raster: bool = True,
+             progress: bool = True) -> dict:
+    """Generate or reuse the worlds (default ``WORLD`` for training, ``VAL_WORLD`` for validation),
+    train (resuming ``OUT/run/last.pt``) within the budget, evaluate, draw. Returns the metrics
+    dict also written to ``OUT/metrics.json``."""
+    t0 = time.perf_counter()
+    world = WORLD if world is None else world
+    val_world = VAL_WORLD if val_world is None else val_world
+    out = Path(out)
+    cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    config = Path(config) if config is not None else default_config_path()
+    _check_before_the_worlds(out, minutes, cache_dir, config, overrides)
 
     dataroot, reused = ensure_world(cache_dir, world, progress=progress, workers=workers)
     print(f"training world: {dataroot} ({'reused' if reused else 'generated'}, {world_samples(world)} samples, "
@@ -357,6 +364,21 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
                   "samples_per_s": round(new_steps * cfg.train.batch_size / max(train_s, 1e-9), 2),
                   "batch_size": cfg.train.batch_size, "checkpoint": str(last),
                   "training_minutes": round(clock.get("elapsed_s", train_s) / 60, 2), **schedule}}
+    metrics.update(_evaluate_and_draw(cfg, val_cfg, last, out, world, val_world, raster))
+    metrics["seconds_total"] = round(time.perf_counter() - t0, 1)
+    metrics["learned"] = {c: bool(metrics["vector"]["AP_class"][c] > metrics["baseline_vector"]["AP_class"][c])
+                          for c in metrics["vector"]["AP_class"]}
+    metrics = json_safe(metrics)  # NaN -> None, as metrics.json holds it
+    write_json(metrics, out / "metrics.json")
+    print(format_summary(metrics, out))
+    return metrics
+
+
+def _evaluate_and_draw(cfg: ExperimentConfig, val_cfg: ExperimentConfig, last: Path, out: Path, world: dict,
+                       val_world: dict, raster: bool) -> dict:
+    """The checkpoint's AP on the unseen roads under each protocol against the random-map baseline, on the
+    training roads (the generalisation gap) and pictures of a few validation samples."""
+    metrics: dict = {}
     protocols = ["vector", "raster"] if raster else ["vector"]
     for protocol in protocols:
         result = run_evaluation(val_cfg, last, protocol, out / f"eval_{protocol}")
@@ -372,12 +394,6 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
         r = predict_sample(val_cfg, out / "predict" / str(i), checkpoint=last, index=i * stride)
         pngs += [str(p) for p in r["paths"] if str(p).endswith(".png")]
     metrics["pictures"] = pngs
-    metrics["seconds_total"] = round(time.perf_counter() - t0, 1)
-    metrics["learned"] = {c: bool(metrics["vector"]["AP_class"][c] > metrics["baseline_vector"]["AP_class"][c])
-                          for c in metrics["vector"]["AP_class"]}
-    metrics = json_safe(metrics)  # NaN -> None, as metrics.json holds it
-    write_json(metrics, out / "metrics.json")
-    print(format_summary(metrics, out))
     return metrics
 
 
