@@ -77,8 +77,8 @@ def run_one(name: str, seed: int, args, roots, config: str | None = None, extra:
     evaluate that checkpoint only (no training)."""
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.evaluate_split import run_evaluation
     from instagram_hdmap.files import write_json
-    from instagram_hdmap.predict import run_evaluation
     from instagram_hdmap.train import train
 
     train_root, val_root = roots
@@ -143,8 +143,8 @@ def memory_off(results: list[dict], args, val_root) -> str:
 
     from instagram_hdmap.config import load_config
     from instagram_hdmap.demo import world_overrides
+    from instagram_hdmap.evaluate_split import run_evaluation
     from instagram_hdmap.files import write_json
-    from instagram_hdmap.predict import run_evaluation
 
     lines = ["memory on / off (the same checkpoint; the gated fusion's mean |w| on its inputs):"]
     for r in results:

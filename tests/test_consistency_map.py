@@ -199,8 +199,8 @@ def test_evaluation_reports_c_map_behind_eval_cmap(tiny_world, tmp_path):
 
     from instagram_hdmap.checkpoint import save_checkpoint
     from instagram_hdmap.config import config_to_dict
+    from instagram_hdmap.evaluate_split import run_evaluation
     from instagram_hdmap.models import build_model
-    from instagram_hdmap.predict import run_evaluation
     from test_temporal import _drive_cfg
 
     cfg = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",

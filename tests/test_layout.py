@@ -203,3 +203,40 @@ def test_equation_numbers_follow_the_paper():
             if int(m.group(1)) != number[label]:
                 wrong.append(f"{file}: '{phrase}' quotes Eq. {m.group(1)}, the paper's is Eq. {number[label]}")
     assert wrong == []
+
+
+# Rooms of one idea each: a reader holds a function, a class or a module in view at once.
+MAX_LINES = {"function": 80, "class": 300, "module": 700}
+
+
+def oversized(path: Path, root: Path = ROOT) -> list[str]:
+    """The functions, methods and classes of ``path`` longer than ``MAX_LINES`` (from ``def`` / ``class`` to
+    their last line, docstrings included), and the module itself if it is."""
+    text = path.read_text()
+    found = []
+    if len(text.splitlines()) > MAX_LINES["module"]:
+        found.append(f"{path.relative_to(root)}: module of {len(text.splitlines())} lines")
+    for node in ast.walk(ast.parse(text, str(path))):
+        kind = ("function" if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+                else "class" if isinstance(node, ast.ClassDef) else None)
+        if kind is None:
+            continue
+        length = node.end_lineno - node.lineno + 1
+        if length > MAX_LINES[kind]:
+            found.append(f"{path.relative_to(root)}:{node.lineno}: {kind} {node.name} of {length} lines")
+    return found
+
+
+def test_no_room_is_too_long():
+    found = [line for path in MODULES.values() for line in oversized(path)]
+    assert not found, f"over {MAX_LINES}: split by idea:\n" + "\n".join(found)
+
+
+def test_oversized_finds_a_long_function_a_long_class_and_a_long_module(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(81))
+    methods = "\n".join(f"    def m{i}(self):\n        return {i}\n" for i in range(101))
+    path = tmp_path / "big.py"
+    path.write_text(f"def long():\n{body}\n\n\ndef short():\n    return 1\n\n\nclass Big:\n{methods}\n"
+                    + "x = 1\n" * 500)
+    found = oversized(path, tmp_path)
+    assert [line.split(": ", 1)[1].split(" of ")[0] for line in found] == ["module", "function long", "class Big"]

@@ -570,7 +570,7 @@ def test_streaming_evaluation_without_memory_is_the_frame_by_frame_ap(tiny_world
     # although (b) walks 2 streams over 1 val scene (one stream is padding) and carries its memory
     from instagram_hdmap.checkpoint import save_checkpoint
     from instagram_hdmap.config import config_to_dict
-    from instagram_hdmap.predict import run_evaluation
+    from instagram_hdmap.evaluate_split import run_evaluation
 
     cfg_t = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",
                        "model.gnn.match_threshold=0.01")
@@ -994,8 +994,8 @@ def test_evaluation_with_persistence_only_adds_elements(tiny_world, tmp_path):
     # sample's predictions with it are those without it plus the kept ones, and the note counts them
     from instagram_hdmap.checkpoint import save_checkpoint
     from instagram_hdmap.config import config_to_dict
+    from instagram_hdmap.evaluate_split import run_evaluation
     from instagram_hdmap.evaluation.io import read_submission
-    from instagram_hdmap.predict import run_evaluation
 
     cfg = _drive_cfg(tiny_world, tmp_path / "run", "eval.batch_size=2", "model.gnn.conf_threshold=0.0",
                      "model.gnn.match_threshold=0.01", "model.temporal.memory=none")
@@ -1048,7 +1048,7 @@ def test_benchmark_persist_evaluates_the_trained_checkpoint_again(monkeypatch, t
             "pairs_detected": {}}, "cmap": {"C-mAP": 0.4, "C-AP_class": {"divider": 0.4}}}}
 
     monkeypatch.setattr("instagram_hdmap.train.train", lambda *a, **k: pytest.fail("trained again"))
-    monkeypatch.setattr("instagram_hdmap.predict.run_evaluation", fake_evaluation)
+    monkeypatch.setattr("instagram_hdmap.evaluate_split.run_evaluation", fake_evaluation)
     monkeypatch.setattr("instagram_hdmap.demo.world_overrides", lambda root: [])
     result = bench.run_one("single", 0, args, (None, None), "single")
     assert calls == [(run / "run" / "last.pt", ["model.temporal.persist_frames=2",

@@ -23,6 +23,7 @@ from .data.synthetic.preview import write_preview
 from .demo import run_demo
 from .deploy import export_checkpoint
 from .errors import invisible_character, lookalike_dash
+from .evaluate_split import run_evaluation
 from .evaluation import evaluate_files, format_table
 from .files import (
     NO_ROOM,
@@ -35,7 +36,7 @@ from .files import (
 )
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
-from .predict import predict_images, predict_sample, predict_video, run_evaluation
+from .predict import predict_images, predict_sample, predict_video
 from .resources import size_notes, summary_lines
 from .streams import ReportStream, stdout_gone, to_devnull
 from .train import data_worker_died, train

@@ -42,11 +42,12 @@ from .data.synthetic import VERSION, generate_world, read_manifest
 from .data.synthetic.jobs import TMP_TAG
 from .data.synthetic.world import FORMAT_VERSION
 from .distributed import resolve_device
+from .evaluate_split import run_evaluation
 from .evaluation import Evaluator
 from .files import check_output_dir, json_safe, remove_stale_temporaries, write_json
 from .inference import saved_config
 from .models import build_model
-from .predict import predict_sample, run_evaluation
+from .predict import predict_sample
 from .resources import check_fits
 from .resume import RESUME_KEYS, STREAM_RESUME_KEYS, config_differences
 from .schedule import final_lr_factor

@@ -337,7 +337,7 @@ def _reduced(sums: dict, count: int, status_counts: dict | None, device: torch.d
     return result
 
 
-def _meter_results(flicker, cmap, evaluator) -> dict:
+def meter_results(flicker, cmap, evaluator) -> dict:
     """Each meter's result over all ranks: the flicker rate, the consistency-aware mAP and the AP metrics."""
     result = {}
     for key, meter in (("consistency", flicker), ("cmap", cmap), ("metrics", evaluator)):
@@ -421,7 +421,7 @@ def evaluate(
         shut_down_workers(batches)
         raise
     result = _reduced(sums, count, status_counts if streaming else None, device)
-    result.update(_meter_results(flicker, cmap, evaluator))
+    result.update(meter_results(flicker, cmap, evaluator))
     if persist is not None:  # summed over ranks (under torchrun a temporal model's scenes are spread over them)
         result["persisted"] = sum(du.all_gather_object(persisted))
     result["samples_per_s"] = n_samples / max(time.perf_counter() - t0, 1e-9)

@@ -1078,8 +1078,8 @@ def row_drive_meter_merge_checks_poses(env):
 
 
 @row("a YAML path where the Python API takes a config (build_model, inference.load_model, "
-            "Persistence.from_config, InstanceTracker.from_config, train, predict.run_evaluation; build_dataset and "
-            "Evaluator.from_config took one): a raw \"'str' object has no attribute 'grid'\" (or 'does not support "
+            "Persistence.from_config, InstanceTracker.from_config, train, evaluate_split.run_evaluation; build_dataset "
+            "and Evaluator.from_config took one): a raw \"'str' object has no attribute 'grid'\" (or 'does not support "
             "item assignment') from deep inside; each reads the file (config.as_config, one helper), "
             "BEVGrid.from_config(path) and a None config (Mapper(model, None) took the default config) are a "
             "TypeError naming the function")
