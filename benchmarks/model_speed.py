@@ -34,6 +34,7 @@ from instagram_hdmap.benchmark import time_runs
 from instagram_hdmap.config import load_config
 from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
+from instagram_hdmap.resources import cpu_capability
 
 CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
 GPU_CONFIGS = [*CPU_CONFIGS, "configs/paper/table1_b4_lss_256x704.yaml"]
@@ -155,7 +156,7 @@ def run_cpu(args: argparse.Namespace) -> None:
             official[name] = {k: 1000 * statistics.median(v) for k, v in times.items()}
             official[name]["params_m"] = sum(p.numel() for p in theirs.parameters()) / 1e6
     print(f"CPU, {args.threads} threads, batch 1 x 6 cameras, LSS, {args.runs} runs, torch {torch.__version__}, "
-          f"load average {os.getloadavg()[0]:.1f} at the end")
+          f"load average {os.getloadavg()[0]:.1f} at the end; {cpu_capability()}")
     if code is not None:
         standins = uses_standins()
         print(f"official code: {code.root}" + (f" (stand-ins for {', '.join(standins)}: benchmarks/official.py)"
@@ -166,7 +167,8 @@ def run_cpu(args: argparse.Namespace) -> None:
 def run_gpu(args: argparse.Namespace) -> None:
     device = torch.device(args.device)
     sync = torch.cuda.synchronize
-    print(f"GPU {torch.cuda.get_device_name(device)}, batch 1 x 6 cameras, {args.runs} runs")
+    print(f"GPU {torch.cuda.get_device_name(device)}, batch 1 x 6 cameras, {args.runs} runs; host CPU: "
+          f"{cpu_capability()}")
     rows = []
     for path in args.configs or GPU_CONFIGS:
         cfg = load_config(path)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from instagram_hdmap import benchmark, deploy, inference
+from instagram_hdmap import benchmark, deploy, inference, resources
 from instagram_hdmap.checkpoint import save_checkpoint
 from instagram_hdmap.cli import main
 from instagram_hdmap.config import config_to_dict, load_config
@@ -461,3 +461,23 @@ def test_default_sinkhorn_iterations_export_with_parity(ort, tmp_path, monkeypat
     threshold = decoding_threshold(expected)
     polylines = canonical(postprocess_batch(expected, grid, threshold)[0])
     assert canonical(postprocess_batch(got, grid, threshold)[0]) == polylines and polylines
+
+
+def test_cpu_capability_reads_the_flags_it_is_given(tmp_path):
+    """A figure carries what it was measured on: the CPU's extensions from its flags, never assumed."""
+    amx = tmp_path / "amx"
+    amx.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16 amx_bf16 amx_int8 amx_tile\n"
+                   "processor\t: 1\nflags\t\t: fpu\n")
+    plain = tmp_path / "plain"
+    plain.write_text("processor\t: 0\nflags\t\t: fpu sse2 sse4_2\n")
+    assert resources.cpu_flags(amx) >= {"avx2", "amx_bf16"} and resources.cpu_flags(tmp_path / "none") == set()
+    level = torch.backends.cpu.get_cpu_capability()
+    assert resources.cpu_capability(amx) == f"AVX2 AVX512 AVX512-BF16 AMX-BF16 AMX-INT8; torch kernels: {level}"
+    assert resources.cpu_capability(plain) == f"none of AVX2 / AVX512 / AMX; torch kernels: {level}"
+
+
+def test_benchmark_prints_the_cpu_it_ran_on(capsys):
+    assert main(["benchmark", str(TINY), *FAST, "data.dataroot=/nonexistent", "--device", "cpu", "--runs", "1",
+                 "--warmup", "0"]) == 0
+    out = capsys.readouterr().out
+    assert f"cpu:         {resources.cpu_capability()} (decoding runs on it)" in out and "dtype:       float32" in out

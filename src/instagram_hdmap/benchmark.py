@@ -39,7 +39,7 @@ from .geometry import BEVGrid
 from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
-from .resources import check_fits
+from .resources import check_fits, cpu_capability
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
 DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
@@ -246,6 +246,7 @@ def run_benchmark(
     return {
         "config_name": cfg.name,
         "device": device_name(dev),
+        "cpu": cpu_capability(),
         "dtype": {"none": "float32", "bf16": "bfloat16 autocast", "fp16": "float16 autocast"}[amp]
         + "".join(f", {name}" for name, on in (("torch.compile", compile), ("CUDA graph", cuda_graphs)) if on),
         "threads": torch.get_num_threads(),
@@ -269,6 +270,7 @@ def format_benchmark(result: dict, config_path: str | None = None) -> str:
     lines = [
         f"config:      {name}; {result['backbone']}, {result['view_transform']}",
         f"device:      {result['device']}",
+        f"cpu:         {result.get('cpu', 'not recorded')} (decoding runs on it)",
         f"dtype:       {result['dtype']}",
         f"threads:     {result['threads']} (torch.get_num_threads)",
         f"input:       batch {result['batch']}, calibration: {result['calibration']}",

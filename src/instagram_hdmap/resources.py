@@ -292,3 +292,34 @@ def summary_lines(cfg: ExperimentConfig) -> list[str]:
     have, where = memory_available()
     lines.append(f"memory available: {where} {human(have)} (CPU; a GPU's free memory is checked on it)")
     return lines
+
+
+# /proc/cpuinfo flags of the instruction sets that decide a convolution's speed here, in the order they build on
+# each other: AVX2, AVX-512, AVX-512 with bf16 dot products, AMX tiles for bf16 and int8 matrix products
+CPU_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX512"), ("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16"),
+             ("amx_int8", "AMX-INT8"))
+
+
+def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> set[str]:
+    """The flags of the first processor in ``cpuinfo`` (empty where there is no such file: macOS, Windows)."""
+    try:
+        text = Path(cpuinfo).read_text(errors="replace")
+    except OSError:
+        return set()
+    for line in text.splitlines():
+        if line.startswith(("flags", "Features")):  # x86, ARM
+            return set(line.split(":", 1)[1].split())
+    return set()
+
+
+def cpu_capability(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
+    """What a CPU figure was measured on: the CPU's vector and matrix extensions and the level torch's kernels
+    dispatch to, e.g. ``AVX2 AVX512 AVX512-BF16 AMX-BF16 AMX-INT8; torch kernels: AVX2``. A CPU may have none of
+    them (bf16 is then emulated, and slow): this is read from the machine, never assumed."""
+    flags = cpu_flags(cpuinfo)
+    have = " ".join(name for flag, name in CPU_FLAGS if flag in flags) or "none of AVX2 / AVX512 / AMX"
+    try:
+        level = torch.backends.cpu.get_cpu_capability()
+    except (AttributeError, RuntimeError):  # a torch without it
+        level = "unknown"
+    return f"{have}; torch kernels: {level}"

@@ -32,7 +32,7 @@ from instagram_hdmap.config import UserError
 @row("evaluate --out that is a file: refused before the evaluation runs")
 def row_evaluate_out_is_a_file(env):
     (env.tmp / "taken").write_text("x")
-    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
+    forbid(env, "instagram_hdmap.evaluate_split.evaluate", "the evaluation")
     env.error(r"taken", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "taken")
 
 
@@ -227,7 +227,7 @@ def row_png_on_a_full_disk(env):
           "submission.json next to the old metrics)")
 def row_evaluate_metrics_path_is_a_folder(env):
     (env.tmp / "e" / "metrics.json").mkdir(parents=True)
-    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
+    forbid(env, "instagram_hdmap.evaluate_split.evaluate", "the evaluation")
     env.error(r"metrics\.json: is a folder", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", env.tmp / "e")
 
 
@@ -267,7 +267,7 @@ def row_output_path_broken_symlink(env):
     dangling.symlink_to(env.tmp / "unmounted" / "runs")
     loop.symlink_to(env.tmp / "loop2")
     (env.tmp / "loop2").symlink_to(loop)
-    forbid(env, "instagram_hdmap.predict.evaluate", "the evaluation")
+    forbid(env, "instagram_hdmap.evaluate_split.evaluate", "the evaluation")
     env.error(r"--out .*dangling: .*dangling is a symbolic link to .*unmounted/runs, which leads nowhere", "evaluate",
               env.yaml, "--checkpoint", env.ckpt, "--out", dangling)
     env.error(r"--out .*loop/e: .*loop is a symbolic link to .*loop2, which leads nowhere", "evaluate", env.yaml,

@@ -505,7 +505,7 @@ def row_resume_with_another_training_split(env):
             "checkpoint's submission beside the metrics of the evaluation before, a pair that looked whole; both are "
             "written to temporaries and renamed together, so the earlier pair stays as it was")
 def row_evaluate_killed_between_its_two_files(env):
-    from instagram_hdmap import predict as predict_module
+    from instagram_hdmap import evaluate_split
 
     out = env.tmp / "e"
     rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
@@ -515,7 +515,7 @@ def row_evaluate_killed_between_its_two_files(env):
     def killed(*args, **kwargs):
         raise KeyboardInterrupt
 
-    env.monkeypatch.setattr(predict_module, "write_json", killed)
+    env.monkeypatch.setattr(evaluate_split, "write_json", killed)
     rc, _, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out, "data.val_split=train")
     assert rc == 130, err[-2000:]
     assert {name: (out / name).read_bytes() for name in before} == before  # the earlier pair, whole
@@ -641,7 +641,7 @@ def row_show_gt_killed_part_way_over_an_earlier_set(env):
             "steps since the last checkpoint lost; last.pt is saved at the last completed step and one line says so "
             "(evaluate: one line, nothing written)")
 def row_data_worker_killed(env):
-    from instagram_hdmap import predict as predict_module
+    from instagram_hdmap import evaluate_split
     from instagram_hdmap.train import TrainingRun
 
     on_step = TrainingRun.on_step
@@ -660,7 +660,7 @@ def row_data_worker_killed(env):
     def worker_died(*args, **kwargs):
         raise RuntimeError("DataLoader worker (pid(s) 4243) exited unexpectedly")
 
-    env.monkeypatch.setattr(predict_module, "evaluate", worker_died)
+    env.monkeypatch.setattr(evaluate_split, "evaluate", worker_died)
     env.error(r"evaluate: error: DataLoader worker .*exited unexpectedly .*nothing was written", "evaluate", env.yaml,
               "--checkpoint", env.ckpt, "--out", env.tmp / "e")
 
@@ -742,7 +742,7 @@ def row_two_evaluations_into_one_out(env):
          "f.flush(); print('locked', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
-        forbid(env, "instagram_hdmap.predict.load_model", "the evaluation")
+        forbid(env, "instagram_hdmap.evaluate_split.load_model", "the evaluation")
         env.error(rf"another evaluation is running in .*eval \(process {holder.pid}\); wait for it to end \(or stop "
                   r"it\), or choose another --out", "evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", out)
         assert (out / "metrics.json").read_text() == "{}"
@@ -754,7 +754,7 @@ def row_two_evaluations_into_one_out(env):
         assert (nested / LOCK_FILE).is_file()
         raise RuntimeError("the job failed")
     assert not (env.tmp / "new").exists()
-    env.monkeypatch.setattr("instagram_hdmap.predict.load_model", load_model)
+    env.monkeypatch.setattr("instagram_hdmap.evaluate_split.load_model", load_model)
     rc, out_, err = env.cli("evaluate", env.yaml, "--checkpoint", env.ckpt, "--out", nested)
     assert rc == 0, err
     assert sorted(p.name for p in nested.iterdir()) == ["metrics.json", "submission.json"]  # the lock file gone
