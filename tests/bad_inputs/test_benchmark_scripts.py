@@ -273,6 +273,38 @@ def row_benchmark_temporal_result_with_null(env):
     assert "nan" in bench.table([result])
 
 
+def _gpu_sh(**settings) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(REPO / "benchmarks" / "gpu.sh")], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, **settings})
+
+
+@row("benchmarks/gpu.sh's CPU check (DEVICE=cpu, the tiny config, one run): one Markdown table, a row per precision "
+     "and mode with the model's and the model + decoding's FPS, headed by the device and the CPU's extensions")
+def row_gpu_sh_writes_one_markdown_table(env):
+    p = _gpu_sh(DEVICE="cpu", CONFIGS="configs/synthetic/tiny.yaml", MODES="eager", RUNS="1", WARMUP="0", TRAIN="0")
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = p.stdout.splitlines()
+    assert lines[0].startswith("device cpu") and "cpu: " in lines[0] and "torch kernels: " in lines[0]
+    assert lines[1] == "| config | amp | mode | model FPS | (p90-p10) | +decoding FPS | (p90-p10) | paper |"
+    assert lines[2] == "|---|---|---|---|---|---|---|---|"
+    rows = [ln.split(" | ") for ln in lines[3:] if ln.startswith("| ")]
+    assert [(r[0], r[1], r[2]) for r in rows] == [("| tiny.yaml", "none", "eager"), ("| tiny.yaml", "bf16", "eager")]
+    assert all(float(r[3]) > 0 and float(r[5]) > 0 for r in rows), rows
+    assert lines[-1] == "runs per cell: 1 after 0 warm-up runs"
+
+
+@row("benchmarks/gpu.sh with a setting that is not a number, TRAIN other than 0 / 1, or CUDA graphs on the CPU: "
+     "one line, exit 2, before any model is built")
+def row_gpu_sh_bad_settings(env):
+    for settings, message in [({"RUNS": "ten"}, "RUNS, WARMUP and BUDGET_S must be whole numbers"),
+                              ({"TRAIN": "yes"}, "TRAIN must be 0 or 1, got yes"),
+                              ({"DEVICE": "cpu", "MODES": "cuda_graphs", "TRAIN": "0"},
+                               "--modes cuda_graphs needs --device cuda (got --device cpu)")]:
+        p = _gpu_sh(**settings)
+        assert p.returncode == 2 and message in p.stderr.splitlines()[-1], (settings, p.stderr[-2000:])
+        assert "Traceback" not in p.stderr and "|" not in p.stdout, settings
+
+
 @pytest.mark.parametrize("case", table(__name__), ids=str)
 def test_benchmark_scripts(case, env):
     case.run(env)
