@@ -153,6 +153,14 @@ def test_vertices_beyond_d0_go_to_the_dustbin():
     assert out["pred_to_gt_dist_m"][0, 1] == pytest.approx((D0_px - 0.01) * GRID.resolution, abs=1e-5)
 
 
+def test_targets_carry_no_gradient_of_the_predicted_vertices():
+    """Targets are constants of the loss: nothing of the assignment is differentiated back into the vertices."""
+    gt = graph_tensors([[(line([50, 50], [50, 74], 3), 2, False)]])
+    pred = torch.tensor([[[50.0, 50.0], [51.0, 62.0]]], requires_grad=True)
+    out = run_assign(pred, torch.ones(1, 2, dtype=torch.bool), gt)
+    assert not any(v.requires_grad for v in out.values())
+
+
 def test_several_predictions_on_one_gt_vertex_keep_the_nearest():
     gt = graph_tensors([[(line([50, 50], [50, 74], 3), 0, False)]])
     # 0, 1, 2 all nearest to GT vertex 1; vertex 2 is the closest; 3 sits on GT vertex 0;

@@ -336,3 +336,22 @@ def test_the_cli_stops_a_paper_config_offline_in_one_line_before_loading_data(tm
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert "model.backbone.weights=/path/to/efficientnet-b0.pth" in err and "absent" not in err
+
+
+def test_validation_runs_the_model_without_autograd():
+    """engine.evaluate runs under no_grad: a validation records no graph (memory, time)."""
+    from instagram_hdmap import engine
+
+    seen = []
+
+    class Probe(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.ones(1))
+
+        def forward(self, batch):
+            seen.append(torch.is_grad_enabled())
+            return {"x": self.w * 2}
+
+    result = engine.evaluate(Probe(), None, [{"images": torch.zeros(1, 1, 3, 4, 4)}], torch.device("cpu"))
+    assert seen == [False] and result["losses"] == {}

@@ -104,7 +104,6 @@ def _next_represented(step: torch.Tensor, represented: torch.Tensor, skip_missed
     return torch.where(out == idx, torch.full_like(out, M), out)  # only vertex of its cycle -> none
 
 
-@torch.no_grad()
 def _check_shapes(pred_vertices_px, pred_vertex_mask, gt_vertices_px, gt_vertex_mask, gt_vertex_labels, gt_vertex_next,
                   gt_vertex_prev) -> tuple[int, int, int]:
     """B, N and M of ``assign``'s inputs, whose shapes must agree."""
@@ -150,6 +149,7 @@ def _class_targets(gt_vertex_labels: torch.Tensor, nearest: torch.Tensor, neares
     return torch.where(has_class, target, torch.full_like(nearest, IGNORE_INDEX))
 
 
+@torch.no_grad()
 def assign(
     pred_vertices_px: torch.Tensor,
     pred_vertex_mask: torch.Tensor,

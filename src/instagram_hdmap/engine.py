@@ -283,13 +283,12 @@ def train_one_epoch(
         shut_down_workers(batches)
         raise
     bar.close()
-    stats = _reduced(sums, count, None, device)["losses"]  # (the mean of every logged value)
+    stats = _mean_over_ranks(sums, count, device)
     seconds = time.perf_counter() - t_epoch
     return {"stats": stats, "global_step": global_step, "step_in_epoch": step_in_epoch, "stopped": stopped,
             "seconds": seconds, "samples_per_s": n_samples / max(seconds, 1e-9), "memory": memory}
 
 
-@torch.no_grad()
 def _rows_to_score(batch: dict, owned: set | None, streaming: bool) -> tuple[list[int], list[int]]:
     """The rows of ``batch`` to score and, for a temporal model, those whose memory status counts. A streaming
     loader's padding is not scored: each sample it ``owned`` once (even twice in a batch), and a stand-in for a
@@ -327,10 +326,15 @@ def _scored_predictions(preds: list[list[dict]], batch: dict, keep: list[int], p
     return [preds[b] for b in keep], persisted
 
 
+def _mean_over_ranks(sums: dict, count: int, device: torch.device) -> dict[str, float]:
+    """The mean of each summed value over the ``count`` batches of every rank."""
+    return du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()}, device if device.type == "cuda" else None)
+
+
 def _reduced(sums: dict, count: int, status_counts: dict | None, device: torch.device) -> dict:
     """The mean losses over the batches and the memory status counts (summed over the ranks)."""
     on = device if device.type == "cuda" else None
-    result = {"losses": du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()}, on)}
+    result = {"losses": _mean_over_ranks(sums, count, device)}
     if status_counts is not None:
         result["memory"] = {k: int(round(v * du.get_world_size()))  # the mean over ranks, times the ranks
                             for k, v in du.reduce_dict(dict(status_counts), on).items()}
@@ -347,6 +351,7 @@ def meter_results(flicker, cmap, evaluator) -> dict:
     return result
 
 
+@torch.no_grad()
 def evaluate(
     model: torch.nn.Module,
     criterion: Callable[[dict, dict], dict] | None,
