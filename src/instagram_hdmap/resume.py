@@ -391,9 +391,8 @@ def check_not_finished(run, state: dict, path: Path) -> None:
 def init_notes(cfg, init_state: dict, new: list[str]) -> list[str]:
     """What a run started from ``train.init_from`` says: the weights' source (and the new tensors of a temporal
     fusion), model settings other than the checkpoint's, an unread ``model.backbone.weights``."""
-    notes: list[str] = []
-    notes.append(f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion "
-                                                         "start from their initialisation)" if new else ""))
+    notes = [f"weights from {cfg.train.init_from}" + (f" ({len(new)} new tensors of the temporal fusion start from "
+                                                         "their initialisation)" if new else "")]
     other = init_model_differences(init_state, cfg)
     if other:  # weights of the same names and shapes, loaded with no word (8 attention heads from 4)
         notes.append(f"note: the checkpoint of train.init_from was trained with other model settings "
