@@ -126,6 +126,10 @@ class DataConfig:
     # custom splits.json {"train": [scene names], "val": [...]}, overrides the official splits; a
     # relative path is looked up in the working directory, then in the dataroot
     splits_file: str | None = None
+    # official: the dataset's own splits (the devkit's scenes, AV2's split folders); geo: StreamMapNet's
+    # geographically disjoint lists, shipped with the package, or a synthetic world's held-out road
+    # network (data/geo_split.py)
+    split_scheme: Literal["official", "geo"] = "official"
     train_split: str = "train"
     val_split: str = "val"
     image_size: tuple[int, int] = bounded((128, 352), ge=1, le=8192)  # (h, w) fed to the backbone
@@ -599,6 +603,13 @@ def validate_config(cfg: ExperimentConfig) -> None:
     if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
         raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "
                           f"{', '.join(AV2_RING_CAMERAS)}; got {list(d.av2_cameras)}")
+    if d.split_scheme == "geo" and d.splits_file is not None:  # two answers to "which scenes"
+        raise ConfigError(f"config keys 'data.split_scheme' (geo) and 'data.splits_file' ({d.splits_file}) both choose "
+                          "the scenes of each split: set one of them (data.splits_file=null or "
+                          "data.split_scheme=official)")
+    if d.split_scheme == "geo" and not {d.train_split, d.val_split} <= {"train", "val"}:
+        raise ConfigError(f"config key 'data.split_scheme' is geo, whose splits are 'train' and 'val'; got "
+                          f"data.train_split={d.train_split!r}, data.val_split={d.val_split!r}")
     if d.dataset == "av2" and d.splits_file is not None:  # it was ignored: every log of the split folder ran
         raise ConfigError(f"config key 'data.splits_file' ({d.splits_file}) chooses nuScenes scenes; an AV2 split is a "
                           "folder of logs (data.train_split / data.val_split name it), so the file would be ignored: "

@@ -158,7 +158,7 @@ def inference_config(
                      f"against another convention than the model learnt (docs/conventions.md); data.ped_crossing="
                      f"{trained.data.ped_crossing} scores them as trained")
     same_world = all(getattr(trained.data, k) == getattr(out.data, k) for k in ("dataset", "dataroot", "version",
-                                                                               "splits_file"))
+                                                                               "splits_file", "split_scheme"))
     if same_world and out.data.val_split == trained.data.train_split:  # data.val_split=train: seen samples
         notes.append(f"data.val_split={out.data.val_split!r} is the split the checkpoint was trained on (the same "
                      f"dataroot {out.data.dataroot}): scores on it are of samples the model has seen, not unseen ones")

@@ -54,6 +54,7 @@ RESUME_FREE = tuple(k for k in NOT_BAKED if k != "data.av2_cameras")  # (the AV2
 # kind than the best score it carries (a raster mAP compared with a vector one, another split's, other decoding's),
 # which a note says
 SCORE_KEYS = ("eval.protocol", "eval.thresholds", "eval.rank_by", "eval.fix_instance_ids", "data.val_split",
+              "data.split_scheme",
               *DECODE_KEYS, "model.temporal.persist_frames", "model.temporal.persist_decay",
               "model.temporal.persist_match_m")
 

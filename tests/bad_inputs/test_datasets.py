@@ -162,6 +162,22 @@ def row_av2_splits_file_ignored(env):
               "data.dataset=av2", "--out", env.tmp / "show")
 
 
+@row("data.split_scheme=geo with a data.splits_file too is refused: both choose the scenes")
+def row_geo_split_with_a_splits_file(env):
+    env.error(r"'data\.split_scheme' \(geo\) and 'data\.splits_file' .* both choose the scenes", "show-gt", env.yaml,
+              "data.split_scheme=geo", "--out", env.tmp / "show")
+
+
+@row("data.split_scheme=geo with other split names, or on a world of three road networks, is one line")
+def row_geo_split_names_and_small_world(env):
+    env.error(r"'data\.split_scheme' is geo, whose splits are 'train' and 'val'.*mini_train", "show-gt", env.yaml,
+              "data.split_scheme=geo", "data.splits_file=null", "data.train_split=mini_train", "--out",
+              env.tmp / "show")
+    # the tiny world's three scenes drive three of the four networks: none is left to validate on
+    env.error(r"geo split of the synthetic world .*singapore-queenstown.* at least 4 scenes", "show-gt", env.yaml,
+              "data.split_scheme=geo", "data.splits_file=null", "--out", env.tmp / "show")
+
+
 @row("a splits file whose split lists a list (not scene names) is named (was a raw TypeError)")
 def row_splits_file_nested_list(env):
     splits = env.tmp / "splits.json"

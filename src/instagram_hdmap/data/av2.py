@@ -7,9 +7,11 @@ optional extra ``pip install -e ".[av2]"``): the same sample dict as the nuScene
 
 Samples: every ``data.av2_frame_step``-th lidar sweep of every log of the split folder
 (``data.train_split`` / ``data.val_split`` name the folders), in ``AV2SensorDataLoader`` order (logs
-sorted, sweeps in time). A sample's token is ``"<log_id>/<sweep timestamp_ns>"``. Its pose is the ego
-pose at the sweep (``city_SE3_egovehicle.feather``, ``read_city_SE3_ego``); its cameras are the ring
-cameras of ``data.av2_cameras`` (default all seven; ``V = len(data.av2_cameras)``), each the image the
+sorted, sweeps in time); under ``data.split_scheme=geo`` the logs of StreamMapNet's list, wherever they lie
+under ``train/``, ``val/`` and ``test/`` (data/geo_split.py). A sample's token is
+``"<log_id>/<sweep timestamp_ns>"``. Its pose is the ego pose at the sweep
+(``city_SE3_egovehicle.feather``, ``read_city_SE3_ego``); its cameras are the ring cameras of
+``data.av2_cameras`` (default all seven; ``V = len(data.av2_cameras)``), each the image the
 av2 synchronisation picks for the sweep (``get_closest_img_fpath``: the nearest within 25 ms), with the
 log's calibration (``PinholeCamera.from_feather``: intrinsics, camera -> ego). As for nuScenes, one ego
 pose serves all cameras (lift-splat-shoot's simplification). AV2's ring_front_center is portrait
@@ -75,6 +77,7 @@ from .base import (
     check_rotation,
     check_translation,
 )
+from .geo_split import GeoSplit, check_split, from_list, from_networks, synthetic_manifest
 from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
 from .transforms import ImageAug, load_image, sample_augmentation
 
@@ -240,11 +243,15 @@ def _unique_rows(path: Path, key: str, where: str, what: str) -> None:
 
 class AV2LocalMapBuilder(LocalMapBuilder):
     """``builder(log_id, x, y, yaw) -> polyline dicts``: data/local_map.py's builder over the log maps
-    of one split folder (the nuScenes "location" is the log)."""
+    of the dataset's logs (the nuScenes "location" is the log)."""
+
+    def __init__(self, *args, log_dirs: dict[str, Path] | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.log_dirs = log_dirs or {}  # log id -> its folder (a dataset's); else dataroot / log id
 
     def location_map(self, location: str) -> _LocationMap:
         if location not in self._maps:
-            self._maps[location] = load_log_map(self.dataroot / location)
+            self._maps[location] = load_log_map(self.log_dirs.get(location, self.dataroot / location))
         return self._maps[location]
 
 
@@ -258,6 +265,7 @@ def _yaw(rotation: np.ndarray) -> float:
 # a lidar sweep's pose in a timestamp_ns column rounded by float64 (a step of 64 ns at AV2's 3.2e17 ns) lies
 # this close; the poses themselves are ~6 ms apart
 ROUNDED_TIMESTAMP_NS = 1000
+GEO_FOLDERS = ("train", "val", "test")  # a geo split's logs may lie in any of them (StreamMapNet's converter)
 
 
 class AV2MapDataset(MapDataset):
@@ -272,26 +280,52 @@ class AV2MapDataset(MapDataset):
         self.camera_names = tuple(d.av2_cameras)
         self.dataroot = Path(d.dataroot)
         self.split_dir = self.dataroot / split
-        self._check_root()
-        self.loader = AV2SensorDataLoader(data_dir=self.split_dir, labels_dir=self.split_dir)
+        # the folders of logs read: the split's own, or (a geo split) every split folder of the root
+        folders = [self.dataroot / f for f in GEO_FOLDERS] if d.split_scheme == "geo" else [self.split_dir]
+        if d.split_scheme == "geo":
+            check_split(split)
+            folders = [f for f in folders if f.is_dir()] or [self.split_dir]
+        self.loaders: dict[Path, object] = {}
+        self.log_dirs: dict[str, Path] = {}  # log id -> its folder
+        for folder in folders:
+            self._check_root(folder)
+            self.loaders[folder] = AV2SensorDataLoader(data_dir=folder, labels_dir=folder)
+            for log in self.loaders[folder].get_log_ids():
+                if not log.startswith("."):  # a hidden folder (_check_root), which av2 lists as a log
+                    self.log_dirs.setdefault(log, folder / log)
+        geo = self._geo_split(split) if d.split_scheme == "geo" else None
         self.samples: list[tuple[str, int]] = []
-        for log in self.loader.get_log_ids():
-            if log.startswith("."):  # a hidden folder (_check_root), which av2 lists as a log
-                continue
-            sweeps = self.loader.get_ordered_log_lidar_timestamps(log)
+        for log in sorted(geo.names) if geo else self.log_dirs:
+            sweeps = self._loader(log).get_ordered_log_lidar_timestamps(log)
             if not sweeps:
-                raise DatasetError(f"log {log}: no lidar sweeps in {self.split_dir / log / 'sensors' / 'lidar'} "
+                raise DatasetError(f"log {log}: no lidar sweeps in {self.log_dirs[log] / 'sensors' / 'lidar'} "
                                    "(AV2 samples are the sweeps); the log folder is incomplete")
             self.samples += [(log, int(ts)) for ts in sweeps[:: d.av2_frame_step]]
+        if geo is not None:
+            print(geo.line(str(self.dataroot), len(self.samples)), flush=True)
         self.sample_tokens = [f"{log}/{ts}" for log, ts in self.samples]
-        self.map_builder = AV2LocalMapBuilder(self.split_dir, self.grid, d.sample_dist, d.ped_crossing)
+        self.map_builder = AV2LocalMapBuilder(self.dataroot, self.grid, d.sample_dist, d.ped_crossing,
+                                              log_dirs=self.log_dirs)
         self.set_scenes([log for log, _ in self.samples], [ts // 1000 for _, ts in self.samples])  # ns -> us
         self._poses: dict[str, dict] = {}
         self._grounds: dict[str, object] = {}
         self._cameras: dict[str, dict] = {}
 
-    def _check_root(self) -> None:
-        root, split_dir = self.dataroot, self.split_dir
+    def _loader(self, log: str):
+        return self.loaders[self.log_dirs[log].parent]
+
+    def _geo_split(self, split: str) -> GeoSplit:
+        """The logs of ``split`` under ``data.split_scheme=geo``: StreamMapNet's list, or the held-out road network
+        of a synthetic world (data/geo_split.py)."""
+        manifest = synthetic_manifest(self.dataroot)
+        if manifest is not None:
+            networks = manifest.get("maps") if isinstance(manifest.get("maps"), dict) else {}
+            return from_networks(split, {log: networks.get(log, "?") for log in sorted(self.log_dirs)},
+                                 str(self.dataroot))
+        return from_list("av2", split, sorted(self.log_dirs), str(self.dataroot))
+
+    def _check_root(self, split_dir: Path) -> None:
+        root = self.dataroot
         if not root.is_dir():
             raise DatasetError(f"AV2 dataroot not found: {root} (set data.dataroot{relative_path_note(root)})")
         if not split_dir.is_dir():
@@ -334,11 +368,11 @@ class AV2MapDataset(MapDataset):
         if log not in self._poses:
             from av2.utils.io import read_city_SE3_ego
 
-            path = self.split_dir / log / "city_SE3_egovehicle.feather"
+            path = self.log_dirs[log] / "city_SE3_egovehicle.feather"
             if not path.is_file():
                 raise DatasetError(f"log {log}: ego poses not found: {path}")
             try:
-                self._poses[log] = read_city_SE3_ego(self.split_dir / log)
+                self._poses[log] = read_city_SE3_ego(self.log_dirs[log])
                 _unique_rows(path, "timestamp_ns", f"log {log}", "ego poses")
             except (KeyError, ValueError, OSError) as e:
                 raise DatasetError(f"log {log}: cannot read {path}: {type(e).__name__}: {e}") from None
@@ -350,7 +384,7 @@ class AV2MapDataset(MapDataset):
             from av2.geometry.camera.pinhole_camera import PinholeCamera
             from av2.utils.io import read_ego_SE3_sensor, read_feather
 
-            log_dir = self.split_dir / log
+            log_dir = self.log_dirs[log]
             intr_path = log_dir / "calibration" / "intrinsics.feather"
             extr_path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
             for path in (intr_path, extr_path):
@@ -388,7 +422,7 @@ class AV2MapDataset(MapDataset):
     def _pose(self, index: int):
         log, ts = self.samples[index]
         poses = self._log_poses(log)
-        path = self.split_dir / log / "city_SE3_egovehicle.feather"
+        path = self.log_dirs[log] / "city_SE3_egovehicle.feather"
         if ts not in poses:
             near = min(poses, key=lambda t: abs(int(t) - ts), default=None)
             rounded = (f"; its nearest is {int(near)}, {abs(int(near) - ts)} ns away: its timestamp_ns column was "
@@ -405,7 +439,7 @@ class AV2MapDataset(MapDataset):
         return pose
 
     def _image_path(self, log: str, cam: str, ts: int) -> Path:
-        folder = self.split_dir / log / "sensors" / "cameras" / cam
+        folder = self.log_dirs[log] / "sensors" / "cameras" / cam
         if folder.parent.is_symlink() and not folder.parent.exists():  # images on another disk
             raise DatasetError(f"log {log}: {folder.parent} is a symbolic link to {os.readlink(folder.parent)}, "
                                "which does not exist (a disk not mounted, or the images moved?)")
@@ -420,11 +454,11 @@ class AV2MapDataset(MapDataset):
         level = sync_log.level
         sync_log.setLevel(logging.ERROR)  # its "No corresponding ring image" warning: the error below says it
         try:
-            path = self.loader.get_closest_img_fpath(log, cam, ts)
+            path = self._loader(log).get_closest_img_fpath(log, cam, ts)
         finally:
             sync_log.setLevel(level)
         if path is None or not path.is_file():
-            stamps = [int(p.stem) for p in self.loader.get_ordered_log_cam_fpaths(log, cam)]
+            stamps = [int(p.stem) for p in self._loader(log).get_ordered_log_cam_fpaths(log, cam)]
             nearest = min(stamps, key=lambda t: abs(t - ts)) if stamps else None
             # .JPG too: a folder of upper-case names was "the folder holds no images"
             others = sorted({q.suffix for q in folder.iterdir() if q.is_file() and q.suffix != ".jpg"})
@@ -457,10 +491,10 @@ class AV2MapDataset(MapDataset):
         """The road's height below the ego origin at the sample's pose (``ego_ground_height``)."""
         log, ts = self.samples[index]
         if log not in self._grounds:
-            self._grounds[log] = load_ground_height(self.split_dir / log)
+            self._grounds[log] = load_ground_height(self.log_dirs[log])
         z = ego_ground_height(self._grounds[log], self._pose(index))
         if not math.isfinite(z):
-            raise DatasetError(f"log {log}: the ground-height raster in {self.split_dir / log / 'map'} has no value "
+            raise DatasetError(f"log {log}: the ground-height raster in {self.log_dirs[log] / 'map'} has no value "
                                f"at the ego position of lidar sweep {ts}")
         return z
 

@@ -8,6 +8,8 @@ with the keys of docs/conventions.md; ``data.base.collate_fn`` batches them.
 Splits: ``v1.0-trainval`` uses the devkit's official train/val scenes, ``v1.0-mini`` its
 mini_train/mini_val (asked for as "train"/"val"), and ``data.splits_file`` (a JSON
 ``{"train": [scene names], "val": [...]}``) overrides both and works with any version folder.
+``data.split_scheme=geo`` takes StreamMapNet's geographically disjoint scene lists instead
+(data/geo_split.py), on any version folder: a listed scene the folder lacks is named.
 
 Poses: the map and ``ego_pose`` use the ego pose of the sample's LIDAR_TOP record (the keyframe
 reference, as HDMapNet/MapTR; CAM_FRONT when a dataroot has no lidar). The cameras' ego poses at
@@ -42,6 +44,7 @@ from .base import (
     check_translation,
     reject_text,
 )
+from .geo_split import GeoSplit, from_list, from_networks, synthetic_manifest
 from .local_map import LocalMapBuilder, MapError
 from .rig import CAMERAS
 from .transforms import ImageAug, ImageError, load_image, sample_augmentation
@@ -254,6 +257,17 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
     return [n for n in present if n in wanted]
 
 
+def geo_split_scenes(nusc, version: str, split: str) -> GeoSplit:
+    """The scenes of ``split`` under ``data.split_scheme=geo`` (data/geo_split.py): StreamMapNet's list, or the
+    held-out road network of a synthetic world."""
+    where = f"{nusc.dataroot} ({version})"
+    if synthetic_manifest(nusc.dataroot) is not None:
+        logs = {r["token"]: r for r in nusc.log}
+        return from_networks(split, {s["name"]: logs.get(s.get("log_token"), {}).get("location", "?")
+                                     for s in nusc.scene}, where)
+    return from_list("nuscenes", split, [s["name"] for s in nusc.scene], where)
+
+
 def quaternion_yaw(q_wxyz) -> float:
     """Yaw (radians) of a rotation quaternion (w, x, y, z): the heading of its x axis in the xy plane."""
     from pyquaternion import Quaternion
@@ -311,7 +325,8 @@ class NuScenesMapDataset(MapDataset):
         d = cfg.data
         self.nusc = nusc if nusc is not None else open_nuscenes(d.dataroot, d.version)
         self.dataroot = Path(self.nusc.dataroot)
-        names = set(split_scene_names(self.nusc, d.version, split, d.splits_file))
+        geo = geo_split_scenes(self.nusc, d.version, split) if d.split_scheme == "geo" else None
+        names = set(geo.names if geo else split_scene_names(self.nusc, d.version, split, d.splits_file))
         self.sample_tokens: list[str] = []
         self._scene_of: dict[str, dict] = {}
         table = self.dataroot / d.version / "sample.json"
@@ -344,6 +359,8 @@ class NuScenesMapDataset(MapDataset):
                     "broken: fix the 'next' links")
         if not self.sample_tokens:
             raise DatasetError(f"split '{split}' of {self.dataroot} ({d.version}) has no samples")
+        if geo is not None:
+            print(geo.line(f"{self.dataroot} ({d.version})", len(self.sample_tokens)), flush=True)
         self.map_builder = LocalMapBuilder(self.dataroot, self.grid, d.sample_dist, d.ped_crossing)
         self.set_scenes([self._scene_of[t]["name"] for t in self.sample_tokens],
                         [self.nusc.get("sample", t)["timestamp"] for t in self.sample_tokens])
