@@ -260,6 +260,32 @@ def test_lss_depth_bins_reach_every_bev_cell_the_cameras_see():
     assert _farthest_seen_depth(long_range) > 44  # the official default leaves the far cells without features
 
 
+GEO = sorted((REPO / "configs" / "geo").glob("*.yaml"))
+
+
+def test_geo_configs_are_their_bases_on_the_geo_split():
+    """Every configs/geo file is a shipped row on StreamMapNet's split: the geo scheme and, for the 100 x 50 m
+    rows, the long-range grid, a vertex budget scaled with the area and depth bins that reach the grid."""
+    from instagram_hdmap.config import config_to_dict, diff_configs
+
+    assert len(GEO) == 9
+    for f in GEO:
+        cfg = load_config(f)
+        assert cfg.data.split_scheme == "geo" and cfg.data.splits_file is None, f.name
+        base = load_config(REPO / "configs" / ("av2" if f.name.startswith("av2") else "paper") /
+                           f.name.removeprefix("av2_").removeprefix("nuscenes_")) if "table1" in f.name else None
+        if base is not None:
+            assert set(diff_configs(base, cfg)) == {"name", "data.split_scheme"}, f.name
+            continue
+        grid = BEVGrid.from_config(cfg.grid)
+        assert (cfg.grid.xbound, cfg.grid.ybound) == ((-50.0, 50.0), (-25.0, 25.0))  # 100 m along, 50 m across
+        assert (grid.H, grid.W) == (200, 400) and grid.H % cfg.grid.cell_size == grid.W % cfg.grid.cell_size == 0
+        assert cfg.model.gnn.num_vertices == round(400 * (100 * 50) / (60 * 30)) <= (grid.H * grid.W) // 64
+        start, stop, step = cfg.model.view_transform.depth_bound
+        assert _farthest_seen_depth(cfg) <= start + step * (math.ceil((stop - start) / step) - 1), f.name
+        assert config_to_dict(cfg)["data"]["dataset"] == ("av2" if f.name.startswith("av2") else "nuscenes")
+
+
 def test_also_protocols_are_checked():
     assert load_config(None, ["eval.also_protocols=[raster]"]).eval.also_protocols == ("raster",)
     for bad in ("[vector]", "[raster,raster]", "[lidar]"):
