@@ -380,7 +380,13 @@ def test_video_has_one_frame_per_sample_of_the_scene(world, sample, tmp_path, ca
     capture.release()
     assert len(frames) == sample["scene_samples"] >= 2
     assert frames[0].shape[0] > 200 and frames[0].shape[1] > frames[0].shape[0]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.mp4", "tiny.pt"]  # no temporary file left
+    # the predictions beside it, each element with its track ID; no temporary file left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.json", "scene.mp4", "tiny.pt"]
+    from instagram_hdmap.evaluation.io import read_submission
+
+    tracked = read_submission(tmp_path / "scene.json", "pred", 3).samples
+    assert len(tracked) == sample["scene_samples"]
+    assert all(isinstance(p["track_id"], int) for polys in tracked.values() for p in polys)
     assert main(["predict", str(TINY), *world, "--checkpoint", str(ckpt), "--scene", "scene-9999",
                  "--video", str(tmp_path / "x.mp4")]) == 2
     assert "scene 'scene-9999' is not in split" in _error_line(capsys)

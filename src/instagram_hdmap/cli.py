@@ -276,8 +276,8 @@ def _cmd_predict(args: argparse.Namespace) -> int:
                                gt_as_prediction=args.gt_as_prediction, split=args.split, overrides=args.overrides,
                                fps=args.fps if args.fps is not None else 2.0, progress=sys.stderr.isatty())
         _print_notes(result["notes"])
-        print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames; "
-              f"wrote {result['video']}")
+        print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames, {result['tracks']} "
+              f"tracked elements; wrote {result['video']} and {result['predictions']}")
         return 0
     if args.video is not None or args.out is None:
         raise UserError("--video needs --scene NAME; one sample's pictures need --out DIR")

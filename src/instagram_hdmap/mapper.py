@@ -54,7 +54,7 @@ from .inference import (
 )
 from .models import build_model
 from .models.temporal import STATUS_NAMES
-from .persistence import Persistence
+from .persistence import TRACK_LOOK_BACK, InstanceTracker, Persistence
 from .postprocess import decode_options, postprocess_batch
 
 
@@ -62,13 +62,16 @@ from .postprocess import decode_options, postprocess_batch
 class MapElement:
     """One map element: its class name, ``points`` [P, 2] in metres in the ego frame (x forward, y
     left; a closed polygon repeats its first point at the end), ``closed``, a ``score`` in [0, 1] and
-    ``class_index`` (its index in the model's classes: the HDMapNet ``type``)."""
+    ``class_index`` (its index in the model's classes: the HDMapNet ``type``). ``track_id``: out of
+    ``Mapper.stream()``, the same integer for the same map element in every frame it is seen in
+    (``persistence.InstanceTracker``); None out of a single frame's call."""
 
     label: str
     points: np.ndarray
     closed: bool
     score: float
     class_index: int
+    track_id: int | None = None
 
     def __post_init__(self) -> None:
         # checked where it is made (a user's own elements too): a score of None crashed repr and to_hdmapnet far
@@ -99,16 +102,20 @@ class MapElement:
             raise ValueError(f"MapElement: label {self.label!r} with class_index {int(index)}, which is "
                              f"{MAP_CLASSES[int(index)]!r}; the classes are "
                              f"{', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}")
+        track = self.track_id
+        if track is not None and (isinstance(track, bool) or not isinstance(track, (int, np.integer)) or track < 0):
+            raise ValueError(f"MapElement: track_id must be None or an integer >= 0, got {track!r}")
         object.__setattr__(self, "points", points)
         object.__setattr__(self, "class_index", int(index))
+        object.__setattr__(self, "track_id", None if track is None else int(track))
 
     def __eq__(self, other: object) -> bool:
         # the dataclass's own __eq__ compares the points arrays with ==: "The truth value of an array with more than
         # one element is ambiguous" for `element in elements`
         if not isinstance(other, MapElement):
             return NotImplemented
-        return (self.label, self.closed, float(self.score), int(self.class_index)) == \
-            (other.label, other.closed, float(other.score), int(other.class_index)) and \
+        return (self.label, self.closed, float(self.score), int(self.class_index), self.track_id) == \
+            (other.label, other.closed, float(other.score), int(other.class_index), other.track_id) and \
             self.points.shape == other.points.shape and bool(np.array_equal(self.points, other.points))
 
     def __hash__(self) -> int:  # equal elements hash equal (a set or dict key of elements)
@@ -116,16 +123,20 @@ class MapElement:
                      np.ascontiguousarray(self.points, dtype=np.float64).tobytes()))
 
     def as_polyline(self) -> dict:
-        """The polyline dict of docs/conventions.md (``pts``, ``label``, ``closed``, ``score``)."""
-        return {"pts": self.points, "label": self.class_index, "closed": self.closed, "score": self.score}
+        """The polyline dict of docs/conventions.md (``pts``, ``label``, ``closed``, ``score``; ``track_id`` when
+        it has one)."""
+        poly = {"pts": self.points, "label": self.class_index, "closed": self.closed, "score": self.score}
+        return poly if self.track_id is None else {**poly, "track_id": self.track_id}
 
     def to_hdmapnet(self) -> dict:
-        """This element as an HDMapNet submission vector (``pts``, ``pts_num``, ``type``, ``confidence_level``)."""
+        """This element as an HDMapNet submission vector (``pts``, ``pts_num``, ``type``, ``confidence_level``;
+        ``track_id`` when it has one)."""
         return polylines_to_vectors([self.as_polyline()])[0]
 
     def __repr__(self) -> str:
         shape = "closed" if self.closed else "open"
-        return f"MapElement({self.label}, {len(self.points)} points, {shape}, score {self.score:.2f})"
+        track = "" if self.track_id is None else f", track {self.track_id}"
+        return f"MapElement({self.label}, {len(self.points)} points, {shape}, score {self.score:.2f}{track})"
 
 
 
@@ -520,7 +531,8 @@ class Mapper:
 
     def elements(self, polylines: Sequence[dict]) -> list[MapElement]:
         """One sample's polyline dicts (postprocess.py) as ``MapElement`` objects."""
-        return [MapElement(self.classes[p["label"]], p["pts"], p["closed"], p["score"], p["label"]) for p in polylines]
+        return [MapElement(self.classes[p["label"]], p["pts"], p["closed"], p["score"], p["label"], p.get("track_id"))
+                for p in polylines]
 
     def decode(self, outputs: dict[str, torch.Tensor]) -> list[list[MapElement]]:
         """Model outputs -> each sample's elements (postprocess.py, with the checkpoint's decoding)."""
@@ -544,18 +556,29 @@ class MapStream:
     and no memory). ``status``: the last step's memory status (``models.temporal.STATUS_NAMES``: fused,
     no_memory, pose_jump: the ego moved more than ``model.temporal.max_jump_m`` or turned more than
     ``model.temporal.max_turn_deg`` since the previous frame, so the memory was reset), and ``counts`` of
-    them since the stream began."""
+    them since the stream began.
+
+    Each element of a frame with an ``ego_pose`` carries a ``track_id``: the same map element keeps its ID
+    from frame to frame while it is seen, and for up to ``TRACK_LOOK_BACK`` frames it is missed
+    (``persistence.InstanceTracker``: Chamfer matching, within ``model.temporal.persist_match_m``, of the
+    tracks moved by the ego motion). IDs are never reused by one stream: after ``reset()`` (or a pose jump)
+    every element gets a new one. A frame without an ``ego_pose`` cannot be related to the one before:
+    its elements have ``track_id`` None."""
 
     def __init__(self, mapper: Mapper):
         self.mapper = mapper
         self.counts: dict[str, int] = {}
         self.persist = Persistence.from_config(mapper.config)  # model.temporal.persist_frames (persistence.py)
+        self.tracker = InstanceTracker.from_config(mapper.config, look_back=TRACK_LOOK_BACK)
+        self.first_id = 0  # the IDs of the scene since the last reset start here
         self.reset()
 
     def reset(self) -> None:
         self.memory: dict | None = None
         if self.persist is not None:
             self.persist.reset()
+        self.first_id += self.tracker.next_id.get("stream", 0)
+        self.tracker.reset()
         self.frame_index = 0
         self.status: str | None = None
         self.origin: np.ndarray | None = None  # the scene's first ego position (float64), see _local
@@ -611,4 +634,7 @@ class MapStream:
         polylines = postprocess_batch(outputs, self.mapper.grid, **self.mapper.decode_options)[0]
         if self.persist is not None:
             polylines = self.persist.step(polylines, "stream", self.frame_index - 1, batch["ego_pose"][0])
+        if frame.ego_pose is not None:
+            ids = self.tracker.step(polylines, "stream", self.frame_index - 1, batch["ego_pose"][0])
+            polylines = [{**p, "track_id": self.first_id + i} for p, i in zip(polylines, ids)]
         return self.mapper.elements(polylines)

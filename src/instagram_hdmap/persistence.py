@@ -133,7 +133,9 @@ def _points(pts) -> np.ndarray:
 class _Scene:
     frame: int
     pose: np.ndarray  # [4, 4] ego -> world, float64
-    elements: list[tuple[dict, int]]  # (polyline dict in this frame's ego frame, frames missed)
+    # (polyline dict in this frame's ego frame, frames missed) for Persistence; (polyline dict, ID, frames missed)
+    # for InstanceTracker
+    elements: list[tuple]
 
 
 def _resample(pts: np.ndarray, n: int) -> np.ndarray:
@@ -299,6 +301,11 @@ class Persistence:
         return list(preds) + [element for element, _ in carried]
 
 
+# frames a missed track waits for its element to come back in a stream's IDs (Mapper.stream, predict --scene):
+# MapTracker's prepare_pred_tracks.py looks back up to 5 frames
+TRACK_LOOK_BACK = 5
+
+
 class InstanceTracker:
     """Instance IDs across the frames of a drive, by the persistence matcher (``match_previous``).
 
@@ -306,18 +313,21 @@ class InstanceTracker:
         ids = track(preds, scenes, frames, poses)        # per sample, one integer ID per output element
 
     At the next frame of a scene (``_continues``: the next frame index, no pose jump, as ``Persistence``), the
-    previous frame's output elements are moved into this ego frame and matched to this frame's, one to one: the
-    (previous, current) pairs of one class in increasing Chamfer distance (``match_previous``, ties by index),
-    each pair taken while both are free and ``D <= match_m``. A matched element takes the previous one's ID; any
-    other (and every element of a scene's first frame, of a frame after a gap or a pose jump) takes a new one.
-    IDs are per scene, counted from 0 and never reused in it (a reset after a pose jump gives new IDs). Only the
-    previous frame is looked at (MapTracker's ``prepare_pred_tracks.py`` looks back up to 5 frames; an element
-    the model missed for a frame comes back with a new ID unless ``Persistence`` kept it: a kept element matches
-    its previous self and keeps its ID). Samples of a scene must come in frame order (scenes may interleave);
-    bad input is a ``PersistenceInputError`` naming the sample, as ``Persistence``.
+    tracks (the previous frame's output elements, and with ``look_back`` > 1 the tracks missed for fewer than
+    ``look_back`` frames) are moved into this ego frame and matched to this frame's elements, one to one: the
+    (track, current) pairs of one class in increasing Chamfer distance (``match_previous``, ties by index), each
+    pair taken while both are free and ``D <= match_m``. A matched element takes the track's ID; any other (and
+    every element of a scene's first frame, of a frame after a gap or a pose jump) takes a new one. IDs are per
+    scene, counted from 0 and never reused in it (a reset after a pose jump gives new IDs). ``look_back`` 1 (the
+    default, the consistency meter's) looks at the previous frame only: an element the model missed for a frame
+    comes back with a new ID unless ``Persistence`` kept it; MapTracker's ``prepare_pred_tracks.py`` looks back
+    up to 5 frames, which ``look_back=5`` does (a missed track moves with the ego while it waits, and is dropped
+    when it leaves the grid). Samples of a scene must come in frame order (scenes may interleave); bad input is a
+    ``PersistenceInputError`` naming the sample, as ``Persistence``.
     """
 
-    def __init__(self, grid: BEVGrid, match_m: float = 1.0, max_jump_m: float = 10.0, max_turn_deg: float = 180.0):
+    def __init__(self, grid: BEVGrid, match_m: float = 1.0, max_jump_m: float = 10.0, max_turn_deg: float = 180.0,
+                 look_back: int = 1):
         try:  # the same argument checks
             self._checker = Persistence(grid, 1, 0.5, match_m, max_jump_m, max_turn_deg)
         except PersistenceInputError as e:  # it named Persistence and its decay, which the tracker has not
@@ -327,20 +337,22 @@ class InstanceTracker:
                 msg = ("InstanceTracker: needs match_m and max_jump_m > 0, max_turn_deg in (0, 180] (numbers); got "
                        + ", ".join(f"{k}={v!r}" for k, v in values.items()))
             raise PersistenceInputError(msg) from None
+        if isinstance(look_back, bool) or not isinstance(look_back, int) or look_back < 1:
+            raise PersistenceInputError(f"InstanceTracker: look_back is a count of frames >= 1, got {look_back!r}")
         self.grid, self.match_m = self._checker.grid, float(match_m)
-        self.max_jump_m, self.max_turn_deg = float(max_jump_m), float(max_turn_deg)
+        self.max_jump_m, self.max_turn_deg, self.look_back = float(max_jump_m), float(max_turn_deg), look_back
         self.reset()
 
     @classmethod
-    def from_config(cls, cfg) -> InstanceTracker:
+    def from_config(cls, cfg, look_back: int = 1) -> InstanceTracker:
         """``model.temporal``'s ``persist_match_m``, ``max_jump_m``, ``max_turn_deg`` and the config's grid (an
         ``ExperimentConfig`` or a YAML file)."""
         cfg = as_config(cfg, "InstanceTracker.from_config")
         t = cfg.model.temporal
-        return cls(BEVGrid.from_config(cfg.grid), t.persist_match_m, t.max_jump_m, t.max_turn_deg)
+        return cls(BEVGrid.from_config(cfg.grid), t.persist_match_m, t.max_jump_m, t.max_turn_deg, look_back)
 
     def reset(self) -> None:
-        self.scenes: dict[str, _Scene] = {}  # elements: (polyline dict, its ID)
+        self.scenes: dict[str, _Scene] = {}  # elements: (polyline dict, its ID, frames missed)
         self.next_id: dict[str, int] = {}
 
     def __call__(self, preds: Sequence[list[dict]], scenes: Sequence[str], frames, poses) -> list[list[int]]:
@@ -354,9 +366,9 @@ class InstanceTracker:
         pose = _check_pose(pose, where, "InstanceTracker")
         _check_preds(preds, where, "InstanceTracker", ("pts", "label"))
         prev = self.scenes.get(scene)
-        ids = [-1] * len(preds)
-        if _continues(prev, frame, pose, self.max_jump_m, self.max_turn_deg) and prev.elements and len(preds):
-            D, _ = match_previous(prev.pose, [e for e, _ in prev.elements], pose, preds, self.grid)
+        ids, waiting = [-1] * len(preds), []
+        if _continues(prev, frame, pose, self.max_jump_m, self.max_turn_deg) and prev.elements:
+            D, moved = match_previous(prev.pose, [e for e, _, _ in prev.elements], pose, preds, self.grid)
             rows, cols = np.nonzero(D <= self.match_m)
             used = set()
             for k in np.lexsort((cols, rows, D[rows, cols])):
@@ -364,10 +376,13 @@ class InstanceTracker:
                 if i not in used and ids[j] < 0:
                     used.add(i)
                     ids[j] = prev.elements[i][1]
+            for i, (element, track, missed) in enumerate(prev.elements):  # a missed track waits, moved with the ego
+                if i not in used and missed + 1 < self.look_back and len(moved[i]) >= 2:
+                    waiting.append(({**element, "pts": moved[i]}, track, missed + 1))
         n = self.next_id.get(scene, 0)
         for j in range(len(ids)):
             if ids[j] < 0:
                 ids[j], n = n, n + 1
         self.next_id[scene] = n
-        self.scenes[scene] = _Scene(frame, pose, list(zip(preds, ids)))
+        self.scenes[scene] = _Scene(frame, pose, [(p, i, 0) for p, i in zip(preds, ids)] + waiting)
         return ids

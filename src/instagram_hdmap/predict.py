@@ -46,7 +46,7 @@ from .files import OutputError, atomic_path, check_output_dir, check_output_file
 from .geometry import BEVGrid
 from .inference import OnnxModel, gt_outputs, load_model, run_model
 from .mapper import Frame, Mapper, image_size_of
-from .persistence import Persistence
+from .persistence import TRACK_LOOK_BACK, InstanceTracker, Persistence
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
 from .visualize import (
     figure_rgb,
@@ -493,6 +493,41 @@ def _check_video(tmp: Path, video: Path) -> None:
                           f"or a file-size limit is reached?); {video.name} is as it was before")
 
 
+def _video_frame(dataset, index: int, sample: dict, preds: list[dict], cfg: ExperimentConfig, heading: str,
+                 camera_width: int) -> np.ndarray:
+    """One frame of a scene's video: the BEV prediction (coloured by track ID) and GT, the cameras."""
+    grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
+    bev = figure_rgb(prediction_bev_figure(preds, sample["gt_polylines"], grid, classes, heading))
+    cams = figure_rgb(prediction_cameras_figure(
+        **display_cameras(dataset, index, camera_width), intrinsics=sample["intrinsics"],
+        cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
+        predictions=preds, ground_truth=sample["gt_polylines"], camera_names=dataset.camera_names,
+        classes=classes, ground_z=float(sample["ground_height"])))
+    return _side_by_side(bev, cams)
+
+
+class _VideoWriter:
+    """OpenCV's MP4 writer of one video, opened at the first frame's size."""
+
+    def __init__(self, tmp: Path, video: Path, fps: float):
+        self.tmp, self.video, self.fps, self.writer, self.size = tmp, video, fps, None, None
+
+    def write(self, frame: np.ndarray) -> None:
+        if self.writer is None:
+            self.size = (frame.shape[1], frame.shape[0])
+            self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self.size)
+            if not self.writer.isOpened():
+                raise PredictError(f"--video {self.video}: OpenCV cannot write MP4 (mp4v) here; check the folder is "
+                                   "writable and OpenCV was built with FFmpeg")
+        if (frame.shape[1], frame.shape[0]) != self.size:
+            frame = cv2.resize(frame, self.size, interpolation=cv2.INTER_AREA)
+        self.writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+
+
 def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, checkpoint: str | Path | None = None,
                   onnx: str | Path | None = None, gt_as_prediction: bool = False, split: str | None = None,
                   overrides: Sequence[str] = (), fps: float = 2.0, camera_width: int = 320,
@@ -501,14 +536,20 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     as one MP4 frame each (OpenCV's ``VideoWriter``, ``mp4v``): the BEV prediction next to the GT on
     the left, the cameras with the predictions projected on the right. Frames run through the model in
     order, each with the previous one's ``out["memory"]`` (a temporal model; ``scene_start`` on the
-    first). Written atomically. Returns ``{"video", "frames", "scene", "split", "notes"}``."""
+    first). Every element carries a track ID along the scene (``persistence.InstanceTracker``, as
+    ``Mapper.stream()``), the BEV panel colours elements by it, and the predictions with their
+    ``track_id`` are written beside the video in the submission format (``VIDEO`` with ``.json``). Both
+    are written atomically. Returns ``{"video", "predictions", "frames", "scene", "split", "notes",
+    "tracks"}``."""
     if not 1 / MAX_VIDEO_FPS < fps <= MAX_VIDEO_FPS:  # OpenCV's MP4 writer opens for neither 1000.1 nor 0.001
         raise PredictError(f"--fps {fps:g}: frames per second must be over {1 / MAX_VIDEO_FPS:g} and at most "
                            f"{MAX_VIDEO_FPS:g} (MP4's time base)")
     video = Path(video)
     if video.suffix.lower() != ".mp4":
         raise PredictError(f"--video {video}: the video is written as MP4; give a file name ending in .mp4")
-    check_output_file(video, "--video", [(checkpoint, "--checkpoint"), (onnx, "--onnx")])  # before the frames
+    inputs = [(checkpoint, "--checkpoint"), (onnx, "--onnx")]
+    for path, what in ((video, "--video"), (video.with_suffix(".json"), "--video's predictions (.json)")):
+        check_output_file(path, what, inputs)  # before the frames
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
                                                gt_as_prediction=gt_as_prediction, overrides=overrides)
     notes += camera_dropout_notes(cfg, "the predictions")
@@ -516,10 +557,11 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
-    grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
-    memory, writer, size, skipped = None, None, None, 0
+    memory, skipped, scene_preds = None, 0, {}
     persist = Persistence.from_config(cfg) if not gt_as_prediction else None
-    with atomic_path(video, keep_suffix=True) as tmp:
+    tracker = InstanceTracker.from_config(cfg, look_back=TRACK_LOOK_BACK)
+    with atomic_path(video, keep_suffix=True) as tmp, atomic_path(video.with_suffix(".json")) as tmp_json:
+        writer = _VideoWriter(tmp, video, fps)
         try:
             for k, i in enumerate(tqdm(indices, desc=f"video {scene}", unit="frame", disable=not progress)):
                 sample = load_or_skip(dataset, i)
@@ -529,39 +571,27 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
                 batch = collate_fn([sample])
                 batch["scene_start"] = torch.tensor([k == 0])
                 outputs, (preds,) = predict_batch(model, batch, cfg, memory)
+                frame_index = int(dataset.scenes.frame[i])
                 if persist is not None:
-                    preds = persist.step(preds, scene, int(dataset.scenes.frame[i]), sample["ego_pose"])
-                memory = outputs.get("memory")
+                    preds = persist.step(preds, scene, frame_index, sample["ego_pose"])
+                ids = tracker.step(preds, scene, frame_index, sample["ego_pose"])
+                preds = [{**p, "track_id": t} for p, t in zip(preds, ids)]
+                memory, scene_preds[sample["sample_token"]] = outputs.get("memory"), preds
                 heading = f"{scene} {k + 1}/{len(indices)}: {sample['sample_token']} - {source}"
-                bev = figure_rgb(prediction_bev_figure(preds, sample["gt_polylines"], grid, classes, heading))
-                cams = figure_rgb(prediction_cameras_figure(
-                    **display_cameras(dataset, i, camera_width), intrinsics=sample["intrinsics"],
-                    cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
-                    predictions=preds, ground_truth=sample["gt_polylines"], camera_names=dataset.camera_names,
-                    classes=classes, ground_z=float(sample["ground_height"])))
-                frame = _side_by_side(bev, cams)
-                if writer is None:
-                    size = (frame.shape[1], frame.shape[0])
-                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
-                    if not writer.isOpened():
-                        raise PredictError(f"--video {video}: OpenCV cannot write MP4 (mp4v) here; check the "
-                                           "folder is writable and OpenCV was built with FFmpeg")
-                if (frame.shape[1], frame.shape[0]) != size:
-                    frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
-                writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-            if writer is None:
+                writer.write(_video_frame(dataset, i, sample, preds, cfg, heading, camera_width))
+            if writer.writer is None:
                 raise PredictError(f"every frame of scene {scene} is bad (data.on_bad_sample=skip); see the warnings")
-            writer.release()
-            writer = None
+            writer.close()
             _check_video(tmp, video)
+            write_submission(tmp_json, scene_preds, {**submission_meta(cfg, split, source), "scene": scene})
         finally:
-            if writer is not None:
-                writer.release()
+            writer.close()
     if skipped:
         notes.append(f"{skipped} bad frame(s) of scene {scene} left out (data.on_bad_sample=skip; the warnings name "
                      "them)")
     if persist is not None:  # as a single sample's note says it: what the frames show beyond the model's own output
         notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames}: {persist.kept} element(s) "
                      "that earlier frames found and later ones missed were kept in the video (persistence.py)")
-    return {"video": video, "frames": len(indices) - skipped, "scene": scene, "split": split, "notes": notes,
-            "persisted": None if persist is None else persist.kept}
+    return {"video": video, "predictions": video.with_suffix(".json"), "frames": len(indices) - skipped,
+            "scene": scene, "split": split, "notes": notes, "persisted": None if persist is None else persist.kept,
+            "tracks": tracker.next_id.get(scene, 0)}

@@ -12,6 +12,7 @@ import functools
 from collections.abc import Sequence
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -22,6 +23,7 @@ from .files import atomic_path
 from .geometry import BEVGrid
 
 CLASS_COLORS = ("tab:orange", "tab:blue", "tab:green")  # divider, ped_crossing, boundary
+CLASS_STYLES = ("-", "--", ":")  # the classes of elements coloured by track ID
 DEFAULT_CLASSES = ("divider", "ped_crossing", "boundary")
 
 
@@ -251,22 +253,40 @@ def _class_color(label: int) -> str:
     return CLASS_COLORS[int(label) % len(CLASS_COLORS)]
 
 
+def _track_color(track_id: int) -> tuple:
+    """A colour per track ID: tab20's, stepped by 7 so that neighbouring IDs differ."""
+    return matplotlib.colormaps["tab20"]((int(track_id) * 7) % 20)
+
+
+def _tracked(polylines: Sequence[dict]) -> bool:
+    return bool(polylines) and all(p.get("track_id") is not None for p in polylines)
+
+
 def _upright_polylines(ax, polylines: Sequence[dict], linestyle: str = "-", scored: bool = False) -> None:
-    """Polyline dicts (metres) by class; closed shapes filled lightly; ``scored``: opacity = score."""
+    """Polyline dicts (metres) by class, or (all carrying a ``track_id``) by track, each ID written at its first
+    point and its class drawn as the line style; closed shapes filled lightly; ``scored``: opacity = score."""
+    tracked = _tracked(polylines)
     for poly in polylines:
         pts = _np(poly["pts"])
-        color = _class_color(poly["label"])
+        color = _track_color(poly["track_id"]) if tracked else _class_color(poly["label"])
+        style = CLASS_STYLES[int(poly["label"]) % len(CLASS_STYLES)] if tracked else linestyle
         alpha = float(np.clip(0.2 + 0.8 * float(poly.get("score", 1.0)), 0.2, 1.0)) if scored else 1.0
-        ax.plot(pts[:, 1], pts[:, 0], linestyle, color=color, linewidth=1.6, alpha=alpha)
+        ax.plot(pts[:, 1], pts[:, 0], style, color=color, linewidth=1.6, alpha=alpha)
         ax.plot(pts[:, 1], pts[:, 0], ".", color=color, markersize=3.5, alpha=alpha)
         if poly.get("closed"):
             ax.fill(pts[:, 1], pts[:, 0], color=color, alpha=0.12 * alpha)
+        if tracked and len(pts):
+            ax.annotate(str(poly["track_id"]), (pts[0, 1], pts[0, 0]), fontsize=6, color=color)
 
 
-def _class_legend(ax, classes: Sequence[str], counts: Sequence[int] | None = None, marker: str = "-") -> None:
+def _class_legend(ax, classes: Sequence[str], counts: Sequence[int] | None = None, marker: str = "-",
+                  tracked: bool = False) -> None:
     for k, name in enumerate(classes):
         label = name if counts is None else f"{name} ({counts[k]})"
-        ax.plot([], [], marker, color=_class_color(k), label=label)
+        if tracked:  # the colours are the tracks': the classes are the line styles
+            ax.plot([], [], CLASS_STYLES[k % len(CLASS_STYLES)], color="0.3", label=label)
+        else:
+            ax.plot([], [], marker, color=_class_color(k), label=label)
     ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
 
 
@@ -292,8 +312,8 @@ def prediction_bev_figure(
     axes = np.atleast_1d(fig.subplots(1, len(panels), sharex=True, sharey=True))
     for ax, (polys, name, scored) in zip(axes, panels):
         _upright_polylines(ax, polys, scored=scored)
-        _class_legend(ax, classes, _counts(polys, len(classes)))
-        extra = " (opacity = confidence)" if scored else ""
+        _class_legend(ax, classes, _counts(polys, len(classes)), tracked=_tracked(polys))
+        extra = (" (opacity = confidence" + (", colour = track ID)" if _tracked(polys) else ")")) if scored else ""
         _upright_axes(ax, grid, f"{name}: {len(polys)} instances{extra}")
     if title:
         fig.suptitle(title, fontsize=10)

@@ -24,6 +24,9 @@ value ``{"vectors": [...]}``, and ``GTs`` instead of ``results`` (MapTR's GT fil
   outside [0, 1]: :class:`SubmissionError` naming the
   file, the token and the vector index.
 * Polylines with fewer than two points are passed on; the evaluators apply each protocol's rule.
+* ``track_id`` (optional; ``predict --scene`` and ``Mapper.stream()`` write it): the element's ID along its
+  scene, an integer >= 0, kept as the polyline's ``track_id``. AP ignores it; the consistency-aware mAP
+  (``benchmarks/cmap_of_submissions.py``) can score with it.
 
 Every file is written as standard JSON (``files.write_json``): a NaN (the raster protocol's 0/0 cases in a metrics
 file) is written as ``null``, and a non-finite score is refused (``null`` would read back as the default 1.0).
@@ -236,6 +239,12 @@ def vectors_to_polylines(
                 raise SubmissionError(f"{what}: 'confidence_level' must be a probability in [0, 1], got {s!r} "
                                       "(rescale the scores, e.g. with a sigmoid, before writing them)")
             poly["score"] = float(s)
+        track = _whole(v.get("track_id"))
+        if track is not None:  # a tracked stream's element ID: kept for consistency meters, AP ignores it
+            if isinstance(track, bool) or not isinstance(track, int) or track < 0:
+                raise SubmissionError(f"{what}: 'track_id' must be an integer >= 0 (the element's ID along its scene), "
+                                      f"got {track!r}")
+            poly["track_id"] = track
         out.append(poly)
     return out
 
@@ -272,6 +281,8 @@ def polylines_to_vectors(polylines: list[dict]) -> list[dict]:
             if not math.isfinite(v["confidence_level"]):  # JSON has no NaN: null would read back as the default 1.0
                 raise ValueError(f"a polyline's score is {v['confidence_level']} (class {v['type']}, {len(pts)} "
                                  "points); scores must be finite (a diverged model?)")
+        if p.get("track_id") is not None:
+            v["track_id"] = int(p["track_id"])
         out.append(v)
     return out
 
