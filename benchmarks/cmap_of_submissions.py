@@ -4,8 +4,9 @@
         --dataroot ~/.cache/instagram_hdmap/synthetic-5e288385e0 runs/temporal_dropout_long/*/eval_val12*
 
 Each submission's predictions are scored against the split's GT with ``ConsistentAPMeter`` (predicted instance
-IDs from the persistence matcher, GT tracks from the flicker meter's geometric link; docs/temporal.md), and the
-meter's own time per sample is printed: the cost of ``eval.cmap=true``.
+IDs: the submission's own ``track_id`` where every vector has one, as ``predict --scene`` and ``Mapper.stream()``
+write them, else the persistence matcher's; GT tracks from the flicker meter's geometric link; docs/temporal.md),
+with the ID switches per 100 frames at 1.0 m, and the meter's own time per sample: the cost of ``eval.cmap=true``.
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ def main() -> None:
         parser.error(str(e).replace("eval.cmap_match_m", "eval.cmap_match_m (--match-m)"))
     index = {t: i for i, t in enumerate(ds.sample_tokens)}
     gts = {t: ds.gt_polylines(i) for t, i in index.items()}
-    print(f"{'evaluation':<60}{'mAP':>8}{'C-mAP':>8}  C-AP per class; switched TPs at 1.0 m; ms/sample")
+    print(f"{'evaluation':<60}{'mAP':>8}{'C-mAP':>8}  C-AP per class; switched TPs at 1.0 m; ID switches per 100 "
+          "frames; IDs; ms/sample")
     for folder in args.evals:
         try:
             preds = read_submission(Path(folder) / "submission.json", "pred", len(cfg.data.classes)).samples
@@ -62,16 +64,20 @@ def main() -> None:
         meter = make_cmap_meter(cfg)
         t0 = time.perf_counter()
         tokens = [t for t in ds.sample_tokens if t in preds]
+        given = all("track_id" in p for t in tokens for p in preds[t])  # the submission's own IDs
         for s in range(0, len(tokens), 8):
             part = tokens[s:s + 8]
             ids = [index[t] for t in part]
             meter.update([preds[t] for t in part], [gts[t] for t in part], [ds.scene_of(i) for i in ids],
-                         [ds.scenes.frame[i] for i in ids], torch.stack([ds.ego_pose(i) for i in ids]))
+                         [ds.scenes.frame[i] for i in ids], torch.stack([ds.ego_pose(i) for i in ids]),
+                         ids=[[p["track_id"] for p in preds[t]] for t in part] if given else None)
         res = meter.compute()
         ms = (time.perf_counter() - t0) / max(len(tokens), 1) * 1000
         per = ", ".join(f"{k} {v:.3f}" for k, v in res["C-AP_class"].items())
         switched = sum(v[1] for v in res["switched"].values())
-        print(f"{folder[-60:]:<60}{res['mAP']:>8.3f}{res['C-mAP']:>8.3f}  {per}; {switched}; {ms:.0f}")
+        per_100 = 100 * sum(v[1] for v in res["id_switches"].values()) / max(len(tokens), 1)
+        print(f"{folder[-60:]:<60}{res['mAP']:>8.3f}{res['C-mAP']:>8.3f}  {per}; {switched}; {per_100:.1f}; "
+              f"{'given' if given else 'tracked'}; {ms:.0f}")
 
 
 if __name__ == "__main__":

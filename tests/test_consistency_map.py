@@ -42,6 +42,7 @@ def test_a_perfect_tracker_has_c_map_equal_to_map():
     meter.update(preds, gts, scenes, frames, poses)  # IDs from the tracker: the divider keeps its ID
     res = meter.compute()
     assert res["mAP"] == 1.0 and res["C-mAP"] == res["mAP"] and res["switched"] == {"divider": [0, 0, 0]}
+    assert res["id_switches"] == {"divider": [0, 0, 0]}
     assert res["tracks"] == {"pred": 1, "gt": 1} and res["definition"]["ids"] == "tracked"
     given = ConsistentAPMeter(GRID, classes=ONE)
     given.update(preds, gts, scenes, frames, poses, ids=[torch.tensor([7])] * 6)  # a model that tracks: one ID
@@ -62,6 +63,7 @@ def test_an_id_switch_turns_the_later_tps_into_fps():
     # 6 GT, scores descending with the frame: TP TP TP FP FP FP -> precision 1 up to recall 3/6: AP 0.5
     assert res["AP"]["divider"] == [1.0, 1.0, 1.0] and res["C-AP"]["divider"] == [0.5, 0.5, 0.5]
     assert res["switched"]["divider"] == [3, 3, 3] and res["C-mAP"] == 0.5 and res["tracks"]["pred"] == 2
+    assert res["id_switches"]["divider"] == [1, 1, 1]  # one change of ID along the track (MOTA's IDSW)
     # the switched predictions ranked first: FP FP FP TP TP TP -> precision 3/6 at recall 3/6: AP 0.25
     later_first = [[dict(p[0], score=0.5 + 0.1 * f)] for f, p in enumerate(preds)]
     meter = ConsistentAPMeter(GRID, classes=ONE)
@@ -71,6 +73,7 @@ def test_an_id_switch_turns_the_later_tps_into_fps():
     meter = ConsistentAPMeter(GRID, classes=ONE)
     meter.update(preds, gts, scenes, frames, poses, ids=[[0], [0], [1], [0], [0], [0]])
     assert meter.compute()["switched"]["divider"] == [1, 1, 1]
+    assert meter.compute()["id_switches"]["divider"] == [2, 2, 2]  # away and back: two switches
 
 
 def test_the_tracker_gives_a_new_id_after_a_miss_and_at_a_pose_jump():

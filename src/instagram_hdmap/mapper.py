@@ -54,7 +54,7 @@ from .inference import (
 )
 from .models import build_model
 from .models.temporal import STATUS_NAMES
-from .persistence import TRACK_LOOK_BACK, InstanceTracker, Persistence
+from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
 
 
@@ -559,9 +559,9 @@ class MapStream:
     them since the stream began.
 
     Each element of a frame with an ``ego_pose`` carries a ``track_id``: the same map element keeps its ID
-    from frame to frame while it is seen, and for up to ``TRACK_LOOK_BACK`` frames it is missed
-    (``persistence.InstanceTracker``: Chamfer matching, within ``model.temporal.persist_match_m``, of the
-    tracks moved by the ego motion). IDs are never reused by one stream: after ``reset()`` (or a pose jump)
+    from frame to frame while it is seen, and for up to ``persistence.TRACK_LOOK_BACK`` (5) frames it is
+    missed (``persistence.stream_tracker``: Chamfer matching of the tracks moved by the ego motion, within
+    ``TRACK_MATCH_M``, 1.5 m). IDs are never reused by one stream: after ``reset()`` (or a pose jump)
     every element gets a new one. A frame without an ``ego_pose`` cannot be related to the one before:
     its elements have ``track_id`` None."""
 
@@ -569,7 +569,7 @@ class MapStream:
         self.mapper = mapper
         self.counts: dict[str, int] = {}
         self.persist = Persistence.from_config(mapper.config)  # model.temporal.persist_frames (persistence.py)
-        self.tracker = InstanceTracker.from_config(mapper.config, look_back=TRACK_LOOK_BACK)
+        self.tracker = stream_tracker(mapper.config)
         self.first_id = 0  # the IDs of the scene since the last reset start here
         self.reset()
 

@@ -301,9 +301,13 @@ class Persistence:
         return list(preds) + [element for element, _ in carried]
 
 
-# frames a missed track waits for its element to come back in a stream's IDs (Mapper.stream, predict --scene):
-# MapTracker's prepare_pred_tracks.py looks back up to 5 frames
+# The track IDs of a stream (Mapper.stream, predict --scene): a missed track waits up to TRACK_LOOK_BACK frames for
+# its element to come back (MapTracker's prepare_pred_tracks.py looks back up to 5 frames), and an element is its
+# track's within TRACK_MATCH_M (Chamfer), the vector AP's largest threshold: what the AP would score as that element
+# is linked to it (the consistency meter's own tracker keeps eval.cmap_match_m and the previous frame only)
 TRACK_LOOK_BACK = 5
+TRACK_MATCH_M = 1.5
+
 
 
 class InstanceTracker:
@@ -370,8 +374,10 @@ class InstanceTracker:
         if _continues(prev, frame, pose, self.max_jump_m, self.max_turn_deg) and prev.elements:
             D, moved = match_previous(prev.pose, [e for e, _, _ in prev.elements], pose, preds, self.grid)
             rows, cols = np.nonzero(D <= self.match_m)
+            missed_of = np.array([missed for _, _, missed in prev.elements])
             used = set()
-            for k in np.lexsort((cols, rows, D[rows, cols])):
+            # the previous frame's tracks first, the waiting ones for what is left; each in increasing distance
+            for k in np.lexsort((cols, rows, D[rows, cols], missed_of[rows])):
                 i, j = int(rows[k]), int(cols[k])
                 if i not in used and ids[j] < 0:
                     used.add(i)
@@ -386,3 +392,10 @@ class InstanceTracker:
         self.next_id[scene] = n
         self.scenes[scene] = _Scene(frame, pose, [(p, i, 0) for p, i in zip(preds, ids)] + waiting)
         return ids
+
+
+def stream_tracker(cfg) -> InstanceTracker:
+    """The tracker of a stream's IDs (``TRACK_LOOK_BACK``, ``TRACK_MATCH_M``; ``model.temporal``'s pose jumps)."""
+    t = cfg.model.temporal
+    return InstanceTracker(BEVGrid.from_config(cfg.grid), TRACK_MATCH_M, t.max_jump_m, t.max_turn_deg,
+                           TRACK_LOOK_BACK)

@@ -46,7 +46,7 @@ from .files import OutputError, atomic_path, check_output_dir, check_output_file
 from .geometry import BEVGrid
 from .inference import OnnxModel, gt_outputs, load_model, run_model
 from .mapper import Frame, Mapper, image_size_of
-from .persistence import TRACK_LOOK_BACK, InstanceTracker, Persistence
+from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
 from .visualize import (
     figure_rgb,
@@ -559,7 +559,7 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     indices = dataset.scene_indices(scene)
     memory, skipped, scene_preds = None, 0, {}
     persist = Persistence.from_config(cfg) if not gt_as_prediction else None
-    tracker = InstanceTracker.from_config(cfg, look_back=TRACK_LOOK_BACK)
+    tracker = stream_tracker(cfg)
     with atomic_path(video, keep_suffix=True) as tmp, atomic_path(video.with_suffix(".json")) as tmp_json:
         writer = _VideoWriter(tmp, video, fps)
         try:

@@ -463,13 +463,17 @@ class ConsistentAPMeter:
         """``C-AP`` / ``AP`` (class -> one AP per threshold), ``C-AP_class`` / ``AP_class`` (class -> mean over
         the thresholds), ``C-mAP`` / ``mAP`` (mean over classes and thresholds; a class without GT counts 0, the
         vector protocol's rule), ``switched`` (class -> per threshold the TPs that the ID rule turned into FPs),
+        ``id_switches`` (class -> per threshold how often a GT track's true positive came with another prediction
+        ID than its previous one: MOTA's IDSW over the matches of the AP),
         ``tracks`` (predicted and GT instance IDs over all scenes), ``samples``, ``thresholds``, ``definition``."""
         keys = sorted(self.records)
         pred_ids, gt_ids = self._tracks(keys)
         K, T = self.num_classes, len(self.thresholds)
         owner: dict[tuple, int] = {}  # (scene, class, threshold, GT track) -> the prediction ID that owns it
+        last: dict[tuple, int] = {}  # the same key -> the prediction ID that matched it last
         scores, tp, ctp = [[] for _ in range(K)], [[] for _ in range(K)], [[] for _ in range(K)]
         num_gt = np.zeros(K, dtype=np.int64)
+        id_switches = np.zeros((K, T), dtype=np.int64)
         for key in keys:
             rec = self.records[key]
             num_gt += np.bincount(rec["gt_labels"], minlength=K)
@@ -479,6 +483,8 @@ class ConsistentAPMeter:
                 for t in np.flatnonzero(rec["tp"][i]):
                     first = owner.setdefault((key[0], c, int(t), track), pid)
                     c_tp[i, t] = first == pid
+                    id_switches[c, t] += last.setdefault((key[0], c, int(t), track), pid) != pid
+                    last[(key[0], c, int(t), track)] = pid
             for c in range(K):
                 m = rec["label"] == c
                 scores[c].append(rec["score"][m])
@@ -500,6 +506,7 @@ class ConsistentAPMeter:
             "AP_class": {n: float(ap[c].mean()) for c, n in enumerate(self.classes)},
             "mAP": float(ap.mean()) if keys else math.nan,
             "switched": {n: switched[c].tolist() for c, n in enumerate(self.classes)},
+            "id_switches": {n: id_switches[c].tolist() for c, n in enumerate(self.classes)},
             "tracks": {"pred": len({(k[0], int(i)) for k, v in pred_ids.items() for i in v}),
                        "gt": len({(k[0], int(i)) for k, v in gt_ids.items() for i in v})},
             "samples": len(keys),
