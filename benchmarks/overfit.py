@@ -158,6 +158,7 @@ def run_overfit(
         "adjacency_accuracy": adjacency,
         "passed": {"loss_drop": loss_drop >= LOSS_DROP_TARGET, "adjacency_accuracy": adjacency >= ADJACENCY_TARGET},
         "seconds": seconds,
+        "model": model,
     }
 
 

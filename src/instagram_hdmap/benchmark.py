@@ -39,6 +39,7 @@ from .geometry import BEVGrid
 from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
+from .precision import resolve_precision
 from .resources import check_fits, cpu_capability
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
@@ -182,6 +183,28 @@ def _timed(forward, forward_post, runs: int, warmup: int, sync, amp: str, dev: t
         raise
 
 
+def _autocast_of(precision: str | None, amp: str, dev: torch.device) -> tuple[str, list[str]]:
+    """The autocast (``amp``) that ``precision`` (precision.py) resolves to on ``dev``, and its notes."""
+    if precision is None:
+        return amp, []
+    if amp != "none":  # two answers to one question
+        raise BenchmarkError(f"--amp {amp} and --precision {precision}: give one of them")
+    chosen, notes = resolve_precision(precision, dev)
+    return ("bf16" if chosen == "bf16" else "none"), notes
+
+
+def _benchmark_model(cfg: ExperimentConfig, checkpoint, overrides, dev: torch.device, seed: int,
+                     notes: list[str]) -> tuple[torch.nn.Module, ExperimentConfig]:
+    """The checkpoint's model (its notes added to ``notes``), or reproducible random weights."""
+    if checkpoint is not None:
+        model, cfg, loaded = load_model(checkpoint, cfg, overrides, device=dev)
+        notes += loaded
+        return model, cfg
+    with torch.random.fork_rng(devices=[]):  # reproducible random weights, global RNG untouched
+        torch.manual_seed(seed)
+        return build_model(cfg).eval().to(dev), cfg
+
+
 def run_benchmark(
     cfg: ExperimentConfig,
     *,
@@ -194,8 +217,10 @@ def run_benchmark(
     seed: int = 0,
     compile: bool = False,
     cuda_graphs: bool = False,
+    precision: str | None = None,
 ) -> dict:
     """Time the model (and model + post-processing) on batch 1 with six cameras; see the module docstring.
+    ``precision`` (fp32, bf16, auto; precision.py) chooses the autocast as inference runs it, instead of ``amp``.
 
     ``device``: "cpu", "cuda" (or "cuda:i"); ``None`` uses ``train.device``. ``runs`` / ``warmup``
     default to 50 / 10 on a GPU and 10 / 2 on the CPU. Returns a dict of settings and per-row
@@ -203,13 +228,8 @@ def run_benchmark(
     ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
     """
     dev, runs, warmup = _checked_settings(cfg, device, amp, runs, warmup)
-    notes: list[str] = []
-    if checkpoint is not None:
-        model, cfg, notes = load_model(checkpoint, cfg, overrides, device=dev)
-    else:
-        with torch.random.fork_rng(devices=[]):  # reproducible random weights, global RNG untouched
-            torch.manual_seed(seed)
-            model = build_model(cfg).eval().to(dev)
+    amp, notes = _autocast_of(precision, amp, dev)
+    model, cfg = _benchmark_model(cfg, checkpoint, overrides, dev, seed, notes)
     check_fits(cfg, "infer", dev, batch=1)  # before the warm-up runs
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from . import distributed as du
 from .benchmark import format_benchmark, run_benchmark
-from .config import ConfigError, UserError, load_config, parse_overrides, repeated_overrides
+from .config import ConfigError, UserError, load_config, repeated_overrides
 from .data import build_dataset
 from .data.base import gt_submission
 from .data.synthetic import generate_world
@@ -36,8 +36,9 @@ from .files import (
 )
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
-from .predict import predict_images, predict_sample, predict_video
-from .resources import size_notes, summary_lines
+from .precision import PRECISIONS
+from .predict import decode_assignments, predict_images, predict_sample, predict_video
+from .resources import out_of_memory, size_notes, summary_lines
 from .streams import ReportStream, stdout_gone, to_devnull
 from .train import data_worker_died, train
 from .visualize import write_sample_pngs
@@ -236,7 +237,8 @@ def _load_evaluate(args: argparse.Namespace):
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    result = run_evaluation(_load_evaluate(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides)
+    result = run_evaluation(_load_evaluate(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides,
+                            precision=args.precision)
     if not result["paths"]:  # not rank 0 under torchrun
         return 0
     metrics = result["metrics"]
@@ -274,7 +276,8 @@ def _cmd_predict(args: argparse.Namespace) -> int:
                             "for one sample's pictures)")
         result = predict_video(_load(args), args.video, args.scene, checkpoint=args.checkpoint, onnx=args.onnx,
                                gt_as_prediction=args.gt_as_prediction, split=args.split, overrides=args.overrides,
-                               fps=args.fps if args.fps is not None else 2.0, progress=sys.stderr.isatty())
+                               fps=args.fps if args.fps is not None else 2.0, progress=sys.stderr.isatty(),
+                               precision=args.precision)
         _print_notes(result["notes"])
         print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames, {result['tracks']} "
               f"tracked elements; wrote {result['video']} and {result['predictions']}")
@@ -286,22 +289,11 @@ def _cmd_predict(args: argparse.Namespace) -> int:
                         "pictures have none: drop --fps")
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
                             split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
-                            onnx=args.onnx)
+                            onnx=args.onnx, precision=args.precision)
     _print_notes(result["notes"])
     print(f"sample {result['sample_token']} (split '{result['split']}', index {result['index']}): "
           f"{len(result['predictions'])} predicted instances; wrote {', '.join(str(p) for p in result['paths'])}")
     return 0
-
-
-def _decode_options(items: list[str]) -> dict:
-    """``--decode name=value`` -> {name: value} (values read as YAML, as config overrides are)."""
-    options = {}
-    for item in items:
-        if "=" not in item:
-            raise UserError(f"--decode {item}: expected NAME=VALUE, e.g. match_threshold=0.05")
-        name, _, value = item.partition("=")
-        options[name.strip()] = parse_overrides([f"value={value}"])["value"]
-    return options
 
 
 def _cmd_predict_images(args: argparse.Namespace) -> int:
@@ -309,8 +301,8 @@ def _cmd_predict_images(args: argparse.Namespace) -> int:
         raise UserError(f"--name {args.name!r} is empty: give the frame's name in prediction.json (e.g. its sample "
                         "token), or leave --name out for 'frame'")
     result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
-                            config=args.config, decode=_decode_options(args.decode), device=args.device,
-                            name=args.name)
+                            config=args.config, decode=decode_assignments(args.decode), device=args.device,
+                            name=args.name, precision=args.precision)
     print(f"{result['name']} ({result['source']}): {len(result['elements'])} map elements; wrote "
           f"{', '.join(str(p) for p in result['paths'])}")
     for note in result.get("notes", []):
@@ -321,7 +313,7 @@ def _cmd_predict_images(args: argparse.Namespace) -> int:
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     result = run_benchmark(_load(args), device=args.device, amp=args.amp, runs=args.runs, warmup=args.warmup,
                            checkpoint=args.checkpoint, overrides=args.overrides, compile=args.compile,
-                           cuda_graphs=args.cuda_graphs)
+                           cuda_graphs=args.cuda_graphs, precision=args.precision)
     print(format_benchmark(result, args.config))
     return 0
 
@@ -350,14 +342,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
               f"{Path(args.out) / 'run' / 'last.pt'}: run the same command again", file=sys.stderr)
         return 130
     return 0
-
-
-def out_of_memory(e: BaseException) -> bool:
-    """Whether ``e`` says that memory ran out: Python's (numpy's) ``MemoryError``, torch's CUDA
-    ``OutOfMemoryError``, or the RuntimeError of torch's CPU allocator."""
-    if isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError":
-        return True
-    return isinstance(e, RuntimeError) and ("can't allocate memory" in str(e) or "out of memory" in str(e).lower())
 
 
 def _synth_parser(sub) -> None:
@@ -444,6 +428,12 @@ def _evaluate_json_parser(sub) -> None:
     p.set_defaults(func=_cmd_evaluate_json)
 
 
+def _add_precision(p: argparse.ArgumentParser, default: str, why: str) -> None:
+    p.add_argument("--precision", choices=PRECISIONS, default=default,
+                   help=f"the model's precision (default {default}: {why}; auto: bf16 where the device computes it "
+                   "natively, else fp32)")
+
+
 def _evaluate_parser(sub) -> None:
     p = sub.add_parser("evaluate", help="run a checkpoint on the validation split: submission JSON + AP metrics",
                        description="Runs CKPT on data.val_split, writes OUT/submission.json (HDMapNet format) and "
@@ -453,6 +443,7 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--checkpoint", required=True, help="model checkpoint (e.g. runs/x/best.pt)")
     p.add_argument("--protocol", choices=["vector", "raster"], help="AP protocol (default: eval.protocol)")
     p.add_argument("--out", default="eval", help="output folder (default ./eval)")
+    _add_precision(p, "fp32", "the reference scores")
     p.set_defaults(func=_cmd_evaluate)
 
 
@@ -473,6 +464,7 @@ def _predict_parser(sub) -> None:
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
+    _add_precision(p, "auto", "bf16 where the device computes it natively")
     p.set_defaults(func=_cmd_predict)
 
 
@@ -492,6 +484,7 @@ def _predict_images_parser(sub) -> None:
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: CUDA when available)")
     p.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
                    help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
+    _add_precision(p, "auto", "bf16 where the device computes it natively")
     p.set_defaults(func=_cmd_predict_images)
 
 
@@ -500,6 +493,9 @@ def _benchmark_parser(sub) -> None:
     _add_config_args(p)
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: train.device)")
     p.add_argument("--amp", choices=["none", "bf16", "fp16"], default="none", help="autocast precision")
+    p.add_argument("--precision", choices=PRECISIONS,
+                   help="instead of --amp: the precision inference runs in (auto: bf16 where the device computes it "
+                   "natively, else fp32)")
     p.add_argument("--runs", type=int, help="timed runs (default 50 on a GPU, 10 on the CPU)")
     p.add_argument("--warmup", type=int, help="untimed warm-up runs (default 10 on a GPU, 2 on the CPU)")
     p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")

@@ -29,6 +29,7 @@ from .geometry import BEVGrid
 from .inference import load_model
 from .persistence import Persistence
 from .postprocess import decode_options, postprocess_batch
+from .precision import precision_of
 from .predict import camera_dropout_notes, submission_meta
 from .resources import check_fits, data_workers, size_notes
 from .training_data import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
@@ -42,13 +43,15 @@ def run_evaluation(
     *,
     overrides: Sequence[str] = (),
     amp: str = "none",
+    precision: str = "fp32",
 ) -> dict:
     """Run ``checkpoint`` on the validation split (``data.val_split``), post-process, evaluate.
 
     Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's
     metrics: ``protocol``, ``thresholds``, ``classes``, ``AP``, ``AP_class``, ``mAP``, ``notes``, ...,
     plus ``meta``: checkpoint, config name, split, sample count, speed, config notes). ``protocol``
-    overrides ``eval.protocol``. Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
+    overrides ``eval.protocol``. ``precision``: fp32 (the default: the reference scores), bf16 or auto
+    (precision.py). Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
 
     Under torchrun each rank runs every world-size-th sample; the sampler's wrap-around padding is
     not scored twice (a sample is scored by the rank ``index % world_size``, once), the evaluator
@@ -70,7 +73,7 @@ def run_evaluation(
     # a second evaluation into the same --out while this one runs is refused (the pair of files of one and the
     # other could otherwise end up side by side)
     with locked_folder(out, "evaluation", "choose another --out", du.print_main, enabled=du.is_main_process()):
-        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp)
+        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp, precision)
 
 
 
@@ -106,9 +109,9 @@ def _write_pair(out: Path, results: dict, metrics: dict, meta: dict) -> list[Pat
 
 
 def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out: Path, device: torch.device,
-                   overrides: Sequence[str], amp: str) -> dict:
+                   overrides: Sequence[str], amp: str, precision: str = "fp32") -> dict:
     """``run_evaluation``'s work, its output folder checked and held."""
-    model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device)
+    model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device, precision=precision)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
     notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg) + size_notes(cfg)
@@ -178,7 +181,7 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     metrics["meta"] = {"checkpoint": str(checkpoint), "config_name": cfg.name, "dataroot": cfg.data.dataroot,
                        "version": cfg.data.version, "split": split, "num_samples": len(dataset),
                        "samples_per_s": samples_per_s, **{k: v for k, v in decode.items() if k != "max_edge_px"},
-                       "max_edge_m": cfg.model.gnn.max_edge_m, "config_notes": notes}
+                       "max_edge_m": cfg.model.gnn.max_edge_m, "precision": precision_of(model), "config_notes": notes}
     paths = _write_pair(Path(out), results, metrics, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
     return {"metrics": metrics, "paths": paths, "notes": notes, "num_samples": len(dataset),
             "samples_per_s": samples_per_s}

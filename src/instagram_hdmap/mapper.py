@@ -56,6 +56,7 @@ from .models import build_model
 from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
+from .precision import precision_of, resolve_precision, with_precision
 
 
 @dataclass(frozen=True)
@@ -366,9 +367,10 @@ class Mapper:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
-                        overrides: Sequence[str] = (), **decode_overrides) -> Mapper:
+                        overrides: Sequence[str] = (), precision: str = "auto", **decode_overrides) -> Mapper:
         """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu",
-        "cuda", a ``torch.device`` or None (CUDA when available). ``decode_overrides``: decoding
+        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32, bf16 or auto (bf16
+        where the device computes it natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
         options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
         (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
         architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
@@ -386,8 +388,11 @@ class Mapper:
                                   "checkpoint written by instagram-hdmap train")
         cfg = with_decoding(saved_config(state["config"], f"checkpoint {path}"), decode_overrides, overrides)
         dev = resolve_device(device, key="device")
-        model = load_weights(build_model(cfg), state, path).eval().to(dev)
-        return cls(model, cfg, device=dev, source=f"checkpoint {path}")
+        chosen, notes = resolve_precision(precision, dev, flag="precision")
+        model = with_precision(load_weights(build_model(cfg), state, path).eval().to(dev), chosen)
+        for note in notes:
+            warnings.warn(note, stacklevel=2)
+        return cls(model, cfg, device=dev, source=f"checkpoint {path}", notes=notes)
 
     @classmethod
     def from_onnx(cls, path: str | Path, config: ExperimentConfig | str | Path | None = None, *,
@@ -544,7 +549,8 @@ class Mapper:
     def __repr__(self) -> str:
         return (f"Mapper({self.source or type(self.model).__name__}; cameras {', '.join(self.cameras)}; images "
                 f"{self.config.data.image_size[0]}x{self.config.data.image_size[1]} ({self.config.data.image_fit}); "
-                f"classes {', '.join(self.classes)}; decoder {self.config.model.gnn.decoder})")
+                f"classes {', '.join(self.classes)}; decoder {self.config.model.gnn.decoder}; "
+                f"{precision_of(self.model) if isinstance(self.model, torch.nn.Module) else 'fp32'})")
 
 
 

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .config import ExperimentConfig, UserError
+from .config import ExperimentConfig, UserError, parse_overrides
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.rig import CameraCalibration, RigError, camera_named_by, read_rig_file
@@ -158,10 +158,21 @@ def camera_dropout_notes(cfg: ExperimentConfig, what: str) -> list[str]:
             "images; set data.camera_dropout=0 for those"]
 
 
+def decode_assignments(items: list[str]) -> dict:
+    """``--decode name=value`` -> {name: value} (values read as YAML, as config overrides are)."""
+    options = {}
+    for item in items:
+        if "=" not in item:
+            raise UserError(f"--decode {item}: expected NAME=VALUE, e.g. match_threshold=0.05")
+        name, _, value = item.partition("=")
+        options[name.strip()] = parse_overrides([f"value={value}"])["value"]
+    return options
+
+
 def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = None, onnx: str | Path | None = None,
-                   gt_as_prediction: bool = False, overrides: Sequence[str] = ()):
-    """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint, an
-    ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
+                   gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "auto"):
+    """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint (in ``precision``,
+    precision.py), an ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
     ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT)."""
     if gt_as_prediction and checkpoint is not None:
         raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
@@ -170,9 +181,11 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
         raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
                            "(GT-derived predictions)")
     if onnx is not None:
+        if precision == "bf16":  # the export is a float32 graph: the option was dropped with no word
+            raise PredictError("--precision bf16 runs a checkpoint; an --onnx export runs in float32 in onnxruntime")
         return OnnxModel(onnx, cfg), cfg, [], f"ONNX {onnx} (onnxruntime)"
     if checkpoint is not None:
-        model, cfg, notes = load_model(checkpoint, cfg, overrides)
+        model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision)
         return model, cfg, notes, f"checkpoint {checkpoint}"
     return None, cfg, [], "GT-derived predictions (--gt-as-prediction)"
 
@@ -240,6 +253,7 @@ def predict_sample(
     gt_as_prediction: bool = False,
     camera_width: int = 480,
     onnx: str | Path | None = None,
+    precision: str = "auto",
 ) -> dict:
     """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
 
@@ -257,8 +271,8 @@ def predict_sample(
     Returns ``{"sample_token", "index", "split", "predictions", "paths", "notes"}``.
     """
     check_output_dir(out, "--out")  # before the model runs
-    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
-                                               gt_as_prediction=gt_as_prediction, overrides=overrides)
+    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
+                                               overrides=overrides, precision=precision)
     notes += camera_dropout_notes(cfg, "the predictions")
     notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
@@ -416,7 +430,7 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
 def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str | Path, *,
                    checkpoint: str | Path | None = None, onnx: str | Path | None = None,
                    config: str | Path | None = None, decode: Mapping | None = None, device: str | None = None,
-                   name: str = "frame", camera_width: int = 480) -> dict:
+                   name: str = "frame", camera_width: int = 480, precision: str = "auto") -> dict:
     """``predict-images``: the model (a checkpoint, or an ``export-onnx`` file with the ``config`` it was
     exported from, default: the one stamped in it) on one frame of your own cameras, described by a
     rig file (``data.rig.read_rig_file``), and ``predict``'s pictures (no GT) and ``prediction.json``
@@ -429,8 +443,12 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
                            "its own config: drop --config")
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
-    mapper = (Mapper.from_checkpoint(checkpoint, device, **decode) if checkpoint is not None
-              else Mapper.from_onnx(onnx, config, **decode))
+    if onnx is not None and precision == "bf16":  # the export is a float32 graph
+        raise PredictError("--precision bf16 runs a checkpoint; an --onnx export runs in float32 in onnxruntime")
+    with warnings.catch_warnings():  # its precision note comes back in the result's notes
+        warnings.simplefilter("ignore")
+        mapper = (Mapper.from_checkpoint(checkpoint, device, precision=precision, **decode) if checkpoint is not None
+                  else Mapper.from_onnx(onnx, config, **decode))
     rig = read_rig_file(rig_file)
     frame = rig_frame(rig, images, rig_file, mapper.cameras)
     batch = mapper.batch([frame])
@@ -446,7 +464,7 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     meta = {**submission_meta(mapper.config, "", mapper.source), "rig": str(rig_file),
             "images": [str(p) for p in images]}
     paths = write_together(Path(out), figures, {name: preds}, meta)
-    notes = []
+    notes = list(mapper.notes)
     if mapper.config.model.temporal.memory != "none":  # as predict says for a scene's first frame
         notes.append(f"a temporal model ({mapper.config.model.temporal.memory} memory) on one frame: no memory, as on "
                      "a drive's first frame (a single-frame model's prediction; the Python API's mapper.stream() "
@@ -531,7 +549,7 @@ class _VideoWriter:
 def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, checkpoint: str | Path | None = None,
                   onnx: str | Path | None = None, gt_as_prediction: bool = False, split: str | None = None,
                   overrides: Sequence[str] = (), fps: float = 2.0, camera_width: int = 320,
-                  progress: bool = True) -> dict:
+                  progress: bool = True, precision: str = "auto") -> dict:
     """Every sample of ``scene`` (a nuScenes scene name or an AV2 log id) of ``split``, in time order,
     as one MP4 frame each (OpenCV's ``VideoWriter``, ``mp4v``): the BEV prediction next to the GT on
     the left, the cameras with the predictions projected on the right. Frames run through the model in
@@ -550,8 +568,8 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     inputs = [(checkpoint, "--checkpoint"), (onnx, "--onnx")]
     for path, what in ((video, "--video"), (video.with_suffix(".json"), "--video's predictions (.json)")):
         check_output_file(path, what, inputs)  # before the frames
-    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx,
-                                               gt_as_prediction=gt_as_prediction, overrides=overrides)
+    model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
+                                               overrides=overrides, precision=precision)
     notes += camera_dropout_notes(cfg, "the predictions")
     notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split

@@ -323,3 +323,11 @@ def cpu_capability(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     except (AttributeError, RuntimeError):  # a torch without it
         level = "unknown"
     return f"{have}; torch kernels: {level}"
+
+
+def out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says that memory ran out: Python's (numpy's) ``MemoryError``, torch's CUDA
+    ``OutOfMemoryError``, or the RuntimeError of torch's CPU allocator."""
+    if isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError":
+        return True
+    return isinstance(e, RuntimeError) and ("can't allocate memory" in str(e) or "out of memory" in str(e).lower())

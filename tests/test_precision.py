@@ -1,0 +1,109 @@
+"""Running a trained model in bf16 (``--precision``, ``Mapper.from_checkpoint(precision=...)``): what ``auto`` picks
+from the hardware's flags, the note on an emulated bf16, outputs in float32 close to fp32's with the same decoded
+elements on a trained tiny model, and the precision recorded where a result is written."""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from instagram_hdmap import Mapper
+from instagram_hdmap.config import load_config
+from instagram_hdmap.precision import Bf16Model, PrecisionError, native_bf16, resolve_precision, with_precision
+
+REPO = Path(__file__).resolve().parents[1]
+CPU = torch.device("cpu")
+
+
+def test_auto_picks_bf16_only_where_the_cpu_computes_it_natively():
+    assert resolve_precision("auto", CPU, {"avx2", "avx512f"}) == ("fp32", [])
+    chosen, notes = resolve_precision("auto", CPU, {"avx2", "amx_bf16", "avx512_bf16"})
+    assert chosen == "bf16" and "natively" in notes[0]
+    assert resolve_precision("auto", CPU, {"bf16", "asimd"})[0] == "bf16"  # ARM's BF16
+    chosen, notes = resolve_precision("bf16", CPU, {"avx2"})  # forced: it runs, emulated, and says so
+    assert chosen == "bf16" and "emulates it, slower than fp32" in notes[0]
+    assert resolve_precision("fp32", CPU, {"amx_bf16"}) == ("fp32", [])
+    assert native_bf16(CPU, set()) is False
+    with pytest.raises(PrecisionError, match="--precision 'int4': choose one of fp32, bf16, auto"):
+        resolve_precision("int4", CPU)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, tiny_world, world_overrides):
+    """The tiny model trained on four samples of the tiny world until it maps them (benchmarks/overfit.py), saved
+    as a checkpoint, and those samples' batch."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from instagram_hdmap.checkpoint import save_checkpoint
+    from instagram_hdmap.config import config_to_dict
+    from overfit import TINY_CONFIG, overfit_batch, run_overfit
+
+    cfg = load_config(TINY_CONFIG, [*world_overrides(tiny_world), "data.augment=false", "data.num_workers=0",
+                                    "train.device=cpu"])
+    batch = overfit_batch(cfg, 4)
+    torch.manual_seed(0)
+    model = run_overfit(cfg, batch, steps=150, lr=3e-3, every=150, echo=lambda line: None)["model"]
+    path = save_checkpoint({"model": model.state_dict(), "config": config_to_dict(cfg)},
+                           tmp_path_factory.mktemp("bf16") / "tiny.pt")
+    return path, cfg, batch
+
+
+def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
+    d = np.linalg.norm(a[:, None] - b[None], axis=-1)
+    return float((d.min(0).mean() + d.min(1).mean()) / 2)
+
+
+def test_bf16_outputs_stay_close_to_fp32_and_decode_to_the_same_elements(trained):
+    from instagram_hdmap.inference import load_model
+    from instagram_hdmap.postprocess import decode_options, postprocess_batch
+
+    ckpt, cfg, batch = trained
+    model, cfg, _ = load_model(ckpt, cfg, device=CPU)
+    half = with_precision(model, "bf16")
+    assert isinstance(half, Bf16Model) and half.is_temporal == model.is_temporal  # attributes read through
+    assert next(half.parameters()).dtype == torch.float32  # the weights stay float32
+    with torch.no_grad():
+        a, b = model(batch), half(batch)
+    assert all(v.dtype == torch.float32 for v in b.values() if torch.is_tensor(v) and v.is_floating_point())
+    scale = a["pred_heatmap"].abs().max()
+    assert (a["pred_heatmap"] - b["pred_heatmap"]).abs().max() <= 0.05 * scale
+    assert (a["pred_distance"] - b["pred_distance"]).abs().max() <= 0.05 * cfg.data.dt_clip
+    from instagram_hdmap.geometry import BEVGrid
+
+    grid = BEVGrid.from_config(cfg.grid)
+    options = decode_options(cfg.model.gnn, grid)
+    fp32, bf16 = postprocess_batch(a, grid, **options), postprocess_batch(b, grid, **options)
+    assert sum(map(len, fp32)) >= 3  # a model that maps something
+    total = agree = 0
+    for pa, pb in zip(fp32, bf16):
+        assert abs(len(pa) - len(pb)) <= max(1, len(pa) // 5)
+        total += len(pa)
+        agree += sum(any(q["label"] == p["label"] and _chamfer(np.asarray(p["pts"]), np.asarray(q["pts"])) < 0.5
+                         for q in pb) for p in pa)
+    assert agree >= 0.8 * total  # the same map elements, to half a metre (an edge near its threshold may differ)
+
+
+def test_the_precision_is_chosen_and_recorded_where_results_are_written(trained, tmp_path, monkeypatch):
+    import instagram_hdmap.precision as precision
+
+    ckpt, cfg, _ = trained
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        forced = Mapper.from_checkpoint(ckpt, "cpu", precision="bf16")
+    assert isinstance(forced.model, Bf16Model) and repr(forced).endswith("bf16)")
+    if not native_bf16(CPU):
+        assert any("emulates" in str(w.message) for w in caught)
+    monkeypatch.setattr(precision, "cpu_flags", lambda: {"amx_bf16"})  # a CPU with AMX: auto is bf16, and says so
+    with pytest.warns(UserWarning, match="precision auto: bf16"):
+        assert isinstance(Mapper.from_checkpoint(ckpt, "cpu").model, Bf16Model)
+    monkeypatch.setattr(precision, "cpu_flags", lambda: {"avx2"})
+    assert not isinstance(Mapper.from_checkpoint(ckpt, "cpu").model, Bf16Model)
+    from instagram_hdmap.evaluate_split import run_evaluation
+
+    run_evaluation(cfg, ckpt, "vector", tmp_path / "e", precision="bf16")
+    assert json.loads((tmp_path / "e" / "metrics.json").read_text())["meta"]["precision"] == "bf16"
