@@ -138,6 +138,15 @@ def test_the_ids_go_into_the_hdmapnet_json_and_ap_ignores_them(mapper, drive, mo
     path.write_text(json.dumps(doc))
     polys = read_submission(path, "pred", 3).samples["t"]
     assert [p["track_id"] for p in polys] == list(range(len(elements)))
+    from instagram_hdmap.evaluation import evaluate_files
+    from instagram_hdmap.evaluation.io import submission
+
+    gt = tmp_path / "gt.json"  # the same elements as GT: AP 1 with the IDs there, as without them
+    gt.write_text(json.dumps(submission({"t": [{"pts": e.points, "label": e.class_index} for e in elements]},
+                                        {"ground_truth": True})))
+    untracked = tmp_path / "u.json"
+    untracked.write_text(json.dumps(to_hdmapnet({"t": [dataclasses.replace(e, track_id=None) for e in elements]})))
+    assert evaluate_files(path, gt)["mAP"] == evaluate_files(untracked, gt)["mAP"]
     with pytest.raises(Exception, match="'track_id' must be an integer >= 0"):
         vectors_to_polylines([{"pts": [[0, 0], [1, 0]], "type": 0, "track_id": -1}], "pred", 3, "here")
 
