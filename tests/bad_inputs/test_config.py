@@ -317,6 +317,13 @@ def row_predict_fps_without_video(env):
               env.ckpt, "--index", "0", "--fps", "5", "--out", env.tmp / "out")
 
 
+@row("predict --precision bf16 with an --onnx export (a float32 graph in onnxruntime) is one line before any file "
+     "is read")
+def row_precision_of_an_onnx_export(env):
+    env.error(r"--precision bf16 runs a checkpoint; an --onnx export runs in float32", "predict", env.yaml, "--onnx",
+              env.tmp / "model.onnx", "--index", "0", "--out", env.tmp / "out", "--precision", "bf16")
+
+
 @row("predict --gt-as-prediction model.temporal.persist_frames=2 dropped the persistence with no word; a note "
             "says it is not applied to the GT")
 def row_persist_with_gt_as_prediction(env):
