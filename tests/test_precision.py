@@ -100,9 +100,10 @@ def test_the_precision_is_chosen_and_recorded_where_results_are_written(trained,
         assert any("emulates" in str(w.message) for w in caught)
     monkeypatch.setattr(precision, "cpu_flags", lambda: {"amx_bf16"})  # a CPU with AMX: auto is bf16, and says so
     with pytest.warns(UserWarning, match="precision auto: bf16"):
-        assert isinstance(Mapper.from_checkpoint(ckpt, "cpu").model, Bf16Model)
+        assert isinstance(Mapper.from_checkpoint(ckpt, "cpu", precision="auto").model, Bf16Model)
+    assert not isinstance(Mapper.from_checkpoint(ckpt, "cpu").model, Bf16Model)  # fp32 unless asked
     monkeypatch.setattr(precision, "cpu_flags", lambda: {"avx2"})
-    assert not isinstance(Mapper.from_checkpoint(ckpt, "cpu").model, Bf16Model)
+    assert not isinstance(Mapper.from_checkpoint(ckpt, "cpu", precision="auto").model, Bf16Model)
     from instagram_hdmap.evaluate_split import run_evaluation
 
     run_evaluation(cfg, ckpt, "vector", tmp_path / "e", precision="bf16")

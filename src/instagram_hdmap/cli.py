@@ -443,7 +443,7 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--checkpoint", required=True, help="model checkpoint (e.g. runs/x/best.pt)")
     p.add_argument("--protocol", choices=["vector", "raster"], help="AP protocol (default: eval.protocol)")
     p.add_argument("--out", default="eval", help="output folder (default ./eval)")
-    _add_precision(p, "fp32", "the reference scores")
+    _add_precision(p, "fp32", "the same numbers on every machine")
     p.set_defaults(func=_cmd_evaluate)
 
 
@@ -464,7 +464,7 @@ def _predict_parser(sub) -> None:
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
-    _add_precision(p, "auto", "bf16 where the device computes it natively")
+    _add_precision(p, "fp32", "the same numbers on every machine")
     p.set_defaults(func=_cmd_predict)
 
 
@@ -484,7 +484,7 @@ def _predict_images_parser(sub) -> None:
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: CUDA when available)")
     p.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
                    help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
-    _add_precision(p, "auto", "bf16 where the device computes it natively")
+    _add_precision(p, "fp32", "the same numbers on every machine")
     p.set_defaults(func=_cmd_predict_images)
 
 

@@ -50,7 +50,7 @@ def run_evaluation(
     Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's
     metrics: ``protocol``, ``thresholds``, ``classes``, ``AP``, ``AP_class``, ``mAP``, ``notes``, ...,
     plus ``meta``: checkpoint, config name, split, sample count, speed, config notes). ``protocol``
-    overrides ``eval.protocol``. ``precision``: fp32 (the default: the reference scores), bf16 or auto
+    overrides ``eval.protocol``. ``precision``: fp32 (the default), bf16 or auto
     (precision.py). Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
 
     Under torchrun each rank runs every world-size-th sample; the sampler's wrap-around padding is

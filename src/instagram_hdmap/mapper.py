@@ -367,10 +367,10 @@ class Mapper:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
-                        overrides: Sequence[str] = (), precision: str = "auto", **decode_overrides) -> Mapper:
+                        overrides: Sequence[str] = (), precision: str = "fp32", **decode_overrides) -> Mapper:
         """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu",
-        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32, bf16 or auto (bf16
-        where the device computes it natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
+        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16 or
+        auto (bf16 where the device computes it natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
         options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
         (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
         architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""

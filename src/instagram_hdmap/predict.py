@@ -170,7 +170,7 @@ def decode_assignments(items: list[str]) -> dict:
 
 
 def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = None, onnx: str | Path | None = None,
-                   gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "auto"):
+                   gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "fp32"):
     """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint (in ``precision``,
     precision.py), an ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
     ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT)."""
@@ -253,7 +253,7 @@ def predict_sample(
     gt_as_prediction: bool = False,
     camera_width: int = 480,
     onnx: str | Path | None = None,
-    precision: str = "auto",
+    precision: str = "fp32",
 ) -> dict:
     """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
 
@@ -430,7 +430,7 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
 def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str | Path, *,
                    checkpoint: str | Path | None = None, onnx: str | Path | None = None,
                    config: str | Path | None = None, decode: Mapping | None = None, device: str | None = None,
-                   name: str = "frame", camera_width: int = 480, precision: str = "auto") -> dict:
+                   name: str = "frame", camera_width: int = 480, precision: str = "fp32") -> dict:
     """``predict-images``: the model (a checkpoint, or an ``export-onnx`` file with the ``config`` it was
     exported from, default: the one stamped in it) on one frame of your own cameras, described by a
     rig file (``data.rig.read_rig_file``), and ``predict``'s pictures (no GT) and ``prediction.json``
@@ -549,7 +549,7 @@ class _VideoWriter:
 def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, checkpoint: str | Path | None = None,
                   onnx: str | Path | None = None, gt_as_prediction: bool = False, split: str | None = None,
                   overrides: Sequence[str] = (), fps: float = 2.0, camera_width: int = 320,
-                  progress: bool = True, precision: str = "auto") -> dict:
+                  progress: bool = True, precision: str = "fp32") -> dict:
     """Every sample of ``scene`` (a nuScenes scene name or an AV2 log id) of ``split``, in time order,
     as one MP4 frame each (OpenCV's ``VideoWriter``, ``mp4v``): the BEV prediction next to the GT on
     the left, the cameras with the predictions projected on the right. Frames run through the model in
