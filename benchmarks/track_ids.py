@@ -78,6 +78,19 @@ def score(cfg, dataset, preds: dict[str, list[dict]], given: bool) -> dict:
             "frames": len(dataset)}
 
 
+def retrack(cfg, dataset, preds: dict[str, list[dict]], match_m: float, look_back: int) -> dict[str, list[dict]]:
+    """The stream's predictions with the IDs of another ``InstanceTracker`` (its match distance and look-back)."""
+    from instagram_hdmap.geometry import BEVGrid
+    from instagram_hdmap.persistence import InstanceTracker
+
+    tracker, out = InstanceTracker(BEVGrid.from_config(cfg.grid), match_m, look_back=look_back), {}
+    for i, token in enumerate(dataset.sample_tokens):
+        ids = tracker.step(preds[token], dataset.scene_of(i), dataset.scenes.frame[i],
+                           dataset.ego_pose(i).double().numpy())
+        out[token] = [{**p, "track_id": k} for p, k in zip(preds[token], ids)]
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--runs", required=True, help="benchmarks/temporal.py's --out")
@@ -85,6 +98,9 @@ def main() -> None:
     p.add_argument("--occluders", type=float, default=0.7, help="occluder density of the validation world")
     p.add_argument("--persist", type=int, default=0, help="model.temporal.persist_frames of both models")
     p.add_argument("--cache", help="world cache (default: the demo's)")
+    p.add_argument("--retrack", action="store_true",
+                   help="also re-track each model's predictions offline at 1.0 / 1.5 / 2.0 m, looking back 1 and 5 "
+                   "frames: what the tracker's settings do")
     args = p.parse_args()
     from instagram_hdmap import Mapper
     from instagram_hdmap.data import build_dataset
@@ -111,6 +127,11 @@ def main() -> None:
             ids = (f"stream ({TRACK_MATCH_M} m, look back {TRACK_LOOK_BACK})" if given else
                    f"meter ({mapper.config.eval.cmap_match_m} m, previous frame)")
             rows.append({"model": model, "seed": seed, "ids": ids, **score(mapper.config, dataset, preds, given)})
+        for match_m in (1.0, 1.5, 2.0) if args.retrack else ():
+            for look_back in (1, 5):
+                again = retrack(mapper.config, dataset, preds, match_m, look_back)
+                rows.append({"model": model, "seed": seed, "ids": f"re-tracked ({match_m} m, look back {look_back})",
+                             **score(mapper.config, dataset, again, True)})
     print(f"\nvalidation world {val_root} (roads never seen in training, occluders {args.occluders}), "
           f"persist_frames {args.persist}\n")
     print("| model | seed | IDs | mAP | C-mAP | ID switches / 100 frames | tracks | frames |")
