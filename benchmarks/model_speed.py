@@ -3,6 +3,7 @@
     python benchmarks/model_speed.py                      # CPU, 2 threads, B0 and B4 with LSS, 128x352
     python benchmarks/model_speed.py --runs 9 --threads 2
     python benchmarks/model_speed.py --official OFFICIAL  # + the official model, timed in the same run
+    python benchmarks/model_speed.py --precision fp32     # our fp32 alone (default: fp32, bf16 and int8)
     python benchmarks/model_speed.py --device cuda        # + GPU latency / FPS, fp32 and bf16 autocast
 
 Each component is timed by calling the model's parts in the order of ``InstaGraM.forward`` (backbone,
@@ -12,9 +13,10 @@ warm-up. Random weights and images, a nuScenes-like six-camera rig; eval mode, n
 
 ``--official OFFICIAL`` (a local checkout of the official InstaGraM code, benchmarks/official.py)
 builds the official LSS model of each config's backbone and image size (random weights) and times
-its forward on the same batch, interleaved with ours (each round runs our forward, then theirs), in
-the same process with the same torch and thread count: the ratio row is the comparison, and it is
-what this script is for. Absolute times depend on the machine and its load; a ratio of two paths
+its fp32 forward on the same batch, interleaved with ours (each round runs our forward + decoding in each
+``--precision``, as ``Mapper`` runs it (``precision.with_precision``), then theirs), in the same process with the
+same torch and thread count: the ratio rows are the comparison, and they are what this script is for. Absolute
+times depend on the machine and its load; a ratio of two paths
 timed in turn is load-robust to the extent the load is steady.
 """
 
@@ -32,8 +34,11 @@ import torch.nn.functional as F
 
 from instagram_hdmap.benchmark import time_runs
 from instagram_hdmap.config import load_config
+from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
+from instagram_hdmap.postprocess import decode_options, postprocess_batch
+from instagram_hdmap.precision import PRECISIONS, resolve_precision, with_precision
 from instagram_hdmap.resources import cpu_capability
 
 CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
@@ -120,18 +125,29 @@ def time_interleaved(fns: dict[str, Callable[[], object]], runs: int, warmup: in
 
 def _table(columns: dict[str, dict[str, float]], official: dict[str, dict[str, float]] | None = None) -> str:
     names = list(next(iter(columns.values())))
-    width = max(len(n) for n in [*names, "official total forward"]) + 2
-    lines = [f"{'ms (median)':<{width}}" + "".join(f"{c:>18}" for c in columns)]
-    lines += [f"{n:<{width}}" + "".join(f"{col[n]:>18.1f}" for col in columns.values()) for n in names]
+    width = max(len(n) for n in [*names, "ours bf16 / official forward"]) + 2
+    lines = [f"{'ms (median)':<{width}}" + "".join(f"{c:>22}" for c in columns)]
+    lines += [f"{n:<{width}}" + "".join(f"{col[n]:>22.1f}" for col in columns.values()) for n in names]
     if official:
-        rows = (("ours, interleaved", "ours"), ("official, interleaved", "official"))
+        ours = [k for k in next(iter(official.values())) if k.startswith("ours ")]
+        rows = [(f"{k} + decoding, interleaved", k) for k in ours] + [("official forward, interleaved", "official")]
         for label, key in rows:
-            lines.append(f"{label:<{width}}" + "".join(f"{official[c][key]:>18.1f}" for c in columns))
-        lines.append(f"{'ratio ours / official':<{width}}"
-                     + "".join(f"{official[c]['ours'] / official[c]['official']:>18.2f}" for c in columns))
+            lines.append(f"{label:<{width}}" + "".join(f"{official[c][key]:>22.1f}" for c in official))
+        for key in ours:
+            lines.append(f"{key + ' / official forward':<{width}}"
+                         + "".join(f"{official[c][key] / official[c]['official']:>22.3f}" for c in official))
         lines.append(f"{'official parameters':<{width}}"
-                     + "".join(f"{official[c]['params_m']:>17.2f}M" for c in columns))
+                     + "".join(f"{official[c]['params_m']:>21.2f}M" for c in official))
     return "\n".join(lines)
+
+
+def _components(model, precision: str, batch: dict, runs: int) -> dict[str, float]:
+    """The component table of ``model`` as ``precision`` runs it (bf16, int8: the wrapped inference copy under
+    autocast, as ``Bf16Model.forward`` runs it)."""
+    if precision == "fp32":
+        return time_components(model, batch, runs, lambda: None)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        return time_components(model.model, batch, runs, lambda: None)
 
 
 def run_cpu(args: argparse.Namespace) -> None:
@@ -141,26 +157,35 @@ def run_cpu(args: argparse.Namespace) -> None:
         from official import build_official, load_official, official_inputs, uses_standins
 
         code = load_official(args.official)
+    cpu = torch.device("cpu")
+    precisions = [resolve_precision(p, cpu, flag="--precision")[0] for p in args.precision]
     columns, official = {}, {}
     for path in args.configs or CPU_CONFIGS:
         cfg = load_config(path)
-        model = build_model(cfg).eval()
+        fp32 = build_model(cfg).eval()
         name = cfg.model.backbone.name
-        batch = example_batch(cfg.data.image_size, torch.device("cpu"))
-        columns[name] = time_components(model, batch, args.runs, lambda: None)
+        batch = example_batch(cfg.data.image_size, cpu)
+        # int8 calibrates on the timed batch (random weights and images: only its speed is measured here)
+        models = {p: with_precision(fp32, p, [batch] if p == "int8" else None) for p in dict.fromkeys(precisions)}
+        for p, model in models.items():
+            columns[f"{name} {p}"] = _components(model, p, batch, args.runs)
         if code is not None:
+            grid = BEVGrid.from_config(cfg.grid)
+            decode = decode_options(cfg.model.gnn, grid)
             theirs = build_official(code, name, tuple(cfg.data.image_size)).eval()
             inputs = official_inputs(batch)
-            times = time_interleaved({"ours": lambda m=model, b=batch: m(b),
-                                      "official": lambda m=theirs, x=inputs: m(*x)}, args.runs, 1, lambda: None)
+            fns = {f"ours {p}": (lambda m=m, b=batch, g=grid, d=decode: postprocess_batch(m(b), g, **d))
+                   for p, m in models.items()}
+            fns["official"] = lambda m=theirs, x=inputs: m(*x)
+            times = time_interleaved(fns, args.runs, 1, lambda: None)
             official[name] = {k: 1000 * statistics.median(v) for k, v in times.items()}
             official[name]["params_m"] = sum(p.numel() for p in theirs.parameters()) / 1e6
     print(f"CPU, {args.threads} threads, batch 1 x 6 cameras, LSS, {args.runs} runs, torch {torch.__version__}, "
           f"load average {os.getloadavg()[0]:.1f} at the end; {cpu_capability()}")
     if code is not None:
         standins = uses_standins()
-        print(f"official code: {code.root}" + (f" (stand-ins for {', '.join(standins)}: benchmarks/official.py)"
-                                                if standins else ""))
+        print(f"official code: {code.root}, fp32" + (f" (stand-ins for {', '.join(standins)}: benchmarks/official.py)"
+                                                      if standins else ""))
     print(_table(columns, official or None))
 
 
@@ -194,6 +219,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="CPU threads (torch.set_num_threads)")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--configs", nargs="*", help="experiment YAMLs (default: the Table I LSS rows)")
+    parser.add_argument("--precision", nargs="+", choices=PRECISIONS, default=["fp32", "bf16", "int8"],
+                        help="CPU: the precisions of our model to time (precision.py; default fp32 bf16 int8)")
     parser.add_argument("--official", metavar="DIR",
                         help="a local checkout of the official InstaGraM code: time its model too (CPU only)")
     args = parser.parse_args()

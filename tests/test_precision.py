@@ -1,6 +1,7 @@
-"""Running a trained model in bf16 (``--precision``, ``Mapper.from_checkpoint(precision=...)``): what ``auto`` picks
-from the hardware's flags, the note on an emulated bf16, outputs in float32 close to fp32's with the same decoded
-elements on a trained tiny model, and the precision recorded where a result is written."""
+"""Running a trained model in bf16 or int8 (``--precision``, ``Mapper.from_checkpoint(precision=...)``): what ``auto``
+picks from the hardware's flags, the note on an emulated bf16, the folded inference copy computing the same function,
+outputs in float32 close to fp32's with the same decoded elements on a trained tiny model, and the precision recorded
+where a result is written."""
 
 from __future__ import annotations
 
@@ -15,7 +16,16 @@ import torch
 
 from instagram_hdmap import Mapper
 from instagram_hdmap.config import load_config
-from instagram_hdmap.precision import Bf16Model, PrecisionError, native_bf16, resolve_precision, with_precision
+from instagram_hdmap.precision import (
+    Bf16Model,
+    Int8Model,
+    PrecisionError,
+    fold_batchnorm,
+    native_bf16,
+    precision_of,
+    resolve_precision,
+    with_precision,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device("cpu")
@@ -27,11 +37,50 @@ def test_auto_picks_bf16_only_where_the_cpu_computes_it_natively():
     assert chosen == "bf16" and "natively" in notes[0]
     assert resolve_precision("auto", CPU, {"bf16", "asimd"})[0] == "bf16"  # ARM's BF16
     chosen, notes = resolve_precision("bf16", CPU, {"avx2"})  # forced: it runs, emulated, and says so
-    assert chosen == "bf16" and "emulates it, slower than fp32" in notes[0]
+    assert chosen == "bf16" and "emulated, slower than fp32" in notes[0]
     assert resolve_precision("fp32", CPU, {"amx_bf16"}) == ("fp32", [])
+    assert resolve_precision("int8", CPU, {"amx_bf16"}) == ("int8", [])
+    assert resolve_precision("auto", CPU, {"amx_bf16", "amx_int8"})[0] == "bf16"  # int8 needs training samples
     assert native_bf16(CPU, set()) is False
-    with pytest.raises(PrecisionError, match="--precision 'int4': choose one of fp32, bf16, auto"):
+    with pytest.raises(PrecisionError, match="--precision 'int4': choose one of fp32, bf16, int8, auto"):
         resolve_precision("int4", CPU)
+    with pytest.raises(PrecisionError, match="--precision int8 runs on the CPU"):
+        resolve_precision("int8", torch.device("cuda"))
+
+
+def test_the_folded_inference_copy_computes_the_same_function():
+    """BatchNorm folded into the convolutions (with running statistics far from the identity), EfficientNet's
+    static "same" paddings (symmetric and the asymmetric ones of its stride-2 convolutions) moved into them: the
+    outputs of the original model to float rounding, and the original left as it was."""
+    from instagram_hdmap.models import build_model
+
+    cfg = load_config(REPO / "configs/synthetic/tiny.yaml", ["model.backbone.name=efficientnet-b0"])
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5), m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5), m.bias.data.uniform_(-0.2, 0.2)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    folded = fold_batchnorm(model)
+    kinds = lambda net, kind: sum(isinstance(m, kind) for m in net.modules())  # noqa: E731
+    assert kinds(model, torch.nn.BatchNorm2d) > 20 and kinds(folded, torch.nn.BatchNorm2d) == 0
+    assert kinds(folded, torch.nn.ZeroPad2d) == 0 < kinds(model, torch.nn.ZeroPad2d)
+    assert any(m.kernel_size == (4, 4) for m in folded.modules() if isinstance(m, torch.nn.Conv2d))  # asymmetric
+    batch = _rig_batch(cfg)
+    with torch.no_grad():
+        a, b = model(batch), folded(batch)
+    for key in ("pred_vertex_logits", "pred_distance"):
+        assert torch.allclose(a[key], b[key], atol=1e-5, rtol=1e-4), key
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
+
+
+def _rig_batch(cfg, seed: int = 0) -> dict:
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from model_speed import example_batch
+
+    torch.manual_seed(seed)
+    return example_batch(tuple(cfg.data.image_size), CPU)
 
 
 @pytest.fixture(scope="module")
@@ -58,21 +107,28 @@ def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
     return float((d.min(0).mean() + d.min(1).mean()) / 2)
 
 
-def test_bf16_outputs_stay_close_to_fp32_and_decode_to_the_same_elements(trained):
+@pytest.mark.parametrize("precision", ["bf16", "int8"])
+def test_outputs_stay_close_to_fp32_and_decode_to_the_same_elements(trained, precision):
     from instagram_hdmap.inference import load_model
     from instagram_hdmap.postprocess import decode_options, postprocess_batch
 
     ckpt, cfg, batch = trained
     model, cfg, _ = load_model(ckpt, cfg, device=CPU)
-    half = with_precision(model, "bf16")
-    assert isinstance(half, Bf16Model) and half.is_temporal == model.is_temporal  # attributes read through
-    assert next(half.parameters()).dtype == torch.float32  # the weights stay float32
+    half, _, _ = load_model(ckpt, cfg, device=CPU, precision=precision)  # int8: calibrated on training samples
+    assert precision_of(half) == precision and isinstance(half, Int8Model) == (precision == "int8")
+    assert half.is_temporal == model.is_temporal  # attributes read through
+    weights = {type(m).__name__: m.weight.dtype for m in half.modules() if hasattr(m, "weight") and
+               isinstance(m.weight, torch.Tensor)}
+    assert weights["Conv2d"] == weights["Linear"] == torch.bfloat16 and weights["LayerNorm"] == torch.float32
+    assert next(model.parameters()).dtype == torch.float32
     with torch.no_grad():
         a, b = model(batch), half(batch)
     assert all(v.dtype == torch.float32 for v in b.values() if torch.is_tensor(v) and v.is_floating_point())
+    # int8's uint8 activations of the tiny model's 16-channel encoder: coarser at the heatmap's peaks than bf16
+    bound = {"bf16": 0.05, "int8": 0.35}[precision]
     scale = a["pred_heatmap"].abs().max()
-    assert (a["pred_heatmap"] - b["pred_heatmap"]).abs().max() <= 0.05 * scale
-    assert (a["pred_distance"] - b["pred_distance"]).abs().max() <= 0.05 * cfg.data.dt_clip
+    assert (a["pred_heatmap"] - b["pred_heatmap"]).abs().max() <= bound * scale
+    assert (a["pred_distance"] - b["pred_distance"]).abs().max() <= bound * cfg.data.dt_clip
     from instagram_hdmap.geometry import BEVGrid
 
     grid = BEVGrid.from_config(cfg.grid)
@@ -81,11 +137,13 @@ def test_bf16_outputs_stay_close_to_fp32_and_decode_to_the_same_elements(trained
     assert sum(map(len, fp32)) >= 3  # a model that maps something
     total = agree = 0
     for pa, pb in zip(fp32, bf16):
-        assert abs(len(pa) - len(pb)) <= max(1, len(pa) // 5)
+        if precision == "bf16":
+            assert abs(len(pa) - len(pb)) <= max(1, len(pa) // 5)
         total += len(pa)
         agree += sum(any(q["label"] == p["label"] and _chamfer(np.asarray(p["pts"]), np.asarray(q["pts"])) < 0.5
                          for q in pb) for p in pa)
-    assert agree >= 0.8 * total  # the same map elements, to half a metre (an edge near its threshold may differ)
+    # the same map elements, to half a metre (an edge near its threshold may differ)
+    assert agree >= {"bf16": 0.8, "int8": 0.5}[precision] * total
 
 
 def test_the_precision_is_chosen_and_recorded_where_results_are_written(trained, tmp_path, monkeypatch):
@@ -97,7 +155,7 @@ def test_the_precision_is_chosen_and_recorded_where_results_are_written(trained,
         forced = Mapper.from_checkpoint(ckpt, "cpu", precision="bf16")
     assert isinstance(forced.model, Bf16Model) and repr(forced).endswith("bf16)")
     if not native_bf16(CPU):
-        assert any("emulates" in str(w.message) for w in caught)
+        assert any("emulated" in str(w.message) for w in caught)
     monkeypatch.setattr(precision, "cpu_flags", lambda: {"amx_bf16"})  # a CPU with AMX: auto is bf16, and says so
     with pytest.warns(UserWarning, match="precision auto: bf16"):
         assert isinstance(Mapper.from_checkpoint(ckpt, "cpu", precision="auto").model, Bf16Model)
@@ -108,3 +166,20 @@ def test_the_precision_is_chosen_and_recorded_where_results_are_written(trained,
 
     run_evaluation(cfg, ckpt, "vector", tmp_path / "e", precision="bf16")
     assert json.loads((tmp_path / "e" / "metrics.json").read_text())["meta"]["precision"] == "bf16"
+
+
+def test_int8_needs_training_samples(trained, tmp_path):
+    import dataclasses
+
+    from instagram_hdmap.inference import load_model
+
+    ckpt, cfg, batch = trained
+    model, cfg, _ = load_model(ckpt, cfg, device=CPU)
+    with pytest.raises(PrecisionError, match="int8 needs calibration batches"):
+        with_precision(model, "int8")
+    assert isinstance(with_precision(model, "int8", [batch]), Int8Model)
+    from instagram_hdmap.precision import calibration_batches
+
+    missing = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, dataroot=str(tmp_path / "nowhere")))
+    with pytest.raises(PrecisionError, match="int8 calibrates on training samples, which could not be read"):
+        calibration_batches(missing)

@@ -39,7 +39,7 @@ from .geometry import BEVGrid
 from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
-from .precision import resolve_precision
+from .precision import calibration_batches, resolve_precision, with_precision
 from .resources import check_fits, cpu_capability
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
@@ -183,14 +183,20 @@ def _timed(forward, forward_post, runs: int, warmup: int, sync, amp: str, dev: t
         raise
 
 
-def _autocast_of(precision: str | None, amp: str, dev: torch.device) -> tuple[str, list[str]]:
-    """The autocast (``amp``) that ``precision`` (precision.py) resolves to on ``dev``, and its notes."""
+def _precision_of(precision: str | None, amp: str, dev: torch.device) -> tuple[str | None, list[str]]:
+    """What ``precision`` (precision.py) resolves to on ``dev`` (None: plain ``amp`` autocast), and its notes."""
     if precision is None:
-        return amp, []
+        return None, []
     if amp != "none":  # two answers to one question
         raise BenchmarkError(f"--amp {amp} and --precision {precision}: give one of them")
-    chosen, notes = resolve_precision(precision, dev)
-    return ("bf16" if chosen == "bf16" else "none"), notes
+    return resolve_precision(precision, dev)
+
+
+def _dtype_label(amp: str, precision: str | None) -> str:
+    if precision in ("bf16", "int8"):
+        return {"bf16": "bfloat16", "int8": "int8 BEV encoder + bfloat16"}[precision] + (
+            f" (--precision {precision}: BatchNorm folded, bf16 weights, channels-last, fp32 islands)")
+    return {"none": "float32", "bf16": "bfloat16 autocast", "fp16": "float16 autocast"}[amp]
 
 
 def _benchmark_model(cfg: ExperimentConfig, checkpoint, overrides, dev: torch.device, seed: int,
@@ -220,7 +226,8 @@ def run_benchmark(
     precision: str | None = None,
 ) -> dict:
     """Time the model (and model + post-processing) on batch 1 with six cameras; see the module docstring.
-    ``precision`` (fp32, bf16, auto; precision.py) chooses the autocast as inference runs it, instead of ``amp``.
+    ``precision`` (fp32, bf16, auto; precision.py): the model as inference runs it (``with_precision``), instead of
+    plain ``amp`` autocast.
 
     ``device``: "cpu", "cuda" (or "cuda:i"); ``None`` uses ``train.device``. ``runs`` / ``warmup``
     default to 50 / 10 on a GPU and 10 / 2 on the CPU. Returns a dict of settings and per-row
@@ -228,8 +235,15 @@ def run_benchmark(
     ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
     """
     dev, runs, warmup = _checked_settings(cfg, device, amp, runs, warmup)
-    amp, notes = _autocast_of(precision, amp, dev)
+    precision, notes = _precision_of(precision, amp, dev)
     model, cfg = _benchmark_model(cfg, checkpoint, overrides, dev, seed, notes)
+    if precision == "int8":  # calibrated on the training split of a checkpoint's config, else on the timed batch
+        rig, _ = benchmark_rig(cfg)
+        calibration = (calibration_batches(cfg, device=dev) if checkpoint is not None
+                       else [_random_batch(model, cfg, rig, dev, seed, [])])
+        model = with_precision(model, precision, calibration)
+    elif precision is not None:
+        model = with_precision(model, precision)
     check_fits(cfg, "infer", dev, batch=1)  # before the warm-up runs
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)
@@ -267,7 +281,7 @@ def run_benchmark(
         "config_name": cfg.name,
         "device": device_name(dev),
         "cpu": cpu_capability(),
-        "dtype": {"none": "float32", "bf16": "bfloat16 autocast", "fp16": "float16 autocast"}[amp]
+        "dtype": _dtype_label(amp, precision)
         + "".join(f", {name}" for name, on in (("torch.compile", compile), ("CUDA graph", cuda_graphs)) if on),
         "threads": torch.get_num_threads(),
         "batch": f"1 x {V} cameras x {h}x{w}",

@@ -430,8 +430,8 @@ def _evaluate_json_parser(sub) -> None:
 
 def _add_precision(p: argparse.ArgumentParser, default: str, why: str) -> None:
     p.add_argument("--precision", choices=PRECISIONS, default=default,
-                   help=f"the model's precision (default {default}: {why}; auto: bf16 where the device computes it "
-                   "natively, else fp32)")
+                   help=f"the model's precision (default {default}: {why}; int8: the BEV encoder in int8, calibrated "
+                   "on training samples, CPU only; auto: bf16 where the device computes it natively, else fp32)")
 
 
 def _evaluate_parser(sub) -> None:
@@ -494,8 +494,9 @@ def _benchmark_parser(sub) -> None:
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: train.device)")
     p.add_argument("--amp", choices=["none", "bf16", "fp16"], default="none", help="autocast precision")
     p.add_argument("--precision", choices=PRECISIONS,
-                   help="instead of --amp: the precision inference runs in (auto: bf16 where the device computes it "
-                   "natively, else fp32)")
+                   help="instead of --amp: the precision inference runs in (int8 calibrates on the training split, or "
+                   "on the timed batch without --checkpoint; auto: bf16 where the device computes it natively, else "
+                   "fp32)")
     p.add_argument("--runs", type=int, help="timed runs (default 50 on a GPU, 10 on the CPU)")
     p.add_argument("--warmup", type=int, help="untimed warm-up runs (default 10 on a GPU, 2 on the CPU)")
     p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")

@@ -44,14 +44,16 @@ def run_evaluation(
     overrides: Sequence[str] = (),
     amp: str = "none",
     precision: str = "fp32",
+    calibration: list[dict] | None = None,
 ) -> dict:
     """Run ``checkpoint`` on the validation split (``data.val_split``), post-process, evaluate.
 
     Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's
     metrics: ``protocol``, ``thresholds``, ``classes``, ``AP``, ``AP_class``, ``mAP``, ``notes``, ...,
     plus ``meta``: checkpoint, config name, split, sample count, speed, config notes). ``protocol``
-    overrides ``eval.protocol``. ``precision``: fp32 (the default), bf16 or auto
-    (precision.py). Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
+    overrides ``eval.protocol``. ``precision``: fp32 (the default), bf16, int8 or auto
+    (precision.py; int8 calibrates on ``calibration`` batches, by default on training samples of
+    ``cfg``). Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
 
     Under torchrun each rank runs every world-size-th sample; the sampler's wrap-around padding is
     not scored twice (a sample is scored by the rank ``index % world_size``, once), the evaluator
@@ -73,7 +75,7 @@ def run_evaluation(
     # a second evaluation into the same --out while this one runs is refused (the pair of files of one and the
     # other could otherwise end up side by side)
     with locked_folder(out, "evaluation", "choose another --out", du.print_main, enabled=du.is_main_process()):
-        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp, precision)
+        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp, precision, calibration)
 
 
 
@@ -109,9 +111,10 @@ def _write_pair(out: Path, results: dict, metrics: dict, meta: dict) -> list[Pat
 
 
 def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out: Path, device: torch.device,
-                   overrides: Sequence[str], amp: str, precision: str = "fp32") -> dict:
+                   overrides: Sequence[str], amp: str, precision: str = "fp32", calibration=None) -> dict:
     """``run_evaluation``'s work, its output folder checked and held."""
-    model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device, precision=precision)
+    model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device, precision=precision,
+                                   calibration=calibration)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
     notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg) + size_notes(cfg)

@@ -56,7 +56,7 @@ from .models.temporal import MEMORY_KEYS
 from .models.vertices import vertex_heatmap
 from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS
-from .precision import resolve_precision, with_precision
+from .precision import calibration_batches, resolve_precision, with_precision
 
 # Config keys that define a model: its weights and how its outputs are read.
 # data.av2_cameras: the order of the camera tensors (the MLP view transform has one layer per camera)
@@ -209,10 +209,11 @@ def load_weights(model: torch.nn.Module, state: dict, checkpoint: str | Path) ->
 
 def load_model(
     checkpoint: str | Path, cfg: ExperimentConfig, overrides: Sequence[str] = (), device: torch.device | None = None,
-    precision: str = "fp32",
+    precision: str = "fp32", calibration: list[dict] | None = None,
 ) -> tuple[torch.nn.Module, ExperimentConfig, list[str]]:
     """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode, in
-    ``precision`` (precision.py: fp32, bf16 or auto).
+    ``precision`` (precision.py: fp32, bf16, int8 or auto; int8 calibrates on ``calibration`` batches, by default
+    on the config's training samples).
 
     Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
     Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit. ``cfg``: an
@@ -228,7 +229,9 @@ def load_model(
     model = load_weights(build_model(cfg), state, checkpoint)
     device = device if device is not None else resolve_device(cfg.train.device)
     chosen, precision_notes = resolve_precision(precision, torch.device(device))
-    return with_precision(model.eval().to(device), chosen), cfg, notes + precision_notes
+    if chosen == "int8" and calibration is None:
+        calibration = calibration_batches(cfg, device=device)
+    return with_precision(model.eval().to(device), chosen, calibration), cfg, notes + precision_notes
 
 
 # --- predictions from the GT ---------------------------------------------------------------------------

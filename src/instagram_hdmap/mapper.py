@@ -56,7 +56,7 @@ from .models import build_model
 from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
-from .precision import precision_of, resolve_precision, with_precision
+from .precision import calibration_batches, precision_of, resolve_precision, with_precision
 
 
 @dataclass(frozen=True)
@@ -369,8 +369,9 @@ class Mapper:
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
                         overrides: Sequence[str] = (), precision: str = "fp32", **decode_overrides) -> Mapper:
         """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu",
-        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16 or
-        auto (bf16 where the device computes it natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
+        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8
+        (calibrated on the saved config's training samples, CPU only) or auto (bf16 where the device computes it
+        natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
         options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
         (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
         architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
@@ -389,7 +390,8 @@ class Mapper:
         cfg = with_decoding(saved_config(state["config"], f"checkpoint {path}"), decode_overrides, overrides)
         dev = resolve_device(device, key="device")
         chosen, notes = resolve_precision(precision, dev, flag="precision")
-        model = with_precision(load_weights(build_model(cfg), state, path).eval().to(dev), chosen)
+        calibration = calibration_batches(cfg, device=dev, flag="precision") if chosen == "int8" else None
+        model = with_precision(load_weights(build_model(cfg), state, path).eval().to(dev), chosen, calibration)
         for note in notes:
             warnings.warn(note, stacklevel=2)
         return cls(model, cfg, device=dev, source=f"checkpoint {path}", notes=notes)

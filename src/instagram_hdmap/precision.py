@@ -1,26 +1,40 @@
-"""The precision a trained model runs in at inference: ``fp32``, ``bf16`` or ``auto``.
+"""The precision a trained model runs in at inference: ``fp32``, ``bf16``, ``int8`` or ``auto``.
 
     precision, notes = resolve_precision("auto", device)       # what this machine runs best, and why
     model = with_precision(model, precision)                   # bf16: the forward under bfloat16 autocast
+    model = with_precision(model, "int8", calibration=batches) # int8: the BEV encoder calibrated on these batches
 
-``bf16`` runs the convolutions, linear layers and attention in bfloat16 (``torch.autocast``) with the weights in
-channels-last order, and keeps in float32 what needs it: the camera geometry of the view transform, the score
-matrix and the log-space Sinkhorn (models/view_transform.py, models/matching.py disable autocast there), and the
-decoding, which reads the outputs cast back to float32. ``auto`` picks bf16 where the hardware computes it
-natively (a CUDA device that supports it; a CPU with AVX512-BF16 or AMX-BF16, or ARM's BF16, read from its flags,
-never assumed) and fp32 elsewhere, and says what it chose. Forcing bf16 on a CPU without native bf16 works (torch
-emulates it) but is slower than fp32: a note says so.
+``bf16`` runs an inference copy of the model (``fold_batchnorm``: BatchNorm folded into the convolutions) with the
+convolutions, linear layers and attention in bfloat16 (``torch.autocast``; their weights stored in bfloat16, the
+convolutions' channels-last), and keeps in float32 what needs it: the camera geometry of the view transform, the
+score matrix and the log-space Sinkhorn (models/view_transform.py, models/matching.py disable autocast there), and
+the decoding, which reads the outputs cast back to float32. ``int8`` is ``bf16`` with the BEV encoder's
+convolutions (the BEV heads up to their last 1x1 layers, which stay bf16) quantized by torch's FX graph mode
+(``x86`` engine: per-channel int8 weights, uint8 activations), their activation ranges calibrated on training
+samples; it runs on the CPU. ``int8`` is the CPU's fastest path (benchmarks/model_speed.py); onnxruntime's static
+int8 of the whole graph was measured slower than ``bf16`` eager (docs/deploy.md). ``auto`` picks bf16 where the
+hardware computes it natively (a CUDA device that supports it; a CPU with AVX512-BF16 or AMX-BF16, or ARM's BF16,
+read from its flags, never assumed) and fp32 elsewhere, and says what it chose; it never picks int8, which needs
+training samples. Forcing bf16 (or int8) on a CPU without native bf16 works (torch emulates it) but is slower than
+fp32: a note says so.
 """
 
 from __future__ import annotations
 
+import copy
+
 import torch
+import torch.nn.functional as F
+from efficientnet_pytorch.model import EfficientNet, MBConvBlock
+from efficientnet_pytorch.utils import Conv2dStaticSamePadding, MemoryEfficientSwish, Swish
 from torch import nn
 
 from .errors import UserError
+from .models.bev_heads import BasicBlock
 from .resources import cpu_flags
 
-PRECISIONS = ("fp32", "bf16", "auto")
+PRECISIONS = ("fp32", "bf16", "int8", "auto")
+INT8_CALIBRATION_SAMPLES = 16  # training samples that calibrate the int8 activation ranges
 # the CPU flags (/proc/cpuinfo) of native bfloat16 arithmetic: x86's AVX512-BF16 and AMX-BF16, ARM's BF16
 NATIVE_BF16_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
 
@@ -47,6 +61,11 @@ def resolve_precision(precision: str, device: torch.device, flags: set[str] | No
     where = "this GPU" if device.type == "cuda" else "this CPU"
     if precision == "auto":  # a note when it picks bf16; fp32 is the default precision
         return ("bf16", [f"{flag} auto: bf16, since {where} computes bfloat16 natively"]) if native else ("fp32", [])
+    if precision == "int8" and device.type != "cpu":
+        raise PrecisionError(f"{flag} int8 runs on the CPU (torch's int8 kernels); on {device.type} use {flag} bf16")
+    if precision in ("bf16", "int8") and not native and device.type == "cpu":
+        return precision, [f"{flag} {precision} on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 "
+                           f"flag): its bf16 parts are emulated, slower than fp32 ({flag} auto picks fp32 here)"]
     if precision == "bf16" and not native:
         if device.type == "cuda":
             raise PrecisionError(f"{flag} bf16: this GPU ({torch.cuda.get_device_name(device)}) has no bfloat16; "
@@ -54,6 +73,74 @@ def resolve_precision(precision: str, device: torch.device, flags: set[str] | No
         return "bf16", [f"{flag} bf16 on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 flag): torch "
                         f"emulates it, slower than fp32 ({flag} auto picks fp32 here)"]
     return precision, []
+
+
+# (conv, BatchNorm) attribute pairs of the modules whose forward applies that BatchNorm right after that conv
+# (efficientnet_pytorch's blocks and stem; our ResNet block); an nn.Sequential's adjacent pairs fold too
+FOLDED_PAIRS = {
+    BasicBlock: (("conv1", "bn1"), ("conv2", "bn2")),
+    MBConvBlock: (("_expand_conv", "_bn0"), ("_depthwise_conv", "_bn1"), ("_project_conv", "_bn2")),
+    EfficientNet: (("_conv_stem", "_bn0"), ("_conv_head", "_bn1")),
+}
+
+
+def _fold_into(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> None:
+    """conv <- bn(conv(x)) with bn's running statistics (exact in eval mode: both are affine)."""
+    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps) if bn.affine else 1 / torch.sqrt(bn.running_var + bn.eps)
+    shift = (bn.bias if bn.affine else 0) - bn.running_mean * scale
+    bias = conv.bias if conv.bias is not None else torch.zeros_like(bn.running_mean)
+    conv.weight = nn.Parameter((conv.weight * scale.view(-1, 1, 1, 1)).detach())
+    conv.bias = nn.Parameter((bias * scale + shift).detach())
+
+
+def _foldable(conv: nn.Module, bn: nn.Module) -> bool:
+    return (isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d) and bn.track_running_stats
+            and bn.num_features == conv.out_channels)
+
+
+def _pad_in_conv(conv: Conv2dStaticSamePadding) -> None:
+    """A static "same" padding as the convolution's own zero padding: no padded copy of the input. Symmetric
+    padding moves as it is; padding of (p, p + 1) on a side (TensorFlow's "same" at stride 2) becomes p + 1 on
+    both with the kernel one larger, its first row / column zero: output i reads the same inputs with the same
+    weights, and the output size is the same."""
+    pad = conv.static_padding
+    if not isinstance(pad, nn.ZeroPad2d) or tuple(conv.dilation) != (1, 1):
+        return
+    left, right, top, bottom = pad.padding
+    if right - left not in (0, 1) or bottom - top not in (0, 1):
+        return
+    grow_w, grow_h = right - left, bottom - top
+    if grow_w or grow_h:
+        weight = conv.weight
+        conv.weight = nn.Parameter(F.pad(weight, (grow_w, 0, grow_h, 0)).detach())
+        conv.kernel_size = tuple(conv.weight.shape[-2:])
+    conv.padding, conv.static_padding = (bottom, right), nn.Identity()
+
+
+def fold_batchnorm(model: nn.Module) -> nn.Module:
+    """An inference copy of ``model``: eval mode, every BatchNorm that directly follows a convolution folded
+    into it (``FOLDED_PAIRS`` and adjacent pairs of an ``nn.Sequential``; the BatchNorm becomes an identity),
+    efficientnet_pytorch's swish (x * sigmoid(x) in two operations) as one ``nn.SiLU`` and its symmetric "same"
+    paddings inside the convolutions. The same function up to float rounding, with fewer passes over each
+    activation. ``model`` itself is left as it is."""
+    model = copy.deepcopy(model).eval()
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, Conv2dStaticSamePadding):
+                _pad_in_conv(module)
+            pairs = list(FOLDED_PAIRS.get(type(module), ()))
+            if isinstance(module, nn.Sequential):
+                names = list(module._modules)
+                pairs += list(zip(names, names[1:]))
+            for conv_name, bn_name in pairs:
+                conv, bn = getattr(module, conv_name, None), getattr(module, bn_name, None)
+                if _foldable(conv, bn):
+                    _fold_into(conv, bn)
+                    setattr(module, bn_name, nn.Identity())
+            for name, child in module.named_children():
+                if isinstance(child, (MemoryEfficientSwish, Swish)):
+                    setattr(module, name, nn.SiLU(inplace=True))  # its inputs are fresh conv outputs
+    return model
 
 
 def _as_float32(value):
@@ -67,12 +154,17 @@ def _as_float32(value):
 class Bf16Model(nn.Module):
     """``model``'s forward under bfloat16 autocast on its device, its outputs (and memory) back in float32.
 
-    The wrapped model's attributes (``is_temporal``, its heads) read through; its weights stay float32 (autocast
-    casts them per operation), in channels-last order for the convolutions."""
+    The wrapped model is an inference copy (``fold_batchnorm``: eval mode, BatchNorm folded into the convolutions)
+    whose attributes (``is_temporal``, its heads) read through. The weights of its convolutions and linear layers
+    are stored in bfloat16 (what autocast would cast them to at every call), the convolutions' in channels-last
+    order; every other parameter (normalisation, the dustbin score) stays float32."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
-        self.model = model.to(memory_format=torch.channels_last)
+        self.model = fold_batchnorm(model).to(memory_format=torch.channels_last)
+        for module in self.model.modules():
+            if isinstance(module, (nn.Conv2d, nn.Linear)):
+                module.to(torch.bfloat16)
 
     def __getattr__(self, name: str):
         try:
@@ -87,15 +179,117 @@ class Bf16Model(nn.Module):
         return _as_float32(out)
 
 
-def with_precision(model: nn.Module, precision: str) -> nn.Module:
-    """``model`` to run in ``precision`` (resolved: fp32 or bf16); fp32 returns it as it is."""
+class _Int8(nn.Module):
+    """An FX-quantized module in a bf16 model: its input in float32 (quantized inside), autocast off."""
+
+    def __init__(self, quantized: nn.Module):
+        super().__init__()
+        self.quantized = quantized
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(inputs[0].device.type, enabled=False):
+            return self.quantized(*(x.float() for x in inputs))
+
+
+def _int8_parts(heads: nn.Module) -> dict[str, nn.Module]:
+    """The BEV encoder's parts that run in int8 (name in ``heads`` -> module), each quantized on its own; the last
+    1x1 layers of the vertex and distance heads (the logits and the distance transform) stay bf16."""
+    parts = {"stem": heads.stem, "up.conv": heads.up.conv}  # the upsampling and concatenation stay bf16
+    parts.update({f"stages.{i}": stage for i, stage in enumerate(heads.stages)})
+    parts["vertex_head"] = heads.vertex_head[:-1]
+    if heads.distance_head is not None:
+        parts["distance_head"] = heads.distance_head[:-1]
+    return parts
+
+
+def _quantize_bev_heads(model: nn.Module, calibration: list[dict]) -> None:
+    """``model.bev_heads``' int8 parts (``_int8_parts``) quantized in place, calibrated on ``calibration``."""
+    import warnings
+
+    from torch.ao.quantization import get_default_qconfig_mapping
+    from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
+
+    engine = "x86" if "x86" in torch.backends.quantized.supported_engines else "qnnpack"
+    torch.backends.quantized.engine = engine
+    heads = model.bev_heads
+    with warnings.catch_warnings():  # torch's notices that its FX quantization moves to torchao
+        warnings.simplefilter("ignore")
+        prepared = {}
+        for name, part in _int8_parts(heads).items():
+            example = _example_input(part)
+            prepared[name] = prepare_fx(copy.deepcopy(part), get_default_qconfig_mapping(engine), example)
+        _swap_parts(heads, prepared)
+        with torch.no_grad():
+            for batch in calibration:
+                model(batch)
+        _swap_parts(heads, {name: _Int8(convert_fx(p)) for name, p in prepared.items()})
+
+
+def _example_input(part: nn.Module) -> tuple:
+    """An input of the right rank and channels for FX's trace (values and sizes do not matter)."""
+    return (torch.zeros(1, next(m for m in part.modules() if isinstance(m, nn.Conv2d)).in_channels, 8, 8),)
+
+
+def _swap_parts(heads: nn.Module, parts: dict[str, nn.Module]) -> None:
+    for name, part in parts.items():
+        if name.startswith("stages."):
+            heads.stages[int(name.split(".")[1])] = part
+        elif name == "up.conv":
+            heads.up.conv = part
+        elif name in ("vertex_head", "distance_head"):
+            last = getattr(heads, name)[-1]
+            setattr(heads, name, nn.Sequential(part, last))
+        else:
+            setattr(heads, name, part)
+
+
+def calibration_batches(cfg, count: int = INT8_CALIBRATION_SAMPLES, device: torch.device | str = "cpu",
+                        flag: str = "--precision") -> list[dict]:
+    """``count`` samples of ``cfg``'s training split (evenly spread over it, not augmented), each a batch of one
+    as inference runs it: what ``int8`` calibrates its activation ranges on."""
+    from .data import build_dataset
+    from .data.base import collate_fn
+
+    try:
+        dataset = build_dataset(cfg, cfg.data.train_split, augment=False)
+    except UserError as e:
+        raise PrecisionError(f"{flag} int8 calibrates on training samples, which could not be read: {e}") from None
+    if len(dataset) == 0:
+        raise PrecisionError(f"{flag} int8 calibrates on training samples: the split '{cfg.data.train_split}' of "
+                             f"{cfg.data.dataroot} has none")
+    picks = sorted({round(i * (len(dataset) - 1) / max(count - 1, 1)) for i in range(min(count, len(dataset)))})
+    batches = [collate_fn([dataset[i]]) for i in picks]
+    return [{k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in b.items()} for b in batches]
+
+
+class Int8Model(Bf16Model):
+    """``Bf16Model`` with the BEV encoder in int8 (module docstring), calibrated on ``calibration``: batches as the
+    model takes them (``data.collate_fn`` of training samples), run in float32 to record the activation ranges."""
+
+    def __init__(self, model: nn.Module, calibration: list[dict]):
+        if not calibration:
+            raise PrecisionError("int8 needs calibration batches (training samples): none given")
+        calibrate = fold_batchnorm(model)
+        _quantize_bev_heads(calibrate, calibration)
+        super().__init__(model)
+        heads = self.model.bev_heads = calibrate.bev_heads
+        for head in (heads.vertex_head, heads.distance_head):  # their last 1x1 layers run in bf16
+            if head is not None:
+                head[-1].to(torch.bfloat16, memory_format=torch.channels_last)
+
+
+def with_precision(model: nn.Module, precision: str, calibration: list[dict] | None = None) -> nn.Module:
+    """``model`` to run in ``precision`` (resolved: fp32, bf16 or int8; int8 calibrates on ``calibration``);
+    fp32 returns it as it is."""
     if precision == "fp32":
         return model
     if precision == "bf16":
         return model if isinstance(model, Bf16Model) else Bf16Model(model)
-    raise PrecisionError(f"with_precision: {precision!r} is not fp32 or bf16 (resolve 'auto' first)")
+    if precision == "int8":
+        return model if isinstance(model, Int8Model) else Int8Model(model, calibration or [])
+    raise PrecisionError(f"with_precision: {precision!r} is not fp32, bf16 or int8 (resolve 'auto' first)")
 
 
 def precision_of(model: nn.Module) -> str:
-    """The precision ``model`` runs in: bf16 for a ``Bf16Model``, else fp32."""
-    return "bf16" if isinstance(model, Bf16Model) else "fp32"
+    """The precision ``model`` runs in: int8 for an ``Int8Model``, bf16 for a ``Bf16Model``, else fp32."""
+    return "int8" if isinstance(model, Int8Model) else "bf16" if isinstance(model, Bf16Model) else "fp32"
