@@ -211,6 +211,17 @@ def _benchmark_model(cfg: ExperimentConfig, checkpoint, overrides, dev: torch.de
         return build_model(cfg).eval().to(dev), cfg
 
 
+def _in_precision(model, cfg: ExperimentConfig, precision: str | None, checkpoint, dev: torch.device, seed: int):
+    """``model`` as inference runs it in ``precision`` (None: as it is); int8 calibrates on the training split of a
+    checkpoint's config, else on the timed batch."""
+    if precision != "int8":
+        return model if precision is None else with_precision(model, precision)
+    rig, _ = benchmark_rig(cfg)
+    calibration = (calibration_batches(cfg, device=dev) if checkpoint is not None
+                   else [_random_batch(model, cfg, rig, dev, seed, [])])
+    return with_precision(model, precision, calibration)
+
+
 def run_benchmark(
     cfg: ExperimentConfig,
     *,
@@ -237,13 +248,7 @@ def run_benchmark(
     dev, runs, warmup = _checked_settings(cfg, device, amp, runs, warmup)
     precision, notes = _precision_of(precision, amp, dev)
     model, cfg = _benchmark_model(cfg, checkpoint, overrides, dev, seed, notes)
-    if precision == "int8":  # calibrated on the training split of a checkpoint's config, else on the timed batch
-        rig, _ = benchmark_rig(cfg)
-        calibration = (calibration_batches(cfg, device=dev) if checkpoint is not None
-                       else [_random_batch(model, cfg, rig, dev, seed, [])])
-        model = with_precision(model, precision, calibration)
-    elif precision is not None:
-        model = with_precision(model, precision)
+    model = _in_precision(model, cfg, precision, checkpoint, dev, seed)
     check_fits(cfg, "infer", dev, batch=1)  # before the warm-up runs
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)

@@ -29,6 +29,8 @@ from efficientnet_pytorch.model import EfficientNet, MBConvBlock
 from efficientnet_pytorch.utils import Conv2dStaticSamePadding, MemoryEfficientSwish, Swish
 from torch import nn
 
+from .data import build_dataset
+from .data.base import collate_fn
 from .errors import UserError
 from .models.bev_heads import BasicBlock
 from .resources import cpu_flags
@@ -247,9 +249,6 @@ def calibration_batches(cfg, count: int = INT8_CALIBRATION_SAMPLES, device: torc
                         flag: str = "--precision") -> list[dict]:
     """``count`` samples of ``cfg``'s training split (evenly spread over it, not augmented), each a batch of one
     as inference runs it: what ``int8`` calibrates its activation ranges on."""
-    from .data import build_dataset
-    from .data.base import collate_fn
-
     try:
         dataset = build_dataset(cfg, cfg.data.train_split, augment=False)
     except UserError as e:

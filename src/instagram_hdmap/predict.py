@@ -181,8 +181,9 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
         raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
                            "(GT-derived predictions)")
     if onnx is not None:
-        if precision == "bf16":  # the export is a float32 graph: the option was dropped with no word
-            raise PredictError("--precision bf16 runs a checkpoint; an --onnx export runs in float32 in onnxruntime")
+        if precision in ("bf16", "int8"):  # the export is a float32 graph: the option was dropped with no word
+            raise PredictError(f"--precision {precision} runs a checkpoint; an --onnx export runs in float32 in "
+                               "onnxruntime")
         return OnnxModel(onnx, cfg), cfg, [], f"ONNX {onnx} (onnxruntime)"
     if checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision)
@@ -443,8 +444,9 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
                            "its own config: drop --config")
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
-    if onnx is not None and precision == "bf16":  # the export is a float32 graph
-        raise PredictError("--precision bf16 runs a checkpoint; an --onnx export runs in float32 in onnxruntime")
+    if onnx is not None and precision in ("bf16", "int8"):  # the export is a float32 graph
+        raise PredictError(f"--precision {precision} runs a checkpoint; an --onnx export runs in float32 in "
+                           "onnxruntime")
     with warnings.catch_warnings():  # its precision note comes back in the result's notes
         warnings.simplefilter("ignore")
         mapper = (Mapper.from_checkpoint(checkpoint, device, precision=precision, **decode) if checkpoint is not None
