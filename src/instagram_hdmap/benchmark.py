@@ -211,14 +211,12 @@ def _benchmark_model(cfg: ExperimentConfig, checkpoint, overrides, dev: torch.de
         return build_model(cfg).eval().to(dev), cfg
 
 
-def _in_precision(model, cfg: ExperimentConfig, precision: str | None, checkpoint, dev: torch.device, seed: int):
+def _in_precision(model, cfg: ExperimentConfig, precision: str | None, checkpoint, batch: dict):
     """``model`` as inference runs it in ``precision`` (None: as it is); int8 calibrates on the training split of a
-    checkpoint's config, else on the timed batch."""
+    checkpoint's config, else on the timed ``batch``."""
     if precision != "int8":
         return model if precision is None else with_precision(model, precision)
-    rig, _ = benchmark_rig(cfg)
-    calibration = (calibration_batches(cfg, device=dev) if checkpoint is not None
-                   else [_random_batch(model, cfg, rig, dev, seed, [])])
+    calibration = calibration_batches(cfg, device=batch["images"].device) if checkpoint is not None else [batch]
     return with_precision(model, precision, calibration)
 
 
@@ -237,8 +235,8 @@ def run_benchmark(
     precision: str | None = None,
 ) -> dict:
     """Time the model (and model + post-processing) on batch 1 with six cameras; see the module docstring.
-    ``precision`` (fp32, bf16, auto; precision.py): the model as inference runs it (``with_precision``), instead of
-    plain ``amp`` autocast.
+    ``precision`` (fp32, bf16, int8, auto; precision.py): the model as inference runs it (``with_precision``),
+    instead of plain ``amp`` autocast.
 
     ``device``: "cpu", "cuda" (or "cuda:i"); ``None`` uses ``train.device``. ``runs`` / ``warmup``
     default to 50 / 10 on a GPU and 10 / 2 on the CPU. Returns a dict of settings and per-row
@@ -248,11 +246,11 @@ def run_benchmark(
     dev, runs, warmup = _checked_settings(cfg, device, amp, runs, warmup)
     precision, notes = _precision_of(precision, amp, dev)
     model, cfg = _benchmark_model(cfg, checkpoint, overrides, dev, seed, notes)
-    model = _in_precision(model, cfg, precision, checkpoint, dev, seed)
     check_fits(cfg, "infer", dev, batch=1)  # before the warm-up runs
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)
     batch = _random_batch(model, cfg, rig, dev, seed, notes)
+    model = _in_precision(model, cfg, precision, checkpoint, batch)
     h, w = cfg.data.image_size
     V = rig["intrinsics"].shape[0]
     decode = decode_options(cfg.model.gnn, grid)

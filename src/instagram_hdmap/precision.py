@@ -11,8 +11,9 @@ score matrix and the log-space Sinkhorn (models/view_transform.py, models/matchi
 the decoding, which reads the outputs cast back to float32. ``int8`` is ``bf16`` with the BEV encoder's
 convolutions (the BEV heads up to their last 1x1 layers, which stay bf16) quantized by torch's FX graph mode
 (``x86`` engine: per-channel int8 weights, uint8 activations), their activation ranges calibrated on training
-samples; it runs on the CPU. ``int8`` is the CPU's fastest path (benchmarks/model_speed.py); onnxruntime's static
-int8 of the whole graph was measured slower than ``bf16`` eager (docs/deploy.md). ``auto`` picks bf16 where the
+samples; it runs on the CPU. Quantized part by part (the temporal fusion sits between the first stage and the
+rest), it runs no faster than ``bf16`` and costs some accuracy (docs/deploy.md, "Precision"); onnxruntime's static
+int8 of the whole graph was measured slower than ``bf16`` eager. ``auto`` picks bf16 where the
 hardware computes it natively (a CUDA device that supports it; a CPU with AVX512-BF16 or AMX-BF16, or ARM's BF16,
 read from its flags, never assumed) and fp32 elsewhere, and says what it chose; it never picks int8, which needs
 training samples. Forcing bf16 (or int8) on a CPU without native bf16 works (torch emulates it) but is slower than
@@ -56,24 +57,23 @@ def native_bf16(device: torch.device, flags: set[str] | None = None) -> bool:
 
 def resolve_precision(precision: str, device: torch.device, flags: set[str] | None = None,
                       flag: str = "--precision") -> tuple[str, list[str]]:
-    """``(fp32 | bf16, notes)`` for the asked ``precision`` on ``device`` (module docstring)."""
+    """``(fp32 | bf16 | int8, notes)`` for the asked ``precision`` on ``device`` (module docstring)."""
     if precision not in PRECISIONS:
         raise PrecisionError(f"{flag} {precision!r}: choose one of {', '.join(PRECISIONS)}")
-    native = native_bf16(device, flags) if precision != "fp32" else False
+    if precision == "fp32":
+        return "fp32", []
+    native = native_bf16(device, flags)
     where = "this GPU" if device.type == "cuda" else "this CPU"
     if precision == "auto":  # a note when it picks bf16; fp32 is the default precision
         return ("bf16", [f"{flag} auto: bf16, since {where} computes bfloat16 natively"]) if native else ("fp32", [])
     if precision == "int8" and device.type != "cpu":
         raise PrecisionError(f"{flag} int8 runs on the CPU (torch's int8 kernels); on {device.type} use {flag} bf16")
-    if precision in ("bf16", "int8") and not native and device.type == "cpu":
-        return precision, [f"{flag} {precision} on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 "
-                           f"flag): its bf16 parts are emulated, slower than fp32 ({flag} auto picks fp32 here)"]
-    if precision == "bf16" and not native:
+    if not native:
         if device.type == "cuda":
             raise PrecisionError(f"{flag} bf16: this GPU ({torch.cuda.get_device_name(device)}) has no bfloat16; "
                                  f"use {flag} fp32")
-        return "bf16", [f"{flag} bf16 on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 flag): torch "
-                        f"emulates it, slower than fp32 ({flag} auto picks fp32 here)"]
+        return precision, [f"{flag} {precision} on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 "
+                           f"flag): its bf16 parts are emulated, slower than fp32 ({flag} auto picks fp32 here)"]
     return precision, []
 
 
@@ -153,6 +153,16 @@ def _as_float32(value):
     return value
 
 
+def _in_bf16(model: nn.Module) -> nn.Module:
+    """``model`` (an inference copy) with its convolution and linear weights in bfloat16 (what autocast would cast
+    them to at every call), the convolutions' channels-last; other parameters stay float32. In place."""
+    model.to(memory_format=torch.channels_last)
+    for module in model.modules():
+        if isinstance(module, (nn.Conv2d, nn.Linear)):
+            module.to(torch.bfloat16)
+    return model
+
+
 class Bf16Model(nn.Module):
     """``model``'s forward under bfloat16 autocast on its device, its outputs (and memory) back in float32.
 
@@ -163,10 +173,7 @@ class Bf16Model(nn.Module):
 
     def __init__(self, model: nn.Module):
         super().__init__()
-        self.model = fold_batchnorm(model).to(memory_format=torch.channels_last)
-        for module in self.model.modules():
-            if isinstance(module, (nn.Conv2d, nn.Linear)):
-                module.to(torch.bfloat16)
+        self.model = _in_bf16(fold_batchnorm(model))
 
     def __getattr__(self, name: str):
         try:
@@ -205,7 +212,8 @@ def _int8_parts(heads: nn.Module) -> dict[str, nn.Module]:
 
 
 def _quantize_bev_heads(model: nn.Module, calibration: list[dict]) -> None:
-    """``model.bev_heads``' int8 parts (``_int8_parts``) quantized in place, calibrated on ``calibration``."""
+    """``model.bev_heads``' int8 parts (``_int8_parts``) quantized in place, calibrated on ``calibration``. Sets
+    torch's quantized engine (process-wide) to x86 where it has it, else qnnpack."""
     import warnings
 
     from torch.ao.quantization import get_default_qconfig_mapping
@@ -268,13 +276,10 @@ class Int8Model(Bf16Model):
     def __init__(self, model: nn.Module, calibration: list[dict]):
         if not calibration:
             raise PrecisionError("int8 needs calibration batches (training samples): none given")
-        calibrate = fold_batchnorm(model)
-        _quantize_bev_heads(calibrate, calibration)
-        super().__init__(model)
-        heads = self.model.bev_heads = calibrate.bev_heads
-        for head in (heads.vertex_head, heads.distance_head):  # their last 1x1 layers run in bf16
-            if head is not None:
-                head[-1].to(torch.bfloat16, memory_format=torch.channels_last)
+        folded = fold_batchnorm(model)
+        _quantize_bev_heads(folded, calibration)  # in float32, before the rest goes to bf16
+        nn.Module.__init__(self)
+        self.model = _in_bf16(folded)  # the quantized parts hold no nn.Conv2d: they stay int8
 
 
 def with_precision(model: nn.Module, precision: str, calibration: list[dict] | None = None) -> nn.Module:

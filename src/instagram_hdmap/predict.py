@@ -169,6 +169,13 @@ def decode_assignments(items: list[str]) -> dict:
     return options
 
 
+def _check_onnx_precision(precision: str) -> None:
+    """An --onnx export is a float32 graph: a lower --precision with it was dropped with no word."""
+    if precision in ("bf16", "int8"):
+        raise PredictError(f"--precision {precision} runs a checkpoint; an --onnx export runs in float32 in "
+                           "onnxruntime")
+
+
 def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = None, onnx: str | Path | None = None,
                    gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "fp32"):
     """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint (in ``precision``,
@@ -181,9 +188,7 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
         raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
                            "(GT-derived predictions)")
     if onnx is not None:
-        if precision in ("bf16", "int8"):  # the export is a float32 graph: the option was dropped with no word
-            raise PredictError(f"--precision {precision} runs a checkpoint; an --onnx export runs in float32 in "
-                               "onnxruntime")
+        _check_onnx_precision(precision)
         return OnnxModel(onnx, cfg), cfg, [], f"ONNX {onnx} (onnxruntime)"
     if checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision)
@@ -444,9 +449,8 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
                            "its own config: drop --config")
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
-    if onnx is not None and precision in ("bf16", "int8"):  # the export is a float32 graph
-        raise PredictError(f"--precision {precision} runs a checkpoint; an --onnx export runs in float32 in "
-                           "onnxruntime")
+    if onnx is not None:
+        _check_onnx_precision(precision)
     with warnings.catch_warnings():  # its precision note comes back in the result's notes
         warnings.simplefilter("ignore")
         mapper = (Mapper.from_checkpoint(checkpoint, device, precision=precision, **decode) if checkpoint is not None
