@@ -27,9 +27,9 @@ from tqdm import tqdm
 
 from ..config import ExperimentConfig, as_config
 from ..geometry import BEVGrid
-from .inputs import EvaluationInputError, check_grid, gather_states
+from .inputs import EvaluationInputError, Samples, check_grid, gather_states
 from .io import SubmissionError, read_submission
-from .raster_ap import RasterAP
+from .raster_ap import THICKNESS, RasterAP
 from .vector_ap import VectorAP
 
 DEFAULT_RASTER_GRID = BEVGrid(-30.0, 30.0, -15.0, 15.0, 0.15)  # the paper's 60 m x 30 m patch at 0.15 m
@@ -85,6 +85,20 @@ def check_classes(classes: Sequence[str]) -> tuple[str, ...]:
     return out
 
 
+# The notes of the counters (those a protocol has), in this order, when not 0.
+COUNTER_NOTES = {
+    "repeated_samples": "{} samples handed again (data.on_bad_sample=skip puts the next good sample in place of a "
+                        "bad one) were scored once",
+    "samples_in_two_merged_states": "{} samples were in two merged states (two processes scored them: "
+                                    "data.on_bad_sample=skip's replacement, or overlapping shares) and count twice",
+    "samples_without_predictions": "{} samples have no predictions (scored as such)",
+    "dropped_short_predictions": "{} predictions with fewer than 2 points dropped (as the reference does)",
+    "zero_length_predictions": "{} zero-length predictions (all points equal): their buffer is empty, so they are "
+                               "always false positives (as in the reference)",
+    "dropped_short_gt": "{} GT polylines with fewer than 2 points dropped (as the reference does)",
+}
+
+
 def _samples(value, what: str, who: str = "Evaluator.update") -> list:
     """``preds`` / ``gts`` of ``Evaluator.update``: one list of polylines per sample, as a list (any iterable
     of them: a generator too). A dict {token: polylines} is named: its order and tokens belong in ``tokens``."""
@@ -117,20 +131,11 @@ class Evaluator:
             same options; ``compute()`` reports each under ``metrics["also"][protocol]``.
     """
 
-    def __init__(
-        self,
-        protocol: Literal["vector", "raster"] = "vector",
-        thresholds: Sequence[float] = (0.5, 1.0, 1.5),
-        classes: Sequence[str] = CLASSES,
-        *,
-        grid: BEVGrid | None = None,
-        rank_by: Literal["ascending", "descending"] = "ascending",
-        fix_instance_ids: bool = False,
-        num_sample_points: int = 100,
-        resample_predictions: bool = True,
-        device: str | torch.device = "cpu",
-        also: Sequence[str] = (),
-    ) -> None:
+    def __init__(self, protocol: Literal["vector", "raster"] = "vector", thresholds: Sequence[float] = (0.5, 1.0, 1.5),
+                 classes: Sequence[str] = CLASSES, *, grid: BEVGrid | None = None,
+                 rank_by: Literal["ascending", "descending"] = "ascending", fix_instance_ids: bool = False,
+                 num_sample_points: int = 100, resample_predictions: bool = True, device: str | torch.device = "cpu",
+                 also: Sequence[str] = ()) -> None:
         if protocol not in PROTOCOLS:
             raise EvaluationInputError(f"unknown evaluation protocol {protocol!r}; choose one of {PROTOCOLS}")
         self.also = {
@@ -141,11 +146,10 @@ class Evaluator:
         }
         self.protocol = protocol
         self.thresholds = check_thresholds(thresholds)
-        classes = check_classes(classes)
+        self.classes = check_classes(classes)
         self._seen: set[str] = set()  # tokens scored so far (update)
         self.repeated = 0  # samples handed again and not scored twice
         self.in_two_states = 0  # samples of merged states that another merged state held too (scored twice)
-        self.classes = tuple(classes)
         if protocol == "vector":
             self.impl: VectorAP | RasterAP = VectorAP(self.thresholds, len(self.classes), num_sample_points,
                                                       resample_predictions)
@@ -153,7 +157,7 @@ class Evaluator:
         else:
             grid = check_grid(grid, "Evaluator") if grid is not None else DEFAULT_RASTER_GRID
             self.impl = RasterAP(self.thresholds, grid, len(self.classes), rank_by, fix_instance_ids, device=device)
-            self.options = {"rank_by": rank_by, "fix_instance_ids": fix_instance_ids, "thickness_px": 5,
+            self.options = {"rank_by": rank_by, "fix_instance_ids": fix_instance_ids, "thickness_px": THICKNESS,
                             "grid": {"xbound": [grid.xmin, grid.xmax], "ybound": [grid.ymin, grid.ymax],
                                      "resolution": grid.resolution}}
 
@@ -166,13 +170,8 @@ class Evaluator:
                    rank_by=ev.rank_by, fix_instance_ids=ev.fix_instance_ids, device=device, also=ev.also_protocols)
 
     # --- accumulation ------------------------------------------------------------------------
-    def update(
-        self,
-        preds: Sequence[Sequence[dict]],
-        gts: Sequence[Sequence[dict]],
-        sample_ids: Sequence[int] | None = None,
-        tokens: Sequence[str] | None = None,
-    ) -> None:
+    def update(self, preds: Samples, gts: Samples, sample_ids: Sequence[int] | None = None,
+               tokens: Sequence[str] | None = None) -> None:
         """Add B samples: ``preds[b]`` polyline dicts with "pts" [P, 2] metres, "label", "score";
         ``gts[b]`` the same without "score". Errors name the token (or sample id) and index.
 
@@ -193,9 +192,8 @@ class Evaluator:
             keep = [b for b, t in enumerate(tokens) if t not in self._seen and t not in tokens[:b]]
             self.repeated += len(tokens) - len(keep)
             if len(keep) < len(tokens):
-                ids = None if sample_ids is None else list(sample_ids)
                 preds, gts, tokens = [preds[b] for b in keep], [gts[b] for b in keep], [tokens[b] for b in keep]
-                sample_ids = None if ids is None else [ids[b] for b in keep]
+                sample_ids = None if sample_ids is None else [sample_ids[b] for b in keep]
             self._seen.update(tokens)
             if not tokens:
                 return
@@ -260,12 +258,10 @@ class Evaluator:
         other protocols were computed as well."""
         res = self.impl.compute()
         ap = np.asarray(res["AP"], dtype=np.float64)  # [K, T]
-        if self.protocol == "vector":
-            ap_class = ap.mean(1)  # nuscenes_map_dataset.py:1420
-            m_ap = float(ap_class.mean())  # :1422, classes without GT count as 0
-        else:
-            ap_class = ap.mean(1)  # evaluate_json.py:85
-            m_ap = float(ap.mean())  # :86, NaN if any class is NaN
+        ap_class = ap.mean(1)  # vector: nuscenes_map_dataset.py:1420; raster: evaluate_json.py:85
+        # vector: :1422, the mean of the class means, classes without GT counting 0; raster: :86, the mean of the
+        # matrix, NaN if any class is NaN
+        m_ap = float(ap_class.mean() if self.protocol == "vector" else ap.mean())
         counters = {**self.impl.counters, "repeated_samples": self.repeated}
         if self.in_two_states:
             counters["samples_in_two_merged_states"] = self.in_two_states
@@ -296,36 +292,16 @@ class Evaluator:
 
     def _notes(self, res: dict, counters: dict) -> list[str]:
         notes = [f"{counters['samples']} samples evaluated"]
-        if counters.get("repeated_samples"):
-            notes.append(f"{counters['repeated_samples']} samples handed again (data.on_bad_sample=skip puts the next "
-                         "good sample in place of a bad one) were scored once")
-        if counters.get("samples_in_two_merged_states"):
-            notes.append(f"{counters['samples_in_two_merged_states']} samples were in two merged states (two processes "
-                         "scored them: data.on_bad_sample=skip's replacement, or overlapping shares) and count twice")
-        if counters["samples_without_predictions"]:
-            notes.append(f"{counters['samples_without_predictions']} samples have no predictions (scored as such)")
-        if counters["dropped_short_predictions"]:
-            notes.append(f"{counters['dropped_short_predictions']} predictions with fewer than 2 points dropped "
-                         "(as the reference does)")
-        if self.protocol == "vector":
-            if counters["zero_length_predictions"]:
-                notes.append(f"{counters['zero_length_predictions']} zero-length predictions (all points equal): "
-                             "their buffer is empty, so they are always false positives (as in the reference)")
-            for k, c in enumerate(self.classes):
-                if res["num_gt"][k] == 0:
-                    notes.append(f"class {c} has no GT: its AP is 0 and still averaged into mAP (MapTR's rule); "
-                                 "see mAP_classes_with_gt")
-        else:
-            if counters["dropped_short_gt"]:
-                notes.append(f"{counters['dropped_short_gt']} GT polylines with fewer than 2 points dropped "
-                             "(as the reference does)")
-            for k, c in enumerate(self.classes):
-                if res["count"][k] == 0:
-                    notes.append(f"class {c} has neither GT nor predictions in any sample: AP is NaN (0/0) and so is "
-                                 "mAP (the reference's rule)")
-            if self.options["rank_by"] == "ascending":
-                notes.append("PR curves ranked by ASCENDING confidence, as the reference (and the InstaGraM paper's "
-                             "numbers) did; rank_by='descending' fixes it")
+        notes += [note.format(counters[key]) for key, note in COUNTER_NOTES.items() if counters.get(key)]
+        vector = self.protocol == "vector"
+        empty = res["num_gt"] if vector else res["count"]  # the classes whose AP the protocol's rule sets
+        rule = ("class {} has no GT: its AP is 0 and still averaged into mAP (MapTR's rule); see mAP_classes_with_gt"
+                if vector else "class {} has neither GT nor predictions in any sample: AP is NaN (0/0) and so is mAP "
+                "(the reference's rule)")
+        notes += [rule.format(c) for k, c in enumerate(self.classes) if empty[k] == 0]
+        if not vector and self.options["rank_by"] == "ascending":
+            notes.append("PR curves ranked by ASCENDING confidence, as the reference (and the InstaGraM paper's "
+                         "numbers) did; rank_by='descending' fixes it")
         return notes
 
 
@@ -361,31 +337,41 @@ def _meta_resolution(sub) -> float | None:
     return float(r)
 
 
+def _patch(meta: dict, head: bool = False) -> tuple[float, float, float, float] | None:
+    """The map patch (x0, x1, y0, y1) a file's meta states as ``xbound`` / ``ybound`` [min, max] (with ``head``: the
+    first two values of each, HDMapNet's configs write [min, max, resolution]), or None."""
+    try:
+        bounds = [meta.get(k)[:2] if head else meta.get(k) for k in ("xbound", "ybound")]
+        (x0, x1), (y0, y1) = ([float(v) for v in b] for b in bounds)
+    except (TypeError, ValueError):
+        return None
+    return x0, x1, y0, y1
+
+
 def _check_canvas(gt, grid: BEVGrid) -> None:
     """The raster canvas is the map patch the GT file's meta states (export-gt writes ``xbound`` /
     ``ybound``): a smaller canvas crops the map silently (a 100 m x 100 m GT scored on 60 m x 30 m), a larger one
     counts predictions beyond the patch (the message says which)."""
-    patch = [gt.meta.get("xbound"), gt.meta.get("ybound")]
-    try:
-        (x0, x1), (y0, y1) = ([float(v) for v in b] for b in patch)
-    except (TypeError, ValueError):
-        return  # no patch stated (a GT file of another tool)
-    if (x0, x1, y0, y1) != (grid.xmin, grid.xmax, grid.ymin, grid.ymax):
-        crops = x0 < grid.xmin or x1 > grid.xmax or y0 < grid.ymin or y1 > grid.ymax
-        why = ("which would crop it" if crops else  # a larger canvas: predictions beyond the patch would count
-               "which would score predictions beyond the patch that the GT's own canvas leaves out")
-        def tiles(r: float) -> bool:
-            return all(abs(e / r - round(e / r)) < 1e-6 for e in (x1 - x0, y1 - y0))
+    patch = _patch(gt.meta)  # None: no patch stated (a GT file of another tool)
+    if patch is None or patch == (grid.xmin, grid.xmax, grid.ymin, grid.ymax):
+        return
+    x0, x1, y0, y1 = patch
+    crops = x0 < grid.xmin or x1 > grid.xmax or y0 < grid.ymin or y1 > grid.ymax
+    why = ("which would crop it" if crops else  # a larger canvas: predictions beyond the patch would count
+           "which would score predictions beyond the patch that the GT's own canvas leaves out")
 
-        # the advice alone was refused next when the resolution does not tile that patch (16 m at 0.15 m); the GT's
-        # own grid resolution first (export-gt states it): evaluate's raster AP of that config used it
-        res = next((r for r in (_meta_resolution(gt), grid.resolution, 0.1, 0.125, 0.2, 0.25, 0.05)
-                    if r is not None and tiles(r)), None)
-        also = f" --resolution {res:g}" if res is not None and res != grid.resolution else ""
-        raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
-                              f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
-                              f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g}{also} (to "
-                              "score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
+    def tiles(r: float) -> bool:
+        return all(abs(e / r - round(e / r)) < 1e-6 for e in (x1 - x0, y1 - y0))
+
+    # the advice alone was refused next when the resolution does not tile that patch (16 m at 0.15 m); the GT's
+    # own grid resolution first (export-gt states it): evaluate's raster AP of that config used it
+    res = next((r for r in (_meta_resolution(gt), grid.resolution, 0.1, 0.125, 0.2, 0.25, 0.05)
+                if r is not None and tiles(r)), None)
+    also = f" --resolution {res:g}" if res is not None and res != grid.resolution else ""
+    raise SubmissionError(f"{gt.path}: its meta says the map patch is xbound [{x0:g}, {x1:g}], ybound [{y0:g}, "
+                          f"{y1:g}] but the raster canvas is [{grid.xmin:g}, {grid.xmax:g}] x [{grid.ymin:g}, "
+                          f"{grid.ymax:g}], {why}: pass --xbound {x0:g} {x1:g} --ybound {y0:g} {y1:g}{also} (to "
+                          "score another canvas on purpose, drop xbound/ybound from the GT file's meta)")
 
 
 FRAME_META_KEYS = ("classes", "xbound", "ybound", "frame", "dataset")  # what the ids and coordinates mean
@@ -417,19 +403,19 @@ def _check_same_frame(pred, gt) -> None:
     if not pts:
         return
     pts = np.concatenate(pts)
-    try:
-        (x0, x1), (y0, y1) = ([float(v) for v in gt.meta[k]] for k in ("xbound", "ybound"))
-    except (KeyError, TypeError, ValueError):
+    patch = _patch(gt.meta)
+    if patch is None:
         gts = [p["pts"] for polys in gt.samples.values() for p in polys]
         if not gts:
             return
         # no patch stated (a GT file of another tool): the GT points' extent, with room for a patch of tens of metres
         (x0, y0), (x1, y1) = np.concatenate(gts).min(0) - 30, np.concatenate(gts).max(0) + 30
+        patch = x0, x1, y0, y1
+    x0, x1, y0, y1 = patch
     w, h = x1 - x0, y1 - y0
-    inside = ((pts[:, 0] >= x0 - w / 2) & (pts[:, 0] <= x1 + w / 2)
-              & (pts[:, 1] >= y0 - h / 2) & (pts[:, 1] <= y1 + h / 2))
-    if inside.mean() < 0.5:
-        raise SubmissionError(f"{pred.path}: {1 - inside.mean():.0%} of its points lie outside twice the GT's map "
+    outside = _beyond(pts, patch, 0.5)
+    if outside > 0.5:
+        raise SubmissionError(f"{pred.path}: {outside:.0%} of its points lie outside twice the GT's map "
                               f"patch (x {x0:g}..{x1:g}, y {y0:g}..{y1:g} m): predictions in global coordinates, "
                               "pixels or another unit? points are metres in the ego frame")
     _check_within_patch(pred, gt)
@@ -445,10 +431,11 @@ def _check_same_frame(pred, gt) -> None:
 BEYOND_PATCH_SHARE = 0.2  # of a file's points beyond its patch (+10%): a valid file has ~none (both clip to it)
 
 
-def _beyond(pts: np.ndarray, bounds: tuple[float, float, float, float]) -> float:
-    """The share of ``pts`` beyond the patch ``bounds`` (x0, x1, y0, y1) enlarged by 10% on each side."""
+def _beyond(pts: np.ndarray, bounds: tuple[float, float, float, float], margin: float = 0.1) -> float:
+    """The share of ``pts`` beyond the patch ``bounds`` (x0, x1, y0, y1) enlarged by ``margin`` of its size on each
+    side."""
     x0, x1, y0, y1 = bounds
-    mx, my = 0.1 * (x1 - x0), 0.1 * (y1 - y0)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
     inside = (pts[:, 0] >= x0 - mx) & (pts[:, 0] <= x1 + mx) & (pts[:, 1] >= y0 - my) & (pts[:, 1] <= y1 + my)
     return float(1.0 - inside.mean())
 
@@ -458,11 +445,8 @@ def _check_within_patch(pred, gt) -> None:
     the exporters clip to it. A file of another frame whose axes are swapped (MapTR's lidar frame: x right,
     y forward) lies within twice the patch but beyond it (AP 0 with no word otherwise)."""
     def bounds(sub):
-        try:
-            (x0, x1), (y0, y1) = ([float(v) for v in sub.meta[k][:2]] for k in ("xbound", "ybound"))
-        except (KeyError, TypeError, ValueError):
-            return None
-        return (x0, x1, y0, y1) if x1 > x0 and y1 > y0 else None
+        patch = _patch(sub.meta, head=True)
+        return patch if patch is not None and patch[1] > patch[0] and patch[3] > patch[2] else None
 
     patch, stated_by = (bounds(gt), gt) if bounds(gt) is not None else (bounds(pred), pred)
     if patch is None:

@@ -25,6 +25,8 @@ import torch
 from ..config import ExperimentConfig, GridConfig, UserError
 from ..geometry import BEVGrid
 
+Samples = Sequence[Sequence[dict]]  # per sample, its polyline dicts
+
 
 class EvaluationInputError(UserError, ValueError):
     """A prediction or GT polyline the evaluation cannot use; the message names the sample and index."""
@@ -67,14 +69,8 @@ def sample_name(index: int, token: str | None) -> str:
     return f"sample '{token}'" if token is not None else f"sample #{index}"
 
 
-def read_polylines(
-    items: Sequence[dict],
-    *,
-    role: Literal["prediction", "GT"],
-    num_classes: int,
-    where: str,
-    short: Literal["drop", "error"],
-) -> PolylineSet:
+def read_polylines(items: Sequence[dict], *, role: Literal["prediction", "GT"], num_classes: int, where: str,
+                   short: Literal["drop", "error"]) -> PolylineSet:
     """Check one sample's polyline dicts and return them as arrays.
 
     Args:
@@ -142,6 +138,32 @@ def read_polylines(
     out.labels = np.asarray(labels, dtype=np.int64)
     out.scores = np.asarray(scores, dtype=np.float64)
     return out
+
+
+def read_sample(pred: Sequence[dict], gt: Sequence[dict], where: str, num_classes: int,
+                gt_short: Literal["drop", "error"], counters: dict) -> tuple[PolylineSet, PolylineSet]:
+    """One sample's predictions and GT, checked (``read_polylines``; a short prediction is dropped, a short GT
+    dropped or refused by ``gt_short``), counted into an AP accumulator's ``counters``."""
+    P = read_polylines(pred, role="prediction", num_classes=num_classes, where=where, short="drop")
+    G = read_polylines(gt, role="GT", num_classes=num_classes, where=where, short=gt_short)
+    counters["dropped_short_predictions"] += P.num_short
+    counters["samples_without_predictions"] += int(len(P.pts) == 0)
+    if gt_short == "drop":
+        counters["dropped_short_gt"] += G.num_short
+    return P, G
+
+
+def check_state(acc, state: dict) -> None:
+    """An AP accumulator's ``merge_state`` takes a state of its own protocol and thresholds."""
+    if state.get("protocol") != acc.name or list(state["thresholds"]) != acc.thresholds.tolist():
+        raise EvaluationInputError(f"cannot merge a {state.get('protocol')} state at thresholds "
+                                   f"{list(state.get('thresholds', []))} into a {acc.name} evaluator at "
+                                   f"{acc.thresholds.tolist()}; merge states of the same protocol and thresholds")
+
+
+def concat(parts: list[np.ndarray], empty: np.ndarray) -> np.ndarray:
+    """``np.concatenate(parts)``, ``empty`` (of the right dtype and trailing shape) when there are none."""
+    return np.concatenate(parts) if parts else empty
 
 
 def gather_states(meter) -> None:

@@ -58,9 +58,13 @@ import torch
 
 from ..geometry import BEVGrid, as_grid
 from .chamfer import cloud_chamfer, mean_dist_to_box
-from .inputs import EvaluationInputError, read_polylines, sample_name
+from .inputs import EvaluationInputError, PolylineSet, Samples, check_state, read_sample, sample_name
 
 THICKNESS = 5  # evaluate_json.py --thickness default
+SAMPLED_RECALLS = torch.linspace(0.1, 1, 10).numpy()  # the reference's: float32 values, compared in float32
+# torch intra-op threads during RasterAP.update(): the many small cdist calls run 40x slower with two OpenMP
+# threads than with one on a loaded 2-core machine (measured).
+TORCH_THREADS = 1
 _LINESTRING = 1  # shapely type ids
 _MULTI = (4, 5, 6, 7)  # MultiPoint, MultiLineString, MultiPolygon, GeometryCollection
 
@@ -71,11 +75,6 @@ def lb_margin(extent_sq: float) -> float:
     4-term float32 dot product of magnitude <= 4 extent_sq, off by at most ~4 ulp of that; a
     square-root error of at most sqrt(16 u extent_sq), with 1.5x and 1 cm to spare."""
     return 1.5 * math.sqrt(16 * 2.0**-24 * extent_sq) + 0.01
-
-
-def sampled_recalls() -> np.ndarray:
-    """The reference's ``torch.linspace(0.1, 1, 10)``: float32 values, compared in float32."""
-    return torch.linspace(0.1, 1, 10).numpy()
 
 
 class RasterFrame:
@@ -104,15 +103,9 @@ class RasterFrame:
         return np.stack([col, row], 1).astype(np.int32)
 
 
-def rasterize_instances(
-    pts: Sequence[np.ndarray],
-    labels: np.ndarray,
-    scores: np.ndarray | None,
-    frame: RasterFrame,
-    num_classes: int = 3,
-    thickness: int = THICKNESS,
-    fix_instance_ids: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
+def rasterize_instances(pts: Sequence[np.ndarray], labels: np.ndarray, scores: np.ndarray | None, frame: RasterFrame,
+                        num_classes: int = 3, thickness: int = THICKNESS,
+                        fix_instance_ids: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The reference's ``rasterize_map``: per-class instance masks and the confidence list.
 
     Args:
@@ -180,14 +173,8 @@ def _cloud_to_box(cloud: np.ndarray, box: np.ndarray) -> float:
     return float(mean_dist_to_box(cloud[None], np.array([[r0, c0]]), np.array([[r1, c1]]))[0])
 
 
-def cd_matrix(
-    pred: list[torch.Tensor],
-    pred_box: np.ndarray,
-    gt: list[torch.Tensor],
-    gt_box: np.ndarray,
-    max_thr: float,
-    device: torch.device | None = None,
-) -> np.ndarray:
+def cd_matrix(pred: list[torch.Tensor], pred_box: np.ndarray, gt: list[torch.Tensor], gt_box: np.ndarray,
+              max_thr: float, device: torch.device | None = None) -> np.ndarray:
     """[I_pred, I_gt] float32 raw CD; +inf where a lower bound proves CD >= max_thr (it is clipped anyway).
 
     Args: pred / gt: CPU pixel clouds [M, 2] float32 and their boxes [I, 4] in metres; device:
@@ -237,13 +224,8 @@ def greedy_match(cd: np.ndarray, thr: float) -> np.ndarray:
     return np.asarray(matched, dtype=np.int64)
 
 
-def sample_ap(
-    confidence: np.ndarray,
-    matched: np.ndarray,
-    num_gt: int,
-    recalls_at: np.ndarray,
-    rank_by: Literal["ascending", "descending"] = "ascending",
-) -> np.float32:
+def sample_ap(confidence: np.ndarray, matched: np.ndarray, num_gt: int, recalls_at: np.ndarray,
+              rank_by: Literal["ascending", "descending"] = "ascending") -> np.float32:
     """One sample-class-threshold AP (AP.py:108-164).
 
     Args:
@@ -281,17 +263,9 @@ class RasterAP:
 
     name = "raster"
 
-    def __init__(
-        self,
-        thresholds: Sequence[float],
-        grid: BEVGrid,
-        num_classes: int = 3,
-        rank_by: Literal["ascending", "descending"] = "ascending",
-        fix_instance_ids: bool = False,
-        thickness: int = THICKNESS,
-        device: str | torch.device = "cpu",
-        num_threads: int | None = 1,
-    ) -> None:
+    def __init__(self, thresholds: Sequence[float], grid: BEVGrid, num_classes: int = 3,
+                 rank_by: Literal["ascending", "descending"] = "ascending", fix_instance_ids: bool = False,
+                 device: str | torch.device = "cpu") -> None:
         if rank_by not in ("ascending", "descending"):
             raise EvaluationInputError(f"raster protocol: rank_by must be 'ascending' or 'descending', got {rank_by!r}")
         self.thresholds = np.asarray(thresholds, dtype=np.float64)
@@ -299,17 +273,12 @@ class RasterAP:
         self.num_classes = num_classes
         self.rank_by = rank_by
         self.fix_instance_ids = fix_instance_ids
-        self.thickness = thickness
-        # torch intra-op threads during update(): the many small cdist calls run 40x slower with two
-        # OpenMP threads than with one on a loaded 2-core machine (measured); None keeps torch's setting.
-        self.num_threads = num_threads
         try:
             self.device = torch.device(device)
         except RuntimeError:
             raise EvaluationInputError(f"raster protocol: unknown device {device!r}; use 'cpu' or 'cuda'") from None
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise EvaluationInputError("raster protocol: device 'cuda' requested but CUDA is not available")
-        self._recalls = sampled_recalls()
         self.reset()
 
     def reset(self) -> None:
@@ -322,65 +291,48 @@ class RasterAP:
                          "dropped_short_gt": 0}
         self._next_id = 0
 
-    def update(
-        self,
-        preds: Sequence[Sequence[dict]],
-        gts: Sequence[Sequence[dict]],
-        sample_ids: Sequence[int] | None = None,
-        tokens: Sequence[str] | None = None,
-    ) -> None:
+    def update(self, preds: Samples, gts: Samples, sample_ids: Sequence[int] | None = None,
+               tokens: Sequence[str] | None = None) -> None:
         """Add B samples (lists of polyline dicts, metres, ego frame)."""
-        previous = torch.get_num_threads()
-        if self.num_threads is not None and self.device.type == "cpu":
-            torch.set_num_threads(self.num_threads)
-        try:
-            self._update(preds, gts, sample_ids, tokens)
-        finally:
-            torch.set_num_threads(previous)
-
-    def _update(
-        self,
-        preds: Sequence[Sequence[dict]],
-        gts: Sequence[Sequence[dict]],
-        sample_ids: Sequence[int] | None,
-        tokens: Sequence[str] | None,
-    ) -> None:
         B = len(preds)
         if len(gts) != B:
             raise EvaluationInputError(f"raster AP update: {B} prediction lists but {len(gts)} GT lists")
-        K, max_thr = self.num_classes, float(self.thresholds.max())
-        for b in range(B):
-            sid = int(sample_ids[b]) if sample_ids is not None else self._next_id + b
-            where = sample_name(sid, tokens[b] if tokens is not None else None)
-            P = read_polylines(preds[b], role="prediction", num_classes=K, where=where, short="drop")
-            G = read_polylines(gts[b], role="GT", num_classes=K, where=where, short="drop")
-            self.counters["dropped_short_predictions"] += P.num_short
-            self.counters["dropped_short_gt"] += G.num_short
-            self.counters["samples_without_predictions"] += int(len(P.pts) == 0)
-            pred_masks, conf = rasterize_instances(P.pts, P.labels, P.scores, self.frame, K, self.thickness,
-                                                   self.fix_instance_ids)
-            gt_masks, _ = rasterize_instances(G.pts, G.labels, None, self.frame, K, self.thickness,
-                                              self.fix_instance_ids)
-            for c in range(K):
-                p_ids, p_clouds, p_box = instance_clouds(pred_masks[c], self.frame.res)
-                g_ids, g_clouds, g_box = instance_clouds(gt_masks[c], self.frame.res)
-                self.num_pred[c] += len(p_ids)
-                self.num_gt[c] += len(g_ids)
-                if len(p_ids) == 0 and len(g_ids) == 0:
-                    continue
-                cd = cd_matrix(p_clouds, p_box, g_clouds, g_box, max_thr, self.device)
-                # Instance id k reads confidence[k]; ids past the list read the -1 padding.
-                p_conf = np.where(p_ids < len(conf), conf[np.minimum(p_ids, len(conf) - 1)], np.float32(-1.0))
-                for t, thr in enumerate(self.thresholds):
-                    matched = greedy_match(cd, thr)
-                    self.ap_sum[c, t] += sample_ap(p_conf.astype(np.float32), matched, len(g_ids), self._recalls,
-                                                   self.rank_by)
-                self.count[c] += 1
+        previous = torch.get_num_threads()
+        if self.device.type == "cpu":
+            torch.set_num_threads(TORCH_THREADS)
+        try:
+            for b in range(B):
+                sid = int(sample_ids[b]) if sample_ids is not None else self._next_id + b
+                where = sample_name(sid, tokens[b] if tokens is not None else None)
+                self._add_sample(*read_sample(preds[b], gts[b], where, self.num_classes, "drop", self.counters))
+        finally:
+            torch.set_num_threads(previous)
         if sample_ids is not None and B:
             self._next_id = max(self._next_id, int(max(sample_ids)) + 1)
         else:
             self._next_id += B
         self.counters["samples"] += B
+
+    def _add_sample(self, P: PolylineSet, G: PolylineSet) -> None:
+        """One sample's checked predictions and GT: its AP vector added to each class it has instances of."""
+        K, max_thr = self.num_classes, float(self.thresholds.max())
+        pred_masks, conf = rasterize_instances(P.pts, P.labels, P.scores, self.frame, K, THICKNESS,
+                                               self.fix_instance_ids)
+        gt_masks, _ = rasterize_instances(G.pts, G.labels, None, self.frame, K, THICKNESS, self.fix_instance_ids)
+        for c in range(K):
+            p_ids, p_clouds, p_box = instance_clouds(pred_masks[c], self.frame.res)
+            g_ids, g_clouds, g_box = instance_clouds(gt_masks[c], self.frame.res)
+            self.num_pred[c] += len(p_ids)
+            self.num_gt[c] += len(g_ids)
+            if len(p_ids) == 0 and len(g_ids) == 0:
+                continue
+            cd = cd_matrix(p_clouds, p_box, g_clouds, g_box, max_thr, self.device)
+            # Instance id k reads confidence[k]; ids past the list read the -1 padding.
+            p_conf = np.where(p_ids < len(conf), conf[np.minimum(p_ids, len(conf) - 1)], np.float32(-1.0))
+            for t, thr in enumerate(self.thresholds):
+                self.ap_sum[c, t] += sample_ap(p_conf.astype(np.float32), greedy_match(cd, thr), len(g_ids),
+                                               SAMPLED_RECALLS, self.rank_by)
+            self.count[c] += 1
 
     def state_dict(self) -> dict:
         return {"protocol": self.name, "thresholds": self.thresholds.tolist(), "ap_sum": self.ap_sum.copy(),
@@ -388,10 +340,7 @@ class RasterAP:
                 "counters": dict(self.counters)}
 
     def merge_state(self, state: dict) -> None:
-        if state.get("protocol") != self.name or list(state["thresholds"]) != self.thresholds.tolist():
-            raise EvaluationInputError(f"cannot merge a {state.get('protocol')} state at thresholds "
-                                       f"{list(state.get('thresholds', []))} into a {self.name} evaluator at "
-                                       f"{self.thresholds.tolist()}; merge states of the same protocol and thresholds")
+        check_state(self, state)
         self.ap_sum += state["ap_sum"]
         self.count += state["count"]
         self.num_gt += state["num_gt"]

@@ -43,7 +43,7 @@ import numpy as np
 import shapely
 
 from .chamfer import chamfer_pairs, mean_dist_to_box
-from .inputs import EvaluationInputError, read_polylines, sample_name
+from .inputs import EvaluationInputError, Samples, check_state, concat, read_sample, sample_name
 
 NUM_SAMPLE_POINTS = 100  # mean_ap.py:147
 BUFFER_WIDTH = 2.0  # tpfp.py:59 passes linewidth=2. as the buffer distance
@@ -164,13 +164,8 @@ def _witness(x: np.ndarray, y: np.ndarray, cand: np.ndarray, width: float) -> np
     return ok.any(axis=(1, 2))
 
 
-def buffers_intersect(
-    a: np.ndarray,
-    b: np.ndarray,
-    width: float = BUFFER_WIDTH,
-    hint_a: np.ndarray | None = None,
-    hint_b: np.ndarray | None = None,
-) -> np.ndarray:
+def buffers_intersect(a: np.ndarray, b: np.ndarray, width: float = BUFFER_WIDTH, hint_a: np.ndarray | None = None,
+                      hint_b: np.ndarray | None = None) -> np.ndarray:
     """Do the flat-cap, mitre-join ``width`` buffers of polylines a[r] and b[r] intersect?
 
     The same decision as ``LineString(a).buffer(width, cap_style=flat, join_style=mitre)
@@ -207,10 +202,8 @@ def buffers_intersect(
     out[found] = True
     rest = np.flatnonzero(live & ~found)
     if rest.size:
-        ga = shapely.buffer(shapely.linestrings(a[rest]), width, cap_style="flat", join_style="mitre",
-                            mitre_limit=MITRE_LIMIT)
-        gb = shapely.buffer(shapely.linestrings(b[rest]), width, cap_style="flat", join_style="mitre",
-                            mitre_limit=MITRE_LIMIT)
+        ga, gb = (shapely.buffer(shapely.linestrings(x[rest]), width, cap_style="flat", join_style="mitre",
+                                 mitre_limit=MITRE_LIMIT) for x in (a, b))
         out[rest] = shapely.intersects(ga, gb)
     return out
 
@@ -264,14 +257,8 @@ class VectorAP:
 
     name = "vector"
 
-    def __init__(
-        self,
-        thresholds: Sequence[float],
-        num_classes: int = 3,
-        num_sample_points: int = NUM_SAMPLE_POINTS,
-        resample_predictions: bool = True,
-        buffer_width: float = BUFFER_WIDTH,
-    ) -> None:
+    def __init__(self, thresholds: Sequence[float], num_classes: int = 3, num_sample_points: int = NUM_SAMPLE_POINTS,
+                 resample_predictions: bool = True) -> None:
         self.thresholds = np.asarray(thresholds, dtype=np.float64)
         if self.thresholds.max() >= UNMEASURED:
             raise EvaluationInputError(
@@ -281,27 +268,21 @@ class VectorAP:
         self.num_classes = num_classes
         self.num_sample_points = num_sample_points
         self.resample_predictions = resample_predictions
-        self.buffer_width = buffer_width
         self.reset()
 
     def reset(self) -> None:
-        K = self.num_classes
-        self._ids: list[list[np.ndarray]] = [[] for _ in range(K)]
-        self._scores: list[list[np.ndarray]] = [[] for _ in range(K)]
-        self._tp: list[list[np.ndarray]] = [[] for _ in range(K)]
+        K, T = self.num_classes, len(self.thresholds)
+        # per class, the parts of each detection's sample id, score and TP flags [T] (concatenated on demand)
+        self._empty = {"ids": np.zeros(0, np.int64), "scores": np.zeros(0), "tp": np.zeros((0, T), bool)}
+        self._parts: dict[str, list[list[np.ndarray]]] = {key: [[] for _ in range(K)] for key in self._empty}
         self.num_gt = np.zeros(K, dtype=np.int64)
         self.counters = {"samples": 0, "samples_without_predictions": 0, "dropped_short_predictions": 0,
                          "zero_length_predictions": 0}
         self._next_id = 0
 
     # --- accumulation ------------------------------------------------------------------------
-    def update(
-        self,
-        preds: Sequence[Sequence[dict]],
-        gts: Sequence[Sequence[dict]],
-        sample_ids: Sequence[int] | None = None,
-        tokens: Sequence[str] | None = None,
-    ) -> None:
+    def update(self, preds: Samples, gts: Samples, sample_ids: Sequence[int] | None = None,
+               tokens: Sequence[str] | None = None) -> None:
         """Add B samples. ``preds[b]`` / ``gts[b]`` are lists of polyline dicts (metres, ego frame).
 
         ``sample_ids`` (e.g. dataset indices) fix the pooling order, and so the order of tied
@@ -317,12 +298,10 @@ class VectorAP:
         self.counters["samples"] += B
         for c in range(self.num_classes):
             k = m["label"] == c  # keeps sample order, and input order within a sample
-            self._ids[c].append(ids[m["sample"][k]])
-            self._scores[c].append(m["score"][k])
-            self._tp[c].append(m["tp"][k])
+            for key, value in (("ids", ids[m["sample"]]), ("scores", m["score"]), ("tp", m["tp"])):
+                self._parts[key][c].append(value[k])
 
-    def match(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], ids: np.ndarray,
-              tokens: Sequence[str] | None = None) -> dict:
+    def match(self, preds: Samples, gts: Samples, ids: np.ndarray, tokens: Sequence[str] | None = None) -> dict:
         """The protocol's decisions for B samples, without accumulating them: per detection (predictions with
         >= 2 points, in sample order, input order within a sample) ``label``, ``score``, ``sample`` (0..B-1),
         ``tp`` [Np, T] and ``gt`` [Np] (the GT it is compared with, an index into that sample's GT list, -1 for
@@ -333,10 +312,7 @@ class VectorAP:
         p_pts, p_lab, p_score, p_smp, g_pts, g_lab, g_smp = [], [], [], [], [], [], []
         for b in range(B):
             where = sample_name(int(ids[b]), tokens[b] if tokens is not None else None)
-            P = read_polylines(preds[b], role="prediction", num_classes=K, where=where, short="drop")
-            G = read_polylines(gts[b], role="GT", num_classes=K, where=where, short="error")
-            self.counters["dropped_short_predictions"] += P.num_short
-            self.counters["samples_without_predictions"] += int(len(P.pts) == 0)
+            P, G = read_sample(preds[b], gts[b], where, K, "error", self.counters)
             if not self.resample_predictions:
                 for i, pts in enumerate(P.pts):
                     if len(pts) != len(P.pts[0]) or (p_pts and len(pts) != len(p_pts[0])):
@@ -351,8 +327,8 @@ class VectorAP:
             g_pts += G.pts
             g_lab.append(G.labels)
             g_smp.append(np.full(len(G.pts), b))
-        g_lab = np.concatenate(g_lab).astype(np.int64) if g_lab else np.zeros(0, np.int64)
-        g_smp = np.concatenate(g_smp).astype(np.int64) if g_smp else np.zeros(0, np.int64)
+        g_lab = concat(g_lab, np.zeros(0, np.int64)).astype(np.int64)
+        g_smp = concat(g_smp, np.zeros(0, np.int64)).astype(np.int64)
         out = {"gt_label": g_lab, "gt_sample": g_smp}
         if not p_pts:
             T = len(self.thresholds)
@@ -362,15 +338,10 @@ class VectorAP:
 
         if self.resample_predictions:
             # The reference keeps a prediction's raw points when it already has exactly S of them.
-            pred = np.empty((len(p_pts), S, 2))
-            raw = np.array([len(p) == S for p in p_pts])
-            if raw.any():
-                pred[raw] = np.stack([p for p, r in zip(p_pts, raw) if r])
-            if (~raw).any():
-                pred[~raw] = resample_polylines([p for p, r in zip(p_pts, raw) if not r], S)
-        else:
-            pred = np.stack(p_pts)
-        gt = resample_polylines(g_pts, S) if g_pts else np.zeros((0, S, 2))
+            resampled = iter(resample_polylines([p for p in p_pts if len(p) != S], S))
+            p_pts = [p if len(p) == S else next(resampled) for p in p_pts]
+        pred = np.stack(p_pts)
+        gt = resample_polylines(g_pts, S)
         self.counters["zero_length_predictions"] += int((polyline_lengths(pred) == 0).sum())
 
         best_d, best_j = self._nearest_gt(pred, gt, p_smp * K + p_lab, g_smp * K + g_lab)
@@ -389,9 +360,8 @@ class VectorAP:
         self._next_id = int(ids.max()) + 1 if B else self._next_id
         return ids
 
-    def _nearest_gt(
-        self, pred: np.ndarray, gt: np.ndarray, group_p: np.ndarray, group_g: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _nearest_gt(self, pred: np.ndarray, gt: np.ndarray, group_p: np.ndarray,
+                    group_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each detection's nearest GT of its sample and class among pairs that can matter.
 
         Args: pred [Np, S, 2], gt [Ng, S', 2]; group_* [N] sample*K + class.
@@ -441,7 +411,7 @@ class VectorAP:
             return best_d, best_j
         hint_a = near_a.argmin(1)
         hint_b = _nearest_index(gt[gj], pred[pi][np.arange(len(pi)), hint_a])
-        ok = buffers_intersect(pred[pi], gt[gj], self.buffer_width, hint_a, hint_b)
+        ok = buffers_intersect(pred[pi], gt[gj], BUFFER_WIDTH, hint_a, hint_b)
         pi, gj, d = pi[ok], gj[ok], d[ok]
         if pi.size == 0:
             return best_d, best_j
@@ -474,40 +444,30 @@ class VectorAP:
 
     # --- state (streaming, DDP) ------------------------------------------------------------
     def state_dict(self) -> dict:
-        cat = self._concat()
         return {"protocol": self.name, "thresholds": self.thresholds.tolist(), "num_gt": self.num_gt.copy(),
-                "ids": cat[0], "scores": cat[1], "tp": cat[2], "counters": dict(self.counters)}
+                **self._concat(), "counters": dict(self.counters)}
 
     def merge_state(self, state: dict) -> None:
-        if state.get("protocol") != self.name or list(state["thresholds"]) != self.thresholds.tolist():
-            raise EvaluationInputError(f"cannot merge a {state.get('protocol')} state at thresholds "
-                                       f"{list(state.get('thresholds', []))} into a {self.name} evaluator at "
-                                       f"{self.thresholds.tolist()}; merge states of the same protocol and thresholds")
-        for c in range(self.num_classes):
-            self._ids[c].append(state["ids"][c])
-            self._scores[c].append(state["scores"][c])
-            self._tp[c].append(state["tp"][c])
+        check_state(self, state)
+        for key, parts in self._parts.items():
+            for c in range(self.num_classes):
+                parts[c].append(state[key][c])
         self.num_gt += state["num_gt"]
         for k, v in state["counters"].items():
             self.counters[k] += v
         self._next_id = max(self._next_id, int(max((x.max() + 1 for x in state["ids"] if len(x)), default=0)))
 
-    def _concat(self) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
-        T = len(self.thresholds)
-        ids, scores, tp = [], [], []
-        for c in range(self.num_classes):
-            i = np.concatenate(self._ids[c]) if self._ids[c] else np.zeros(0, np.int64)
-            s = np.concatenate(self._scores[c]) if self._scores[c] else np.zeros(0)
-            f = np.concatenate(self._tp[c]) if self._tp[c] else np.zeros((0, T), bool)
-            self._ids[c], self._scores[c], self._tp[c] = [i], [s], [f]
-            ids.append(i)
-            scores.append(s)
-            tp.append(f)
-        return ids, scores, tp
+    def _concat(self) -> dict[str, list[np.ndarray]]:
+        """``{"ids", "scores", "tp"}``: per class its detections' parts as one array (kept as the one part)."""
+        for key, parts in self._parts.items():
+            for c in range(self.num_classes):
+                parts[c] = [concat(parts[c], self._empty[key])]
+        return {key: [p[0] for p in parts] for key, parts in self._parts.items()}
 
     def compute(self) -> dict:
         """Returns {"AP": [K, T] float64 (float32 values), "num_gt": [K], "num_pred": [K]}."""
-        ids, scores, tp = self._concat()
+        cat = self._concat()
+        ids, scores, tp = cat["ids"], cat["scores"], cat["tp"]
         ap = np.zeros((self.num_classes, len(self.thresholds)))
         for c in range(self.num_classes):
             o = np.argsort(ids[c], kind="stable")  # sample order; input order within a sample
