@@ -151,8 +151,8 @@ def checked_batch(who: str, preds, gts, scenes, frames, poses, num_classes: int)
                  else dict(x, score=x.get("score", 1.0)) if isinstance(x, dict) else x for x in p]
         P = read_polylines(p, role="prediction", num_classes=num_classes, where=where, short="drop")
         G = read_polylines(gts[b], role="GT", num_classes=num_classes, where=where, short="drop")
-        checked.append((P, G))
-    return [(key, P, G, np.asarray(poses[b], dtype=np.float64)) for b, (key, (P, G)) in enumerate(zip(keys, checked))]
+        checked.append((key, P, G, np.asarray(poses[b], dtype=np.float64)))
+    return checked
 
 
 def _records_to_merge(meter, state, keys: set[str], label_keys: tuple[str, ...], form: str) -> Mapping:
@@ -181,7 +181,25 @@ def _records_to_merge(meter, state, keys: set[str], label_keys: tuple[str, ...],
             for k, r in records.items()}
 
 
-class FlickerMeter:
+class _DriveMeter:
+    """What the drive meters share: per-sample ``records`` keyed by (scene, frame), each sample kept once."""
+
+    def reset(self) -> None:
+        self.records: dict[tuple[str, int], dict] = {}
+
+    def state_dict(self) -> dict:
+        return {"records": dict(self.records)}
+
+    def _keep(self, records: Mapping) -> None:
+        for key, rec in records.items():
+            self.records.setdefault(key, rec)
+
+    def gather(self) -> None:
+        """Under torch.distributed: every rank ends with all records (a no-op otherwise)."""
+        gather_states(self)
+
+
+class FlickerMeter(_DriveMeter):
     """Accumulates per-sample detection status and computes the flicker rate (module docstring)."""
 
     def __init__(self, grid: BEVGrid, num_classes: int | None = None, classes: Sequence[str] | None = None,
@@ -202,7 +220,7 @@ class FlickerMeter:
                                            f"got {value!r}")
         if not is_real(score_threshold) or math.isnan(score_threshold):
             raise EvaluationInputError(f"FlickerMeter: score_threshold must be a number, got {score_threshold!r}")
-        if isinstance(classes, (str, bytes)) or (classes is not None and len(classes) != num_classes):
+        if classes is not None and len(classes) != num_classes:
             raise EvaluationInputError(f"FlickerMeter: classes must name the num_classes = {num_classes} classes, "
                                        f"one name each, got {classes!r:.120}")
         self.grid, self.num_classes = grid, int(num_classes)
@@ -211,9 +229,6 @@ class FlickerMeter:
         self.link_m, self.min_shared_points, self.num_points = float(link_m), int(min_shared_points), int(num_points)
         self.detect_points = int(detect_points)
         self.reset()
-
-    def reset(self) -> None:
-        self.records: dict[tuple[str, int], dict] = {}
 
     def update(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], scenes: Sequence[str],
                frames, poses) -> None:
@@ -235,23 +250,10 @@ class FlickerMeter:
                 "pose": pose,
             }
 
-    def state_dict(self) -> dict:
-        return {"records": dict(self.records)}
-
     def merge(self, state: dict) -> None:
         """Add another meter's ``state_dict()`` (a sample already here is kept once)."""
-        records = _records_to_merge(self, state, {"detected", "labels", "pts", "pose"}, ("labels",),
-                                    "{'records': {(scene, frame): ...}}")
-        for key, rec in records.items():
-            self.records.setdefault(key, rec)
-
-    def gather(self) -> None:
-        """Under torch.distributed: every rank ends with all records (a no-op otherwise)."""
-        gather_states(self)
-
-    def _links(self, prev: dict, cur: dict) -> list[tuple[int, int]]:
-        """(instance of frame t, instance of frame t + 1) pairs that are one map element."""
-        return [(i, j) for i, j, _ in gt_links(self.grid, prev, cur, self.link_m, self.min_shared_points)]
+        self._keep(_records_to_merge(self, state, {"detected", "labels", "pts", "pose"}, ("labels",),
+                                     "{'records': {(scene, frame): ...}}"))
 
     def compute(self) -> dict:
         """``flicker`` (class -> rate, NaN without pairs), ``flicker_mean``, ``flicker_detected``,
@@ -266,7 +268,7 @@ class FlickerMeter:
             if prev is None:
                 continue
             frame_pairs += 1
-            for i, j in self._links(prev, cur):
+            for i, j, _ in gt_links(self.grid, prev, cur, self.link_m, self.min_shared_points):
                 k = int(cur["labels"][j])
                 pairs[k] += 1
                 flips[k] += int(prev["detected"][i] != cur["detected"][j])
@@ -293,7 +295,7 @@ class FlickerMeter:
         }
 
 
-class ConsistentAPMeter:
+class ConsistentAPMeter(_DriveMeter):
     """MapTracker's **consistency-aware mAP** (C-mAP) next to the per-frame vector mAP (docs/temporal.md).
 
         meter = ConsistentAPMeter(grid, classes=cfg.data.classes)
@@ -362,9 +364,6 @@ class ConsistentAPMeter:
         self._ap = VectorAP(self.thresholds, self.num_classes)
         self.reset()
 
-    def reset(self) -> None:
-        self.records: dict[tuple[str, int], dict] = {}
-
     def update(self, preds: Sequence[Sequence[dict]], gts: Sequence[Sequence[dict]], scenes: Sequence[str],
                frames, poses, ids: Sequence[Sequence[int]] | None = None) -> None:
         """B samples, as ``FlickerMeter.update``; ``ids`` (optional): per sample one integer instance ID per
@@ -397,15 +396,14 @@ class ConsistentAPMeter:
                 "label": matched["label"][m], "score": matched["score"][m], "tp": matched["tp"][m],
                 "gt": matched["gt"][m],
                 "ids": None if ids is None else np.asarray([int(ids[b][i]) for i in P.kept], dtype=np.int64),
-                "pts": (None if ids is not None else resample_polylines(P.pts, MATCH_POINTS).astype(np.float32)
-                        if P.pts else np.zeros((0, MATCH_POINTS, 2), np.float32)),
+                "pts": None if ids is not None else resample_polylines(P.pts, MATCH_POINTS).astype(np.float32),
                 "gt_labels": G.labels.copy(),
-                "gt_pts": resample_polylines(G.pts, self.num_points) if G.pts else np.zeros((0, self.num_points, 2)),
+                "gt_pts": resample_polylines(G.pts, self.num_points),
                 "pose": pose,
             }
 
     def state_dict(self) -> dict:
-        return {"records": dict(self.records), "thresholds": self.thresholds}
+        return {**super().state_dict(), "thresholds": self.thresholds}
 
     def merge(self, state: dict) -> None:
         """Add another meter's ``state_dict()`` (a sample already here is kept once)."""
@@ -415,12 +413,7 @@ class ConsistentAPMeter:
         if tuple(state.get("thresholds", ())) != self.thresholds:
             raise EvaluationInputError(f"ConsistentAPMeter.merge: the state is at thresholds "
                                        f"{list(state.get('thresholds', ()))}, this meter at {list(self.thresholds)}")
-        for key, rec in records.items():
-            self.records.setdefault(key, rec)
-
-    def gather(self) -> None:
-        """Under torch.distributed: every rank ends with all records (a no-op otherwise)."""
-        gather_states(self)
+        self._keep(records)
 
     def _tracks(self, keys: list[tuple[str, int]]) -> tuple[dict, dict]:
         """Predicted and GT instance IDs per sample (class docstring), ``keys`` sorted by (scene, frame)."""

@@ -51,6 +51,9 @@ from ..files import as_path, write_json
 MAX_COORD_M = 1e4
 
 
+_COUNTS = ("defaulted_confidence", "truncated", "confidences", "unit_confidences")  # what a reader counts
+
+
 class SubmissionError(UserError, ValueError):
     """A submission / GT JSON file that cannot be read; the message names the file, token and index."""
 
@@ -150,7 +153,7 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         raise SubmissionError(f"{path}: '{key}' must be a dict token -> vectors or a list of "
                               f"{{'sample_token', 'vectors'}}, got {type(results).__name__}")
     samples: dict[str, list[dict]] = {}
-    counts = {"defaulted_confidence": 0, "truncated": 0, "confidences": 0, "unit_confidences": 0}
+    counts = dict.fromkeys(_COUNTS, 0)
     for token, vectors in items:
         if not isinstance(token, str):
             raise SubmissionError(f"{path}: sample token {token!r} is not a string")
@@ -164,12 +167,11 @@ def read_submission(path: str | Path, role: Literal["pred", "gt"], num_classes: 
         notes.append(f"{path}: {counts['defaulted_confidence']} predictions without 'confidence_level' scored 1.0 "
                      "(the HDMapNet reference's default)")
     if counts["truncated"]:
-        notes.append(
-            f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were used"
-        )
+        notes.append(f"{path}: {counts['truncated']} vectors had pts_num < len(pts); the first pts_num points were "
+                     "used")
     if role == "pred":
         notes += _tied_score_notes(path, samples)
-    return Submission(str(path), meta, samples, notes, counts["confidences"], counts.get("unit_confidences", 0))
+    return Submission(str(path), meta, samples, notes, counts["confidences"], counts["unit_confidences"])
 
 
 def _tied_score_notes(path: Path, samples: dict[str, list[dict]]) -> list[str]:
@@ -196,11 +198,11 @@ def _whole(value: object) -> object:
     return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
-def vectors_to_polylines(
-    vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str, counts: dict | None = None
-) -> list[dict]:
-    """One sample's submission vectors -> polyline dicts, checked (see the module docstring)."""
-    counts = counts if counts is not None else {"defaulted_confidence": 0, "truncated": 0, "confidences": 0}
+def vectors_to_polylines(vectors: object, role: Literal["pred", "gt"], num_classes: int, where: str,
+                         counts: dict | None = None) -> list[dict]:
+    """One sample's submission vectors -> polyline dicts, checked (see the module docstring); ``counts`` (the
+    defaulted confidences, truncated vectors, confidences and confidences of 1) counted into."""
+    counts = counts if counts is not None else dict.fromkeys(_COUNTS, 0)
     if not isinstance(vectors, list):
         raise SubmissionError(f"{where}: expected a list of vectors, got {type(vectors).__name__}")
     out = []
@@ -225,11 +227,10 @@ def vectors_to_polylines(
                                   "divider, 1 ped_crossing, 2 boundary, MapTR's order; StreamMapNet numbers "
                                   "ped_crossing 0, divider 1): renumber 'type'")
         poly = {"pts": pts, "label": k}
-        counts["confidences"] = counts.get("confidences", 0) + ("confidence_level" in v)
-        c = v.get("confidence_level")
-        counts["unit_confidences"] = counts.get("unit_confidences", 0) + (c == 1 and not isinstance(c, bool))
+        s = v.get("confidence_level")
+        counts["confidences"] += "confidence_level" in v
+        counts["unit_confidences"] += s == 1 and not isinstance(s, bool)
         if role == "pred":
-            s = v.get("confidence_level")
             if s is None:
                 counts["defaulted_confidence"] += 1
                 s = 1.0

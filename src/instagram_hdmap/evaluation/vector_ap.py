@@ -114,23 +114,18 @@ def resample_polylines(lines: Sequence[np.ndarray], num_points: int = NUM_SAMPLE
     past_end = seg >= Pmax - 1  # d beyond every segment end: the line's last point
     np.minimum(seg, Pmax - 2, out=seg)
     at = np.arange(L)[:, None] * Pmax + seg  # flat index of each segment's start point
-    x0, y0 = xs.ravel().take(at), ys.ravel().take(at)
-    x1, y1 = xs.ravel().take(at + 1), ys.ravel().take(at + 1)
     at_seg = at - np.arange(L)[:, None]  # flat index into the [L, Pmax-1] segment arrays
     before = np.where(seg > 0, cum_end.ravel().take(np.maximum(at_seg - 1, 0)), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = (dist - before) / seg_len.ravel().take(at_seg)
-    # GEOS pointAlongSegmentByFraction: p0 if frac <= 0, p1 if frac >= 1, else (p1 - p0) * frac + p0.
-    out_x, out_y = (x1 - x0) * frac + x0, (y1 - y0) * frac + y0
-    lo, hi = frac <= 0.0, frac >= 1.0
-    out_x[lo], out_y[lo] = x0[lo], y0[lo]
-    out_x[hi], out_y[hi] = x1[hi], y1[hi]
-    out_x[past_end], out_y[past_end] = np.broadcast_to(xs[:, -1:], seg.shape)[past_end], \
-        np.broadcast_to(ys[:, -1:], seg.shape)[past_end]
     start = dist <= 0.0  # GEOS: length <= 0 -> the first point
-    out_x[start], out_y[start] = np.broadcast_to(xs[:, :1], seg.shape)[start], \
-        np.broadcast_to(ys[:, :1], seg.shape)[start]
-    return np.stack([out_x, out_y], -1)
+    out = []
+    for v in (xs, ys):
+        p0, p1 = v.ravel().take(at), v.ravel().take(at + 1)
+        # GEOS pointAlongSegmentByFraction: p0 if frac <= 0, p1 if frac >= 1, else (p1 - p0) * frac + p0.
+        along = np.where(frac >= 1.0, p1, np.where(frac <= 0.0, p0, (p1 - p0) * frac + p0))
+        out.append(np.where(start, v[:, :1], np.where(past_end, v[:, -1:], along)))
+    return np.stack(out, -1)
 
 
 def _witness(x: np.ndarray, y: np.ndarray, cand: np.ndarray, width: float) -> np.ndarray:
@@ -261,10 +256,9 @@ class VectorAP:
                  resample_predictions: bool = True) -> None:
         self.thresholds = np.asarray(thresholds, dtype=np.float64)
         if self.thresholds.max() >= UNMEASURED:
-            raise EvaluationInputError(
-                f"vector protocol: thresholds must be < {UNMEASURED:g} m (the reference marks pairs whose "
-                f"buffers do not intersect with D = {UNMEASURED:g}); got {list(thresholds)}"
-            )
+            raise EvaluationInputError(f"vector protocol: thresholds must be < {UNMEASURED:g} m (the reference marks "
+                                       f"pairs whose buffers do not intersect with D = {UNMEASURED:g}); got "
+                                       f"{list(thresholds)}")
         self.num_classes = num_classes
         self.num_sample_points = num_sample_points
         self.resample_predictions = resample_predictions
@@ -316,10 +310,9 @@ class VectorAP:
             if not self.resample_predictions:
                 for i, pts in enumerate(P.pts):
                     if len(pts) != len(P.pts[0]) or (p_pts and len(pts) != len(p_pts[0])):
-                        raise EvaluationInputError(
-                            f"{where}, prediction polyline {i}: with resample_predictions=False every "
-                            "prediction must have the same number of points (the reference stacks them)"
-                        )
+                        raise EvaluationInputError(f"{where}, prediction polyline {i}: with resample_predictions=False "
+                                                   "every prediction must have the same number of points (the "
+                                                   "reference stacks them)")
             p_pts += P.pts
             p_lab.append(P.labels)
             p_score.append(P.scores)
@@ -372,8 +365,6 @@ class VectorAP:
         Np = len(pred)
         best_d = np.full(Np, np.inf)
         best_j = np.full(Np, -1, dtype=np.int64)
-        if len(gt) == 0:
-            return best_d, best_j
         max_thr = float(self.thresholds.max())
         # All (detection, GT) pairs of the same sample and class.
         g_order = np.argsort(group_g, kind="stable")
@@ -383,8 +374,6 @@ class VectorAP:
         pi = np.repeat(np.arange(Np), cnt)
         within = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
         gj = g_order[np.repeat(lo, cnt) + within]
-        if pi.size == 0:
-            return best_d, best_j
         # 1. Bounding-box gap: D >= every point-to-point distance's minimum >= the gap.
         p_lo, p_hi = pred.min(1), pred.max(1)
         g_lo, g_hi = gt.min(1), gt.max(1)
@@ -400,15 +389,11 @@ class VectorAP:
             )
         keep = lb <= max_thr * (1 + 1e-9)
         pi, gj = pi[keep], gj[keep]
-        if pi.size == 0:
-            return best_d, best_j
         # 3. Exact Chamfer; 4. buffer test on the pairs within the largest threshold.
         d_ab, d_ba, near_a = chamfer_pairs(pred[pi], gt[gj])
         d = (d_ba + d_ab) / 2  # tpfp_chamfer.py:59 (negated there)
         near = d <= max_thr
         pi, gj, d, near_a = pi[near], gj[near], d[near], near_a[near]
-        if pi.size == 0:
-            return best_d, best_j
         hint_a = near_a.argmin(1)
         hint_b = _nearest_index(gt[gj], pred[pi][np.arange(len(pi)), hint_a])
         ok = buffers_intersect(pred[pi], gt[gj], BUFFER_WIDTH, hint_a, hint_b)
