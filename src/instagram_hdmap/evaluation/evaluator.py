@@ -244,9 +244,8 @@ class Evaluator:
             ev.merge(also[p])
 
     def gather(self) -> None:
-        """Under torch.distributed: all-gather every rank's state and merge them in rank order, so
-        that every rank holds the whole dataset's state (compute and log on rank 0). A no-op
-        without an initialised process group."""
+        """Under torch.distributed: every rank ends with the whole dataset's state (``inputs.gather_states``;
+        compute and log on rank 0)."""
         gather_states(self)
 
     # --- result ------------------------------------------------------------------------------

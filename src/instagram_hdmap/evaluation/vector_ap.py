@@ -63,17 +63,13 @@ _MIN_WITNESS_LENGTH = 0.05  # lines shorter than this are always left to shapely
 # ---------------------------------------------------------------------------------------------
 
 
-def _segment_lengths(x: np.ndarray) -> np.ndarray:
-    """[..., P, 2] -> [..., P-1] Euclidean segment lengths, ``sqrt(dx*dx + dy*dy)`` as GEOS."""
-    d = x[..., 1:, :] - x[..., :-1, :]
-    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
-
-
 def polyline_lengths(x: np.ndarray) -> np.ndarray:
-    """[R, P, 2] -> [R] lengths, summed segment by segment in order (GEOS ``Length::ofLine``)."""
+    """[R, P, 2] -> [R] lengths, summed segment by segment in order (GEOS ``Length::ofLine``), each segment
+    ``sqrt(dx*dx + dy*dy)`` as GEOS."""
     if x.shape[1] < 2:
         return np.zeros(len(x))
-    return np.cumsum(_segment_lengths(x), axis=1)[:, -1]
+    d = x[:, 1:] - x[:, :-1]
+    return np.cumsum(np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]), axis=1)[:, -1]
 
 
 def resample_polylines(lines: Sequence[np.ndarray], num_points: int = NUM_SAMPLE_POINTS) -> np.ndarray:
@@ -394,8 +390,9 @@ class VectorAP:
         d = (d_ba + d_ab) / 2  # tpfp_chamfer.py:59 (negated there)
         near = d <= max_thr
         pi, gj, d, near_a = pi[near], gj[near], d[near], near_a[near]
-        hint_a = near_a.argmin(1)
-        hint_b = _nearest_index(gt[gj], pred[pi][np.arange(len(pi)), hint_a])
+        hint_a = near_a.argmin(1)  # the point of the prediction nearest to the GT, and the GT's point nearest to it
+        dq = gt[gj] - pred[pi][np.arange(len(pi)), hint_a][:, None]
+        hint_b = (dq[..., 0] * dq[..., 0] + dq[..., 1] * dq[..., 1]).argmin(1)
         ok = buffers_intersect(pred[pi], gt[gj], BUFFER_WIDTH, hint_a, hint_b)
         pi, gj, d = pi[ok], gj[ok], d[ok]
         if pi.size == 0:
@@ -459,8 +456,3 @@ class VectorAP:
             ap[c] = pooled_ap(scores[c][o], tp[c][o], int(self.num_gt[c]))
         return {"AP": ap, "num_gt": self.num_gt.copy(), "num_pred": np.array([len(s) for s in scores])}
 
-
-def _nearest_index(pts: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """[R, P, 2], [R, 2] -> [R] index of the point of each set nearest to q."""
-    d = pts - q[:, None]
-    return (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]).argmin(1)
