@@ -179,6 +179,9 @@ class Evaluator:
         loader hands the next good sample in place of a bad one, which must not count twice; the
         repeats are counted (``counters["repeated_samples"]``, a note)."""
         preds, gts = _samples(preds, "predictions"), _samples(gts, "GT")
+        if len(gts) != len(preds):
+            raise EvaluationInputError(f"{self.protocol} AP update: {len(preds)} prediction lists but {len(gts)} GT "
+                                       "lists")
         if isinstance(tokens, (str, bytes)):  # one token: its characters would be B tokens
             raise EvaluationInputError(f"{self.protocol} AP update: tokens must be a list of one token per sample, "
                                        f"got the string {tokens!r:.60}")
@@ -495,10 +498,9 @@ def evaluate_files(pred_path: str | Path, gt_path: str | Path, protocol: str = "
     _check_same_frame(pred, gt)
     extra = [t for t in pred.samples if t not in gt.samples]
     if extra and not ignore_extra_predictions:
-        raise SubmissionError(
-            f"{pred_path}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file {gt_path} "
-            f"(e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass --ignore-extra-predictions"
-        )
+        raise SubmissionError(f"{pred_path}: {len(extra)} of {len(pred.samples)} sample tokens are not in the GT file "
+                              f"{gt_path} (e.g. '{extra[0]}'); evaluate against the GT of the same split, or pass "
+                              "--ignore-extra-predictions")
     missing = sum(t not in pred.samples for t in gt.samples)
     ev = Evaluator(protocol, thresholds, grid=grid, rank_by=rank_by, fix_instance_ids=fix_instance_ids,
                    device=device)

@@ -26,6 +26,7 @@ from ..config import ExperimentConfig, GridConfig, UserError
 from ..geometry import BEVGrid
 
 Samples = Sequence[Sequence[dict]]  # per sample, its polyline dicts
+SAMPLE_COUNTERS = ("samples", "samples_without_predictions", "dropped_short_predictions")  # both protocols count
 
 
 class EvaluationInputError(UserError, ValueError):
@@ -109,10 +110,9 @@ def read_polylines(items: Sequence[dict], *, role: Literal["prediction", "GT"], 
         if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)):
             raise EvaluationInputError(f"{what}: 'label' must be an integer class id, got {label!r}")
         if not 0 <= int(label) < num_classes:
-            raise EvaluationInputError(
-                f"{what}: unknown class id {int(label)}; expected 0..{num_classes - 1}"
-                + (" (0 divider, 1 ped_crossing, 2 boundary)" if num_classes == 3 else " (the evaluator's classes)")
-            )
+            names = "0 divider, 1 ped_crossing, 2 boundary" if num_classes == 3 else "the evaluator's classes"
+            raise EvaluationInputError(f"{what}: unknown class id {int(label)}; expected 0..{num_classes - 1} "
+                                       f"({names})")
         score = 1.0
         if role == "prediction":
             if "score" not in item:
@@ -125,10 +125,9 @@ def read_polylines(items: Sequence[dict], *, role: Literal["prediction", "GT"], 
                 raise EvaluationInputError(f"{what}: 'score' is {score}; scores must be finite")
         if len(pts) < 2:
             if short == "error":
-                raise EvaluationInputError(
-                    f"{what}: has {len(pts)} point(s); a {role} polyline needs at least two (the vector "
-                    "protocol's reference cannot represent it). Remove it from the GT"
-                )
+                raise EvaluationInputError(f"{what}: has {len(pts)} point(s); a {role} polyline needs at least "
+                                           "two (the vector protocol's reference cannot represent it). Remove it "
+                                           "from the GT")
             out.num_short += 1
             continue
         out.pts.append(pts)

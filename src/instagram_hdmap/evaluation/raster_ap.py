@@ -58,7 +58,7 @@ import torch
 
 from ..geometry import BEVGrid, as_grid
 from .chamfer import cloud_chamfer, mean_dist_to_box
-from .inputs import EvaluationInputError, PolylineSet, Samples, check_state, read_sample, sample_name
+from .inputs import SAMPLE_COUNTERS, EvaluationInputError, PolylineSet, Samples, check_state, read_sample, sample_name
 
 THICKNESS = 5  # evaluate_json.py --thickness default
 SAMPLED_RECALLS = torch.linspace(0.1, 1, 10).numpy()  # the reference's: float32 values, compared in float32
@@ -287,16 +287,13 @@ class RasterAP:
         self.count = np.zeros(K, dtype=np.int64)
         self.num_gt = np.zeros(K, dtype=np.int64)  # GT instances after rasterisation
         self.num_pred = np.zeros(K, dtype=np.int64)  # predicted instances after rasterisation
-        self.counters = {"samples": 0, "samples_without_predictions": 0, "dropped_short_predictions": 0,
-                         "dropped_short_gt": 0}
+        self.counters = dict.fromkeys((*SAMPLE_COUNTERS, "dropped_short_gt"), 0)
         self._next_id = 0
 
     def update(self, preds: Samples, gts: Samples, sample_ids: Sequence[int] | None = None,
                tokens: Sequence[str] | None = None) -> None:
         """Add B samples (lists of polyline dicts, metres, ego frame)."""
-        B = len(preds)
-        if len(gts) != B:
-            raise EvaluationInputError(f"raster AP update: {B} prediction lists but {len(gts)} GT lists")
+        B = len(preds)  # (Evaluator.update checks that gts has as many)
         previous = torch.get_num_threads()
         if self.device.type == "cpu":
             torch.set_num_threads(TORCH_THREADS)

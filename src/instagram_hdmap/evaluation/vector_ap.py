@@ -43,7 +43,7 @@ import numpy as np
 import shapely
 
 from .chamfer import chamfer_pairs, mean_dist_to_box
-from .inputs import EvaluationInputError, Samples, check_state, concat, read_sample, sample_name
+from .inputs import SAMPLE_COUNTERS, EvaluationInputError, Samples, check_state, concat, read_sample, sample_name
 
 NUM_SAMPLE_POINTS = 100  # mean_ap.py:147
 BUFFER_WIDTH = 2.0  # tpfp.py:59 passes linewidth=2. as the buffer distance
@@ -266,8 +266,7 @@ class VectorAP:
         self._empty = {"ids": np.zeros(0, np.int64), "scores": np.zeros(0), "tp": np.zeros((0, T), bool)}
         self._parts: dict[str, list[list[np.ndarray]]] = {key: [[] for _ in range(K)] for key in self._empty}
         self.num_gt = np.zeros(K, dtype=np.int64)
-        self.counters = {"samples": 0, "samples_without_predictions": 0, "dropped_short_predictions": 0,
-                         "zero_length_predictions": 0}
+        self.counters = dict.fromkeys((*SAMPLE_COUNTERS, "zero_length_predictions"), 0)
         self._next_id = 0
 
     # --- accumulation ------------------------------------------------------------------------
@@ -279,9 +278,7 @@ class VectorAP:
         scores, independently of how samples are split over updates and processes; default: a
         running counter.
         """
-        B = len(preds)
-        if len(gts) != B:
-            raise EvaluationInputError(f"vector AP update: {B} prediction lists but {len(gts)} GT lists")
+        B = len(preds)  # (Evaluator.update checks that gts has as many)
         ids = self._take_ids(B, sample_ids)
         m = self.match(preds, gts, ids, tokens)
         self.num_gt += np.bincount(m["gt_label"], minlength=self.num_classes)
