@@ -22,8 +22,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from ..config import ExperimentConfig, GridConfig, UserError
-from ..geometry import BEVGrid
+from ..config import UserError
+from ..geometry import BEVGrid, as_grid
 
 Samples = Sequence[Sequence[dict]]  # per sample, its polyline dicts
 SAMPLE_COUNTERS = ("samples", "samples_without_predictions", "dropped_short_predictions")  # both protocols count
@@ -54,16 +54,13 @@ def _detached(value):
 
 
 def check_grid(grid, who: str) -> BEVGrid:
-    """A ``BEVGrid``; a config's grid (an ``ExperimentConfig`` or its ``grid`` section) is taken as the grid it
-    describes (it was a raw "'ExperimentConfig' object has no attribute 'xmin'" deep in the evaluation)."""
-    if isinstance(grid, ExperimentConfig):
-        grid = grid.grid
-    if isinstance(grid, GridConfig):
-        return BEVGrid.from_config(grid)
-    if not isinstance(grid, BEVGrid):
-        raise EvaluationInputError(f"{who}: grid must be a BEVGrid (instagram_hdmap.geometry.BEVGrid."
-                                   f"from_config(cfg.grid)) or a config, got {type(grid).__name__}")
-    return grid
+    """``geometry.as_grid``: a ``BEVGrid``, a config's grid (a config or its ``grid`` section) taken as the grid it
+    describes (it was a raw "'ExperimentConfig' object has no attribute 'xmin'" deep in the evaluation); anything
+    else an ``EvaluationInputError``."""
+    try:
+        return as_grid(grid, who)
+    except TypeError as e:
+        raise EvaluationInputError(str(e)) from None
 
 
 def sample_name(index: int, token: str | None) -> str:

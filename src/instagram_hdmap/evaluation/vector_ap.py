@@ -171,12 +171,9 @@ def buffers_intersect(a: np.ndarray, b: np.ndarray, width: float = BUFFER_WIDTH,
     Returns: [R] bool.
     """
     R = len(a)
-    out = np.zeros(R, dtype=bool)
-    if R == 0:
-        return out
     la, lb = polyline_lengths(a), polyline_lengths(b)
     live = (la > 0) & (lb > 0)
-    found = np.zeros(R, dtype=bool)
+    found = np.zeros(R, dtype=bool)  # a witness found; at the end, the answer
     # Witness candidates: the hinted point (usually enough), then ten evenly spaced points.
     tries = [(x, y, lx, ly, None if hint is None else np.asarray(hint)[:, None])
              for x, y, lx, ly, hint in ((a, b, la, lb, hint_a), (b, a, lb, la, hint_b))]
@@ -190,13 +187,12 @@ def buffers_intersect(a: np.ndarray, b: np.ndarray, width: float = BUFFER_WIDTH,
             sel = todo[s : s + 512]
             c = np.broadcast_to(cand, (R, cand.shape[1]))[sel]
             found[sel] = _witness(x[sel], y[sel], c, width)
-    out[found] = True
     rest = np.flatnonzero(live & ~found)
     if rest.size:
         ga, gb = (shapely.buffer(shapely.linestrings(x[rest]), width, cap_style="flat", join_style="mitre",
                                  mitre_limit=MITRE_LIMIT) for x in (a, b))
-        out[rest] = shapely.intersects(ga, gb)
-    return out
+        found[rest] = shapely.intersects(ga, gb)
+    return found
 
 
 # ---------------------------------------------------------------------------------------------
