@@ -41,27 +41,28 @@ from ..errors import as_batch_list, as_float64_array, check_rigid_pose, is_real
 from ..geometry import BEVGrid
 from ..persistence import MATCH_POINTS, InstanceTracker, PersistenceInputError
 from .chamfer import chamfer_pairs
-from .inputs import EvaluationInputError, check_grid, gather_states, read_polylines
+from .inputs import EvaluationInputError, PolylineSet, check_grid, gather_states, read_polylines
 from .vector_ap import VectorAP, pooled_ap, resample_polylines
 
 
-def detected_gt(preds: Sequence[dict], gts: Sequence[dict], threshold_m: float, num_points: int = 100,
+def detected_gt(P: PolylineSet, G: PolylineSet, threshold_m: float, num_points: int = 100,
                 score_threshold: float = 0.0) -> np.ndarray:
-    """[G] bool: GT instance g matched by a prediction (module docstring: greedy by score, same class,
-    Chamfer D <= ``threshold_m`` with both polylines resampled to ``num_points`` points)."""
-    detected = np.zeros(len(gts), dtype=bool)
-    preds = [p for p in preds if p.get("score", 1.0) >= score_threshold and len(p["pts"]) >= 2]
-    if not preds or not gts:
+    """[G] bool: GT instance g of a sample's checked GT ``G`` matched by one of its checked predictions ``P``
+    (module docstring: greedy by score, same class, Chamfer D <= ``threshold_m`` with both polylines resampled to
+    ``num_points`` points)."""
+    detected = np.zeros(len(G.pts), dtype=bool)
+    keep = np.flatnonzero(P.scores >= score_threshold)
+    if not len(keep) or not len(G.pts):
         return detected
-    pi, gi = np.nonzero(np.array([p["label"] for p in preds])[:, None] == np.array([g["label"] for g in gts])[None])
+    pi, gi = np.nonzero(P.labels[keep][:, None] == G.labels[None])
     if not len(pi):
         return detected
-    a = resample_polylines([np.asarray(p["pts"], np.float64) for p in preds], num_points)  # [P, n, 2]
-    b = resample_polylines([np.asarray(g["pts"], np.float64) for g in gts], num_points)  # [G, n, 2]
+    a = resample_polylines([P.pts[i] for i in keep], num_points)  # [P, n, 2]
+    b = resample_polylines(G.pts, num_points)  # [G, n, 2]
     d_ab, d_ba, _ = chamfer_pairs(a[pi], b[gi])
-    chamfer = np.full((len(preds), len(gts)), np.inf)
+    chamfer = np.full((len(keep), len(G.pts)), np.inf)
     chamfer[pi, gi] = (d_ab + d_ba) / 2
-    for i in np.argsort([-p.get("score", 1.0) for p in preds], kind="stable"):
+    for i in np.argsort(-P.scores[keep], kind="stable"):
         d = np.where(detected, np.inf, chamfer[i])
         j = int(d.argmin())
         if d[j] <= threshold_m:
@@ -146,9 +147,8 @@ def checked_batch(who: str, preds, gts, scenes, frames, poses, num_classes: int)
         where = f"sample (scene '{key[0]}', frame {key[1]})"
         check_rigid_pose(poses[b], where, EvaluationInputError)
         p = preds[b]
-        if isinstance(p, Sequence) and not isinstance(p, (str, bytes)):
-            p = [x.as_polyline() if hasattr(x, "as_polyline") and not isinstance(x, dict)  # MapElement
-                 else dict(x, score=x.get("score", 1.0)) if isinstance(x, dict) else x for x in p]
+        if isinstance(p, Sequence) and not isinstance(p, (str, bytes)):  # a dict without a score counts as 1
+            p = [dict(x, score=x.get("score", 1.0)) if isinstance(x, dict) else x for x in p]  # (MapElements have one)
         P = read_polylines(p, role="prediction", num_classes=num_classes, where=where, short="drop")
         G = read_polylines(gts[b], role="GT", num_classes=num_classes, where=where, short="drop")
         checked.append((key, P, G, np.asarray(poses[b], dtype=np.float64)))
@@ -241,10 +241,8 @@ class FlickerMeter(_DriveMeter):
                                              self.num_classes):
             if key in self.records:
                 continue
-            p = [{"pts": x, "label": int(k), "score": float(s)} for x, k, s in zip(P.pts, P.labels, P.scores)]
-            g = [{"pts": x, "label": int(k)} for x, k in zip(G.pts, G.labels)]
             self.records[key] = {
-                "detected": detected_gt(p, g, self.threshold_m, self.detect_points, self.score_threshold),
+                "detected": detected_gt(P, G, self.threshold_m, self.detect_points, self.score_threshold),
                 "labels": G.labels.copy(),
                 "pts": resample_polylines(G.pts, self.num_points),
                 "pose": pose,
