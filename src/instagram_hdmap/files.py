@@ -315,16 +315,14 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
     beside it: /dev/stdout was refused, though the refusal of ``--out -`` advised it)."""
     path = Path(path)
     if is_stream(path):
-        folder = Path(tempfile.mkdtemp(prefix=".instagram_hdmap-"))
-        try:
-            yield folder / path.name
-            if (folder / path.name).is_dir():
+        with tempfile.TemporaryDirectory(prefix=".instagram_hdmap-", ignore_cleanup_errors=True) as folder:
+            tmp = Path(folder) / path.name
+            yield tmp
+            if tmp.is_dir():
                 raise OutputError(f"{path}: a terminal, pipe or device takes a file, not a folder; choose a path")
-            if (folder / path.name).is_file():
-                with open(folder / path.name, "rb") as src, open(path, "wb") as dst:
+            if tmp.is_file():  # (not shutil.copyfile: it refuses a named pipe)
+                with open(tmp, "rb") as src, open(path, "wb") as dst:
                     shutil.copyfileobj(src, dst)
-        finally:
-            shutil.rmtree(folder, ignore_errors=True)
         return
     if path.is_symlink() and path.exists():
         path = Path(os.path.realpath(path))
