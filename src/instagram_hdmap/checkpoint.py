@@ -69,11 +69,9 @@ def signals_deferred():
 
 
 def save_checkpoint(state: dict, path: str | Path) -> Path:
-    """Write ``state`` to ``path`` atomically (``files.atomic_path``: a temporary file in the same
-    folder, fsync'ed, then renamed over the target). A crash leaves either the old file or the new one;
-    a full disk is a one-line ``files.OutputError`` naming the file, the old one intact. A signal that arrives
-    during the write is handled after it (``signals_deferred``): Ctrl-C or a scheduler's SIGTERM lands between
-    two whole checkpoints."""
+    """Write ``state`` to ``path`` atomically (``files.atomic_path``: a crash leaves the old file or the new one, a
+    full disk is a one-line ``OutputError``). A signal that arrives during the write is handled after it
+    (``signals_deferred``): Ctrl-C or a scheduler's SIGTERM lands between two whole checkpoints."""
     path = as_path(path, "checkpoint path")
     with signals_deferred(), atomic_path(path) as tmp, open(tmp, "wb") as f:
         torch.save(state, f)  # through Python's file object: a failed write (full disk) keeps its OSError
@@ -103,17 +101,17 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             f" (it is a folder: a training run's; give the checkpoint in it, {' or '.join(map(str, run))})" if run
             else " (it is a folder)" if path.is_dir() else ""))
     with open(path, "rb") as f:
-        head = f.read(4)
+        head = f.read(4096)  # enough for a text file's or a tar header's signs too
     if not head:
         raise CheckpointError(f"checkpoint {path} is empty (0 bytes): its save never wrote (killed, or a full "
                               "disk); use another checkpoint, e.g. best.pt or an earlier copy")
-    if head == b"PK\x03\x04":  # torch's zip format
+    if head[:4] == b"PK\x03\x04":  # torch's zip format
         _check_archive(path)
     elif head[:1] != b"\x80":  # neither a zip nor a pickle (torch's legacy format)
         packed = next((f"a {name}-compressed file ({tool} it first)" for magic, name, tool in COMPRESSED
                        if head.startswith(magic)), None)
-        what = packed or ("a text file (a config?)" if _is_text(path) else
-                          "a tar archive (tar xf it first)" if _is_tar(path) else "not a PyTorch file")
+        what = packed or ("a text file (a config?)" if _is_text(head) else
+                          "a tar archive (tar xf it first)" if head[257:262] == b"ustar" else "not a PyTorch file")
         raise CheckpointError(f"{path} is not a PyTorch checkpoint: it is {what}; give a checkpoint written by "
                               "instagram-hdmap train (e.g. OUT/best.pt)")  # (--checkpoint, --resume, init_from)
     try:
@@ -196,14 +194,7 @@ def _check_archive(path: Path) -> None:
                               "changed on disk or in a transfer); use another copy of the checkpoint")
 
 
-def _is_tar(path: Path) -> bool:
-    with open(path, "rb") as f:
-        return f.read(265)[257:262] == b"ustar"
-
-
-def _is_text(path: Path) -> bool:
-    with open(path, "rb") as f:
-        head = f.read(4096)
+def _is_text(head: bytes) -> bool:
     try:
         head.decode("utf-8")
     except UnicodeDecodeError:
@@ -222,13 +213,12 @@ def _refusal_reason(e: BaseException) -> str:
 def rng_state() -> dict[str, Any]:
     """Every RNG the training touches, as weights_only-loadable values."""
     np_state = np.random.get_state()  # noqa: NPY002 (the global stream third-party code uses)
-    state = {
+    return {
         "python": random.getstate(),
         "numpy": (np_state[0], torch.from_numpy(np_state[1].copy()), *np_state[2:]),
         "torch": torch.get_rng_state(),
         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
     }
-    return state
 
 
 @contextlib.contextmanager

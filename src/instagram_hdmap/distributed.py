@@ -62,14 +62,10 @@ def init_distributed(device_kind: str | None = None) -> torch.device:
             raise UserError(f"RANK and WORLD_SIZE are set (a torchrun launch) but {' and '.join(missing)} "
                             f"{'is' if len(missing) == 1 else 'are'} not: launch with torchrun, or unset RANK and "
                             "WORLD_SIZE for a single process")
-        local_rank = int(os.environ.get("LOCAL_RANK", 0))
-        backend = "nccl" if kind == "cuda" else "gloo"
         if kind == "cuda":
-            torch.cuda.set_device(local_rank)
-        dist.init_process_group(backend=backend)
-    if kind == "cuda":
-        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
-    return torch.device("cpu")
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+        dist.init_process_group(backend="nccl" if kind == "cuda" else "gloo")
+    return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0))) if kind == "cuda" else torch.device("cpu")
 
 
 _ENDED = False  # this process destroyed its process group (a torchrun rank whose job is done)
@@ -153,8 +149,7 @@ class ResumableSampler(Sampler[int]):
         else:
             order = list(range(self.n))
         total = self.num_samples * self.world_size
-        order += order[: total - len(order)] if total > len(order) else []
-        while len(order) < total:  # tiny datasets with many ranks
+        while len(order) < total:  # wrapping around (more than once: tiny datasets with many ranks)
             order += order[: total - len(order)]
         return order[self.start + self.rank : total : self.world_size]
 

@@ -74,10 +74,9 @@ def _worker_message(text: str, name: str) -> str:
     if not re.fullmatch(rf"Caught {name} in DataLoader worker process \d+\.", head):
         return text
     lines = rest.splitlines()
-    for i in range(len(lines) - 1, -1, -1):  # the traceback's last "module.Name: message" line
-        if re.match(rf"([\w.]+\.)?{name}: ", lines[i]):
-            return "\n".join(lines[i:]).split(": ", 1)[1].strip()
-    return text
+    last = [i for i, line in enumerate(lines) if re.match(rf"([\w.]+\.)?{name}: ", line)]
+    # from the traceback's last "module.Name: message" line on
+    return "\n".join(lines[last[-1]:]).split(": ", 1)[1].strip() if last else text
 
 
 def one_line(e: BaseException) -> str:

@@ -34,6 +34,11 @@ from pathlib import Path
 
 from .errors import UserError
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: no file locks
+    fcntl = None
+
 # errnos that mean "no room": the disk (or the user's quota) is full, or a file-size limit is reached
 NO_ROOM = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
@@ -144,7 +149,8 @@ def _is_torch_checkpoint(path: Path) -> bool:
         return False
 
 
-def _same_file(a: Path, b: Path) -> bool:
+def same_path(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` both exist and are one file or folder (through links, too)."""
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
     except OSError:
@@ -180,7 +186,7 @@ def check_output_file(path: str | Path, flag: str = "output file",
     path = Path(path)
     check_name_lengths(path, flag)
     for source, option in inputs:
-        if source is not None and _same_file(path, Path(source)):
+        if source is not None and same_path(path, Path(source)):
             raise OutputError(f"{flag} {path} is the {option} file the job reads; writing the result there would "
                               "destroy it: choose another output path")
     if path.is_dir():
@@ -222,7 +228,7 @@ def process_alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
+        pass
     return True
 
 
@@ -241,7 +247,7 @@ def remove_stale_temporaries(path: str | Path, tag: str = "tmp") -> list[Path]:
             pid = tmp.name[len(prefix):len(tmp.name) - len(suffix)]
             if (tmp.name.endswith(suffix) and pid.isdigit() and int(pid) != os.getpid()
                     and not process_alive(int(pid)) and tmp not in removed):
-                _remove(tmp)
+                remove_path(tmp)
                 removed.append(tmp)
     return removed
 
@@ -253,9 +259,7 @@ def _fitted(name: str, tag: str, suffix: str = "") -> str:
     """``name`` cut (on a character) so that ``.NAME.TAG-PID{suffix}`` fits in ``NAME_MAX`` bytes for any PID: a
     valid file name of 240 bytes had a temporary name too long to create (a raw ENAMETOOLONG after the work)."""
     room = NAME_MAX - len(f"..{tag}-{suffix}".encode()) - 10  # a PID has at most 10 digits
-    while len(name.encode()) > room:
-        name = name[:-1]
-    return name
+    return name.encode()[:max(room, 0)].decode(errors="ignore")  # a character cut in two is dropped
 
 
 def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Path:
@@ -268,10 +272,11 @@ def temporary_sibling(path: str | Path, tag: str = "tmp", keep_suffix: bool = Fa
     return path.with_name(f".{_fitted(path.name, tag)}.{tag}-{os.getpid()}")
 
 
-def _remove(path: Path) -> None:
+def remove_path(path: Path, ignore_errors: bool = True) -> None:
+    """Remove the file or folder at ``path`` (a symbolic link itself, not what it points to); nothing if none."""
     if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    elif path.exists() or path.is_symlink():
+        shutil.rmtree(path, ignore_errors=ignore_errors)
+    elif os.path.lexists(path):
         path.unlink()
 
 
@@ -291,38 +296,33 @@ def _replace_folder(tmp: Path, path: Path) -> None:
     ``path`` that still looked whole (its manifest, tables and maps, part of its images), and the new one was
     removed with the temporaries. A kill now leaves ``.NAME.old-PID``, which the next writer removes."""
     old = temporary_sibling(path, OLD_TAG)
-    _remove(old)  # left by an earlier write of this very process id
+    remove_path(old)  # left by an earlier write of this very process id
     os.replace(path, old)
     try:
         _replace(tmp, path)
     except BaseException:
         os.replace(old, path)
         raise
-    _remove(old)
+    remove_path(old)
 
 
 @contextmanager
 def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at; on
-    success it replaces ``path`` (a file is fsync'ed first), on any exception it is removed (module
-    docstring). The temporaries of ``path`` that killed writers left are removed first
-    (``remove_stale_temporaries``): every atomic writer owns its target's leftovers. A symbolic link at
-    ``path`` is written through: its target gets the new content (a rename over the link would replace the
-    link and leave the file it points to as it was). A terminal, pipe or device (``/dev/stdout``, ``is_stream``)
-    gets the file's bytes once it is complete (a temporary beside it could not be made: /dev/stdout was refused,
-    though the refusal of ``--out -`` advised it)."""
+    """Yield a temporary sibling of ``path`` (``temporary_sibling``) to write a file or a folder at (module
+    docstring); every atomic writer removes its target's leftovers first. A symbolic link at ``path`` is written
+    through (a rename over the link would replace it and leave the file it points to as it was). A terminal, pipe
+    or device (``/dev/stdout``, ``is_stream``) gets the file's bytes once it is complete (no temporary can be made
+    beside it: /dev/stdout was refused, though the refusal of ``--out -`` advised it)."""
     path = Path(path)
     if is_stream(path):
-        folder = Path(tempfile.mkdtemp(prefix=".instagram_hdmap-"))
-        try:
-            yield folder / path.name
-            if (folder / path.name).is_dir():
+        with tempfile.TemporaryDirectory(prefix=".instagram_hdmap-", ignore_cleanup_errors=True) as folder:
+            tmp = Path(folder) / path.name
+            yield tmp
+            if tmp.is_dir():
                 raise OutputError(f"{path}: a terminal, pipe or device takes a file, not a folder; choose a path")
-            if (folder / path.name).is_file():
-                with open(folder / path.name, "rb") as src, open(path, "wb") as dst:
+            if tmp.is_file():  # (not shutil.copyfile: it refuses a named pipe)
+                with open(tmp, "rb") as src, open(path, "wb") as dst:
                     shutil.copyfileobj(src, dst)
-        finally:
-            shutil.rmtree(folder, ignore_errors=True)
         return
     if path.is_symlink() and path.exists():
         path = Path(os.path.realpath(path))
@@ -361,7 +361,7 @@ def atomic_path(path: str | Path, tag: str = "tmp", keep_suffix: bool = False) -
         raise
     finally:
         _TARGET_OF.pop(tmp, None)
-        _remove(tmp)
+        remove_path(tmp)
 
 
 def write_text(text: str, path: str | Path) -> Path:
@@ -414,9 +414,7 @@ def lock_folder(folder: str | Path, job: str, advice: str, note: Callable[[str],
     process ends, however it ends (``kill -9`` too): the file a killed job leaves locks nothing. Re-entrant within
     a process. No lock where ``fcntl`` is missing; on a file system without locks (NFS without lockd, some FUSE
     mounts: ENOLCK) the job goes on and ``note`` says so."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX
+    if fcntl is None:
         return
     folder = Path(folder)
     key = str(folder.resolve())
@@ -474,9 +472,7 @@ def hold_world(root: str | Path, manifest: str = "world.json"):
     refused instead of replacing the world under this one's datasets (the same file names, other scenes: a training
     went on with the new world's images and the old world's maps and poses, exit 0). Nothing where there is no
     manifest, no fcntl or no file locks (read-only folders lock too: the file is opened for reading)."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX
+    if fcntl is None:
         return None
     try:
         path = Path(root) / manifest
@@ -507,9 +503,7 @@ def claim_world(root: str | Path, what: str, manifest: str = "world.json"):
     """An exclusive lock on the world at ``root`` that is about to be replaced (None where there is none to lock),
     held by the caller until the replacement is done. This process's own ``hold_world`` of it is given up (its
     own doing); another process's is a ``UserError`` naming ``what`` (the argument, e.g. --out)."""
-    try:
-        import fcntl
-    except ImportError:
+    if fcntl is None:
         return None
     path = Path(root) / manifest
     try:

@@ -62,6 +62,17 @@ def _check_grid(grid, who: str) -> BEVGrid:
     return grid
 
 
+# the ranges of the numeric arguments of Persistence and InstanceTracker
+LIMITS = {"decay": lambda v: 0 < v <= 1, "match_m": lambda v: v > 0, "max_jump_m": lambda v: v > 0,
+          "max_turn_deg": lambda v: 0 < v <= 180}
+
+
+def _check_limits(rule: str, values: dict) -> None:
+    """Each of ``values`` a finite number in its ``LIMITS`` range, else an error saying ``rule`` and them all."""
+    if any(not is_real(v) or not math.isfinite(v) or not LIMITS[k](v) for k, v in values.items()):
+        raise PersistenceInputError(f"{rule} (numbers); got " + ", ".join(f"{k}={v!r}" for k, v in values.items()))
+
+
 def _check_frame(frame, where: str, who: str = "Persistence") -> int:
     if not is_real(frame) or not math.isfinite(frame) or frame != int(frame) or frame < 0:
         raise PersistenceInputError(f"{who}: {where}: its frame index must be an integer >= 0 (the frame's "
@@ -163,15 +174,11 @@ def _inside_run(pts: np.ndarray, grid: BEVGrid) -> np.ndarray:
     """The longest run of consecutive points of ``pts`` inside the grid."""
     inside = ((pts[:, 0] >= grid.xmin) & (pts[:, 0] <= grid.xmax) & (pts[:, 1] >= grid.ymin)
               & (pts[:, 1] <= grid.ymax))
-    start, best_span = None, (0, 0)
-    for i, ok in enumerate([*inside.tolist(), False]):
-        if ok and start is None:
-            start = i
-        elif not ok and start is not None:
-            if i - start > best_span[1] - best_span[0]:
-                best_span = (start, i)
-            start = None
-    return pts[best_span[0]:best_span[1]]
+    starts, ends = np.flatnonzero(np.diff(np.concatenate([[0], inside.astype(np.int8), [0]]))).reshape(-1, 2).T
+    if not len(starts):
+        return pts[:0]
+    k = int(np.argmax(ends - starts))  # the first of the longest
+    return pts[starts[k]:ends[k]]
 
 
 def _continues(prev: _Scene | None, frame: int, pose: np.ndarray, max_jump_m: float, max_turn_deg: float) -> bool:
@@ -249,12 +256,8 @@ class Persistence:
         grid = _check_grid(grid, "Persistence")
         if not isinstance(frames, numbers.Integral) or isinstance(frames, (bool, np.bool_)) or frames < 0:
             raise PersistenceInputError(f"Persistence: frames must be an integer >= 0, got {frames!r}")
-        values = {"decay": decay, "match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
-        bad = [k for k, v in values.items() if not is_real(v) or not math.isfinite(v)]
-        if bad or not (0 < decay <= 1) or not (match_m > 0) or not (max_jump_m > 0) or not (0 < max_turn_deg <= 180):
-            raise PersistenceInputError("Persistence: decay must be in (0, 1], match_m and max_jump_m > 0, "
-                                        "max_turn_deg in (0, 180] (numbers); got "
-                                        + ", ".join(f"{k}={v!r}" for k, v in values.items()))
+        _check_limits("Persistence: decay must be in (0, 1], match_m and max_jump_m > 0, max_turn_deg in (0, 180]",
+                      {"decay": decay, "match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg})
         self.grid, self.frames, self.decay, self.match_m = grid, int(frames), float(decay), float(match_m)
         self.max_jump_m, self.max_turn_deg = float(max_jump_m), float(max_turn_deg)
         self.kept = 0  # elements added to an output so far
@@ -332,18 +335,12 @@ class InstanceTracker:
 
     def __init__(self, grid: BEVGrid, match_m: float = 1.0, max_jump_m: float = 10.0, max_turn_deg: float = 180.0,
                  look_back: int = 1):
-        try:  # the same argument checks
-            self._checker = Persistence(grid, 1, 0.5, match_m, max_jump_m, max_turn_deg)
-        except PersistenceInputError as e:  # it named Persistence and its decay, which the tracker has not
-            values = {"match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg}
-            msg = str(e).replace("Persistence: ", "InstanceTracker: ", 1)
-            if "decay must be" in msg:
-                msg = ("InstanceTracker: needs match_m and max_jump_m > 0, max_turn_deg in (0, 180] (numbers); got "
-                       + ", ".join(f"{k}={v!r}" for k, v in values.items()))
-            raise PersistenceInputError(msg) from None
+        grid = _check_grid(grid, "InstanceTracker")
+        _check_limits("InstanceTracker: needs match_m and max_jump_m > 0, max_turn_deg in (0, 180]",
+                      {"match_m": match_m, "max_jump_m": max_jump_m, "max_turn_deg": max_turn_deg})
         if isinstance(look_back, bool) or not isinstance(look_back, int) or look_back < 1:
             raise PersistenceInputError(f"InstanceTracker: look_back is a count of frames >= 1, got {look_back!r}")
-        self.grid, self.match_m = self._checker.grid, float(match_m)
+        self.grid, self.match_m = grid, float(match_m)
         self.max_jump_m, self.max_turn_deg, self.look_back = float(max_jump_m), float(max_turn_deg), look_back
         self.reset()
 

@@ -235,13 +235,13 @@ def check_fits(cfg: ExperimentConfig, job: str = "train", device: torch.device |
     host = device is None or device.type != "cuda"
     need = estimate(cfg, job, host=host, batch=batch)
     have, what = memory_available(device)
+    step = "one training step" if job == "train" else "one inference batch"
     if NOTE_OVER * have < need <= REFUSE_OVER * have:
-        du.print_main(f"note: {'one training step' if job == 'train' else 'one inference batch'} may need "
-                      f"~{human(need)} and {what} {human(have)} available: it may run out of memory")
+        du.print_main(f"note: {step} may need ~{human(need)} and {what} {human(have)} available: it may run out of "
+                      "memory")
     if need > REFUSE_OVER * have:
         key = dominant_key(cfg, job, host, batch)
         value = flatten(config_to_dict(cfg))[key]
-        step = "one training step" if job == "train" else "one inference batch"
         change = {"grid.resolution": "raise it", "grid.xbound": "narrow it", "grid.ybound": "narrow it",
                   "model.backbone.grad_checkpoint": "set it to true", "model.backbone.name": "choose a smaller one",
                   "model.gnn.sinkhorn_grad": "set it to implicit"}.get(key, "lower it")

@@ -26,6 +26,7 @@ from .config import (
     get_key,
     is_under,
 )
+from .files import same_path
 from .inference import MODEL_KEYS, NOT_BAKED, saved_config
 from .postprocess import DECODE_KEYS
 from .run_folder import CHECKPOINTS, RUN_FILES
@@ -164,13 +165,6 @@ def folder_id(path: Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
-def same_path(a: Path, b: Path) -> bool:
-    try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
 def load_init_state(cfg: ExperimentConfig) -> dict | None:
     """``train.init_from``'s checkpoint (None without one), its config checked against ``cfg`` (``INIT_KEYS``)."""
     path = cfg.train.init_from
@@ -217,11 +211,9 @@ def init_weights(model: torch.nn.Module, state: dict, cfg: ExperimentConfig | No
                 if k in theirs and theirs[k].shape != own[k].shape])
     if wrong:
         more = f" and {len(wrong) - 3} more" if len(wrong) > 3 else ""
-        keys = ""  # the weights' names alone did not say which setting differs (another backbone, memory, depth)
-        if cfg is not None and isinstance(state.get("config"), dict):
-            old = saved_config(state["config"], "the checkpoint of train.init_from")
-            differ = [k for k in diff_configs(old, cfg) if is_under(k, ["model"]) and not is_under(k, NOT_BAKED)]
-            keys = f", as the configs differ in {config_differences(old, cfg, differ)}" if differ else ""
+        # the weights' names alone did not say which setting differs (another backbone, memory, depth)
+        differ = init_model_differences(state, cfg) if cfg is not None else ""
+        keys = f", as the configs differ in {differ}" if differ else ""
         raise UserError(f"train.init_from: the checkpoint's weights do not fit this model's architecture "
                         f"({'; '.join(wrong[:3])}{more}){keys}; start from a checkpoint of the same model config")
     model.load_state_dict(theirs, strict=False)

@@ -5,7 +5,6 @@ resumed one, its log cut back to the resumed step, and the lock that keeps a sec
 from __future__ import annotations
 
 import os
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from .files import (
     check_output_dir,
     held_folder_now,
     lock_folder,
+    remove_path,
     remove_stale_temporaries,
     write_text,
 )
@@ -38,46 +38,41 @@ def prepare_out_dir(out_dir: Path, resume: str | Path | None, force: bool) -> No
         return
     out_dir.mkdir(parents=True, exist_ok=True)
     lock_out_dir(out_dir)  # before anything in it is removed
-    if out_dir.is_dir():
+    for name in RUN_FILES:
+        remove_stale_temporaries(out_dir / name)
+    content = [p.name for p in out_dir.iterdir() if p.name != LOCK_FILE]
+    has_checkpoint = any(name in content for name in CHECKPOINTS)
+    only_run_files = all(name in RUN_FILES for name in content)
+    if content and not (resume or force):
+        if not has_checkpoint and not only_run_files:  # no run to continue: --resume of a checkpoint not there
+            raise UserError(f"output folder {out_dir} holds files that are not a run's "
+                            f"({', '.join(sorted(content)[:5])}); choose another train.out_dir (a new or empty "
+                            "folder), or pass --force to train among them (it removes only a run's own files)")
+        if has_checkpoint:
+            # a save that failed after best.pt (a full disk) leaves no last.pt; best.pt resumes as well
+            ckpt = out_dir / ("last.pt" if "last.pt" in content else "best.pt")
+            raise UserError(f"output folder {out_dir} already holds a run; pass --resume {ckpt} to continue it, "
+                            "--force to start over in it, or choose another train.out_dir")
+        du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
+        force = True
+    # the folder of the checkpoint itself: a symbolic link to it (latest.pt -> run/last.pt) names the run it is in
+    source = Path(resume).resolve().parent if resume and Path(resume).is_file() else None
+    if source is not None and has_checkpoint and source.resolve() != out_dir.resolve():
+        raise UserError(f"--resume {resume} continues the run of {source}, but train.out_dir={out_dir} holds a "
+                        "run of its own, whose checkpoints and log it would overwrite; set "
+                        f"train.out_dir={source} (or an empty folder to continue it elsewhere)")
+    if force:
         for name in RUN_FILES:
-            remove_stale_temporaries(out_dir / name)
-        content = [p.name for p in out_dir.iterdir() if p.name != LOCK_FILE]
-        has_checkpoint = any(name in content for name in CHECKPOINTS)
-        only_run_files = all(name in RUN_FILES for name in content)
-        if content and not (resume or force):
-            if not has_checkpoint and not only_run_files:  # no run to continue: --resume of a checkpoint not there
-                raise UserError(f"output folder {out_dir} holds files that are not a run's "
-                                f"({', '.join(sorted(content)[:5])}); choose another train.out_dir (a new or empty "
-                                "folder), or pass --force to train among them (it removes only a run's own files)")
-            if has_checkpoint:
-                # a save that failed after best.pt (a full disk) leaves no last.pt; best.pt resumes as well
-                ckpt = out_dir / ("last.pt" if "last.pt" in content else "best.pt")
-                raise UserError(f"output folder {out_dir} already holds a run; pass --resume {ckpt} to continue it, "
-                                "--force to start over in it, or choose another train.out_dir")
-            du.print_main(f"{out_dir}: a run stopped before its first checkpoint; starting it over")
-            force = True
-        # the folder of the checkpoint itself: a symbolic link to it (latest.pt -> run/last.pt) names the run it is in
-        source = Path(resume).resolve().parent if resume and Path(resume).is_file() else None
-        if source is not None and has_checkpoint and source.resolve() != out_dir.resolve():
-            raise UserError(f"--resume {resume} continues the run of {source}, but train.out_dir={out_dir} holds a "
-                            "run of its own, whose checkpoints and log it would overwrite; set "
-                            f"train.out_dir={source} (or an empty folder to continue it elsewhere)")
-        if force:
-            for name in RUN_FILES:
-                target = out_dir / name
-                if target.is_dir() and not target.is_symlink():
-                    shutil.rmtree(target)
-                elif target.exists() or target.is_symlink():
-                    target.unlink()
-        # what the run appends to or writes in must be of its kind (they raised a raw FileExistsError from
-        # TensorBoard or an IsADirectoryError from open() once the model and loaders were built)
-        for name, folder, what in (("tb", True, "TensorBoard events"), ("log.jsonl", False, "log"),
-                                   ("config.yaml", False, "resolved config")):
-            target = out_dir / name
-            if target.exists() and target.is_dir() != folder:
-                raise UserError(f"train.out_dir {out_dir}: {name} is a {'folder' if target.is_dir() else 'file'}, "
-                                f"where the run keeps its {what} in a {'folder' if folder else 'file'}; move it away "
-                                "(or pass --force to start the run over)")
+            remove_path(out_dir / name, ignore_errors=False)
+    # what the run appends to or writes in must be of its kind (they raised a raw FileExistsError from
+    # TensorBoard or an IsADirectoryError from open() once the model and loaders were built)
+    for name, folder, what in (("tb", True, "TensorBoard events"), ("log.jsonl", False, "log"),
+                               ("config.yaml", False, "resolved config")):
+        target = out_dir / name
+        if target.exists() and target.is_dir() != folder:
+            raise UserError(f"train.out_dir {out_dir}: {name} is a {'folder' if target.is_dir() else 'file'}, "
+                            f"where the run keeps its {what} in a {'folder' if folder else 'file'}; move it away "
+                            "(or pass --force to start the run over)")
 
 
 def purge_log(path: Path, lines: int, note: Callable[[str], None]) -> int:

@@ -4,6 +4,7 @@ start (``2>&-``) or on a full disk, a terminal of another encoding. ``cli.main``
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import os
@@ -25,12 +26,10 @@ def stdout_gone() -> bool:
 def to_devnull(stream) -> None:
     """Point ``stream``'s descriptor at /dev/null, so that the interpreter's last flush (and a child process) does not
     fail on the closed pipe again; nothing where the stream has no descriptor (tests, notebooks)."""
-    try:
+    with contextlib.suppress(OSError, ValueError, AttributeError, io.UnsupportedOperation):
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, stream.fileno())
         os.close(devnull)
-    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
-        pass
 
 
 class ReportStream:
