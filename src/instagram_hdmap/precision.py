@@ -241,16 +241,13 @@ def _example_input(part: nn.Module) -> tuple:
 
 
 def _swap_parts(heads: nn.Module, parts: dict[str, nn.Module]) -> None:
+    """Each part in place of the module of its dotted name in ``heads``; a head's part is the head less its last
+    layer (``_int8_parts``), which it keeps."""
     for name, part in parts.items():
-        if name.startswith("stages."):
-            heads.stages[int(name.split(".")[1])] = part
-        elif name == "up.conv":
-            heads.up.conv = part
-        elif name in ("vertex_head", "distance_head"):
-            last = getattr(heads, name)[-1]
-            setattr(heads, name, nn.Sequential(part, last))
-        else:
-            setattr(heads, name, part)
+        if name in ("vertex_head", "distance_head"):
+            part = nn.Sequential(part, getattr(heads, name)[-1])
+        parent, _, leaf = name.rpartition(".")
+        setattr(heads.get_submodule(parent), leaf, part)  # "stages.0": a ModuleList's item by its name
 
 
 def calibration_batches(cfg, count: int = INT8_CALIBRATION_SAMPLES, device: torch.device | str = "cpu",
