@@ -8,10 +8,8 @@ raster protocol, ...; benchmarks/README.md, "The paper configs against the offic
 A YAML file may name another one to start from with ``_base_: relative/path.yaml``. Command-line
 overrides use dotted keys, ``model.gnn.layers=9``, and are parsed as YAML values.
 
-Unknown keys and values of the wrong type are errors that name the key and list what is valid.
-A YAML key written twice in one mapping is an error (PyYAML would keep the last one silently). Numbers are
-read as YAML 1.2 reads them (PyYAML reads YAML 1.1): ``1e-3`` is a float, ``010`` is ten (not octal 8), ``1:30``
-is text (not base 60, 90), and ``save_config`` quotes the text that would read back as a number. Every
+Unknown keys and values of the wrong type are errors that name the key and list what is valid. The YAML is
+read strictly, as YAML 1.2 reads it, and written so that it reads back the same (config_text.py). Every
 float must be finite, and every numeric key declares its range where it is defined
 (``bounded(default, ge=..., gt=..., le=..., lt=...)``): ``validate_config`` checks them all, so a new
 key gets the check by declaring its bounds (tests/test_config.py checks that every numeric key does).
@@ -152,7 +150,7 @@ class DataConfig:
     # "union", the rings (exterior and interior) of the crossings' union (MapTR); "each", each
     # crossing's own ring (StreamMapNet, the field's AV2 setting)
     ped_crossing: Literal["edges", "union", "each"] = "edges"
-    classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
+    classes: tuple[str, ...] = MAP_CLASSES
     # distance transform clipped to [0, dt_clip] BEV pixels
     dt_clip: float = bounded(10.0, gt=0, note="BEV pixels; the distance-transform targets are divided by it")
     augment: bool = False  # train-time image augmentation (scale, crop, rotate)

@@ -6,7 +6,7 @@ dustbin.
 1. Neighbours: an undirected graph of degree <= 2 (disjoint paths and cycles) over the real
    vertices. The training targets are bidirectional (assignment.py): the row of an interior vertex
    has two peaks (successor and predecessor, ~1/2 each), a polyline end one peak plus the dustbin,
-   an isolated vertex only the dustbin. Two decoders (``decoder``, config ``model.gnn.decoder``):
+   an isolated vertex only the dustbin. Four decoders (``decoder``, config ``model.gnn.decoder``):
 
    - ``"greedy"`` (default, ``greedy_neighbours``): each pair {i, j} is weighed by the geometric
      mean of its two directions, ``w_ij = (log P_ij + log P_ji) / 2``; pairs with ``w_ij >
@@ -488,10 +488,10 @@ def postprocess_batch(outputs: dict, grid: BEVGrid, match_threshold: float = 0.1
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
         (B, N), G = outputs["pred_vertex_mask"].shape, outputs["pred_class_log_probs"].shape[2]
-        # per sample, one "graph" per class holding its instances in the official order (open)
-        walks = [((b * G + g) * N + np.asarray(w, dtype=np.int64)) for b, sample in enumerate(
-            official_instances(outputs, match_threshold)) for g in range(G) for w, k in sample
-            if k == g and len(w) >= min_vertices]
+        # per sample, one "graph" per class holding its instances in the official order (open; class by class)
+        walks = [(b * G + k) * N + np.asarray(w, dtype=np.int64)
+                 for b, sample in enumerate(official_instances(outputs, match_threshold))
+                 for w, k in sample if len(w) >= min_vertices]
         vertices = np.concatenate(walks) if walks else np.zeros(0, dtype=np.int64)
         lengths = np.array([len(w) for w in walks], dtype=np.int64)
         closed = np.zeros(len(walks), dtype=bool)

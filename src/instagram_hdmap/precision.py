@@ -164,12 +164,10 @@ def _in_bf16(model: nn.Module) -> nn.Module:
 
 
 class Bf16Model(nn.Module):
-    """``model``'s forward under bfloat16 autocast on its device, its outputs (and memory) back in float32.
-
-    The wrapped model is an inference copy (``fold_batchnorm``: eval mode, BatchNorm folded into the convolutions)
-    whose attributes (``is_temporal``, its heads) read through. The weights of its convolutions and linear layers
-    are stored in bfloat16 (what autocast would cast them to at every call), the convolutions' in channels-last
-    order; every other parameter (normalisation, the dustbin score) stays float32."""
+    """``model``'s forward under bfloat16 autocast on its device, its outputs (and memory) back in float32. It wraps
+    an inference copy (``fold_batchnorm``, then ``_in_bf16``: every parameter but the convolutions' and linear
+    layers' stays float32, normalisation and the dustbin score among them), whose attributes (``is_temporal``, its
+    heads) read through."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
