@@ -47,21 +47,20 @@ dustbin.
    lower-index end; cycles from their lowest-index vertex in the direction of that vertex's first
    neighbour. Vertices without an edge (none above the threshold, or none accepted) are dropped;
    instances need ``min_vertices`` (default 2) vertices.
-
-Speed: no Python loop over pairs, vertices or graphs. The greedy rule reads the sparse candidate
-pairs only (``candidate_pairs``) and is evaluated in vectorised rounds (``greedy_two_matching``);
-the walks are ranked by pointer jumping; only the output dicts are built one by one.
-``benchmarks/graph_speed.py`` times it (benchmarks/README.md, "Decoding speed"); tests/test_postprocess.py
-checks it against the sequential loops.
 3. Instances: a path becomes a polyline (``closed=False``), a cycle a closed polygon whose first
    point is repeated at the end (``closed=True``, >= 4 points). Class and confidence:
    ``label = argmax_k mean_i p_ik`` (mean class probability over the instance's vertices, a soft
    vote; ``classwise``, ``mutual``, ``official``: the class of its graph) and
    ``score = mean_i p_i,label x mean_i s_i`` with ``s_i = pred_vertex_scores`` (vertex heatmap
    confidence); ``mutual`` and ``official``: ``score = mean_i p_i,label`` (the official confidence).
-   Points are converted to metres in the
-   ego frame by ``geometry.BEVGrid``. Output per sample: a list of ``{"pts", "label", "closed",
-   "score"}`` (docs/conventions.md).
+   Points are converted to metres in the ego frame by ``geometry.BEVGrid``. Output per sample: a
+   list of ``{"pts", "label", "closed", "score"}`` (docs/conventions.md).
+
+Speed: no Python loop over pairs, vertices or graphs. The greedy rule reads the sparse candidate
+pairs only (``candidate_pairs``) and is evaluated in vectorised rounds (``greedy_two_matching``);
+the walks are ranked by pointer jumping; only the output dicts are built one by one.
+``benchmarks/graph_speed.py`` times it (benchmarks/README.md, "Decoding speed"); tests/test_postprocess.py
+checks it against the sequential loops.
 """
 
 from __future__ import annotations
