@@ -8,10 +8,8 @@ raster protocol, ...; benchmarks/README.md, "The paper configs against the offic
 A YAML file may name another one to start from with ``_base_: relative/path.yaml``. Command-line
 overrides use dotted keys, ``model.gnn.layers=9``, and are parsed as YAML values.
 
-Unknown keys and values of the wrong type are errors that name the key and list what is valid.
-A YAML key written twice in one mapping is an error (PyYAML would keep the last one silently). Numbers are
-read as YAML 1.2 reads them (PyYAML reads YAML 1.1): ``1e-3`` is a float, ``010`` is ten (not octal 8), ``1:30``
-is text (not base 60, 90), and ``save_config`` quotes the text that would read back as a number. Every
+Unknown keys and values of the wrong type are errors that name the key and list what is valid. The YAML is
+read strictly, as YAML 1.2 reads it, and written so that it reads back the same (config_text.py). Every
 float must be finite, and every numeric key declares its range where it is defined
 (``bounded(default, ge=..., gt=..., le=..., lt=...)``): ``validate_config`` checks them all, so a new
 key gets the check by declaring its bounds (tests/test_config.py checks that every numeric key does).
@@ -25,6 +23,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import datetime
+import functools
 import os
 import types
 import typing
@@ -151,7 +150,7 @@ class DataConfig:
     # "union", the rings (exterior and interior) of the crossings' union (MapTR); "each", each
     # crossing's own ring (StreamMapNet, the field's AV2 setting)
     ped_crossing: Literal["edges", "union", "each"] = "edges"
-    classes: tuple[str, ...] = ("divider", "ped_crossing", "boundary")
+    classes: tuple[str, ...] = MAP_CLASSES
     # distance transform clipped to [0, dt_clip] BEV pixels
     dt_clip: float = bounded(10.0, gt=0, note="BEV pixels; the distance-transform targets are divided by it")
     augment: bool = False  # train-time image augmentation (scale, crop, rotate)
@@ -446,19 +445,20 @@ def parse_overrides(overrides: list[str]) -> dict:
         if "=" not in item:
             raise ConfigError(f"override '{item}' must look like key.sub=value")
         key, raw = item.split("=", 1)
+        key = key.strip()
         try:
             value = load_yaml(raw) if raw != "" else ""
         except (_DuplicateKey, _TooDeep) as e:
             raise ConfigError(f"override '{item if len(item) < 80 else item[:60] + '...'}': {e}") from None
         except yaml.YAMLError:
             value = raw
-        if raw.strip() == "~" and key.strip() in HOME_NOT_NULL:  # YAML's null, but these paths cannot be null:
+        if raw.strip() == "~" and key in HOME_NOT_NULL:  # YAML's null, but these paths cannot be null:
             value = "~"  # the shell's home folder is meant (train.out_dir=~); expand_home reads it
         quoted = raw.strip()[:1] in ("'", '"')  # name="2024": a string is meant
-        if value is None and dataclasses.is_dataclass(_key_type(key.strip())):  # a YAML file's empty section is
-            raise ConfigError(f"override '{item}' gives the section {key.strip()} no keys; set its keys "  # no keys;
-                              f"({key.strip()}.KEY=VALUE)")  # here it would be dropped with no word
-        text_key = _text_key(key.strip())
+        # a YAML file's empty section is no keys; an override's would be dropped with no word
+        if value is None and dataclasses.is_dataclass(_key_type(key)):
+            raise ConfigError(f"override '{item}' gives the section {key} no keys; set its keys ({key}.KEY=VALUE)")
+        text_key = _text_key(key)
         if not quoted and isinstance(value, (bool, int, float, datetime.date)) and text_key:
             value = raw.strip()  # name=2024, train.out_dir=2024-12-05: the text as typed (the shell ate the quotes)
         elif isinstance(value, str) and not quoted and not text_key:  # YAML 1.1 reads "3e-3" as text: a number
@@ -466,7 +466,7 @@ def parse_overrides(overrides: list[str]) -> dict:
                 value = float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "+inf") else value
             except ValueError:
                 pass
-        parts = key.strip().split(".")
+        parts = key.split(".")
         node = nested
         for p in parts[:-1]:
             node = node.setdefault(p, {})
@@ -546,9 +546,7 @@ HOME_NOT_NULL = ("data.dataroot", "train.out_dir")
 def expand_home(cfg: ExperimentConfig) -> None:
     for key in PATH_KEYS:
         section, name = key.rsplit(".", 1)
-        obj = cfg
-        for part in section.split("."):
-            obj = getattr(obj, part)
+        obj = functools.reduce(getattr, section.split("."), cfg)
         value = getattr(obj, name)
         if isinstance(value, str) and (value == "~" or value.startswith("~/")):
             setattr(obj, name, os.path.expanduser(value))
@@ -672,14 +670,5 @@ def save_config(cfg: ExperimentConfig, path: str | Path) -> None:
 
 def diff_configs(a: ExperimentConfig, b: ExperimentConfig) -> list[str]:
     """Dotted keys whose values differ between two configs."""
-    out: list[str] = []
-
-    def walk(x: Any, y: Any, prefix: str) -> None:
-        if isinstance(x, dict):
-            for k in x:
-                walk(x[k], y.get(k), f"{prefix}{k}.")
-        elif x != y:
-            out.append(prefix.rstrip("."))
-
-    walk(config_to_dict(a), config_to_dict(b), "")
-    return out
+    x, y = flatten(config_to_dict(a)), flatten(config_to_dict(b))
+    return [key for key in x if x[key] != y.get(key)]

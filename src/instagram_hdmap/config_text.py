@@ -71,6 +71,10 @@ def _hint(value: Any, tp: Any, key: str) -> str:
     return ""
 
 
+# the Python types a YAML value of a scalar annotation may have (an int is a valid float)
+_ACCEPTS = {type(None): type(None), bool: bool, int: int, float: (int, float), str: str}
+
+
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Check ``value`` against the annotation ``tp``; return it in canonical form (tuples)."""
     origin = typing.get_origin(tp)
@@ -89,10 +93,6 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             except ConfigError:
                 continue
         raise bad
-    if tp is type(None):
-        if value is not None:
-            raise bad
-        return None
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise bad
@@ -102,17 +102,12 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         if len(value) != len(args):
             raise bad
         return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise bad
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad
-        return value
+    accepts = _ACCEPTS.get(tp)
+    if accepts is None:
+        raise ConfigError(f"config key '{key}': unsupported annotation {tp!r}")
+    if not isinstance(value, accepts) or (isinstance(value, bool) and tp is not bool):  # True is an int in Python
+        raise bad
     if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise bad
         try:
             number = float(value)
         except OverflowError:  # an int too large for a float
@@ -120,13 +115,9 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         if not math.isfinite(number):
             raise _NotFinite(f"config key '{key}': expected a finite number, got {value!r}")
         return number
-    if tp is str:
-        if not isinstance(value, str):
-            raise bad
-        if not value.strip():  # `train.out_dir=$OUT` with OUT unset: "" would mean the working directory
-            raise ConfigError(f"config key '{key}' is empty; give a value (an unset shell variable?)")
-        return value
-    raise ConfigError(f"config key '{key}': unsupported annotation {tp!r}")
+    if tp is str and not value.strip():  # `train.out_dir=$OUT` with OUT unset: "" would mean the working directory
+        raise ConfigError(f"config key '{key}' is empty; give a value (an unset shell variable?)")
+    return value
 
 
 def _merge(obj: Any, updates: dict, prefix: str = "") -> Any:
@@ -186,7 +177,6 @@ class _StrictLoader(yaml.SafeLoader):
                 except TypeError:  # an unhashable key: construct_mapping names it
                     pass
         return super().construct_mapping(node, deep)
-
 
     def construct_yaml_int(self, node):
         """YAML 1.2's integers: PyYAML (YAML 1.1) reads ``010`` as octal 8 (``seed: 0123`` was 83) and ``1:30`` as
@@ -306,13 +296,11 @@ def flatten(nested: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-
 def get_key(nested: dict, dotted: str) -> Any:
     """The value at ``dotted`` (``"model.gnn.layers"``) of a nested dict."""
     for part in dotted.split("."):
         nested = nested[part]
     return nested
-
 
 
 def set_key(nested: dict, dotted: str, value: Any) -> None:
@@ -321,7 +309,6 @@ def set_key(nested: dict, dotted: str, value: Any) -> None:
     for part in parents:
         nested = nested[part]
     nested[last] = value
-
 
 
 def is_under(key: str, prefixes) -> bool:

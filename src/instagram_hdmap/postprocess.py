@@ -6,7 +6,7 @@ dustbin.
 1. Neighbours: an undirected graph of degree <= 2 (disjoint paths and cycles) over the real
    vertices. The training targets are bidirectional (assignment.py): the row of an interior vertex
    has two peaks (successor and predecessor, ~1/2 each), a polyline end one peak plus the dustbin,
-   an isolated vertex only the dustbin. Two decoders (``decoder``, config ``model.gnn.decoder``):
+   an isolated vertex only the dustbin. Four decoders (``decoder``, config ``model.gnn.decoder``):
 
    - ``"greedy"`` (default, ``greedy_neighbours``): each pair {i, j} is weighed by the geometric
      mean of its two directions, ``w_ij = (log P_ij + log P_ji) / 2``; pairs with ``w_ij >
@@ -47,21 +47,20 @@ dustbin.
    lower-index end; cycles from their lowest-index vertex in the direction of that vertex's first
    neighbour. Vertices without an edge (none above the threshold, or none accepted) are dropped;
    instances need ``min_vertices`` (default 2) vertices.
-
-Speed: no Python loop over pairs, vertices or graphs. The greedy rule reads the sparse candidate
-pairs only (``candidate_pairs``) and is evaluated in vectorised rounds (``greedy_two_matching``);
-the walks are ranked by pointer jumping; only the output dicts are built one by one.
-``benchmarks/graph_speed.py`` times it (benchmarks/README.md, "Decoding speed"); tests/test_postprocess.py
-checks it against the sequential loops.
 3. Instances: a path becomes a polyline (``closed=False``), a cycle a closed polygon whose first
    point is repeated at the end (``closed=True``, >= 4 points). Class and confidence:
    ``label = argmax_k mean_i p_ik`` (mean class probability over the instance's vertices, a soft
    vote; ``classwise``, ``mutual``, ``official``: the class of its graph) and
    ``score = mean_i p_i,label x mean_i s_i`` with ``s_i = pred_vertex_scores`` (vertex heatmap
    confidence); ``mutual`` and ``official``: ``score = mean_i p_i,label`` (the official confidence).
-   Points are converted to metres in the
-   ego frame by ``geometry.BEVGrid``. Output per sample: a list of ``{"pts", "label", "closed",
-   "score"}`` (docs/conventions.md).
+   Points are converted to metres in the ego frame by ``geometry.BEVGrid``. Output per sample: a
+   list of ``{"pts", "label", "closed", "score"}`` (docs/conventions.md).
+
+Speed: no Python loop over pairs, vertices or graphs. The greedy rule reads the sparse candidate
+pairs only (``candidate_pairs``) and is evaluated in vectorised rounds (``greedy_two_matching``);
+the walks are ranked by pointer jumping; only the output dicts are built one by one.
+``benchmarks/graph_speed.py`` times it (benchmarks/README.md, "Decoding speed"); tests/test_postprocess.py
+checks it against the sequential loops.
 """
 
 from __future__ import annotations
@@ -98,14 +97,16 @@ def decode_options(gnn_cfg, grid: BEVGrid) -> dict:
             "min_vertices": gnn_cfg.min_vertices}
 
 
+def _argmax_classes(class_log_probs: torch.Tensor | None) -> torch.Tensor:
+    """[B, N, K] -> each vertex's argmax class [B, N], for ``same_class_edges``."""
+    if class_log_probs is None:
+        raise ValueError("same_class_edges=True needs class_log_probs")
+    return class_log_probs.argmax(2)
+
+
 @torch.no_grad()
-def vertex_neighbours(
-    log_assignment: torch.Tensor,
-    pred_vertex_mask: torch.Tensor,
-    match_threshold: float = 0.1,
-    class_log_probs: torch.Tensor | None = None,
-    same_class_edges: bool = False,
-) -> torch.Tensor:
+def vertex_neighbours(log_assignment: torch.Tensor, pred_vertex_mask: torch.Tensor, match_threshold: float = 0.1,
+                      class_log_probs: torch.Tensor | None = None, same_class_edges: bool = False) -> torch.Tensor:
     """Mutual best neighbours: [B, N+1, N+1] log assignment, [B, N] mask -> [B, N, 2] int64.
 
     Entry (b, i, k) is the k-th neighbour of vertex i (a real vertex index) or -1; a single
@@ -124,9 +125,7 @@ def vertex_neighbours(
     values, nbr = scores.topk(2, dim=2)  # [B, N, 2]
     cand = (values > math.log(match_threshold)) & mask[:, :, None]
     if same_class_edges:
-        if class_log_probs is None:
-            raise ValueError("same_class_edges=True needs class_log_probs")
-        cls = class_log_probs.argmax(2)  # [B, N]
+        cls = _argmax_classes(class_log_probs)  # [B, N]
         cand = cand & (cls.gather(1, nbr.flatten(1)).view(B, N, 2) == cls[:, :, None])
     nbr = torch.where(cand, nbr, torch.full_like(nbr, -1))
     # mutual: i must be among the candidates of each of its candidates
@@ -139,15 +138,10 @@ def vertex_neighbours(
     return torch.where(swap, nbr.flip(2), nbr)
 
 
-def candidate_pairs(
-    log_assignment: torch.Tensor,
-    pred_vertex_mask: torch.Tensor,
-    match_threshold: float = 0.1,
-    class_log_probs: torch.Tensor | None = None,
-    same_class_edges: bool = False,
-    vertices_px: torch.Tensor | None = None,
-    max_edge_px: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def candidate_pairs(log_assignment: torch.Tensor, pred_vertex_mask: torch.Tensor, match_threshold: float = 0.1,
+                    class_log_probs: torch.Tensor | None = None, same_class_edges: bool = False,
+                    vertices_px: torch.Tensor | None = None, max_edge_px: float | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The pairs the greedy rule may take: ``(b, i, j, w)`` with i < j both real, in row-major order,
     and their weight ``w = (log P_ij + log P_ji) / 2`` above ``log(match_threshold)`` (float32, as
     the dense ``0.5 * (S + S^T)``), within ``max_edge_px`` (exact Euclidean distance of
@@ -172,9 +166,7 @@ def candidate_pairs(
     mask = pred_vertex_mask.bool()
     ok = (w > log_t) & mask[bt, it] & mask[bt, jt]
     if same_class_edges:
-        if class_log_probs is None:
-            raise ValueError("same_class_edges=True needs class_log_probs")
-        cls = class_log_probs.argmax(2)
+        cls = _argmax_classes(class_log_probs)
         ok &= cls[bt, it] == cls[bt, jt]
     ok = ok.cpu().numpy()
     if max_edge_px is not None:
@@ -235,23 +227,13 @@ def greedy_two_matching(graph: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.n
 
 
 @torch.no_grad()
-def greedy_neighbours(
-    log_assignment: torch.Tensor,
-    pred_vertex_mask: torch.Tensor,
-    match_threshold: float = 0.1,
-    class_log_probs: torch.Tensor | None = None,
-    same_class_edges: bool = False,
-    vertices_px: torch.Tensor | None = None,
-    max_edge_px: float | None = None,
-) -> torch.Tensor:
-    """Greedy maximum-weight degree-<=2 edges: [B, N+1, N+1] log assignment, [B, N] mask -> [B, N, 2].
-
-    Same output convention as ``vertex_neighbours`` (symmetric, -1 for none, a single neighbour in
-    slot 0). Pair weight ``(log P_ij + log P_ji) / 2``; pairs above ``log(match_threshold)`` are
-    accepted strongest first while both ends have fewer than two edges (ties: row-major pair order;
-    ``candidate_pairs``, ``greedy_two_matching``). ``same_class_edges`` needs ``class_log_probs``
-    [B, N, K]; ``max_edge_px`` needs ``vertices_px`` [B, N, 2].
-    """
+def greedy_neighbours(log_assignment: torch.Tensor, pred_vertex_mask: torch.Tensor, match_threshold: float = 0.1,
+                      class_log_probs: torch.Tensor | None = None, same_class_edges: bool = False,
+                      vertices_px: torch.Tensor | None = None, max_edge_px: float | None = None) -> torch.Tensor:
+    """Greedy maximum-weight degree-<=2 edges: [B, N+1, N+1] log assignment, [B, N] mask -> [B, N, 2], in
+    ``vertex_neighbours``' convention (symmetric, -1 for none, a single neighbour in slot 0): the greedy rule
+    (``greedy_two_matching``: strongest first, ties row-major) on the pairs of ``candidate_pairs``.
+    ``same_class_edges`` needs ``class_log_probs`` [B, N, K]; ``max_edge_px`` needs ``vertices_px`` [B, N, 2]."""
     B, N = pred_vertex_mask.shape
     b, i, j, w = candidate_pairs(log_assignment, pred_vertex_mask, match_threshold, class_log_probs,
                                  same_class_edges, vertices_px, max_edge_px)
@@ -345,15 +327,8 @@ def graph_options(decode: dict) -> dict:
 
 
 @torch.no_grad()
-def neighbours(
-    outputs: dict,
-    match_threshold: float = 0.1,
-    *,
-    decoder: str = "greedy",
-    same_class_edges: bool = False,
-    max_edge_px: float | None = None,
-    class_min_prob: float = 0.05,
-) -> torch.Tensor:
+def neighbours(outputs: dict, match_threshold: float = 0.1, *, decoder: str = "greedy", same_class_edges: bool = False,
+               max_edge_px: float | None = None, class_min_prob: float = 0.05) -> torch.Tensor:
     """The decoder's neighbour graphs of model outputs: [B, G, N, 2] (module docstring, step 1).
 
     G = 1 for ``greedy`` and ``mutual`` (one graph; mutual's edges join vertices of one argmax class
@@ -376,13 +351,11 @@ def neighbours(
         e, k = np.nonzero(member[b, i] & member[b, j])
         nbr = greedy_two_matching(b[e] * K + k, i[e], j[e], w[e], B * K, N)
         return torch.from_numpy(nbr).view(B, K, N, 2).to(logA.device)
+    if decoder in OFFICIAL_CONFIDENCE and max_edge_px is not None:
+        raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
     if decoder == "mutual":
-        if max_edge_px is not None:
-            raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
         return vertex_neighbours(logA, mask, match_threshold, class_log_probs, True)[:, None]
     if decoder == "official":
-        if max_edge_px is not None:
-            raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
         B, N = mask.shape
         K = class_log_probs.shape[2]
         nbr = torch.full((B, K, N, 2), -1, dtype=torch.long)
@@ -482,17 +455,9 @@ def trace_instances(nbr0: list[int], nbr1: list[int], min_vertices: int = 2) -> 
 
 
 @torch.no_grad()
-def postprocess_batch(
-    outputs: dict,
-    grid: BEVGrid,
-    match_threshold: float = 0.1,
-    same_class_edges: bool = False,
-    min_vertices: int = 2,
-    *,
-    decoder: str = "greedy",
-    max_edge_px: float | None = None,
-    class_min_prob: float = 0.05,
-) -> list[list[dict]]:
+def postprocess_batch(outputs: dict, grid: BEVGrid, match_threshold: float = 0.1, same_class_edges: bool = False,
+                      min_vertices: int = 2, *, decoder: str = "greedy", max_edge_px: float | None = None,
+                      class_min_prob: float = 0.05) -> list[list[dict]]:
     """Model outputs (docs/conventions.md keys) -> per sample, a list of polyline dicts in metres.
 
     Uses ``pred_log_assignment`` [B, N+1, N+1], ``pred_vertices_px`` [B, N, 2], ``pred_vertex_mask``
@@ -522,10 +487,10 @@ def postprocess_batch(
         if max_edge_px is not None:
             raise ValueError("max_edge_px is an option of the greedy and classwise decoders")
         (B, N), G = outputs["pred_vertex_mask"].shape, outputs["pred_class_log_probs"].shape[2]
-        # per sample, one "graph" per class holding its instances in the official order (open)
-        walks = [((b * G + g) * N + np.asarray(w, dtype=np.int64)) for b, sample in enumerate(
-            official_instances(outputs, match_threshold)) for g in range(G) for w, k in sample
-            if k == g and len(w) >= min_vertices]
+        # per sample, one "graph" per class holding its instances in the official order (open; class by class)
+        walks = [(b * G + k) * N + np.asarray(w, dtype=np.int64)
+                 for b, sample in enumerate(official_instances(outputs, match_threshold))
+                 for w, k in sample if len(w) >= min_vertices]
         vertices = np.concatenate(walks) if walks else np.zeros(0, dtype=np.int64)
         lengths = np.array([len(w) for w in walks], dtype=np.int64)
         closed = np.zeros(len(walks), dtype=bool)

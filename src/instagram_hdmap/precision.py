@@ -164,12 +164,10 @@ def _in_bf16(model: nn.Module) -> nn.Module:
 
 
 class Bf16Model(nn.Module):
-    """``model``'s forward under bfloat16 autocast on its device, its outputs (and memory) back in float32.
-
-    The wrapped model is an inference copy (``fold_batchnorm``: eval mode, BatchNorm folded into the convolutions)
-    whose attributes (``is_temporal``, its heads) read through. The weights of its convolutions and linear layers
-    are stored in bfloat16 (what autocast would cast them to at every call), the convolutions' in channels-last
-    order; every other parameter (normalisation, the dustbin score) stays float32."""
+    """``model``'s forward under bfloat16 autocast on its device, its outputs (and memory) back in float32. It wraps
+    an inference copy (``fold_batchnorm``, then ``_in_bf16``: every parameter but the convolutions' and linear
+    layers' stays float32, normalisation and the dustbin score among them), whose attributes (``is_temporal``, its
+    heads) read through."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
@@ -241,16 +239,13 @@ def _example_input(part: nn.Module) -> tuple:
 
 
 def _swap_parts(heads: nn.Module, parts: dict[str, nn.Module]) -> None:
+    """Each part in place of the module of its dotted name in ``heads``; a head's part is the head less its last
+    layer (``_int8_parts``), which it keeps."""
     for name, part in parts.items():
-        if name.startswith("stages."):
-            heads.stages[int(name.split(".")[1])] = part
-        elif name == "up.conv":
-            heads.up.conv = part
-        elif name in ("vertex_head", "distance_head"):
-            last = getattr(heads, name)[-1]
-            setattr(heads, name, nn.Sequential(part, last))
-        else:
-            setattr(heads, name, part)
+        if name in ("vertex_head", "distance_head"):
+            part = nn.Sequential(part, getattr(heads, name)[-1])
+        parent, _, leaf = name.rpartition(".")
+        setattr(heads.get_submodule(parent), leaf, part)  # "stages.0": a ModuleList's item by its name
 
 
 def calibration_batches(cfg, count: int = INT8_CALIBRATION_SAMPLES, device: torch.device | str = "cpu",
