@@ -19,16 +19,13 @@ DIRS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])  # direction
 STOP_LINE_WIDTH = 0.4
 
 
-
 def left_of(code: int) -> np.ndarray:
     """Unit normal to the left of direction `code`."""
     return DIRS[(code + 1) % 4]
 
 
-
 def yaw_of(code: int) -> float:
     return code * math.pi / 2
-
 
 
 def as_polygons(geom) -> list[Polygon]:
@@ -38,7 +35,6 @@ def as_polygons(geom) -> list[Polygon]:
     if isinstance(geom, Polygon):
         return [geom]
     return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
-
 
 
 @dataclass
@@ -52,7 +48,6 @@ class MapStyle:
     sidewalk: float  # sidewalk (walkway) width (m)
     kerb: float  # kerb width (m)
     island_ground: str  # 'grass' | 'paved'
-
 
 
 @dataclass
@@ -77,7 +72,6 @@ class Chain:
         return self.median / 2 + self.n_left * self.lane_width
 
 
-
 @dataclass
 class Stretch:
     chain: Chain
@@ -96,7 +90,6 @@ class Stretch:
     tone: float = 0.0  # asphalt tone offset of this stretch (render)
 
 
-
 @dataclass
 class Lane:
     index: int
@@ -112,7 +105,6 @@ class Lane:
     ref: Ref | None = None
 
 
-
 @dataclass
 class Connector:
     index: int
@@ -121,7 +113,6 @@ class Connector:
     dst: int
     turn: str  # straight | left | right
     ref: Ref | None = None
-
 
 
 @dataclass
@@ -140,7 +131,6 @@ class Junction:
     shape: Polygon | None = None
     segment: Ref | None = None
     tone: float = 0.0
-
 
 
 @dataclass
@@ -164,7 +154,6 @@ class Box:
         return local @ np.array([[c, s], [-s, c]]) + [self.x, self.y]
 
 
-
 @dataclass
 class Markings:
     """Painted world-frame polygons (each [P, 2], not closed) by paint colour."""
@@ -172,7 +161,6 @@ class Markings:
     white: list[np.ndarray] = field(default_factory=list)
     yellow: list[np.ndarray] = field(default_factory=list)
     patches: list[tuple[np.ndarray, float]] = field(default_factory=list)  # (polygon, tone offset)
-
 
 
 @dataclass

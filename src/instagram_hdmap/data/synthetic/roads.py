@@ -18,8 +18,11 @@ exterior and interior (island) rings. Painted markings are drawn from the same p
 from __future__ import annotations
 
 import math
+from itertools import groupby
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from shapely.geometry import LineString, Polygon, box
 from shapely.ops import unary_union
 
@@ -44,26 +47,20 @@ from .network import (
 from .paint import add_patches, paint_stretch, place_props, zebra
 from .paths import Path, Turtle, connect
 
+SEGMENT_TYPE = {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SINGLE_SOLID_YELLOW",
+                "single_white": "SINGLE_SOLID_WHITE"}  # of the centre line, by Chain.divider
+
 # ---------------------------------------------------------------------------------------------
 # Layout
 # ---------------------------------------------------------------------------------------------
 
 
 def _connected(arms: dict, edges: set) -> bool:
-    nodes = list(arms)
-    seen = {nodes[0]}
-    todo = [nodes[0]]
-    adj: dict = {n: [] for n in nodes}
-    for a, b in edges:
-        adj[a].append(b)
-        adj[b].append(a)
-    while todo:
-        n = todo.pop()
-        for m in adj[n]:
-            if m not in seen:
-                seen.add(m)
-                todo.append(m)
-    return len(seen) == len(nodes)
+    """Whether the grid edges join every node of ``arms`` into one network."""
+    index = {n: i for i, n in enumerate(arms)}
+    rows, cols = zip(*((index[a], index[b]) for a, b in edges))
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(index), len(index)))
+    return connected_components(graph, directed=False)[0] == 1
 
 
 def _code(a: tuple[int, int], b: tuple[int, int]) -> int:
@@ -472,11 +469,9 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
         inner_l = (len(st.kinds) - 1 - st.kinds[::-1].index("median")) if ch.median > 0 else centre
         last = len(st.rows) - 1
         # road blocks: one per travel direction (right side, left side)
-        for j0, j1, forward_side in ((0, inner_r, True), (inner_l, last, False)):
+        for j0, j1, right_side in ((0, inner_r, True), (inner_l, last, False)):
             poly = rec.add_polygon(_band_ring(st, j0, j1), (), "road_block")
-            right_side = forward_side
-            forward = right_side == drive_right
-            col_from, col_to = (0, -1) if forward else (-1, 0)
+            col_from, col_to = (0, -1) if right_side == drive_right else (-1, 0)
             rec.add("road_block", polygon_token=poly, from_edge_line_token=_edge_line(rec, st, j0, j1, col_from),
                     to_edge_line_token=_edge_line(rec, st, j0, j1, col_to), road_segment_token=st.segment)
         lane_bands = [(j, j + 1, True) for j in range(0, inner_r)] + [(j, j + 1, False) for j in range(inner_l, last)]
@@ -493,7 +488,6 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
             col_from, col_to = (0, -1) if forward else (-1, 0)
             # left / right boundary of the lane in its direction of travel
             left_row, right_row = (j1, j0) if forward else (j0, j1)
-
             order = slice(None) if forward else slice(None, None, -1)
             lane.ref = rec.add(
                 "lane", polygon_token=poly, lane_type="CAR",
@@ -506,11 +500,9 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
             lanes.append(lane)
         for j, kind in enumerate(st.kinds):
             if kind == "lane":
-                line = rec.add_line(st.ids[j])
-                rec.add("lane_divider", line_token=line,
+                rec.add("lane_divider", line_token=rec.add_line(st.ids[j]),
                         lane_divider_segments=_segments(st.ids[j], "SINGLE_DASHED_WHITE"))
-        row = st.ids[centre]
-        for part in _runs(row):
+        for part in _runs(st.ids[centre]):
             rec.add("road_divider", line_token=rec.add_line(part), road_segment_token=st.segment)
     return lanes
 
@@ -573,12 +565,8 @@ def _add_sidewalks_and_ground(road, road_filled, canvas, style: MapStyle, rec: M
 
 def _segment_type(st: Stretch, j: int) -> str:
     """nuScenes segment_type of the painted line along row j of a stretch."""
-    if st.kinds[j] == "edge":
-        return "NIL"
-    if st.kinds[j] == "lane":
-        return "SINGLE_DASHED_WHITE"
-    return {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SINGLE_SOLID_YELLOW",
-            "single_white": "SINGLE_SOLID_WHITE"}[st.chain.divider]
+    kind = st.kinds[j]
+    return {"edge": "NIL", "lane": "SINGLE_DASHED_WHITE"}.get(kind) or SEGMENT_TYPE[st.chain.divider]
 
 
 def _segments(ids, segment_type: str) -> list[dict]:
@@ -587,17 +575,8 @@ def _segments(ids, segment_type: str) -> list[dict]:
 
 def _runs(row: np.ndarray) -> list[list[int]]:
     """Maximal runs of present ids (>= 0) of length >= 2."""
-    runs, cur = [], []
-    for i in row:
-        if i >= 0:
-            cur.append(int(i))
-        else:
-            if len(cur) >= 2:
-                runs.append(cur)
-            cur = []
-    if len(cur) >= 2:
-        runs.append(cur)
-    return runs
+    runs = [[int(i) for i in run] for present, run in groupby(row, key=lambda i: i >= 0) if present]
+    return [run for run in runs if len(run) >= 2]
 
 
 def _connect_lanes(lanes: list[Lane], junctions, drive_right: bool, rec: MapRecords) -> list[Connector]:
