@@ -81,17 +81,15 @@ from .jobs import (
     MANIFEST,
     SCENE_SPACING_US,
     SceneJob,
-    check_counts,
-    check_occluders,
-    check_workers,
+    check_arguments,
+    plan_scene,
     render_scenes,
-    scene_occluders,
     world_folder,
     write_world,
 )
 from .network import LOCATIONS, RoadNetwork
-from .render import MapPainter, SceneRenderer, scene_look
-from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
+from .render import MapPainter, SceneRenderer
+from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
 FORMAT_VERSION = 2  # 2: the ego origin above the road (ego_height)
@@ -178,9 +176,7 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     ``occluders``: as ``generate_world``'s (the same vehicles in the same scenes)."""
     require_av2("instagram-hdmap synth --format av2")
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
-    workers = check_workers(workers)
-    occluders = check_occluders(occluders)
+    workers, occluders = check_arguments(scenes_train, scenes_val, samples_per_scene, seed, workers, occluders)
     return write_world(world_folder(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
                                                               seed, size, progress, workers, occluders))
 
@@ -236,12 +232,8 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
     same draws in the same order, so the same drive and traffic). Returns {"log_id", "city"}."""
     import pyarrow as pa
 
-    rng = np.random.default_rng([job.seed, 1000 + job.index])
-    drive = plan_drive(net, job.samples, rng)
-    vehicles = place_vehicles(net, drive, rng)
-    vehicles += scene_occluders(job, net, drive, vehicles)
     sensors = av2_rig(job.size)  # ego frame
-    look = scene_look(rng, sensors)
+    rng, drive, vehicles, look = plan_scene(job, net, sensors)
     ego_z = ego_height(job.name)  # the renderer's frame lies on the road, AV2's ego origin this much above it
     on_road = {k: dataclasses.replace(s, translation=(*s.translation[:2], s.translation[2] + ego_z))
                for k, s in sensors.items()}

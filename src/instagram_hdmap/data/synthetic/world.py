@@ -46,19 +46,17 @@ from .jobs import (
     MANIFEST,
     SCENE_SPACING_US,
     SceneJob,
-    check_counts,
-    check_occluders,
-    check_workers,
+    check_arguments,
+    plan_scene,
     render_scenes,
-    scene_occluders,
     world_folder,
     write_world,
 )
 from .map_writer import write_map_json, write_semantic_prior
-from .render import MapPainter, SceneRenderer, scene_look
+from .render import MapPainter, SceneRenderer
 from .roads import LOCATIONS, build_network, map_token
 from .tables import Tables, sample_filename
-from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
+from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S
 
 VERSION = "v1.0-trainval"
 FORMAT = "instagram-hdmap synthetic nuScenes world"
@@ -89,9 +87,7 @@ def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_
     With workers > 1 the worker processes are spawned, so they import the caller's main module:
     a script must call this under ``if __name__ == "__main__":``."""
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
-    workers = check_workers(workers)
-    occluders = check_occluders(occluders)
+    workers, occluders = check_arguments(scenes_train, scenes_val, samples_per_scene, seed, workers, occluders)
     train_names, val_names = scene_names(scenes_train, scenes_val)
     return write_world(world_folder(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
                                                               seed, size, progress, workers, occluders))
@@ -127,11 +123,7 @@ def render_scene_job(job: SceneJob, net, painter: MapPainter, on_sample: Callabl
 def _render_scene(job: SceneJob, net, painter: MapPainter, sensors, on_sample: Callable[[], None]) -> _SceneResult:
     """Plans, renders and writes the camera and lidar files of one scene. Every random draw comes
     from the scene's own generator, in a fixed order, so any process gives the same bytes."""
-    rng = np.random.default_rng([job.seed, 1000 + job.index])
-    drive = plan_drive(net, job.samples, rng)
-    vehicles = place_vehicles(net, drive, rng)
-    vehicles += scene_occluders(job, net, drive, vehicles)
-    look = scene_look(rng, sensors)
+    rng, drive, vehicles, look = plan_scene(job, net, sensors)
     renderer = SceneRenderer(painter, look, sensors, job.size, rng)
     t0 = BASE_TIMESTAMP_US + job.index * SCENE_SPACING_US
     logfile, date = _logfile(job.location, t0)
