@@ -45,7 +45,7 @@ from .network import (
     yaw_of,
 )
 from .paint import add_patches, paint_stretch, place_props, zebra
-from .paths import Path, Turtle, connect
+from .paths import Path, Turtle, connect, principal_angle
 
 SEGMENT_TYPE = {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SINGLE_SOLID_YELLOW",
                 "single_white": "SINGLE_SOLID_WHITE"}  # of the centre line, by Chain.divider
@@ -510,11 +510,7 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
 def _add_crossings_and_stop_lines(stretches: list[Stretch], junctions: dict, rec: MapRecords, markings: Markings,
                                   drive_right: bool) -> None:
     """Each junction arm's zebra crossing (where it has one) and stop line, as records and paint."""
-    chain_of_arm = {}
-    for st in stretches:
-        chain_of_arm[st.start] = st.chain
-        if st.end is not None:
-            chain_of_arm[st.end] = st.chain
+    chain_of_arm = {arm: st.chain for st in stretches for arm in (st.start, st.end) if arm is not None}
     for jn in junctions.values():
         for a in jn.arms:
             ch = chain_of_arm[(jn.node, a)]
@@ -593,15 +589,10 @@ def _connect_lanes(lanes: list[Lane], junctions, drive_right: bool, rec: MapReco
         for a in jn.arms:
             ins = sorted(incoming.get((jn.node, a), []), key=lambda ln: ln.kerb_rank)
             for b in jn.arms:
-                if b == a or not ins:
-                    continue
                 outs = sorted(outgoing.get((jn.node, b), []), key=lambda ln: ln.kerb_rank)
-                if not outs:
+                if b == a or not ins or not outs or connect(ins[0].path.end_pose(), outs[0].path.start_pose()) is None:
                     continue
-                probe = connect(ins[0].path.end_pose(), outs[0].path.start_pose())
-                if probe is None:
-                    continue
-                dyaw = (outs[0].path.start_pose()[2] - ins[0].path.end_pose()[2] + math.pi) % (2 * math.pi) - math.pi
+                dyaw = principal_angle(outs[0].path.start_pose()[2] - ins[0].path.end_pose()[2])
                 turn = "straight" if abs(dyaw) < 0.1 else ("left" if dyaw > 0 else "right")
                 if turn == "straight":
                     pairs = [(i, min(i, len(outs) - 1)) for i in range(len(ins))]

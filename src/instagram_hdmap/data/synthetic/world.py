@@ -17,15 +17,11 @@ from the devkit's ``train`` split and val scenes from ``val``, so
 ``nuscenes.utils.splits.create_splits_scenes()`` places them correctly. Train and val scenes
 drive on the same four maps (as in nuScenes), with different routes, traffic and appearance.
 
-Scenes are independent (each draws from its own generator, seeded by ``(seed, 1000 + index)``),
-so ``workers > 1`` renders them in that many spawned processes: each worker rebuilds the
-(deterministic) road networks it needs, plans, renders and writes the camera and lidar files of
-one scene at a time and sends back only what the tables need; the main process writes the maps
-and builds every table in scene order. The output is byte-identical for any number of workers.
-
-The folder is written next to DIR under a temporary name and renamed at the end; on any
-failure or Ctrl-C the workers are terminated and the temporary folder is removed, so nothing
-half-written is left behind. A failing scene is named in the error.
+Scenes are rendered by the scene-job pool (jobs.py: each scene from its own generator, in this
+process or in ``workers`` spawned ones, byte-identical output; a failure, named, or Ctrl-C leaves
+nothing behind): a worker rebuilds the (deterministic) road networks it needs, writes the camera and
+lidar files of one scene at a time and sends back only what the tables need; the main process writes
+the maps and builds every table in scene order.
 """
 
 from __future__ import annotations
@@ -55,7 +51,7 @@ from .jobs import (
 from .map_writer import write_map_json, write_semantic_prior
 from .render import MapPainter, SceneRenderer
 from .roads import LOCATIONS, build_network, map_token
-from .tables import Tables, sample_filename
+from .tables import SceneRecorder, Tables, sample_filename
 from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S
 
 VERSION = "v1.0-trainval"
@@ -153,7 +149,7 @@ def _render_scene(job: SceneJob, net, painter: MapPainter, sensors, on_sample: C
 
 def _record(tables: Tables, job: SceneJob, result: _SceneResult) -> str:
     """Adds one rendered scene to the tables; returns its log token."""
-    rec = tables.begin_scene(job.index, job.name, result.description, job.location, result.logfile, result.date)
+    rec = SceneRecorder(tables, job.index, job.name, result.description, job.location, result.logfile, result.date)
     for timestamp, pose, anns in zip(result.timestamps, result.poses, result.annotations):
         sample = rec.add_sample(timestamp, pose, job.size)
         for ann in anns:
