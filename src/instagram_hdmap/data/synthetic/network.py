@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 from shapely.geometry import LineString, MultiPolygon, Polygon
 
 from .map_writer import MapRecords, Ref
@@ -30,11 +31,7 @@ def yaw_of(code: int) -> float:
 
 def as_polygons(geom) -> list[Polygon]:
     """The non-empty polygons of a shapely geometry (Polygon, MultiPolygon or collection)."""
-    if geom.is_empty:
-        return []
-    if isinstance(geom, Polygon):
-        return [geom]
-    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
+    return [g for g in shapely.get_parts(geom) if isinstance(g, Polygon) and not g.is_empty]
 
 
 @dataclass

@@ -68,8 +68,7 @@ def add_patches(stretches: list[Stretch], style: MapStyle, out: Markings, rng) -
             s1 = min(st.path.length, s0 + float(rng.uniform(1.0, 4.0)))
             d0 = float(rng.uniform(st.rows[0], st.rows[-1] - 1.0))
             d1 = min(float(st.rows[-1]), d0 + float(rng.uniform(0.8, 3.0)))
-            poly = np.concatenate([_strip(st.path, s0, s1, (d0 + d1) / 2, d1 - d0)])
-            out.patches.append((poly, float(rng.uniform(-20.0, 12.0))))
+            out.patches.append((_strip(st.path, s0, s1, (d0 + d1) / 2, d1 - d0), float(rng.uniform(-20.0, 12.0))))
 
 
 BUILDING_COLORS = [(150, 160, 170), (120, 130, 150), (90, 110, 160), (170, 175, 180), (140, 120, 100),

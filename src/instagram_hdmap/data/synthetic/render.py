@@ -200,11 +200,9 @@ class GroundCanvas:
             else:
                 fill([painter.patches.polys[i]], _bgr(look.asphalt + tone, g))
         for paint_set, color in ((painter.white, look.white), (painter.yellow, look.yellow)):
-            idx = paint_set.select(lo, hi)
             # each polygon separately: fillPoly's even-odd rule must not cancel touching pieces
-            c = _bgr(color, g)
-            for i in idx:
-                fill([paint_set.polys[i]], c, aa=True)
+            for i in paint_set.select(lo, hi):
+                fill([paint_set.polys[i]], _bgr(color, g), aa=True)
         for i in late_patches:
             fill([painter.patches.polys[i]], _bgr(look.asphalt + painter.patches.values[i], g), aa=True)
         fill(painter.kerb, _bgr(look.kerb, g), aa=True)
@@ -335,7 +333,7 @@ class SceneRenderer:
         boxes = [b for b, keep in zip(self.painter.props, near) if keep]
         for b in vehicles:
             boxes += vehicle_render_boxes(b)
-        corners, normals = _render_boxes(boxes) if boxes else (np.zeros((0, 8, 3)), np.zeros((0, 6, 3)))
+        corners, normals = _render_boxes(boxes)
         haze = _bgr(look.haze, g)
         out = {}
         for ch in self.cameras:
@@ -363,8 +361,6 @@ class SceneRenderer:
         return out, points, counts
 
     def _draw_boxes(self, img, cam: Sensor, pose, boxes, corners, normals) -> None:
-        if not boxes:
-            return
         look, g = self.look, self.look.gain
         c, s = math.cos(pose[2]), math.sin(pose[2])
         r_e = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
