@@ -89,6 +89,7 @@ from .jobs import (
 )
 from .network import LOCATIONS, RoadNetwork
 from .render import MapPainter, SceneRenderer
+from .tables import yaw_quaternion
 from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
@@ -108,10 +109,9 @@ ID_LANE, ID_CONNECTOR, ID_CROSSING, ID_AREA = 1_000_000, 5_000_000, 7_000_000, 8
 CUBOID_CATEGORY = {"vehicle.car": "REGULAR_VEHICLE", "vehicle.truck": "BOX_TRUCK", "vehicle.bus.rigid": "BUS"}
 CENTRE_MARK = {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SOLID_YELLOW", "single_white": "SOLID_WHITE"}
 
-# ring camera: (yaw (deg, left of forward), position in the ego frame (m; the road is ego_height below
-# its origin), focal length (px) at full
-# size). AV2-like (the published rig: roof-mounted, about 1.4 m up, 2048 x 1550 images, the front
-# centre camera turned portrait), not one log's calibration. Optical axes level.
+# ring camera: (yaw (deg, left of forward), position in the ego frame (m; the road is ego_height below its
+# origin), focal length (px) at full size). AV2-like (the published rig: roof-mounted, about 1.4 m up,
+# 2048 x 1550 images, the front centre camera turned portrait), not one log's calibration. Optical axes level.
 _RING = {
     "ring_front_center": (0.0, (1.63, 0.0, 1.40), 1765.0),
     "ring_front_left": (45.0, (1.52, 0.26, 1.40), 1685.0),
@@ -187,11 +187,8 @@ def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress
                      occluders) for i, split in enumerate(splits)]
     for split in set(splits):
         (root / split).mkdir()
-    bar = tqdm(total=len(jobs) * samples, desc="synth av2", unit="sweep", disable=not progress)
-    try:
+    with tqdm(total=len(jobs) * samples, desc="synth av2", unit="sweep", disable=not progress) as bar:
         results = render_scenes(jobs, workers, lambda: bar.update(1))
-    finally:
-        bar.close()
     logs = {split: [job.name for job in jobs if job.split == split] for split in ("train", "val")}
     manifest = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "dataset": "av2", "seed": seed, "image_size": list(size),
@@ -210,7 +207,7 @@ def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress
 
 
 def _pose_rows(timestamp: int, pose: np.ndarray, height: float) -> dict:
-    q = Quaternion(axis=[0.0, 0.0, 1.0], angle=float(pose[2])).elements
+    q = yaw_quaternion(pose[2])
     return {"timestamp_ns": timestamp, "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
             "tx_m": float(pose[0]), "ty_m": float(pose[1]), "tz_m": height}
 
@@ -268,7 +265,7 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
             d = centre[:2] - pose[:2]
             if np.hypot(*d) > ANNOTATION_RANGE_M:
                 continue
-            q = Quaternion(axis=[0.0, 0.0, 1.0], angle=float(yaw - pose[2])).elements
+            q = yaw_quaternion(yaw - pose[2])
             width, length, height = v.size
             cuboids.append({"timestamp_ns": timestamp, "track_uuid": log_id(job.seed, 100_000 * (job.index + 1) + i),
                             "category": CUBOID_CATEGORY.get(v.category, "REGULAR_VEHICLE"),

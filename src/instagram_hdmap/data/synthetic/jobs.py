@@ -1,7 +1,7 @@
 """The scene-job pool both world writers share (world.py: nuScenes layout, av2_writer.py: Argoverse 2).
 
     jobs = [SceneJob(index, name, split, location, samples, seed, size, root, render_fn) ...]
-    manifest = write_world(out, force, lambda tmp: ... render_scenes(jobs, workers, nets, tick) ...)
+    manifest = write_world(out, force, lambda tmp: ... render_scenes(jobs, workers, tick, nets) ...)
 
 A ``SceneJob`` is all a process needs to render one scene from scratch, including the writer's
 render function (``render(job, net, painter, on_sample)``, a module-level function, so that a job

@@ -60,7 +60,7 @@ def zebra(c, u, n, t0, t1, lat0, lat1, bar: float = 0.5, gap: float = 0.5) -> li
     return out
 
 
-def add_patches(stretches: list[Stretch], style: MapStyle, out: Markings, rng) -> None:
+def add_patches(stretches: list[Stretch], out: Markings, rng) -> None:
     """Asphalt repair patches (world-fixed): they darken/lighten the road and wear markings away."""
     for st in stretches:
         for _ in range(int(rng.integers(0, 4))):

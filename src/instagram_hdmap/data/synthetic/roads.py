@@ -376,7 +376,7 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
     outer, walkway, ground, kerb = _add_sidewalks_and_ground(road, road_filled, canvas, style, rec, rng)
     for st in stretches:
         paint_stretch(st, style, markings)
-    add_patches(stretches, style, markings, rng)
+    add_patches(stretches, markings, rng)
     net = RoadNetwork(
         location=location, seed=seed, canvas=canvas, drive_right=drive_right, style=style, stretches=stretches,
         junctions=junctions, lanes=lanes, connectors=connectors, records=rec, road=road, road_filled=road_filled,
