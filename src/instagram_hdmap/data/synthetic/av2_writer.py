@@ -19,44 +19,39 @@ so that ``av2``'s readers (``AV2SensorDataLoader``, ``ArgoverseStaticMap.from_ma
 rasters, ``read_city_SE3_ego``, ``PinholeCamera.from_feather``) load it unmodified.
 
 It is the *same world* as ``generate_world``'s with the same arguments: scene ``i`` drives the same
-route through the same road network (world.py's job ``i``, its generator seeded by ``(seed, 1000 + i)``),
-with the same traffic; only the rig (AV2's seven ring cameras, ``av2_rig``), the image sizes and the
-files differ. A log holds one sweep per drive sample, 0.5 s apart: the synthetic logs are already
-sub-sampled (one sweep in five of a 10 Hz log), so read them with ``data.av2_frame_step=1``. Each ring
-camera's timestamp is its sweep's plus a few milliseconds (``CAMERA_DELAY_NS``, within AV2's 25 ms
-matching window); the camera images are rendered at the sweep's pose, and ``city_SE3_egovehicle`` repeats
-that pose at the camera timestamps.
+route through the same road network with the same traffic (``jobs.plan_scene``); only the rig (AV2's
+seven ring cameras, ``av2_rig``), the image sizes and the files differ. A log holds one sweep per drive
+sample, 0.5 s apart: the synthetic logs are already sub-sampled (one sweep in five of a 10 Hz log), so
+read them with ``data.av2_frame_step=1``. Each ring camera's timestamp is its sweep's plus a few
+milliseconds (``CAMERA_DELAY_NS``, within AV2's 25 ms matching window); the images are rendered at the
+sweep's pose, and ``city_SE3_egovehicle`` repeats that pose at the camera timestamps.
 
 Map records (``map_archive``), from the generator's own geometry:
 
-* **lane segments**: every lane of a road stretch, cut into pieces of about ``SEGMENT_LENGTH_M`` along
-  the road, its left / right boundaries (in its direction of travel) being the stretch's row polylines
-  that bound it, with AV2 mark types from the paint the renderer draws there: dashed white between
-  lanes of one direction, the centre line's paint (``DOUBLE_SOLID_YELLOW`` / ``SOLID_YELLOW`` /
-  ``SOLID_WHITE``) between the directions, ``NONE`` along kerbs and median islands. Junction
-  connectors are ``is_intersection`` segments with ``NONE`` marks. Predecessors, successors and
-  neighbours follow the network. The short centre-line paint that leads into a median island's nose
-  bounds no lane, so AV2's lane-segment map has no divider there (the nuScenes map has it as a
-  ``road_divider``).
+* **lane segments**: every lane of a road stretch, cut into pieces of about ``SEGMENT_LENGTH_M``, its
+  left / right boundaries (in its direction of travel) the stretch's row polylines that bound it, with
+  AV2 mark types from the paint the renderer draws there: dashed white between lanes of one direction,
+  the centre line's paint (``DOUBLE_SOLID_YELLOW`` / ``SOLID_YELLOW`` / ``SOLID_WHITE``) between the
+  directions, ``NONE`` along kerbs and median islands. Junction connectors are ``is_intersection``
+  segments with ``NONE`` marks. Predecessors, successors and neighbours follow the network. The short
+  centre-line paint that leads into a median island's nose bounds no lane, so AV2's lane-segment map
+  has no divider there (the nuScenes map has it as a ``road_divider``).
 * **pedestrian crossings**: each zebra's two edges across the road (``edge1``, ``edge2``).
 * **drivable areas**: the road surface (stretch and junction polygons); AV2 drivable areas have no
   holes, so a stretch with a median island is cut in two across the island. Their union is the
   generator's road surface.
 
 Elements are written whole when they come within ``MAP_MARGIN_M`` of the log's drive (AV2's log maps
-are local too). The road is flat at city z = 0 (map z and the ground height raster are 0), and, as in
-real AV2 logs, the ego origin (the rear axle) rides above it: ``ego_height(log)``, 0.33-0.43 m (real
-lidar and ground-height rasters put the road 0.33-0.43 m below AV2's ego origin). So the ego poses have
-``tz_m`` = that height, the rig (``av2_rig``, AV2's ego-frame calibration: cameras 1.40 m above the
-ego origin) is rendered that much higher above the road, and lidar points and cuboids are in the ego
-frame: the road lies at z = -ego_height there, which the dataset reads back from the raster
-(``data.av2.ego_ground_height``).
+are local too). The road is flat at city z = 0 (map z and the ground height raster are 0) and, as in
+real AV2 logs (their lidar and ground-height rasters), the ego origin (the rear axle) rides
+``ego_height(log)``, 0.33-0.43 m, above it: the ego poses have that ``tz_m``, the rig (``av2_rig``,
+AV2's ego-frame calibration: cameras 1.40 m above the ego origin) is rendered that much higher above the
+road, and lidar points and cuboids are in the ego frame, where the road lies at z = -ego_height, which
+the dataset reads back from the raster (``data.av2.ego_ground_height``).
 
-Scenes are rendered by the scene-job pool (jobs.py: one process or ``workers`` spawned ones, byte-identical
-output), written next to DIR under a temporary name and renamed at the end; a failure or Ctrl-C
-leaves nothing behind.
+Scenes are rendered by the scene-job pool (jobs.py: one process or ``workers`` spawned ones,
+byte-identical output, nothing left behind by a failure or Ctrl-C).
 """
-
 from __future__ import annotations
 
 import dataclasses

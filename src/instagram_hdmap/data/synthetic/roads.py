@@ -274,7 +274,8 @@ def _stretch(ch: Chain, path: Path, start, end, rng) -> Stretch:
     offsets = np.array([d for d, _ in rows])
     kinds = [k for _, k in rows]
     return Stretch(chain=ch, path=path, s=s, pts=pts, nrm=nrm, rows=offsets, kinds=kinds,
-                   ids=np.full((len(rows), len(s)), -1), island=island, start=None, end=None)
+                   ids=np.full((len(rows), len(s)), -1), island=island, start=(ch.nodes[0], ch.dirs[0]),
+                   end=None if ch.stub else (ch.nodes[-1], (ch.dirs[-1] + 2) % 4))
 
 
 def _register_stretch(st: Stretch, rec: MapRecords) -> list[int]:
@@ -402,8 +403,6 @@ def _build_stretches(chains, pos, junctions, canvas, rng: np.random.Generator) -
     for ch in chains:
         path, start, end = _chain_path(ch, pos, junctions, canvas, rng)
         st = _stretch(ch, path, start, end, rng)
-        st.start = (ch.nodes[0], ch.dirs[0])
-        st.end = None if ch.stub else (ch.nodes[-1], (ch.dirs[-1] + 2) % 4)
         st.tone = float(rng.uniform(-8.0, 8.0))
         stretches.append(st)
     return stretches
