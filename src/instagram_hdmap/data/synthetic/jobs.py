@@ -221,31 +221,29 @@ def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> di
 
 def render_scenes(jobs: list[SceneJob], workers: int, on_sample: Callable[[], None],
                   nets: dict | None = None) -> dict[int, object]:
-    """Every job's result by job index: in this process (``workers`` <= 1; ``nets``: the road networks
-    by location, built here where absent) or in ``min(workers, len(jobs))`` spawned processes."""
+    """Every job's result by job index: in this process, one scene after the other (``workers`` <= 1;
+    ``nets``: the road networks by location, built here where absent) or in ``min(workers, len(jobs))``
+    spawned processes."""
     workers = min(workers, len(jobs))
     if workers > 1:
         return _render_parallel(jobs, workers, on_sample)
-    nets = dict(nets or {})
+    nets, painters, results = dict(nets or {}), {}, {}
     for job in jobs:
-        if job.location not in nets:
-            nets[job.location] = build_network(job.location, job.seed)
-    return _render_serial(jobs, nets, on_sample)
-
-
-def _render_serial(jobs: list[SceneJob], nets: dict, on_sample) -> dict[int, object]:
-    """All scenes in this process, one after the other."""
-    painters: dict[str, MapPainter] = {}
-    results = {}
-    for job in jobs:
-        net = nets[job.location]
-        if job.location not in painters:
-            painters[job.location] = MapPainter(net, job.seed)
+        net, painter = _map_of(job, nets, painters)
         try:
-            results[job.index] = job.render(job, net, painters[job.location], on_sample)
+            results[job.index] = job.render(job, net, painter, on_sample)
         except Exception as e:  # KeyboardInterrupt passes through untouched
             raise SceneGenerationError(f"{job.describe()} failed: {type(e).__name__}: {e}") from e
     return results
+
+
+def _map_of(job: SceneJob, nets: dict, painters: dict) -> tuple:
+    """The road network and painter of the job's map, built on first use (any process builds the same)."""
+    if job.location not in nets:
+        nets[job.location] = build_network(job.location, job.seed)
+    if job.location not in painters:
+        painters[job.location] = MapPainter(nets[job.location], job.seed)
+    return nets[job.location], painters[job.location]
 
 
 def _worker_main(tasks, events, cv_threads: int) -> None:
@@ -259,11 +257,8 @@ def _worker_main(tasks, events, cv_threads: int) -> None:
     while (job := tasks.get()) is not None:
         events.put(("start", pid, job.index, None))
         try:
-            if job.location not in nets:
-                nets[job.location] = build_network(job.location, job.seed)
-                painters[job.location] = MapPainter(nets[job.location], job.seed)
-            result = job.render(job, nets[job.location], painters[job.location],
-                                lambda: events.put(("sample", pid, job.index, None)))
+            net, painter = _map_of(job, nets, painters)
+            result = job.render(job, net, painter, lambda: events.put(("sample", pid, job.index, None)))
         except BaseException as e:  # anything, so that the main process never waits for a lost scene
             events.put(("error", pid, job.index, (f"{type(e).__name__}: {e}", traceback.format_exc())))
             return
