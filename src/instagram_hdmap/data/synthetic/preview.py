@@ -68,11 +68,8 @@ def map_elements_ego(nusc_map, pose_xy: np.ndarray, yaw: float, radius: float = 
     ex = nusc_map.explorer
     patch = (float(pose_xy[0]), float(pose_xy[1]), 2 * radius, 2 * radius)
     angle = float(np.degrees(yaw))
-    out = {
-        "road_divider": _lines(ex._get_layer_line(patch, angle, "road_divider")),
-        "lane_divider": _lines(ex._get_layer_line(patch, angle, "lane_divider")),
-        "ped_crossing": _lines(ex._get_layer_polygon(patch, angle, "ped_crossing")),
-    }
+    out = {name: _lines(ex._get_layer_line(patch, angle, name)) for name in ("road_divider", "lane_divider")}
+    out["ped_crossing"] = _lines(ex._get_layer_polygon(patch, angle, "ped_crossing"))
     road = unary_union(ex._get_layer_polygon(patch, angle, "road_segment")
                        + ex._get_layer_polygon(patch, angle, "lane"))
     out["boundary"] = _lines([road])

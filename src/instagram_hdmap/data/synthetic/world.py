@@ -95,8 +95,7 @@ def _logfile(location: str, timestamp_us: int) -> tuple[str, str]:
     tz = timezone(timedelta(hours=-4 if boston else 8))
     t = datetime.fromtimestamp(timestamp_us // 1_000_000, tz=timezone.utc).astimezone(tz)
     vehicle = "n008" if boston else "n015"
-    offset = "-0400" if boston else "+0800"
-    return f"{vehicle}-{t:%Y-%m-%d-%H-%M-%S}{offset}", f"{t:%Y-%m-%d}"
+    return f"{vehicle}-{t:%Y-%m-%d-%H-%M-%S%z}", f"{t:%Y-%m-%d}"
 
 
 @dataclass
