@@ -551,9 +551,8 @@ def _add_sidewalks_and_ground(road, road_filled, canvas, style: MapStyle, rec: M
             for piece in as_polygons(walkway.intersection(box(cx, cy, cx + cell, cy + cell))):
                 if piece.area > 0.5:
                     rec.add("walkway", polygon_token=rec.add_shapely(piece, "walkway"))
-    ground = []
-    for piece in as_polygons(canvas_box.difference(outer)):
-        ground.append((piece, str(rng.choice(["grass", "grass", "dirt", "paved"]))))
+    ground = [(piece, str(rng.choice(["grass", "grass", "dirt", "paved"])))
+              for piece in as_polygons(canvas_box.difference(outer))]
     kerb = road.boundary.buffer(style.kerb / 2, quad_segs=2)
     return outer, walkway, ground, kerb
 
