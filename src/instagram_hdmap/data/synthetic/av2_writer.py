@@ -19,44 +19,39 @@ so that ``av2``'s readers (``AV2SensorDataLoader``, ``ArgoverseStaticMap.from_ma
 rasters, ``read_city_SE3_ego``, ``PinholeCamera.from_feather``) load it unmodified.
 
 It is the *same world* as ``generate_world``'s with the same arguments: scene ``i`` drives the same
-route through the same road network (world.py's job ``i``, its generator seeded by ``(seed, 1000 + i)``),
-with the same traffic; only the rig (AV2's seven ring cameras, ``av2_rig``), the image sizes and the
-files differ. A log holds one sweep per drive sample, 0.5 s apart: the synthetic logs are already
-sub-sampled (one sweep in five of a 10 Hz log), so read them with ``data.av2_frame_step=1``. Each ring
-camera's timestamp is its sweep's plus a few milliseconds (``CAMERA_DELAY_NS``, within AV2's 25 ms
-matching window); the camera images are rendered at the sweep's pose, and ``city_SE3_egovehicle`` repeats
-that pose at the camera timestamps.
+route through the same road network with the same traffic (``jobs.plan_scene``); only the rig (AV2's
+seven ring cameras, ``av2_rig``), the image sizes and the files differ. A log holds one sweep per drive
+sample, 0.5 s apart: the synthetic logs are already sub-sampled (one sweep in five of a 10 Hz log), so
+read them with ``data.av2_frame_step=1``. Each ring camera's timestamp is its sweep's plus a few
+milliseconds (``CAMERA_DELAY_NS``, within AV2's 25 ms matching window); the images are rendered at the
+sweep's pose, and ``city_SE3_egovehicle`` repeats that pose at the camera timestamps.
 
 Map records (``map_archive``), from the generator's own geometry:
 
-* **lane segments**: every lane of a road stretch, cut into pieces of about ``SEGMENT_LENGTH_M`` along
-  the road, its left / right boundaries (in its direction of travel) being the stretch's row polylines
-  that bound it, with AV2 mark types from the paint the renderer draws there: dashed white between
-  lanes of one direction, the centre line's paint (``DOUBLE_SOLID_YELLOW`` / ``SOLID_YELLOW`` /
-  ``SOLID_WHITE``) between the directions, ``NONE`` along kerbs and median islands. Junction
-  connectors are ``is_intersection`` segments with ``NONE`` marks. Predecessors, successors and
-  neighbours follow the network. The short centre-line paint that leads into a median island's nose
-  bounds no lane, so AV2's lane-segment map has no divider there (the nuScenes map has it as a
-  ``road_divider``).
+* **lane segments**: every lane of a road stretch, cut into pieces of about ``SEGMENT_LENGTH_M``, its
+  left / right boundaries (in its direction of travel) the stretch's row polylines that bound it, with
+  AV2 mark types from the paint the renderer draws there: dashed white between lanes of one direction,
+  the centre line's paint (``DOUBLE_SOLID_YELLOW`` / ``SOLID_YELLOW`` / ``SOLID_WHITE``) between the
+  directions, ``NONE`` along kerbs and median islands. Junction connectors are ``is_intersection``
+  segments with ``NONE`` marks. Predecessors, successors and neighbours follow the network. The short
+  centre-line paint that leads into a median island's nose bounds no lane, so AV2's lane-segment map
+  has no divider there (the nuScenes map has it as a ``road_divider``).
 * **pedestrian crossings**: each zebra's two edges across the road (``edge1``, ``edge2``).
 * **drivable areas**: the road surface (stretch and junction polygons); AV2 drivable areas have no
   holes, so a stretch with a median island is cut in two across the island. Their union is the
   generator's road surface.
 
 Elements are written whole when they come within ``MAP_MARGIN_M`` of the log's drive (AV2's log maps
-are local too). The road is flat at city z = 0 (map z and the ground height raster are 0), and, as in
-real AV2 logs, the ego origin (the rear axle) rides above it: ``ego_height(log)``, 0.33-0.43 m (real
-lidar and ground-height rasters put the road 0.33-0.43 m below AV2's ego origin). So the ego poses have
-``tz_m`` = that height, the rig (``av2_rig``, AV2's ego-frame calibration: cameras 1.40 m above the
-ego origin) is rendered that much higher above the road, and lidar points and cuboids are in the ego
-frame: the road lies at z = -ego_height there, which the dataset reads back from the raster
-(``data.av2.ego_ground_height``).
+are local too). The road is flat at city z = 0 (map z and the ground height raster are 0) and, as in
+real AV2 logs (their lidar and ground-height rasters), the ego origin (the rear axle) rides
+``ego_height(log)``, 0.33-0.43 m, above it: the ego poses have that ``tz_m``, the rig (``av2_rig``,
+AV2's ego-frame calibration: cameras 1.40 m above the ego origin) is rendered that much higher above the
+road, and lidar points and cuboids are in the ego frame, where the road lies at z = -ego_height, which
+the dataset reads back from the raster (``data.av2.ego_ground_height``).
 
-Scenes are rendered by the scene-job pool (jobs.py: one process or ``workers`` spawned ones, byte-identical
-output), written next to DIR under a temporary name and renamed at the end; a failure or Ctrl-C
-leaves nothing behind.
+Scenes are rendered by the scene-job pool (jobs.py: one process or ``workers`` spawned ones,
+byte-identical output, nothing left behind by a failure or Ctrl-C).
 """
-
 from __future__ import annotations
 
 import dataclasses
@@ -81,17 +76,16 @@ from .jobs import (
     MANIFEST,
     SCENE_SPACING_US,
     SceneJob,
-    check_counts,
-    check_occluders,
-    check_workers,
+    check_arguments,
+    plan_scene,
     render_scenes,
-    scene_occluders,
     world_folder,
     write_world,
 )
 from .network import LOCATIONS, RoadNetwork
-from .render import MapPainter, SceneRenderer, scene_look
-from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
+from .render import MapPainter, SceneRenderer
+from .tables import yaw_quaternion
+from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S
 
 FORMAT = "instagram-hdmap synthetic Argoverse 2 sensor world"
 FORMAT_VERSION = 2  # 2: the ego origin above the road (ego_height)
@@ -110,10 +104,9 @@ ID_LANE, ID_CONNECTOR, ID_CROSSING, ID_AREA = 1_000_000, 5_000_000, 7_000_000, 8
 CUBOID_CATEGORY = {"vehicle.car": "REGULAR_VEHICLE", "vehicle.truck": "BOX_TRUCK", "vehicle.bus.rigid": "BUS"}
 CENTRE_MARK = {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SOLID_YELLOW", "single_white": "SOLID_WHITE"}
 
-# ring camera: (yaw (deg, left of forward), position in the ego frame (m; the road is ego_height below
-# its origin), focal length (px) at full
-# size). AV2-like (the published rig: roof-mounted, about 1.4 m up, 2048 x 1550 images, the front
-# centre camera turned portrait), not one log's calibration. Optical axes level.
+# ring camera: (yaw (deg, left of forward), position in the ego frame (m; the road is ego_height below its
+# origin), focal length (px) at full size). AV2-like (the published rig: roof-mounted, about 1.4 m up,
+# 2048 x 1550 images, the front centre camera turned portrait), not one log's calibration. Optical axes level.
 _RING = {
     "ring_front_center": (0.0, (1.63, 0.0, 1.40), 1765.0),
     "ring_front_left": (45.0, (1.52, 0.26, 1.40), 1685.0),
@@ -178,9 +171,7 @@ def generate_av2_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_
     ``occluders``: as ``generate_world``'s (the same vehicles in the same scenes)."""
     require_av2("instagram-hdmap synth --format av2")
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
-    workers = check_workers(workers)
-    occluders = check_occluders(occluders)
+    workers, occluders = check_arguments(scenes_train, scenes_val, samples_per_scene, seed, workers, occluders)
     return write_world(world_folder(out), force, lambda tmp: _write(tmp, scenes_train, scenes_val, samples_per_scene,
                                                               seed, size, progress, workers, occluders))
 
@@ -191,11 +182,8 @@ def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress
                      occluders) for i, split in enumerate(splits)]
     for split in set(splits):
         (root / split).mkdir()
-    bar = tqdm(total=len(jobs) * samples, desc="synth av2", unit="sweep", disable=not progress)
-    try:
+    with tqdm(total=len(jobs) * samples, desc="synth av2", unit="sweep", disable=not progress) as bar:
         results = render_scenes(jobs, workers, lambda: bar.update(1))
-    finally:
-        bar.close()
     logs = {split: [job.name for job in jobs if job.split == split] for split in ("train", "val")}
     manifest = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "dataset": "av2", "seed": seed, "image_size": list(size),
@@ -214,7 +202,7 @@ def _write(root: FsPath, scenes_train, scenes_val, samples, seed, size, progress
 
 
 def _pose_rows(timestamp: int, pose: np.ndarray, height: float) -> dict:
-    q = Quaternion(axis=[0.0, 0.0, 1.0], angle=float(pose[2])).elements
+    q = yaw_quaternion(pose[2])
     return {"timestamp_ns": timestamp, "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
             "tx_m": float(pose[0]), "ty_m": float(pose[1]), "tz_m": height}
 
@@ -236,12 +224,8 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
     same draws in the same order, so the same drive and traffic). Returns {"log_id", "city"}."""
     import pyarrow as pa
 
-    rng = np.random.default_rng([job.seed, 1000 + job.index])
-    drive = plan_drive(net, job.samples, rng)
-    vehicles = place_vehicles(net, drive, rng)
-    vehicles += scene_occluders(job, net, drive, vehicles)
     sensors = av2_rig(job.size)  # ego frame
-    look = scene_look(rng, sensors)
+    rng, drive, vehicles, look = plan_scene(job, net, sensors)
     ego_z = ego_height(job.name)  # the renderer's frame lies on the road, AV2's ego origin this much above it
     on_road = {k: dataclasses.replace(s, translation=(*s.translation[:2], s.translation[2] + ego_z))
                for k, s in sensors.items()}
@@ -276,7 +260,7 @@ def render_log(job: SceneJob, net: RoadNetwork, painter: MapPainter, on_sample) 
             d = centre[:2] - pose[:2]
             if np.hypot(*d) > ANNOTATION_RANGE_M:
                 continue
-            q = Quaternion(axis=[0.0, 0.0, 1.0], angle=float(yaw - pose[2])).elements
+            q = yaw_quaternion(yaw - pose[2])
             width, length, height = v.size
             cuboids.append({"timestamp_ns": timestamp, "track_uuid": log_id(job.seed, 100_000 * (job.index + 1) + i),
                             "category": CUBOID_CATEGORY.get(v.category, "REGULAR_VEHICLE"),

@@ -20,7 +20,6 @@ OVERLAP_MAX_REACH_M = 8.0
 CITY_JUNCTION_P = 0.5  # a 4-way junction has a crossing on every arm with this probability (else 0.75 each)
 
 
-
 def overlapping_corners(codes: list[int], crossing: dict[int, bool], fillet: dict[int, float],
                          rng: np.random.Generator) -> dict[int, tuple[float, float]]:
     """The junction corners whose two arms (a, a + 1) both have a crossing (every arm of a 4-way junction
@@ -42,7 +41,6 @@ def overlapping_corners(codes: list[int], crossing: dict[int, bool], fillet: dic
     return out
 
 
-
 def drop_far_overlaps(jn: Junction) -> None:
     """Keep the overlapping corners of ``jn`` whose two crossings reach each other within
     ``OVERLAP_MAX_REACH_M`` past the kerb."""
@@ -54,13 +52,11 @@ def drop_far_overlaps(jn: Junction) -> None:
     jn.overlap = {a: d for a, d in jn.overlap.items() if reach(a) <= OVERLAP_MAX_REACH_M}
 
 
-
 def crossing_band(jn: Junction, a: int) -> tuple[float, float]:
     """(t0, t1): distances from the junction centre along arm a between which its crossing lies (4 m
     wide, 0.8 m before the stop line)."""
     t1 = jn.D[a] - 0.3 - STOP_LINE_WIDTH - 0.8
     return t1 - 4.0, t1
-
 
 
 def crossing_corners(jn: Junction, a: int) -> list[tuple[float, float]]:

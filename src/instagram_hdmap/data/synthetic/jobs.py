@@ -1,7 +1,7 @@
 """The scene-job pool both world writers share (world.py: nuScenes layout, av2_writer.py: Argoverse 2).
 
     jobs = [SceneJob(index, name, split, location, samples, seed, size, root, render_fn) ...]
-    manifest = write_world(out, force, lambda tmp: ... render_scenes(jobs, workers, nets, tick) ...)
+    manifest = write_world(out, force, lambda tmp: ... render_scenes(jobs, workers, tick, nets) ...)
 
 A ``SceneJob`` is all a process needs to render one scene from scratch, including the writer's
 render function (``render(job, net, painter, on_sample)``, a module-level function, so that a job
@@ -35,9 +35,9 @@ import numpy as np
 
 from ...config import UserError
 from ...files import atomic_path, check_no_broken_link, claim_world, remove_stale_temporaries
-from .render import MapPainter
+from .render import MapPainter, scene_look
 from .roads import build_network
-from .traffic import place_occluders
+from .traffic import place_occluders, place_vehicles, plan_drive
 
 MANIFEST = "world.json"
 BASE_TIMESTAMP_US = 1532402927647951  # 2018-07-24 03:28:47 UTC, the first mini scene; no wall clock
@@ -86,8 +86,10 @@ class SceneJob:
 # --- arguments ------------------------------------------------------------------------------------
 
 
-def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int, seed: int = 0) -> None:
-    """The arguments of a world: scene and sample counts, and the seed (numpy's generators take 0 .. 2**63)."""
+def check_arguments(scenes_train: int, scenes_val: int, samples_per_scene: int, seed: int, workers,
+                    occluders) -> tuple[int, float]:
+    """The arguments of a world: scene and sample counts, the seed (numpy's generators take 0 .. 2**63),
+    --workers (0: one per available CPU core) and --occluders; returns (worker processes, occluder density)."""
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2**63:
         raise UserError(f"--seed {seed}: a world's seed is a whole number from 0 to 2**63 - 1")
     for flag, value in (("--scenes-train", scenes_train), ("--scenes-val", scenes_val),
@@ -100,6 +102,13 @@ def check_counts(scenes_train: int, scenes_val: int, samples_per_scene: int, see
         raise UserError("zero scenes requested: give --scenes-train and/or --scenes-val of at least 1")
     if samples_per_scene < 1:
         raise UserError(f"--samples-per-scene {samples_per_scene}: a scene needs at least 1 sample")
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 0:
+        raise UserError(f"--workers {workers}: expected a whole number >= 0 (1: render in this process, "
+                        "N: N worker processes, 0: one per CPU core)")
+    if isinstance(occluders, bool) or not isinstance(occluders, numbers.Real) or not 0 <= occluders <= 1:
+        raise UserError(f"--occluders {occluders}: expected a density in [0, 1] (0: today's traffic only, 1: a "
+                        "parked row along every free kerb near the drive and a truck ahead in every scene)")
+    return int(workers) or available_cpus(), float(occluders)
 
 
 def available_cpus() -> int:
@@ -111,28 +120,18 @@ def available_cpus() -> int:
     return os.cpu_count() or 1
 
 
-def check_occluders(occluders) -> float:
-    """--occluders as a density in [0, 1]."""
-    if isinstance(occluders, bool) or not isinstance(occluders, numbers.Real) or not 0 <= occluders <= 1:
-        raise UserError(f"--occluders {occluders}: expected a density in [0, 1] (0: today's traffic only, 1: a "
-                        "parked row along every free kerb near the drive and a truck ahead in every scene)")
-    return float(occluders)
-
-
-def scene_occluders(job: SceneJob, net, drive, vehicles: list) -> list:
-    """The occluders of one scene (``traffic.place_occluders``) from a generator of their own, seeded by
-    (seed, 2000 + scene): the scene's own stream of draws is untouched, and density 0 draws nothing."""
-    if job.occluders <= 0:
-        return []
-    return place_occluders(net, drive, np.random.default_rng([job.seed, 2000 + job.index]), job.occluders, vehicles)
-
-
-def check_workers(workers) -> int:
-    """--workers as a process count: 0 means one per available CPU core."""
-    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 0:
-        raise UserError(f"--workers {workers}: expected a whole number >= 0 (1: render in this process, "
-                        "N: N worker processes, 0: one per CPU core)")
-    return int(workers) or available_cpus()
+def plan_scene(job: SceneJob, net, sensors: dict) -> tuple:
+    """The scene's generator, seeded by (seed, 1000 + scene), after drawing its drive, traffic and look in
+    this order, which both writers share (so scene i is the same in both layouts); returns (rng, drive,
+    vehicles, look). The occluders (``traffic.place_occluders``) come from a generator of their own, seeded
+    by (seed, 2000 + scene): the scene's own stream of draws is untouched, and density 0 draws nothing."""
+    rng = np.random.default_rng([job.seed, 1000 + job.index])
+    drive = plan_drive(net, job.samples, rng)
+    vehicles = place_vehicles(net, drive, rng)
+    if job.occluders > 0:
+        vehicles += place_occluders(net, drive, np.random.default_rng([job.seed, 2000 + job.index]), job.occluders,
+                                    vehicles)
+    return rng, drive, vehicles, scene_look(rng, sensors)
 
 
 # --- the output folder ------------------------------------------------------------------------------
@@ -222,31 +221,29 @@ def write_world(out: FsPath, force: bool, write: Callable[[FsPath], dict]) -> di
 
 def render_scenes(jobs: list[SceneJob], workers: int, on_sample: Callable[[], None],
                   nets: dict | None = None) -> dict[int, object]:
-    """Every job's result by job index: in this process (``workers`` <= 1; ``nets``: the road networks
-    by location, built here where absent) or in ``min(workers, len(jobs))`` spawned processes."""
+    """Every job's result by job index: in this process, one scene after the other (``workers`` <= 1;
+    ``nets``: the road networks by location, built here where absent) or in ``min(workers, len(jobs))``
+    spawned processes."""
     workers = min(workers, len(jobs))
     if workers > 1:
         return _render_parallel(jobs, workers, on_sample)
-    nets = dict(nets or {})
+    nets, painters, results = dict(nets or {}), {}, {}
     for job in jobs:
-        if job.location not in nets:
-            nets[job.location] = build_network(job.location, job.seed)
-    return _render_serial(jobs, nets, on_sample)
-
-
-def _render_serial(jobs: list[SceneJob], nets: dict, on_sample) -> dict[int, object]:
-    """All scenes in this process, one after the other."""
-    painters: dict[str, MapPainter] = {}
-    results = {}
-    for job in jobs:
-        net = nets[job.location]
-        if job.location not in painters:
-            painters[job.location] = MapPainter(net, job.seed)
+        net, painter = _map_of(job, nets, painters)
         try:
-            results[job.index] = job.render(job, net, painters[job.location], on_sample)
+            results[job.index] = job.render(job, net, painter, on_sample)
         except Exception as e:  # KeyboardInterrupt passes through untouched
             raise SceneGenerationError(f"{job.describe()} failed: {type(e).__name__}: {e}") from e
     return results
+
+
+def _map_of(job: SceneJob, nets: dict, painters: dict) -> tuple:
+    """The road network and painter of the job's map, built on first use (any process builds the same)."""
+    if job.location not in nets:
+        nets[job.location] = build_network(job.location, job.seed)
+    if job.location not in painters:
+        painters[job.location] = MapPainter(nets[job.location], job.seed)
+    return nets[job.location], painters[job.location]
 
 
 def _worker_main(tasks, events, cv_threads: int) -> None:
@@ -260,11 +257,8 @@ def _worker_main(tasks, events, cv_threads: int) -> None:
     while (job := tasks.get()) is not None:
         events.put(("start", pid, job.index, None))
         try:
-            if job.location not in nets:
-                nets[job.location] = build_network(job.location, job.seed)
-                painters[job.location] = MapPainter(nets[job.location], job.seed)
-            result = job.render(job, nets[job.location], painters[job.location],
-                                lambda: events.put(("sample", pid, job.index, None)))
+            net, painter = _map_of(job, nets, painters)
+            result = job.render(job, net, painter, lambda: events.put(("sample", pid, job.index, None)))
         except BaseException as e:  # anything, so that the main process never waits for a lost scene
             events.put(("error", pid, job.index, (f"{type(e).__name__}: {e}", traceback.format_exc())))
             return

@@ -116,30 +116,19 @@ class MapRecords:
 
     def to_json(self, canvas_edge: tuple[float, float]) -> dict:
         tok = self.token
+        node = [tok(Ref("node", i)) for i in range(len(self.nodes))]
         out: dict = {"version": MAP_VERSION}
-        out["polygon"] = [
-            {
-                "token": tok(Ref("polygon", i)),
-                "exterior_node_tokens": [tok(Ref("node", n)) for n in ext],
-                "holes": [{"node_tokens": [tok(Ref("node", n)) for n in h]} for h in holes],
-            }
-            for i, (ext, holes) in enumerate(self.polygons)
-        ]
-        out["line"] = [
-            {"token": tok(Ref("line", i)), "node_tokens": [tok(Ref("node", n)) for n in ids]}
-            for i, ids in enumerate(self.lines)
-        ]
-        out["node"] = [{"token": tok(Ref("node", i)), "x": x, "y": y} for i, (x, y) in enumerate(self.nodes)]
+        out["polygon"] = [{"token": tok(Ref("polygon", i)), "exterior_node_tokens": [node[n] for n in ext],
+                           "holes": [{"node_tokens": [node[n] for n in h]} for h in holes]}
+                          for i, (ext, holes) in enumerate(self.polygons)]
+        out["line"] = [{"token": tok(Ref("line", i)), "node_tokens": [node[n] for n in ids]}
+                       for i, ids in enumerate(self.lines)]
+        out["node"] = [{"token": node[i], "x": x, "y": y} for i, (x, y) in enumerate(self.nodes)]
         for layer in RECORD_LAYERS:
-            out[layer] = [
-                {"token": tok(Ref(layer, i)), **self._resolve(rec)} for i, rec in enumerate(self.layers[layer])
-            ]
+            out[layer] = [{"token": tok(Ref(layer, i)), **self._resolve(r)} for i, r in enumerate(self.layers[layer])]
         out["canvas_edge"] = [float(canvas_edge[0]), float(canvas_edge[1])]
         out["arcline_path_3"] = {tok(ref): paths for ref, paths in self.arclines.items()}
-        out["connectivity"] = {
-            tok(ref): {"incoming": [tok(r) for r in c["incoming"]], "outgoing": [tok(r) for r in c["outgoing"]]}
-            for ref, c in self.connectivity.items()
-        }
+        out["connectivity"] = {tok(ref): self._resolve(c) for ref, c in self.connectivity.items()}
         return out
 
 

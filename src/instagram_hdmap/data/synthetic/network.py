@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 from shapely.geometry import LineString, MultiPolygon, Polygon
 
 from .map_writer import MapRecords, Ref
@@ -19,26 +20,18 @@ DIRS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])  # direction
 STOP_LINE_WIDTH = 0.4
 
 
-
 def left_of(code: int) -> np.ndarray:
     """Unit normal to the left of direction `code`."""
     return DIRS[(code + 1) % 4]
-
 
 
 def yaw_of(code: int) -> float:
     return code * math.pi / 2
 
 
-
 def as_polygons(geom) -> list[Polygon]:
     """The non-empty polygons of a shapely geometry (Polygon, MultiPolygon or collection)."""
-    if geom.is_empty:
-        return []
-    if isinstance(geom, Polygon):
-        return [geom]
-    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
-
+    return [g for g in shapely.get_parts(geom) if isinstance(g, Polygon) and not g.is_empty]
 
 
 @dataclass
@@ -52,7 +45,6 @@ class MapStyle:
     sidewalk: float  # sidewalk (walkway) width (m)
     kerb: float  # kerb width (m)
     island_ground: str  # 'grass' | 'paved'
-
 
 
 @dataclass
@@ -77,7 +69,6 @@ class Chain:
         return self.median / 2 + self.n_left * self.lane_width
 
 
-
 @dataclass
 class Stretch:
     chain: Chain
@@ -96,7 +87,6 @@ class Stretch:
     tone: float = 0.0  # asphalt tone offset of this stretch (render)
 
 
-
 @dataclass
 class Lane:
     index: int
@@ -112,7 +102,6 @@ class Lane:
     ref: Ref | None = None
 
 
-
 @dataclass
 class Connector:
     index: int
@@ -121,7 +110,6 @@ class Connector:
     dst: int
     turn: str  # straight | left | right
     ref: Ref | None = None
-
 
 
 @dataclass
@@ -140,7 +128,6 @@ class Junction:
     shape: Polygon | None = None
     segment: Ref | None = None
     tone: float = 0.0
-
 
 
 @dataclass
@@ -164,7 +151,6 @@ class Box:
         return local @ np.array([[c, s], [-s, c]]) + [self.x, self.y]
 
 
-
 @dataclass
 class Markings:
     """Painted world-frame polygons (each [P, 2], not closed) by paint colour."""
@@ -172,7 +158,6 @@ class Markings:
     white: list[np.ndarray] = field(default_factory=list)
     yellow: list[np.ndarray] = field(default_factory=list)
     patches: list[tuple[np.ndarray, float]] = field(default_factory=list)  # (polygon, tone offset)
-
 
 
 @dataclass

@@ -24,7 +24,6 @@ def _strip(path: Path, s0: float, s1: float, d: float, width: float) -> np.ndarr
     return np.concatenate([left, right[::-1]])
 
 
-
 def paint_stretch(st: Stretch, style: MapStyle, out: Markings) -> None:
     w = style.line_width
     for j, kind in enumerate(st.kinds):
@@ -49,7 +48,6 @@ def paint_stretch(st: Stretch, style: MapStyle, out: Markings) -> None:
             out.white.append(_strip(st.path, s0, s1, 0.0, w))
 
 
-
 def zebra(c, u, n, t0, t1, lat0, lat1, bar: float = 0.5, gap: float = 0.5) -> list[np.ndarray]:
     span = lat1 - lat0 - 0.4
     count = int((span + gap) // (bar + gap))
@@ -62,8 +60,7 @@ def zebra(c, u, n, t0, t1, lat0, lat1, bar: float = 0.5, gap: float = 0.5) -> li
     return out
 
 
-
-def add_patches(stretches: list[Stretch], style: MapStyle, out: Markings, rng) -> None:
+def add_patches(stretches: list[Stretch], out: Markings, rng) -> None:
     """Asphalt repair patches (world-fixed): they darken/lighten the road and wear markings away."""
     for st in stretches:
         for _ in range(int(rng.integers(0, 4))):
@@ -71,18 +68,14 @@ def add_patches(stretches: list[Stretch], style: MapStyle, out: Markings, rng) -
             s1 = min(st.path.length, s0 + float(rng.uniform(1.0, 4.0)))
             d0 = float(rng.uniform(st.rows[0], st.rows[-1] - 1.0))
             d1 = min(float(st.rows[-1]), d0 + float(rng.uniform(0.8, 3.0)))
-            poly = np.concatenate([_strip(st.path, s0, s1, (d0 + d1) / 2, d1 - d0)])
-            out.patches.append((poly, float(rng.uniform(-20.0, 12.0))))
-
+            out.patches.append((_strip(st.path, s0, s1, (d0 + d1) / 2, d1 - d0), float(rng.uniform(-20.0, 12.0))))
 
 
 BUILDING_COLORS = [(150, 160, 170), (120, 130, 150), (90, 110, 160), (170, 175, 180), (140, 120, 100),
                    (200, 190, 170), (110, 100, 95), (160, 140, 120)]
 
 
-
 TREE_COLORS = [(40, 90, 50), (30, 80, 60), (50, 110, 70), (35, 70, 45)]
-
 
 
 def place_props(net: RoadNetwork, outer, rng) -> list[Box]:
@@ -130,7 +123,6 @@ def place_props(net: RoadNetwork, outer, rng) -> list[Box]:
                                          float(rng.uniform(4.5, 7.5)), (120, 125, 128), "pole"))
                 s += float(rng.uniform(12.0, 30.0))
     return props
-
 
 
 def square(c: np.ndarray, yaw: float, size: float) -> Polygon:

@@ -118,13 +118,8 @@ class Path:
                 shape, radius, seg = "LSR", STRAIGHT_RADIUS, [0.0, p.length, 0.0]
             else:
                 shape, radius, seg = ("LSL" if p.k > 0 else "RSR"), 1.0 / abs(p.k), [p.length, 0.0, 0.0]
-            out.append({
-                "start_pose": [p.x, p.y, principal_angle(p.yaw)],
-                "end_pose": [x1, y1, principal_angle(yaw1)],
-                "shape": shape,
-                "radius": radius,
-                "segment_length": seg,
-            })
+            out.append({"start_pose": [p.x, p.y, principal_angle(p.yaw)], "end_pose": [x1, y1, principal_angle(yaw1)],
+                        "shape": shape, "radius": radius, "segment_length": seg})
         return out
 
 

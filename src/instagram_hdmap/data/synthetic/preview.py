@@ -8,12 +8,15 @@ nuScenes dataroot (real or synthetic).
 
 from __future__ import annotations
 
+from itertools import groupby
+from operator import itemgetter
 from pathlib import Path as FsPath
 
 import numpy as np
+import shapely
 from pyquaternion import Quaternion
 from shapely import segmentize
-from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon
+from shapely.geometry import LineString, MultiPolygon, Polygon
 from shapely.ops import unary_union
 
 from ...config import UserError
@@ -51,18 +54,12 @@ def _version_of(dataroot: FsPath) -> str:
 
 
 def _lines(geoms) -> list[np.ndarray]:
+    """Polylines [P, 2] of lines, and of polygons' rings (a collection: its lines only)."""
     out = []
     for g in geoms:
-        if isinstance(g, (LineString,)):
-            parts = [g]
-        elif isinstance(g, MultiLineString):
-            parts = list(g.geoms)
-        elif isinstance(g, (Polygon, MultiPolygon)):
-            polys = [g] if isinstance(g, Polygon) else list(g.geoms)
-            parts = [LineString(r.coords) for p in polys for r in [p.exterior, *p.interiors]]
-        else:
-            parts = [p for p in getattr(g, "geoms", []) if isinstance(p, LineString)]
-        out += [np.asarray(p.coords)[:, :2] for p in parts if not p.is_empty and len(p.coords) >= 2]
+        parts = shapely.get_parts(g.boundary if isinstance(g, (Polygon, MultiPolygon)) else g)
+        out += [np.asarray(p.coords)[:, :2] for p in parts
+                if isinstance(p, LineString) and not p.is_empty and len(p.coords) >= 2]
     return out
 
 
@@ -71,11 +68,8 @@ def map_elements_ego(nusc_map, pose_xy: np.ndarray, yaw: float, radius: float = 
     ex = nusc_map.explorer
     patch = (float(pose_xy[0]), float(pose_xy[1]), 2 * radius, 2 * radius)
     angle = float(np.degrees(yaw))
-    out = {
-        "road_divider": _lines(ex._get_layer_line(patch, angle, "road_divider")),
-        "lane_divider": _lines(ex._get_layer_line(patch, angle, "lane_divider")),
-        "ped_crossing": _lines(ex._get_layer_polygon(patch, angle, "ped_crossing")),
-    }
+    out = {name: _lines(ex._get_layer_line(patch, angle, name)) for name in ("road_divider", "lane_divider")}
+    out["ped_crossing"] = _lines(ex._get_layer_polygon(patch, angle, "ped_crossing"))
     road = unary_union(ex._get_layer_polygon(patch, angle, "road_segment")
                        + ex._get_layer_polygon(patch, angle, "lane"))
     out["boundary"] = _lines([road])
@@ -87,19 +81,9 @@ def _project(cam_rot: np.ndarray, cam_trans: np.ndarray, k: np.ndarray, line: np
     dense = np.asarray(segmentize(LineString(line), 0.5).coords)[:, :2]
     p = np.concatenate([dense, np.zeros((len(dense), 1))], axis=1)
     pc = (p - cam_trans) @ cam_rot  # = R^T (p - t)
-    front = pc[:, 2] > 0.5
-    pieces, cur = [], []
-    for ok, q in zip(front, pc):
-        if ok:
-            cur.append(q)
-        elif len(cur) >= 2:
-            pieces.append(np.array(cur))
-            cur = []
-        else:
-            cur = []
-    if len(cur) >= 2:
-        pieces.append(np.array(cur))
-    return [(q[:, :2] / q[:, 2:3]) @ k[:2, :2].T + k[:2, 2] for q in pieces]
+    runs = [np.array([q for _, q in run]) for front, run in groupby(zip(pc[:, 2] > 0.5, pc), key=itemgetter(0))
+            if front]
+    return [(q[:, :2] / q[:, 2:3]) @ k[:2, :2].T + k[:2, 2] for q in runs if len(q) >= 2]
 
 
 def write_preview(dataroot, out_png, index: int = 0) -> None:

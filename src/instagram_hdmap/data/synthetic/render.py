@@ -174,44 +174,38 @@ class GroundCanvas:
         oy = int(math.floor(centre[1] / res)) - size // 2
         x0, y0 = ox * res, oy * res
         lo, hi = np.array([x0, y0]) - 1.0, np.array([x0, y0]) + size * res + 1.0
-        g = look.gain
-        img = np.empty((size, size, 3), np.uint8)
-        img[:] = _bgr(look.ground["grass"], g)
+        img = np.full((size, size, 3), _bgr(look.ground["grass"], look.gain), np.uint8)
 
         def fill(rings, color, aa=False):
+            """Fills the world rings with ``color`` (before exposure)."""
             if not rings:
                 return
             pts = [np.round((r - (x0, y0)) / res * 16.0).astype(np.int32) for r in rings]
-            cv2.fillPoly(img, pts, color, lineType=cv2.LINE_AA if aa else cv2.LINE_8, shift=4)
+            cv2.fillPoly(img, pts, _bgr(color, look.gain), lineType=cv2.LINE_AA if aa else cv2.LINE_8, shift=4)
 
         for rings, kind in painter.ground:
             if kind != "grass":
-                fill(rings, _bgr(look.ground[kind], g))
-        fill(painter.walkway, _bgr(look.sidewalk, g))
+                fill(rings, look.ground[kind])
+        fill(painter.walkway, look.sidewalk)
         island = look.ground["grass"] if painter.net.style.island_ground == "grass" else look.sidewalk * 0.9
-        fill(painter.islands, _bgr(island, g))
+        fill(painter.islands, island)
         for i in painter.road.select(lo, hi):
-            fill([painter.road.polys[i]], _bgr(look.asphalt + painter.road.values[i], g))
-        late_patches = []
-        for i in painter.patches.select(lo, hi):
-            tone = painter.patches.values[i]
-            if tone < -10.0:
-                late_patches.append(i)
-            else:
-                fill([painter.patches.polys[i]], _bgr(look.asphalt + tone, g))
+            fill([painter.road.polys[i]], look.asphalt + painter.road.values[i])
+        patches = painter.patches.select(lo, hi)
+        for i in patches:
+            if painter.patches.values[i] >= -10.0:
+                fill([painter.patches.polys[i]], look.asphalt + painter.patches.values[i])
         for paint_set, color in ((painter.white, look.white), (painter.yellow, look.yellow)):
-            idx = paint_set.select(lo, hi)
             # each polygon separately: fillPoly's even-odd rule must not cancel touching pieces
-            c = _bgr(color, g)
-            for i in idx:
-                fill([paint_set.polys[i]], c, aa=True)
-        for i in late_patches:
-            fill([painter.patches.polys[i]], _bgr(look.asphalt + painter.patches.values[i], g), aa=True)
-        fill(painter.kerb, _bgr(look.kerb, g), aa=True)
-        dark = _bgr(look.asphalt * 0.35, g)
+            for i in paint_set.select(lo, hi):
+                fill([paint_set.polys[i]], color, aa=True)
+        for i in patches:  # the darkest patches over the paint: they wear it away
+            if painter.patches.values[i] < -10.0:
+                fill([painter.patches.polys[i]], look.asphalt + painter.patches.values[i], aa=True)
+        fill(painter.kerb, look.kerb, aa=True)
         for sh in shadows:
             if np.all(sh.max(axis=0) >= lo) and np.all(sh.min(axis=0) <= hi):
-                fill([sh], dark, aa=True)
+                fill([sh], look.asphalt * 0.35, aa=True)
         img = cv2.add(img, painter.texture(ox, oy, size), dtype=cv2.CV_8U)
         A = np.array([[res, 0.0, x0], [0.0, res, y0], [0.0, 0.0, 1.0]])
         return img, A
@@ -335,7 +329,7 @@ class SceneRenderer:
         boxes = [b for b, keep in zip(self.painter.props, near) if keep]
         for b in vehicles:
             boxes += vehicle_render_boxes(b)
-        corners, normals = _render_boxes(boxes) if boxes else (np.zeros((0, 8, 3)), np.zeros((0, 6, 3)))
+        corners, normals = _render_boxes(boxes)
         haze = _bgr(look.haze, g)
         out = {}
         for ch in self.cameras:
@@ -363,8 +357,6 @@ class SceneRenderer:
         return out, points, counts
 
     def _draw_boxes(self, img, cam: Sensor, pose, boxes, corners, normals) -> None:
-        if not boxes:
-            return
         look, g = self.look, self.look.gain
         c, s = math.cos(pose[2]), math.sin(pose[2])
         r_e = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])

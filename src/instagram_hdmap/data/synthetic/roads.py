@@ -18,8 +18,11 @@ exterior and interior (island) rings. Painted markings are drawn from the same p
 from __future__ import annotations
 
 import math
+from itertools import groupby
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from shapely.geometry import LineString, Polygon, box
 from shapely.ops import unary_union
 
@@ -42,7 +45,10 @@ from .network import (
     yaw_of,
 )
 from .paint import add_patches, paint_stretch, place_props, zebra
-from .paths import Path, Turtle, connect
+from .paths import Path, Turtle, connect, principal_angle
+
+SEGMENT_TYPE = {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SINGLE_SOLID_YELLOW",
+                "single_white": "SINGLE_SOLID_WHITE"}  # of the centre line, by Chain.divider
 
 # ---------------------------------------------------------------------------------------------
 # Layout
@@ -50,20 +56,11 @@ from .paths import Path, Turtle, connect
 
 
 def _connected(arms: dict, edges: set) -> bool:
-    nodes = list(arms)
-    seen = {nodes[0]}
-    todo = [nodes[0]]
-    adj: dict = {n: [] for n in nodes}
-    for a, b in edges:
-        adj[a].append(b)
-        adj[b].append(a)
-    while todo:
-        n = todo.pop()
-        for m in adj[n]:
-            if m not in seen:
-                seen.add(m)
-                todo.append(m)
-    return len(seen) == len(nodes)
+    """Whether the grid edges join every node of ``arms`` into one network."""
+    index = {n: i for i, n in enumerate(arms)}
+    rows, cols = zip(*((index[a], index[b]) for a, b in edges))
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(index), len(index)))
+    return connected_components(graph, directed=False)[0] == 1
 
 
 def _code(a: tuple[int, int], b: tuple[int, int]) -> int:
@@ -277,7 +274,8 @@ def _stretch(ch: Chain, path: Path, start, end, rng) -> Stretch:
     offsets = np.array([d for d, _ in rows])
     kinds = [k for _, k in rows]
     return Stretch(chain=ch, path=path, s=s, pts=pts, nrm=nrm, rows=offsets, kinds=kinds,
-                   ids=np.full((len(rows), len(s)), -1), island=island, start=None, end=None)
+                   ids=np.full((len(rows), len(s)), -1), island=island, start=(ch.nodes[0], ch.dirs[0]),
+                   end=None if ch.stub else (ch.nodes[-1], (ch.dirs[-1] + 2) % 4))
 
 
 def _register_stretch(st: Stretch, rec: MapRecords) -> list[int]:
@@ -379,7 +377,7 @@ def _try_build(location: str, seed: int, rng: np.random.Generator) -> RoadNetwor
     outer, walkway, ground, kerb = _add_sidewalks_and_ground(road, road_filled, canvas, style, rec, rng)
     for st in stretches:
         paint_stretch(st, style, markings)
-    add_patches(stretches, style, markings, rng)
+    add_patches(stretches, markings, rng)
     net = RoadNetwork(
         location=location, seed=seed, canvas=canvas, drive_right=drive_right, style=style, stretches=stretches,
         junctions=junctions, lanes=lanes, connectors=connectors, records=rec, road=road, road_filled=road_filled,
@@ -405,8 +403,6 @@ def _build_stretches(chains, pos, junctions, canvas, rng: np.random.Generator) -
     for ch in chains:
         path, start, end = _chain_path(ch, pos, junctions, canvas, rng)
         st = _stretch(ch, path, start, end, rng)
-        st.start = (ch.nodes[0], ch.dirs[0])
-        st.end = None if ch.stub else (ch.nodes[-1], (ch.dirs[-1] + 2) % 4)
         st.tone = float(rng.uniform(-8.0, 8.0))
         stretches.append(st)
     return stretches
@@ -472,11 +468,9 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
         inner_l = (len(st.kinds) - 1 - st.kinds[::-1].index("median")) if ch.median > 0 else centre
         last = len(st.rows) - 1
         # road blocks: one per travel direction (right side, left side)
-        for j0, j1, forward_side in ((0, inner_r, True), (inner_l, last, False)):
+        for j0, j1, right_side in ((0, inner_r, True), (inner_l, last, False)):
             poly = rec.add_polygon(_band_ring(st, j0, j1), (), "road_block")
-            right_side = forward_side
-            forward = right_side == drive_right
-            col_from, col_to = (0, -1) if forward else (-1, 0)
+            col_from, col_to = (0, -1) if right_side == drive_right else (-1, 0)
             rec.add("road_block", polygon_token=poly, from_edge_line_token=_edge_line(rec, st, j0, j1, col_from),
                     to_edge_line_token=_edge_line(rec, st, j0, j1, col_to), road_segment_token=st.segment)
         lane_bands = [(j, j + 1, True) for j in range(0, inner_r)] + [(j, j + 1, False) for j in range(inner_l, last)]
@@ -493,7 +487,6 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
             col_from, col_to = (0, -1) if forward else (-1, 0)
             # left / right boundary of the lane in its direction of travel
             left_row, right_row = (j1, j0) if forward else (j0, j1)
-
             order = slice(None) if forward else slice(None, None, -1)
             lane.ref = rec.add(
                 "lane", polygon_token=poly, lane_type="CAR",
@@ -506,11 +499,9 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
             lanes.append(lane)
         for j, kind in enumerate(st.kinds):
             if kind == "lane":
-                line = rec.add_line(st.ids[j])
-                rec.add("lane_divider", line_token=line,
+                rec.add("lane_divider", line_token=rec.add_line(st.ids[j]),
                         lane_divider_segments=_segments(st.ids[j], "SINGLE_DASHED_WHITE"))
-        row = st.ids[centre]
-        for part in _runs(row):
+        for part in _runs(st.ids[centre]):
             rec.add("road_divider", line_token=rec.add_line(part), road_segment_token=st.segment)
     return lanes
 
@@ -518,11 +509,7 @@ def _add_lanes_and_dividers(stretches: list[Stretch], rec: MapRecords, drive_rig
 def _add_crossings_and_stop_lines(stretches: list[Stretch], junctions: dict, rec: MapRecords, markings: Markings,
                                   drive_right: bool) -> None:
     """Each junction arm's zebra crossing (where it has one) and stop line, as records and paint."""
-    chain_of_arm = {}
-    for st in stretches:
-        chain_of_arm[st.start] = st.chain
-        if st.end is not None:
-            chain_of_arm[st.end] = st.chain
+    chain_of_arm = {arm: st.chain for st in stretches for arm in (st.start, st.end) if arm is not None}
     for jn in junctions.values():
         for a in jn.arms:
             ch = chain_of_arm[(jn.node, a)]
@@ -564,21 +551,16 @@ def _add_sidewalks_and_ground(road, road_filled, canvas, style: MapStyle, rec: M
             for piece in as_polygons(walkway.intersection(box(cx, cy, cx + cell, cy + cell))):
                 if piece.area > 0.5:
                     rec.add("walkway", polygon_token=rec.add_shapely(piece, "walkway"))
-    ground = []
-    for piece in as_polygons(canvas_box.difference(outer)):
-        ground.append((piece, str(rng.choice(["grass", "grass", "dirt", "paved"]))))
+    ground = [(piece, str(rng.choice(["grass", "grass", "dirt", "paved"])))
+              for piece in as_polygons(canvas_box.difference(outer))]
     kerb = road.boundary.buffer(style.kerb / 2, quad_segs=2)
     return outer, walkway, ground, kerb
 
 
 def _segment_type(st: Stretch, j: int) -> str:
     """nuScenes segment_type of the painted line along row j of a stretch."""
-    if st.kinds[j] == "edge":
-        return "NIL"
-    if st.kinds[j] == "lane":
-        return "SINGLE_DASHED_WHITE"
-    return {"double_yellow": "DOUBLE_SOLID_YELLOW", "single_yellow": "SINGLE_SOLID_YELLOW",
-            "single_white": "SINGLE_SOLID_WHITE"}[st.chain.divider]
+    kind = st.kinds[j]
+    return {"edge": "NIL", "lane": "SINGLE_DASHED_WHITE"}.get(kind) or SEGMENT_TYPE[st.chain.divider]
 
 
 def _segments(ids, segment_type: str) -> list[dict]:
@@ -587,17 +569,8 @@ def _segments(ids, segment_type: str) -> list[dict]:
 
 def _runs(row: np.ndarray) -> list[list[int]]:
     """Maximal runs of present ids (>= 0) of length >= 2."""
-    runs, cur = [], []
-    for i in row:
-        if i >= 0:
-            cur.append(int(i))
-        else:
-            if len(cur) >= 2:
-                runs.append(cur)
-            cur = []
-    if len(cur) >= 2:
-        runs.append(cur)
-    return runs
+    runs = [[int(i) for i in run] for present, run in groupby(row, key=lambda i: i >= 0) if present]
+    return [run for run in runs if len(run) >= 2]
 
 
 def _connect_lanes(lanes: list[Lane], junctions, drive_right: bool, rec: MapRecords) -> list[Connector]:
@@ -614,15 +587,10 @@ def _connect_lanes(lanes: list[Lane], junctions, drive_right: bool, rec: MapReco
         for a in jn.arms:
             ins = sorted(incoming.get((jn.node, a), []), key=lambda ln: ln.kerb_rank)
             for b in jn.arms:
-                if b == a or not ins:
-                    continue
                 outs = sorted(outgoing.get((jn.node, b), []), key=lambda ln: ln.kerb_rank)
-                if not outs:
+                if b == a or not ins or not outs or connect(ins[0].path.end_pose(), outs[0].path.start_pose()) is None:
                     continue
-                probe = connect(ins[0].path.end_pose(), outs[0].path.start_pose())
-                if probe is None:
-                    continue
-                dyaw = (outs[0].path.start_pose()[2] - ins[0].path.end_pose()[2] + math.pi) % (2 * math.pi) - math.pi
+                dyaw = principal_angle(outs[0].path.start_pose()[2] - ins[0].path.end_pose()[2])
                 turn = "straight" if abs(dyaw) < 0.1 else ("left" if dyaw > 0 else "right")
                 if turn == "straight":
                     pairs = [(i, min(i, len(outs) - 1)) for i in range(len(ins))]

@@ -102,10 +102,6 @@ class Tables:
         self.t["map"].append({"token": token, "log_tokens": location_logs, "category": "semantic_prior",
                               "filename": filename})
 
-    def begin_scene(self, index: int, name: str, description: str, location: str, logfile: str,
-                    date: str) -> SceneRecorder:
-        return SceneRecorder(self, index, name, description, location, logfile, date)
-
     def write(self, root: FsPath) -> None:
         root.mkdir(parents=True, exist_ok=True)
         for name in TABLE_NAMES:
@@ -141,9 +137,6 @@ class SceneRecorder:
         self.annotations: dict[int, list[dict]] = {}  # instance id -> annotations in time order
         self.categories: dict[int, str] = {}
 
-    def filename(self, channel: str, timestamp: int) -> str:
-        return sample_filename(self.logfile, channel, timestamp)
-
     def add_sample(self, timestamp: int, pose: np.ndarray, image_size: tuple[int, int]) -> str:
         """A key frame at ego pose (x, y, yaw): the sample, one sample_data and ego_pose per channel."""
         t = self.tables
@@ -159,7 +152,7 @@ class SceneRecorder:
                 "token": sd, "sample_token": token, "ego_pose_token": sd, "calibrated_sensor_token": self.calib[ch],
                 "timestamp": timestamp, "fileformat": "jpg" if is_cam else "pcd", "is_key_frame": True,
                 "height": image_size[1] if is_cam else 0, "width": image_size[0] if is_cam else 0,
-                "filename": self.filename(ch, timestamp), "prev": "", "next": "",
+                "filename": sample_filename(self.logfile, ch, timestamp), "prev": "", "next": "",
             })
         return token
 

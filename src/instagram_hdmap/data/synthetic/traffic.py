@@ -163,7 +163,7 @@ def place_occluders(net: RoadNetwork, drive: EgoDrive, rng: np.random.Generator,
     * **a truck ahead in the lane**: with probability ``density``, a truck or bus drives the ego's route
       8-15 m ahead of it at its speed (it hides the road ahead at every frame).
 
-    The caller draws from a generator of its own (world.py: seeded by ``(seed, 2000 + scene)``), so the
+    The caller draws from a generator of its own (jobs.plan_scene: seeded by ``(seed, 2000 + scene)``), so the
     scene's other draws, and a world at density 0, do not change."""
     if density <= 0:
         return []

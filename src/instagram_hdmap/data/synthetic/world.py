@@ -17,15 +17,11 @@ from the devkit's ``train`` split and val scenes from ``val``, so
 ``nuscenes.utils.splits.create_splits_scenes()`` places them correctly. Train and val scenes
 drive on the same four maps (as in nuScenes), with different routes, traffic and appearance.
 
-Scenes are independent (each draws from its own generator, seeded by ``(seed, 1000 + index)``),
-so ``workers > 1`` renders them in that many spawned processes: each worker rebuilds the
-(deterministic) road networks it needs, plans, renders and writes the camera and lidar files of
-one scene at a time and sends back only what the tables need; the main process writes the maps
-and builds every table in scene order. The output is byte-identical for any number of workers.
-
-The folder is written next to DIR under a temporary name and renamed at the end; on any
-failure or Ctrl-C the workers are terminated and the temporary folder is removed, so nothing
-half-written is left behind. A failing scene is named in the error.
+Scenes are rendered by the scene-job pool (jobs.py: each scene from its own generator, in this
+process or in ``workers`` spawned ones, byte-identical output; a failure, named, or Ctrl-C leaves
+nothing behind): a worker rebuilds the (deterministic) road networks it needs, writes the camera and
+lidar files of one scene at a time and sends back only what the tables need; the main process writes
+the maps and builds every table in scene order.
 """
 
 from __future__ import annotations
@@ -46,19 +42,17 @@ from .jobs import (
     MANIFEST,
     SCENE_SPACING_US,
     SceneJob,
-    check_counts,
-    check_occluders,
-    check_workers,
+    check_arguments,
+    plan_scene,
     render_scenes,
-    scene_occluders,
     world_folder,
     write_world,
 )
 from .map_writer import write_map_json, write_semantic_prior
-from .render import MapPainter, SceneRenderer, scene_look
+from .render import MapPainter, SceneRenderer
 from .roads import LOCATIONS, build_network, map_token
-from .tables import Tables, sample_filename
-from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S, place_vehicles, plan_drive
+from .tables import SceneRecorder, Tables, sample_filename
+from .traffic import ANNOTATION_RANGE_M, KEYFRAME_INTERVAL_S
 
 VERSION = "v1.0-trainval"
 FORMAT = "instagram-hdmap synthetic nuScenes world"
@@ -89,9 +83,7 @@ def generate_world(out, scenes_train: int = 8, scenes_val: int = 2, samples_per_
     With workers > 1 the worker processes are spawned, so they import the caller's main module:
     a script must call this under ``if __name__ == "__main__":``."""
     size = parse_image_size(image_size)
-    check_counts(scenes_train, scenes_val, samples_per_scene, seed)
-    workers = check_workers(workers)
-    occluders = check_occluders(occluders)
+    workers, occluders = check_arguments(scenes_train, scenes_val, samples_per_scene, seed, workers, occluders)
     train_names, val_names = scene_names(scenes_train, scenes_val)
     return write_world(world_folder(out), force, lambda tmp: _write(tmp, train_names, val_names, samples_per_scene,
                                                               seed, size, progress, workers, occluders))
@@ -103,8 +95,7 @@ def _logfile(location: str, timestamp_us: int) -> tuple[str, str]:
     tz = timezone(timedelta(hours=-4 if boston else 8))
     t = datetime.fromtimestamp(timestamp_us // 1_000_000, tz=timezone.utc).astimezone(tz)
     vehicle = "n008" if boston else "n015"
-    offset = "-0400" if boston else "+0800"
-    return f"{vehicle}-{t:%Y-%m-%d-%H-%M-%S}{offset}", f"{t:%Y-%m-%d}"
+    return f"{vehicle}-{t:%Y-%m-%d-%H-%M-%S%z}", f"{t:%Y-%m-%d}"
 
 
 @dataclass
@@ -127,11 +118,7 @@ def render_scene_job(job: SceneJob, net, painter: MapPainter, on_sample: Callabl
 def _render_scene(job: SceneJob, net, painter: MapPainter, sensors, on_sample: Callable[[], None]) -> _SceneResult:
     """Plans, renders and writes the camera and lidar files of one scene. Every random draw comes
     from the scene's own generator, in a fixed order, so any process gives the same bytes."""
-    rng = np.random.default_rng([job.seed, 1000 + job.index])
-    drive = plan_drive(net, job.samples, rng)
-    vehicles = place_vehicles(net, drive, rng)
-    vehicles += scene_occluders(job, net, drive, vehicles)
-    look = scene_look(rng, sensors)
+    rng, drive, vehicles, look = plan_scene(job, net, sensors)
     renderer = SceneRenderer(painter, look, sensors, job.size, rng)
     t0 = BASE_TIMESTAMP_US + job.index * SCENE_SPACING_US
     logfile, date = _logfile(job.location, t0)
@@ -161,7 +148,7 @@ def _render_scene(job: SceneJob, net, painter: MapPainter, sensors, on_sample: C
 
 def _record(tables: Tables, job: SceneJob, result: _SceneResult) -> str:
     """Adds one rendered scene to the tables; returns its log token."""
-    rec = tables.begin_scene(job.index, job.name, result.description, job.location, result.logfile, result.date)
+    rec = SceneRecorder(tables, job.index, job.name, result.description, job.location, result.logfile, result.date)
     for timestamp, pose, anns in zip(result.timestamps, result.poses, result.annotations):
         sample = rec.add_sample(timestamp, pose, job.size)
         for ann in anns:
