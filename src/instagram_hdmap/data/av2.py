@@ -79,7 +79,6 @@ from .base import (
 )
 from .geo_split import GeoSplit, check_split, from_list, from_networks, synthetic_manifest
 from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
-from .transforms import ImageAug, load_image, sample_augmentation
 
 AV2_EXTRA = 'pip install -e ".[av2]"'
 BOUNDARY_OVERLAP_M = 0.3  # a painted lane boundary this close to a drivable-area edge is that edge
@@ -507,24 +506,8 @@ class AV2MapDataset(MapDataset):
         check_distinct_images([path for path, _ in files], self.camera_names, f"log {log}, lidar sweep {ts}")
         return files
 
-    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
-        post_rot [V, 3, 3], post_tran [V, 3] (augmented when ``self.augment``)."""
-        log, _ = self.samples[index]
-        cams = self._log_cameras(log)
-        if self.augment and rng is None:
-            rng = self.augmentation_rng(index)
-        out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans",
-                                                "post_rot", "post_tran")}
-        for cam, (path, size) in zip(self.camera_names, self.camera_files(index)):
-            aug = sample_augmentation(self.data_cfg, rng) if self.augment else ImageAug()
-            image, post_rot, post_tran = load_image(path, size, self.data_cfg.image_size, aug,
-                                                    fit=self.data_cfg.image_fit)
-            pin = cams[cam]
-            out["images"].append(image)
-            out["intrinsics"].append(torch.tensor(pin.intrinsics.K, dtype=torch.float32))
-            out["cam_to_ego_rot"].append(torch.tensor(pin.ego_SE3_cam.rotation, dtype=torch.float32))
-            out["cam_to_ego_trans"].append(torch.tensor(pin.ego_SE3_cam.translation, dtype=torch.float32))
-            out["post_rot"].append(post_rot)
-            out["post_tran"].append(post_tran)
-        return {k: torch.stack(v) for k, v in out.items()}
+    def camera_calibration(self, index: int) -> list[tuple]:
+        """``[(intrinsics, cam_to_ego_rot, cam_to_ego_trans)]`` of the sample's cameras, in ``camera_names`` order."""
+        cams = self._log_cameras(self.samples[index][0])
+        return [(cams[cam].intrinsics.K, cams[cam].ego_SE3_cam.rotation, cams[cam].ego_SE3_cam.translation)
+                for cam in self.camera_names]

@@ -10,12 +10,12 @@ string per sample) and ``camera_names`` (V names, in the order of the camera ten
 contiguous and in time order, see ``SceneIndex``), and implements
 
 * ``gt_polylines(i)``: the sample's local map (polyline dicts, metres, ego frame), without images;
-* ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
-  [V, 3, 3], ``cam_to_ego_trans`` [V, 3], ``post_rot`` [V, 3, 3], ``post_tran`` [V, 3];
+* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order, and ``camera_calibration(i)``:
+  ``[(intrinsics [3, 3], cam_to_ego_rot [3, 3], cam_to_ego_trans [3])]`` in the same order, which
+  ``load_cameras`` reads (one augmentation draw per camera);
 * ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
 * ``ground_height(i)``: the height of the road below the ego origin, metres along the ego frame's z
-  (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster);
-* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals).
+  (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster).
 
 Bad input raises a ``UserError`` naming the file and sample; with ``data.on_bad_sample=skip`` a bad
 sample is replaced by the next good one (one warning per bad sample, with the running count;
@@ -27,6 +27,7 @@ from __future__ import annotations
 import operator
 import os
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -36,7 +37,9 @@ from tqdm import tqdm
 from ..config import ConfigError, ExperimentConfig, UserError
 from ..geometry import BEVGrid
 from ..targets import build_targets
+from .local_map import some_of
 from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, principal_point_implausible
+from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 # padding of the per-vertex keys in collate_fn (everything else is -1)
 VERTEX_KEYS = (
@@ -49,6 +52,7 @@ VERTEX_KEYS = (
     "gt_vertex_prev",
 )
 _VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
+CAMERA_KEYS = ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
 
 
 class DatasetError(UserError):
@@ -274,14 +278,38 @@ class MapDataset(Dataset):
     def gt_polylines(self, index: int) -> list[dict]:
         raise NotImplementedError
 
-    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-        raise NotImplementedError
-
     def ego_pose(self, index: int) -> torch.Tensor:
         raise NotImplementedError
 
     def camera_files(self, index: int) -> list:
         raise NotImplementedError
+
+    def camera_calibration(self, index: int) -> list:
+        raise NotImplementedError
+
+    def missing_image_hint(self, path: Path) -> str | None:
+        """Why a camera image of ``path`` cannot be read, added to the ``ImageError`` (None: nothing to add)."""
+        return None
+
+    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
+        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
+        post_rot [V, 3, 3], post_tran [V, 3] of one sample (augmented when ``self.augment``)."""
+        d = self.data_cfg
+        if self.augment and rng is None:
+            rng = self.augmentation_rng(index)
+        out: dict[str, list] = {k: [] for k in CAMERA_KEYS}
+        for (path, size), calib in zip(self.camera_files(index), self.camera_calibration(index)):
+            aug = sample_augmentation(d, rng) if self.augment else ImageAug()  # one draw per camera
+            try:
+                image, post_rot, post_tran = load_image(path, size, d.image_size, aug, fit=d.image_fit)
+            except ImageError as e:
+                hint = self.missing_image_hint(path)
+                if hint is None:
+                    raise
+                raise ImageError(f"{e}; {hint}") from None
+            for key, value in zip(CAMERA_KEYS, (image, *calib, post_rot, post_tran)):
+                out[key].append(torch.as_tensor(value, dtype=torch.float32))
+        return {k: torch.stack(v) for k, v in out.items()}
 
     def ground_height(self, index: int) -> float:
         raise NotImplementedError
@@ -295,8 +323,8 @@ class MapDataset(Dataset):
         scenes when it has none."""
         names = self.scenes.names
         if name not in names:
-            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
-            raise DatasetError(f"scene '{name}' is not in split '{self.split}' of {self.dataroot}; its scenes: {shown}")
+            raise DatasetError(f"scene '{name}' is not in split '{self.split}' of {self.dataroot}; its scenes: "
+                               f"{some_of(names)}")
         return list(self.scenes.runs[names.index(name)])
 
     def set_epoch(self, epoch: int) -> None:

@@ -123,6 +123,11 @@ class _LocationMap:
             shapely.prepare(self.divider_exclusion)  # point-in-zone tests per sample (_divider_pieces)
 
 
+def some_of(names: Sequence[str], shown: int = 5) -> str:
+    """The first ``shown`` of ``names``, comma-separated, and how many more there are."""
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
 def map_expansion_path(dataroot: str | Path, location: str) -> Path:
     return Path(dataroot) / "maps" / "expansion" / f"{location}.json"
 
@@ -168,36 +173,30 @@ def crossing_geometry(ring_xy: np.ndarray, edges: Sequence[np.ndarray] | None = 
     return polys, [ln for ln in lines if ln.length > MIN_LENGTH_M], status
 
 
+# crossing_geometry's statuses other than "ok", as collect_crossings reports them
+CROSSING_PROBLEMS = {
+    "repaired": "invalid (self-intersecting) crossing polygon(s) repaired with make_valid",
+    "skipped": "degenerate crossing polygon(s) (< 3 distinct points) skipped",
+    "short edge": "crossing(s) with an edge of fewer than 2 points, that edge not drawn",
+}
+
+
 def collect_crossings(crossings, source: str) -> tuple[np.ndarray, np.ndarray, str]:
     """``crossings``: iterable of ``(crossing id, ring [P, 2] or None when unreadable, edges or None)``
     -> (polygons, edge lines, report). Bad crossings are repaired or skipped (``crossing_geometry``),
     counted and reported in one ``UserWarning`` naming ``source`` (the map file); good ones are kept
     whatever their neighbours are."""
     polys, lines = [], []
-    bad: dict[str, list[str]] = {"repaired": [], "skipped": [], "short edge": []}
+    bad: dict[str, list[str]] = {status: [] for status in CROSSING_PROBLEMS}
     for cid, ring, edges in crossings:
         p, e, status = crossing_geometry(ring, edges) if ring is not None else ([], [], "skipped")
         polys += p
         lines += e
         if status != "ok":
             bad[status].append(str(cid))
-    report = ""
-    if bad["repaired"] or bad["skipped"] or bad["short edge"]:
-        def ids(v: list[str]) -> str:
-            return ", ".join(v[:5]) + (f" and {len(v) - 5} more" if len(v) > 5 else "")
-
-        parts = []
-        if bad["repaired"]:
-            parts.append(f"{len(bad['repaired'])} invalid (self-intersecting) crossing polygon(s) repaired with "
-                         f"make_valid ({ids(bad['repaired'])})")
-        if bad["skipped"]:
-            parts.append(f"{len(bad['skipped'])} degenerate crossing polygon(s) (< 3 distinct points) skipped "
-                         f"({ids(bad['skipped'])})")
-        if bad["short edge"]:
-            parts.append(f"{len(bad['short edge'])} crossing(s) with an edge of fewer than 2 points, that edge not "
-                         "drawn "
-                         f"({ids(bad['short edge'])})")
-        report = f"{source}: " + "; ".join(parts)
+    parts = [f"{len(ids)} {CROSSING_PROBLEMS[status]} ({some_of(ids)})" for status, ids in bad.items() if ids]
+    report = f"{source}: " + "; ".join(parts) if parts else ""
+    if report:
         warnings.warn(report, stacklevel=3)
     return np.array(polys, dtype=object), np.array(lines, dtype=object), report
 
@@ -254,8 +253,7 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
             elif len(xy):
                 dividers.append(LineString(xy))
     if short:
-        warnings.warn(f"{path}: {len(short)} divider line(s) of one point skipped ({', '.join(short[:5])}"
-                      f"{f' and {len(short) - 5} more' if len(short) > 5 else ''})", stacklevel=2)
+        warnings.warn(f"{path}: {len(short)} divider line(s) of one point skipped ({some_of(short)})", stacklevel=2)
     dividers = np.array([g for g in dividers if not g.is_empty], dtype=object)
 
     def crossing_rings():
@@ -278,8 +276,7 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
     invalid = [token for token, a in areas if not a.is_valid]
     if invalid:  # skipped as the devkit's _get_layer_polygon does, but no longer with no word (a boundary lost)
         warnings.warn(f"{path}: {len(invalid)} invalid (self-intersecting) road_segment / lane polygon(s) skipped, "
-                      f"their boundaries not drawn ({', '.join(invalid[:5])}"
-                      f"{f' and {len(invalid) - 5} more' if len(invalid) > 5 else ''})", stacklevel=2)
+                      f"their boundaries not drawn ({some_of(invalid)})", stacklevel=2)
     areas = np.array([a for _, a in areas if a.is_valid and not a.is_empty], dtype=object)
     return _LocationMap(dividers, peds, ped_edges, areas, crossing_report=report)
 

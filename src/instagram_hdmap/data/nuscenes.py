@@ -47,7 +47,6 @@ from .base import (
 from .geo_split import GeoSplit, from_list, from_networks, synthetic_manifest
 from .local_map import LocalMapBuilder, MapError
 from .rig import CAMERAS
-from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 OFFICIAL_SPLITS = {
     "v1.0-trainval": {"train": "train", "val": "val"},
@@ -412,42 +411,17 @@ class NuScenesMapDataset(MapDataset):
         x, y = pose["translation"][:2]
         return self.map_builder(loc, x, y, quaternion_yaw(pose["rotation"]))
 
-    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
-        post_rot [V, 3, 3], post_tran [V, 3] of one sample (augmented when ``self.augment``)."""
+    def camera_calibration(self, index: int) -> list[tuple]:
+        """``[(intrinsics, cam_to_ego_rot, cam_to_ego_trans)]`` of the sample's cameras, in ``CAMERAS`` order."""
         sample = self.nusc.get("sample", self.sample_tokens[index])
-        out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}
-        out["post_rot"], out["post_tran"] = [], []
-        if self.augment and rng is None:
-            rng = self.augmentation_rng(index)
+        out = []
         for cam in CAMERAS:
-            sd, cs = self._camera_records(sample, cam)
-            aug = ImageAug()
-            if self.augment:
-                aug = sample_augmentation(self.data_cfg, rng)  # one draw per camera
-            try:
-                image, post_rot, post_tran = load_image(
-                    self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug,
-                    fit=self.data_cfg.image_fit,
-                )
-            except ImageError as e:
-                hint = self._missing_image_hint(self.dataroot / sd["filename"])
-                if hint is None:
-                    raise
-                raise ImageError(f"{e}; {hint}") from None
+            cs = self._camera_records(sample, cam)[1]
             pose = _pose_matrix(cs["rotation"], cs["translation"])
-            out["images"].append(image)
-            out["intrinsics"].append(torch.tensor(cs["camera_intrinsic"], dtype=torch.float32))
-            out["cam_to_ego_rot"].append(pose[:3, :3])
-            out["cam_to_ego_trans"].append(pose[:3, 3])
-            out["post_rot"].append(post_rot)
-            out["post_tran"].append(post_tran)
-        check_distinct_images([self.dataroot / self._camera_records(sample, c)[0]["filename"] for c in CAMERAS],
-                              CAMERAS, f"sample {sample['token']} in {self.dataroot / self.data_cfg.version}/"
-                                       "sample_data.json")
-        return {k: torch.stack(v) for k, v in out.items()}
+            out.append((cs["camera_intrinsic"], pose[:3, :3], pose[:3, 3]))
+        return out
 
-    def _missing_image_hint(self, path: Path) -> str | None:
+    def missing_image_hint(self, path: Path) -> str | None:
         """Why a camera image of the tables is not on disk, for a dataset downloaded in parts: no ``samples/`` at
         all (the metadata alone), the file under another case, or how many of the split's images are missing
         (some blob parts only). None when the file exists. (Each was one "not found" naming one file.)"""
@@ -556,4 +530,6 @@ class NuScenesMapDataset(MapDataset):
         for cam in CAMERAS:
             sd, _ = self._camera_records(sample, cam)
             out.append((self.dataroot / sd["filename"], (sd["width"], sd["height"])))
+        check_distinct_images([path for path, _ in out], CAMERAS,
+                              f"sample {sample['token']} in {self.dataroot / self.data_cfg.version}/sample_data.json")
         return out

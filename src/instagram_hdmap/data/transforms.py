@@ -151,17 +151,25 @@ def read_image(path: str | Path, factor: int = 1) -> tuple[np.ndarray, int]:
     return img, factor
 
 
-def _undecodable_kind(buf: np.ndarray) -> str:
-    """Why OpenCV decoded nothing: a valid image of a kind it does not read (a float TIFF, an animated GIF:
-    PIL opens them) or no image at all."""
+def _pil_header(source, read):
+    """``read(image)`` of PIL's lazily opened image of ``source`` (a path or a buffer's bytes), or None where PIL
+    cannot read it either (not an image, a damaged header)."""
     import io
 
     from PIL import Image
 
     try:
-        with Image.open(io.BytesIO(buf.tobytes())) as im:
-            kind = f"{im.format} {im.mode}" + (", animated" if getattr(im, "is_animated", False) else "")
-    except Exception:  # not an image PIL knows either
+        with Image.open(io.BytesIO(source.tobytes()) if isinstance(source, np.ndarray) else source) as im:
+            return read(im)
+    except Exception:
+        return None
+
+
+def _undecodable_kind(buf: np.ndarray) -> str:
+    """Why OpenCV decoded nothing: a valid image of a kind it does not read (a float TIFF, an animated GIF:
+    PIL opens them) or no image at all."""
+    kind = _pil_header(buf, lambda im: f"{im.format} {im.mode}{', animated' if getattr(im, 'is_animated', 0) else ''}")
+    if kind is None:
         return "corrupt or not an image"
     return f"a {kind} image, which OpenCV does not read; save it as an 8-bit RGB JPEG or PNG"
 
@@ -171,16 +179,9 @@ _ORIENTATIONS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped upside dow
 
 
 def _exif_orientation(buf: np.ndarray) -> int | None:
-    """The EXIF orientation tag (274) of a JPEG's bytes, or None (no tag, or a header PIL cannot read)."""
-    import io
-
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(buf.tobytes())) as im:
-            value = im.getexif().get(0x0112)
-    except Exception:  # a damaged header: decoded (or named) as before
-        return None
+    """The EXIF orientation tag (274) of a JPEG's bytes, or None (no tag, or a header PIL cannot read: the image is
+    decoded, or named, as any other)."""
+    value = _pil_header(buf, lambda im: im.getexif().get(0x0112))
     return int(value) if isinstance(value, int) else None
 
 
@@ -212,13 +213,8 @@ def load_image(
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
         # a dataset whose images were resized (a half-resolution copy) or rotated: say what the file is and
         # what to do, not only the reduced-decode sizes
-        try:
-            from PIL import Image  # the header's exact size (a reduced decode rounds it)
-
-            with Image.open(path) as im:
-                size = "{}x{}".format(*im.size)
-        except (OSError, ValueError):
-            size = f"about {img.shape[1] * f}x{img.shape[0] * f}"
+        # the header's exact size (a reduced decode rounds it)
+        size = _pil_header(path, lambda im: "{}x{}".format(*im.size)) or f"about {img.shape[1] * f}x{img.shape[0] * f}"
         raise ImageError(
             f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected "
             f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather): the "
@@ -256,11 +252,17 @@ def _warp(img: np.ndarray, A: np.ndarray, f: int, out_hw: tuple[int, int], bgr: 
     channels = torch.from_numpy(out).permute(2, 0, 1)  # [3, h, w]
     rgb = channels.flip(0) if bgr else channels  # OpenCV decodes BGR
     image = torch.addcmul(_NORM_OFFSET, rgb.float(), _NORM_SCALE)  # (x / 255 - mean) / std
+    return (image, *post_transform(A))
+
+
+def post_transform(A: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """``post_rot`` [3, 3] and ``post_tran`` [3] (float32, LSS's: identity / zero on the depth axis) of the
+    3x3 image affine ``A``."""
     post_rot = torch.eye(3)
     post_rot[:2, :2] = torch.from_numpy(A[:2, :2]).float()
     post_tran = torch.zeros(3)
     post_tran[:2] = torch.from_numpy(A[:2, 2]).float()
-    return image, post_rot, post_tran
+    return post_rot, post_tran
 
 
 def denormalize(images: torch.Tensor) -> torch.Tensor:
