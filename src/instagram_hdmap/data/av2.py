@@ -78,7 +78,7 @@ from .base import (
     check_translation,
 )
 from .geo_split import GeoSplit, check_split, from_list, from_networks, synthetic_manifest
-from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
+from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings, heading
 
 AV2_EXTRA = 'pip install -e ".[av2]"'
 BOUNDARY_OVERLAP_M = 0.3  # a painted lane boundary this close to a drivable-area edge is that edge
@@ -257,10 +257,6 @@ class AV2LocalMapBuilder(LocalMapBuilder):
 # --- dataset -----------------------------------------------------------------------------------
 
 
-def _yaw(rotation: np.ndarray) -> float:
-    return math.atan2(rotation[1, 0], rotation[0, 0])
-
-
 # a lidar sweep's pose in a timestamp_ns column rounded by float64 (a step of 64 ns at AV2's 3.2e17 ns) lies
 # this close; the poses themselves are ~6 ms apart
 ROUNDED_TIMESTAMP_NS = 1000
@@ -280,10 +276,10 @@ class AV2MapDataset(MapDataset):
         self.dataroot = Path(d.dataroot)
         self.split_dir = self.dataroot / split
         # the folders of logs read: the split's own, or (a geo split) every split folder of the root
-        folders = [self.dataroot / f for f in GEO_FOLDERS] if d.split_scheme == "geo" else [self.split_dir]
+        folders = [self.split_dir]
         if d.split_scheme == "geo":
             check_split(split)
-            folders = [f for f in folders if f.is_dir()] or [self.split_dir]
+            folders = [f for f in (self.dataroot / name for name in GEO_FOLDERS) if f.is_dir()] or folders
         self.loaders: dict[Path, object] = {}
         self.log_dirs: dict[str, Path] = {}  # log id -> its folder
         for folder in folders:
@@ -477,11 +473,10 @@ class AV2MapDataset(MapDataset):
 
     # --- pieces ---------------------------------------------------------------------------------
     def gt_polylines(self, index: int) -> list[dict]:
-        """The sample's local map (polyline dicts, metres, ego frame), without loading images."""
         log, _ = self.samples[index]
         pose = self._pose(index)
         x, y = pose.translation[:2]
-        return self.map_builder(log, float(x), float(y), _yaw(pose.rotation))
+        return self.map_builder(log, float(x), float(y), heading(pose.rotation))
 
     def ego_pose(self, index: int) -> torch.Tensor:
         return torch.tensor(self._pose(index).transform_matrix, dtype=torch.float32)
@@ -498,7 +493,6 @@ class AV2MapDataset(MapDataset):
         return z
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
-        """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""
         log, ts = self.samples[index]
         cams = self._log_cameras(log)
         files = [(self._image_path(log, cam, ts), (cams[cam].width_px, cams[cam].height_px))
@@ -507,7 +501,6 @@ class AV2MapDataset(MapDataset):
         return files
 
     def camera_calibration(self, index: int) -> list[tuple]:
-        """``[(intrinsics, cam_to_ego_rot, cam_to_ego_trans)]`` of the sample's cameras, in ``camera_names`` order."""
         cams = self._log_cameras(self.samples[index][0])
         return [(cams[cam].intrinsics.K, cams[cam].ego_SE3_cam.rotation, cams[cam].ego_SE3_cam.translation)
                 for cam in self.camera_names]

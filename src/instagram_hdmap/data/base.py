@@ -42,15 +42,8 @@ from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, pr
 from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 # padding of the per-vertex keys in collate_fn (everything else is -1)
-VERTEX_KEYS = (
-    "gt_vertices_px",
-    "gt_vertex_mask",
-    "gt_vertex_labels",
-    "gt_vertex_instance",
-    "gt_vertex_order",
-    "gt_vertex_next",
-    "gt_vertex_prev",
-)
+VERTEX_KEYS = ("gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order",
+               "gt_vertex_next", "gt_vertex_prev")
 _VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
 CAMERA_KEYS = ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
 
@@ -514,22 +507,11 @@ def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
     if first is not None and not results:  # a GT file of no samples, exit 0 (every map unreadable)
         raise DatasetError(f"every sample of split '{dataset.split}' in {dataset.dataroot} is bad "
                            f"(data.on_bad_sample=skip), the first: {first}")
-    meta = {
-        "use_camera": True,
-        "use_lidar": False,
-        "use_radar": False,
-        "use_external": False,
-        "vector": True,
-        "ground_truth": True,
-        "dataset": d.dataset,
-        "version": d.version,
-        "split": dataset.split,
-        "frame": "ego, x forward, y left, metres",
-        "classes": list(d.classes),
-        "xbound": list(g.xbound),
-        "ybound": list(g.ybound),
-        "resolution": g.resolution,  # the raster protocol's pixel in evaluate (evaluate-json: --resolution)
-        "sample_dist": d.sample_dist,
-    }
+    meta = {"use_camera": True, "use_lidar": False, "use_radar": False, "use_external": False, "vector": True,
+            "ground_truth": True, "dataset": d.dataset, "version": d.version, "split": dataset.split,
+            "frame": "ego, x forward, y left, metres", "classes": list(d.classes), "xbound": list(g.xbound),
+            "ybound": list(g.ybound),
+            "resolution": g.resolution,  # the raster protocol's pixel in evaluate (evaluate-json: --resolution)
+            "sample_dist": d.sample_dist}
     return {"meta": meta, "results": results}
 

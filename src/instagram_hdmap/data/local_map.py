@@ -54,6 +54,7 @@ geometries are built once per location and queried with an STR-tree, so one samp
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -126,6 +127,12 @@ class _LocationMap:
 def some_of(names: Sequence[str], shown: int = 5) -> str:
     """The first ``shown`` of ``names``, comma-separated, and how many more there are."""
     return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def heading(rotation) -> float:
+    """The yaw (radians) of an ego -> global rotation [3, 3], as ``LocalMapBuilder`` takes it: the heading of the
+    ego's x axis in the global xy plane."""
+    return math.atan2(rotation[1][0], rotation[0][0])
 
 
 def map_expansion_path(dataroot: str | Path, location: str) -> Path:
@@ -372,7 +379,7 @@ class LocalMapBuilder:
     """``builder(location, x, y, yaw) -> list of polyline dicts`` (see the module docstring).
 
     ``ped_crossing``: the crossing convention, one of ``PED_CROSSING_CONVENTIONS`` (config
-    ``data.ped_crossing``). Map files are read lazily, once per location (or eagerly with ``preload``).
+    ``data.ped_crossing``). Map files are read once per location, when first asked for (``location_map``).
     """
 
     def __init__(self, dataroot: str | Path, grid: BEVGrid, sample_dist: float = 1.5, ped_crossing: str = "edges"):
@@ -390,10 +397,6 @@ class LocalMapBuilder:
         self._clip_box = box(grid.xmin + e, grid.ymin + e, grid.xmax - e, grid.ymax - e)
         m = EDGE_MARGIN_M
         self._edge_box = box(grid.xmin + m, grid.ymin + m, grid.xmax - m, grid.ymax - m)
-
-    def preload(self, locations) -> None:
-        for loc in locations:
-            self.location_map(loc)
 
     def location_map(self, location: str) -> _LocationMap:
         if location not in self._maps:

@@ -38,12 +38,8 @@ from ..config import DataConfig, UserError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-_REDUCED_FLAGS = {
-    1: cv2.IMREAD_COLOR,
-    2: cv2.IMREAD_REDUCED_COLOR_2,
-    4: cv2.IMREAD_REDUCED_COLOR_4,
-    8: cv2.IMREAD_REDUCED_COLOR_8,
-}
+_REDUCED_FLAGS = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                  8: cv2.IMREAD_REDUCED_COLOR_8}
 
 
 _NORM_SCALE = 1 / (255 * torch.tensor(IMAGENET_STD).view(3, 1, 1))
@@ -190,14 +186,8 @@ def _axis_scales(A: np.ndarray) -> tuple[float, float]:
     return math.hypot(A[0, 0], A[1, 0]), math.hypot(A[0, 1], A[1, 1])
 
 
-def load_image(
-    path: str | Path,
-    orig_wh: tuple[int, int],
-    out_hw: tuple[int, int],
-    aug: ImageAug = ImageAug(),
-    reduced_decode: bool = True,
-    fit: str = "cover",
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def load_image(path: str | Path, orig_wh: tuple[int, int], out_hw: tuple[int, int], aug: ImageAug = ImageAug(),
+               reduced_decode: bool = True, fit: str = "cover") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Decode, warp and normalise one camera image.
 
     orig_wh: (W, H) of the image file (as in its nuScenes ``sample_data`` record).
@@ -275,14 +265,9 @@ def denormalize(images: torch.Tensor) -> torch.Tensor:
 # --- camera geometry with post_rot / post_tran ------------------------------------------------
 
 
-def project_to_image(
-    pts_ego: torch.Tensor,
-    intrinsics: torch.Tensor,
-    cam_to_ego_rot: torch.Tensor,
-    cam_to_ego_trans: torch.Tensor,
-    post_rot: torch.Tensor,
-    post_tran: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor]:
+def project_to_image(pts_ego: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego_rot: torch.Tensor,
+                     cam_to_ego_trans: torch.Tensor, post_rot: torch.Tensor, post_tran: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Ego-frame points [N, 3] -> network-image pixels [N, 2] (u, v) and camera depth [N] (one camera).
 
     Points with depth <= 0 are behind the camera; their pixels are meaningless.
@@ -294,15 +279,9 @@ def project_to_image(
     return net[:, :2], depth
 
 
-def image_to_ground(
-    uv_net: torch.Tensor,
-    intrinsics: torch.Tensor,
-    cam_to_ego_rot: torch.Tensor,
-    cam_to_ego_trans: torch.Tensor,
-    post_rot: torch.Tensor,
-    post_tran: torch.Tensor,
-    ground_z: float = 0.0,
-) -> torch.Tensor:
+def image_to_ground(uv_net: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego_rot: torch.Tensor,
+                    cam_to_ego_trans: torch.Tensor, post_rot: torch.Tensor, post_tran: torch.Tensor,
+                    ground_z: float = 0.0) -> torch.Tensor:
     """Network-image pixels [N, 2] -> the ego-frame points [N, 3] where their rays meet z = ground_z."""
     net = torch.cat([uv_net, torch.ones_like(uv_net[:, :1])], -1)
     uv1 = (net - post_tran) @ torch.linalg.inv(post_rot).T
