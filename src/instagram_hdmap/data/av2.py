@@ -46,8 +46,7 @@ the full SE(3) of the pose (``ego_ground_height``).
 
 Bad input (a dataroot without the split folder of logs, a log without a map archive, ground-height
 raster, poses or calibration, a missing calibration row or camera image, a camera whose images do not match the
-sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file; with
-``data.on_bad_sample=skip`` the sample is skipped and counted instead (data/base.py).
+sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file (data/base.py).
 """
 
 from __future__ import annotations

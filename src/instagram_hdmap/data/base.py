@@ -91,16 +91,13 @@ ORTHONORMAL_TOL = 1e-3  # |R^T R - I| of a calibrated rotation (stored to ~1e-8 
 MAX_TRANSLATION_M = 1e7  # a translation beyond this (in metres) is corrupt, not a place on Earth
 
 
-def reject_text(values, what: str, where: str) -> None:
-    """No string (or bool) among ``values``: numpy reads "1.5" as 1.5, and the record's raw strings would
-    reach the arithmetic later (a raw error there)."""
+def check_finite(values, what: str, where: str) -> np.ndarray:
+    """``values`` as a float64 array, or a DatasetError for a string or bool among them (numpy reads "1.5" as 1.5,
+    and the record's raw strings would reach the arithmetic later, a raw error there), a non-number, NaN or an
+    infinity."""
     flat = [values] if isinstance(values, (str, bytes)) else np.asarray(values, dtype=object).ravel()
     if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in flat):
         raise DatasetError(f"{where}: {what} is not numeric: {values!r:.120} (numbers, not strings)")
-
-
-def _finite(values, what: str, where: str) -> np.ndarray:
-    reject_text(values, what, where)
     try:
         a = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):
@@ -113,7 +110,7 @@ def _finite(values, what: str, where: str) -> np.ndarray:
 
 def check_rotation(rotation, what: str, where: str) -> None:
     """A finite 3x3 rotation: orthonormal to ``ORTHONORMAL_TOL`` with determinant +1."""
-    R = _finite(rotation, what, where)
+    R = check_finite(rotation, what, where)
     if R.shape != (3, 3):
         raise DatasetError(f"{where}: {what} must be a 3x3 rotation, got shape {R.shape}")
     err = float(np.abs(R.T @ R - np.eye(3)).max())
@@ -123,14 +120,14 @@ def check_rotation(rotation, what: str, where: str) -> None:
 
 
 def check_translation(translation, what: str, where: str) -> None:
-    t = _finite(translation, what, where)
+    t = check_finite(translation, what, where)
     if t.shape != (3,) or np.abs(t).max() > MAX_TRANSLATION_M:
         raise DatasetError(f"{where}: {what} must be 3 finite coordinates in metres, got {t.tolist()}")
 
 
 def check_intrinsics(intrinsics, where: str) -> None:
     """A pinhole camera matrix: finite 3x3, positive focal lengths, last row (0, 0, 1)."""
-    K = _finite(intrinsics, "the camera intrinsics", where)
+    K = check_finite(intrinsics, "the camera intrinsics", where)
     if K.shape != (3, 3):
         raise DatasetError(f"{where}: the camera intrinsics must be a 3x3 matrix, got shape {K.shape}")
     if not (K[0, 0] > 0 and K[1, 1] > 0):

@@ -165,7 +165,7 @@ def crossing_geometry(ring_xy: np.ndarray, edges: Sequence[np.ndarray] | None = 
     poly = Polygon(ring_xy)
     status = "ok"
     if not poly.is_valid:
-        parts = [g for g in shapely.get_parts(shapely.make_valid(poly)) if g.geom_type == "Polygon" and g.area > 0]
+        parts = _polygons(shapely.make_valid(poly))
         if not parts:
             return [], [], "skipped"
         polys, status = parts, "repaired"
@@ -363,6 +363,7 @@ def _lines(geom) -> list[LineString]:
 
 
 def _polygons(geom) -> list[Polygon]:
+    """The polygons of positive area in a clipping result (or of ``make_valid``'s)."""
     return [g for g in shapely.get_parts(geom) if g.geom_type == "Polygon" and g.area > 0]
 
 
@@ -393,10 +394,8 @@ class LocalMapBuilder:
         self.sample_dist = sample_dist
         self.ped_crossing = ped_crossing
         self._maps: dict[str, _LocationMap] = {}
-        e = INSIDE_EPS_M
-        self._clip_box = box(grid.xmin + e, grid.ymin + e, grid.xmax - e, grid.ymax - e)
-        m = EDGE_MARGIN_M
-        self._edge_box = box(grid.xmin + m, grid.ymin + m, grid.xmax - m, grid.ymax - m)
+        self._clip_box, self._edge_box = (box(grid.xmin + m, grid.ymin + m, grid.xmax - m, grid.ymax - m)
+                                          for m in (INSIDE_EPS_M, EDGE_MARGIN_M))
 
     def location_map(self, location: str) -> _LocationMap:
         if location not in self._maps:

@@ -37,9 +37,9 @@ from .base import (
     check_camera_time,
     check_distinct_images,
     check_ego_level,
+    check_finite,
     check_intrinsics,
     check_translation,
-    reject_text,
 )
 from .geo_split import GeoSplit, from_list, from_networks, synthetic_manifest
 from .local_map import LocalMapBuilder, MapError, heading
@@ -274,11 +274,9 @@ def _field(record: dict, key: str, table: str):
 def check_pose_record(record: dict, table: str, where: str) -> None:
     """A calibrated_sensor or ego_pose record: finite translation, finite unit quaternion (w, x, y, z)."""
     check_translation(_field(record, "translation", table), "its translation", where)
-    reject_text(_field(record, "rotation", table), "its rotation", where)
-    q = np.asarray(_field(record, "rotation", table), dtype=np.float64)
-    if q.shape != (4,) or not np.isfinite(q).all():
-        raise DatasetError(f"{where}: its rotation must be 4 finite numbers (a quaternion w, x, y, z), got "
-                           f"{q.tolist()} (NaN or infinite values: the record is corrupt)")
+    q = check_finite(_field(record, "rotation", table), "its rotation", where)
+    if q.shape != (4,):
+        raise DatasetError(f"{where}: its rotation must be 4 numbers (a quaternion w, x, y, z), got {q.tolist()}")
     norm = float(np.linalg.norm(q))
     if abs(norm - 1) > QUATERNION_NORM_TOL:
         raise DatasetError(f"{where}: its rotation {q.tolist()} is not a unit quaternion (norm {norm:.6g}); the "
@@ -414,10 +412,9 @@ class NuScenesMapDataset(MapDataset):
                     f"{self.data_cfg.version}01..10_blobs) and extract them into {self.dataroot} (export-gt needs "
                     "no images)")
         if path.parent.is_dir():
-            names = getattr(self, "_folder_names", {})
-            self._folder_names = names
+            names = self.__dict__.setdefault("_folder_names", {})  # folder -> its file names by lower case
             if path.parent not in names:
-                names[path.parent] = {n.lower(): n for n in (p.name for p in path.parent.iterdir())}
+                names[path.parent] = {p.name.lower(): p.name for p in path.parent.iterdir()}
             other = names[path.parent].get(path.name.lower())
             if other is not None:
                 return (f"the folder holds {other}, its name in another case (the tables name {path.name}, and file "

@@ -63,12 +63,9 @@ class ImageAug:
 def sample_augmentation(cfg: DataConfig, rng: np.random.Generator) -> ImageAug:
     """Random scale, crop jitter and rotation within the ``data.aug_*`` ranges."""
     j = cfg.aug_crop_jitter
-    return ImageAug(
-        scale=float(rng.uniform(*cfg.aug_scale)),
-        crop_dx=float(rng.uniform(-j, j)),
-        crop_dy=float(rng.uniform(-j, j)),
-        rotate_deg=float(rng.uniform(-cfg.aug_rotate_deg, cfg.aug_rotate_deg)),
-    )
+    return ImageAug(scale=float(rng.uniform(*cfg.aug_scale)), crop_dx=float(rng.uniform(-j, j)),
+                    crop_dy=float(rng.uniform(-j, j)),
+                    rotate_deg=float(rng.uniform(-cfg.aug_rotate_deg, cfg.aug_rotate_deg)))
 
 
 def _scale_matrix(sx: float, sy: float) -> np.ndarray:
@@ -201,16 +198,13 @@ def load_image(path: str | Path, orig_wh: tuple[int, int], out_hw: tuple[int, in
     img, f = read_image(path, f)
     exp_w, exp_h = math.ceil(W / f), math.ceil(H / f)
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
-        # a dataset whose images were resized (a half-resolution copy) or rotated: say what the file is and
-        # what to do, not only the reduced-decode sizes
-        # the header's exact size (a reduced decode rounds it)
+        # a dataset whose images were resized (a half-resolution copy) or rotated: say what the file is (the
+        # header's exact size; a reduced decode rounds it) and what to do, not only the reduced-decode sizes
         size = _pil_header(path, lambda im: "{}x{}".format(*im.size)) or f"about {img.shape[1] * f}x{img.shape[0] * f}"
-        raise ImageError(
-            f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected "
-            f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather): the "
-            f"file is {size}, a resized or rotated copy? the calibration is that of the recorded size: use the "
-            "dataset's original images"
-        )
+        raise ImageError(f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected {exp_w}x"
+                         f"{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather): the "
+                         f"file is {size}, a resized or rotated copy? the calibration is that of the recorded size: "
+                         "use the dataset's original images")
     return _warp(img, A, f, out_hw, bgr=True)
 
 
