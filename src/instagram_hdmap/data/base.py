@@ -11,8 +11,8 @@ contiguous and in time order, see ``SceneIndex``), and implements
 
 * ``gt_polylines(i)``: the sample's local map (polyline dicts, metres, ego frame), without images;
 * ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order, and ``camera_calibration(i)``:
-  ``[(intrinsics [3, 3], cam_to_ego_rot [3, 3], cam_to_ego_trans [3])]`` in the same order, which
-  ``load_cameras`` reads (one augmentation draw per camera);
+  ``[(intrinsics [3, 3], cam_to_ego_rot [3, 3], cam_to_ego_trans [3])]`` (arrays or lists of numbers)
+  in the same order, which ``load_cameras`` reads (one augmentation draw per camera);
 * ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
 * ``ground_height(i)``: the height of the road below the ego origin, metres along the ego frame's z
   (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster).
@@ -167,7 +167,7 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
         check_upright(rotation, where, hint)
     except RigError as e:
         raise DatasetError(str(e)) from None
-    problem = camera_heading_problem(channel, rotation) if channel is not None else None
+    problem = camera_heading_problem(channel, rotation)
     if problem is not None:
         raise DatasetError(f"{where}: {problem}")
 
@@ -184,10 +184,10 @@ NOMINAL_CAMERA_YAW_DEG = {
 MAX_CAMERA_YAW_OFF_DEG = 60  # every camera of those real rigs lies within 2 degrees of its channel's direction
 
 
-def camera_heading_problem(channel: str, rotation) -> str | None:
+def camera_heading_problem(channel: str | None, rotation) -> str | None:
     """What is wrong with a camera -> ego ``rotation`` for the known channel ``channel`` (its optical axis
     more than ``MAX_CAMERA_YAW_OFF_DEG`` off the channel's direction: the channels' names swapped, a
-    calibration of another camera), or None (an unknown channel name is not checked)."""
+    calibration of another camera), or None (an unknown channel name, or None, is not checked)."""
     nominal = NOMINAL_CAMERA_YAW_DEG.get(channel)
     if nominal is None:
         return None
@@ -297,8 +297,9 @@ class MapDataset(Dataset):
                 if hint is None:
                     raise
                 raise ImageError(f"{e}; {hint}") from None
+            calib = [torch.tensor(v, dtype=torch.float32) for v in calib]  # a copy: av2's arrays are read-only
             for key, value in zip(CAMERA_KEYS, (image, *calib, post_rot, post_tran)):
-                out[key].append(torch.as_tensor(value, dtype=torch.float32))
+                out[key].append(value)
         return {k: torch.stack(v) for k, v in out.items()}
 
     def ground_height(self, index: int) -> float:

@@ -54,6 +54,7 @@ geometries are built once per location and queried with an STR-tree, so one samp
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from collections.abc import Sequence
@@ -162,15 +163,11 @@ def crossing_geometry(ring_xy: np.ndarray, edges: Sequence[np.ndarray] | None = 
         return [], [], "skipped"
     if not np.array_equal(ring_xy[0], ring_xy[-1]):
         ring_xy = np.concatenate([ring_xy, ring_xy[:1]])
-    poly = Polygon(ring_xy)
-    status = "ok"
-    if not poly.is_valid:
-        parts = _polygons(shapely.make_valid(poly))
-        if not parts:
+    polys, status = [Polygon(ring_xy)], "ok"
+    if not polys[0].is_valid:
+        polys, status = _polygons(shapely.make_valid(polys[0])), "repaired"
+        if not polys:
             return [], [], "skipped"
-        polys, status = parts, "repaired"
-    else:
-        polys = [poly]
     if edges is None:
         lines = longest_edges(ring_xy)
     else:
@@ -291,8 +288,6 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
 def _map_file_problem(path: Path) -> str | None:
     """Why a map expansion file the devkit refused is not one, in words (an empty object or a list was "an outdated
     map version (%s)", a missing layer a bare KeyError); None when it looks like one."""
-    import json
-
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as e:

@@ -392,8 +392,7 @@ class NuScenesMapDataset(MapDataset):
         out = []
         for cam in CAMERAS:
             cs = self._camera_records(sample, cam)[1]
-            pose = _pose_matrix(cs["rotation"], cs["translation"])
-            out.append((cs["camera_intrinsic"], pose[:3, :3], pose[:3, 3]))
+            out.append((cs["camera_intrinsic"], Quaternion(cs["rotation"]).rotation_matrix, cs["translation"]))
         return out
 
     def missing_image_hint(self, path: Path) -> str | None:
