@@ -46,8 +46,7 @@ the full SE(3) of the pose (``ego_ground_height``).
 
 Bad input (a dataroot without the split folder of logs, a log without a map archive, ground-height
 raster, poses or calibration, a missing calibration row or camera image, a camera whose images do not match the
-sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file; with
-``data.on_bad_sample=skip`` the sample is skipped and counted instead (data/base.py).
+sweeps' timestamps) raises a ``DatasetError`` / ``MapError`` naming the log and the file (data/base.py).
 """
 
 from __future__ import annotations
@@ -78,8 +77,7 @@ from .base import (
     check_translation,
 )
 from .geo_split import GeoSplit, check_split, from_list, from_networks, synthetic_manifest
-from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings
-from .transforms import ImageAug, load_image, sample_augmentation
+from .local_map import LocalMapBuilder, MapError, _LocationMap, collect_crossings, heading
 
 AV2_EXTRA = 'pip install -e ".[av2]"'
 BOUNDARY_OVERLAP_M = 0.3  # a painted lane boundary this close to a drivable-area edge is that edge
@@ -258,10 +256,6 @@ class AV2LocalMapBuilder(LocalMapBuilder):
 # --- dataset -----------------------------------------------------------------------------------
 
 
-def _yaw(rotation: np.ndarray) -> float:
-    return math.atan2(rotation[1, 0], rotation[0, 0])
-
-
 # a lidar sweep's pose in a timestamp_ns column rounded by float64 (a step of 64 ns at AV2's 3.2e17 ns) lies
 # this close; the poses themselves are ~6 ms apart
 ROUNDED_TIMESTAMP_NS = 1000
@@ -281,10 +275,10 @@ class AV2MapDataset(MapDataset):
         self.dataroot = Path(d.dataroot)
         self.split_dir = self.dataroot / split
         # the folders of logs read: the split's own, or (a geo split) every split folder of the root
-        folders = [self.dataroot / f for f in GEO_FOLDERS] if d.split_scheme == "geo" else [self.split_dir]
+        folders = [self.split_dir]
         if d.split_scheme == "geo":
             check_split(split)
-            folders = [f for f in folders if f.is_dir()] or [self.split_dir]
+            folders = [f for f in (self.dataroot / name for name in GEO_FOLDERS) if f.is_dir()] or folders
         self.loaders: dict[Path, object] = {}
         self.log_dirs: dict[str, Path] = {}  # log id -> its folder
         for folder in folders:
@@ -478,11 +472,10 @@ class AV2MapDataset(MapDataset):
 
     # --- pieces ---------------------------------------------------------------------------------
     def gt_polylines(self, index: int) -> list[dict]:
-        """The sample's local map (polyline dicts, metres, ego frame), without loading images."""
         log, _ = self.samples[index]
         pose = self._pose(index)
         x, y = pose.translation[:2]
-        return self.map_builder(log, float(x), float(y), _yaw(pose.rotation))
+        return self.map_builder(log, float(x), float(y), heading(pose.rotation))
 
     def ego_pose(self, index: int) -> torch.Tensor:
         return torch.tensor(self._pose(index).transform_matrix, dtype=torch.float32)
@@ -499,7 +492,6 @@ class AV2MapDataset(MapDataset):
         return z
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
-        """``[(image path, (W, H))]`` of the sample's cameras, in ``camera_names`` order."""
         log, ts = self.samples[index]
         cams = self._log_cameras(log)
         files = [(self._image_path(log, cam, ts), (cams[cam].width_px, cams[cam].height_px))
@@ -507,24 +499,7 @@ class AV2MapDataset(MapDataset):
         check_distinct_images([path for path, _ in files], self.camera_names, f"log {log}, lidar sweep {ts}")
         return files
 
-    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
-        post_rot [V, 3, 3], post_tran [V, 3] (augmented when ``self.augment``)."""
-        log, _ = self.samples[index]
-        cams = self._log_cameras(log)
-        if self.augment and rng is None:
-            rng = self.augmentation_rng(index)
-        out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans",
-                                                "post_rot", "post_tran")}
-        for cam, (path, size) in zip(self.camera_names, self.camera_files(index)):
-            aug = sample_augmentation(self.data_cfg, rng) if self.augment else ImageAug()
-            image, post_rot, post_tran = load_image(path, size, self.data_cfg.image_size, aug,
-                                                    fit=self.data_cfg.image_fit)
-            pin = cams[cam]
-            out["images"].append(image)
-            out["intrinsics"].append(torch.tensor(pin.intrinsics.K, dtype=torch.float32))
-            out["cam_to_ego_rot"].append(torch.tensor(pin.ego_SE3_cam.rotation, dtype=torch.float32))
-            out["cam_to_ego_trans"].append(torch.tensor(pin.ego_SE3_cam.translation, dtype=torch.float32))
-            out["post_rot"].append(post_rot)
-            out["post_tran"].append(post_tran)
-        return {k: torch.stack(v) for k, v in out.items()}
+    def camera_calibration(self, index: int) -> list[tuple]:
+        cams = self._log_cameras(self.samples[index][0])
+        return [(cams[cam].intrinsics.K, cams[cam].ego_SE3_cam.rotation, cams[cam].ego_SE3_cam.translation)
+                for cam in self.camera_names]

@@ -10,12 +10,12 @@ string per sample) and ``camera_names`` (V names, in the order of the camera ten
 contiguous and in time order, see ``SceneIndex``), and implements
 
 * ``gt_polylines(i)``: the sample's local map (polyline dicts, metres, ego frame), without images;
-* ``load_cameras(i, rng=None)``: ``images`` [V, 3, h, w], ``intrinsics`` [V, 3, 3], ``cam_to_ego_rot``
-  [V, 3, 3], ``cam_to_ego_trans`` [V, 3], ``post_rot`` [V, 3, 3], ``post_tran`` [V, 3];
+* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order, and ``camera_calibration(i)``:
+  ``[(intrinsics [3, 3], cam_to_ego_rot [3, 3], cam_to_ego_trans [3])]`` (arrays or lists of numbers)
+  in the same order, which ``load_cameras`` reads (one augmentation draw per camera);
 * ``ego_pose(i)``: [4, 4] float32, ego -> global (the frame of the map);
 * ``ground_height(i)``: the height of the road below the ego origin, metres along the ego frame's z
-  (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster);
-* ``camera_files(i)``: ``[(image path, (W, H))]`` in camera order (for drawing the originals).
+  (nuScenes: 0, its ego frame lies on the ground; AV2: ~-0.35, from the log's ground-height raster).
 
 Bad input raises a ``UserError`` naming the file and sample; with ``data.on_bad_sample=skip`` a bad
 sample is replaced by the next good one (one warning per bad sample, with the running count;
@@ -27,6 +27,7 @@ from __future__ import annotations
 import operator
 import os
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -36,19 +37,15 @@ from tqdm import tqdm
 from ..config import ConfigError, ExperimentConfig, UserError
 from ..geometry import BEVGrid
 from ..targets import build_targets
+from .local_map import some_of
 from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, principal_point_implausible
+from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 # padding of the per-vertex keys in collate_fn (everything else is -1)
-VERTEX_KEYS = (
-    "gt_vertices_px",
-    "gt_vertex_mask",
-    "gt_vertex_labels",
-    "gt_vertex_instance",
-    "gt_vertex_order",
-    "gt_vertex_next",
-    "gt_vertex_prev",
-)
+VERTEX_KEYS = ("gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_instance", "gt_vertex_order",
+               "gt_vertex_next", "gt_vertex_prev")
 _VERTEX_PAD = {"gt_vertices_px": 0.0, "gt_vertex_mask": False}
+CAMERA_KEYS = ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans", "post_rot", "post_tran")
 
 
 class DatasetError(UserError):
@@ -94,16 +91,13 @@ ORTHONORMAL_TOL = 1e-3  # |R^T R - I| of a calibrated rotation (stored to ~1e-8 
 MAX_TRANSLATION_M = 1e7  # a translation beyond this (in metres) is corrupt, not a place on Earth
 
 
-def reject_text(values, what: str, where: str) -> None:
-    """No string (or bool) among ``values``: numpy reads "1.5" as 1.5, and the record's raw strings would
-    reach the arithmetic later (a raw error there)."""
+def check_finite(values, what: str, where: str) -> np.ndarray:
+    """``values`` as a float64 array, or a DatasetError for a string or bool among them (numpy reads "1.5" as 1.5,
+    and the record's raw strings would reach the arithmetic later, a raw error there), a non-number, NaN or an
+    infinity."""
     flat = [values] if isinstance(values, (str, bytes)) else np.asarray(values, dtype=object).ravel()
     if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in flat):
         raise DatasetError(f"{where}: {what} is not numeric: {values!r:.120} (numbers, not strings)")
-
-
-def _finite(values, what: str, where: str) -> np.ndarray:
-    reject_text(values, what, where)
     try:
         a = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):
@@ -116,7 +110,7 @@ def _finite(values, what: str, where: str) -> np.ndarray:
 
 def check_rotation(rotation, what: str, where: str) -> None:
     """A finite 3x3 rotation: orthonormal to ``ORTHONORMAL_TOL`` with determinant +1."""
-    R = _finite(rotation, what, where)
+    R = check_finite(rotation, what, where)
     if R.shape != (3, 3):
         raise DatasetError(f"{where}: {what} must be a 3x3 rotation, got shape {R.shape}")
     err = float(np.abs(R.T @ R - np.eye(3)).max())
@@ -126,14 +120,14 @@ def check_rotation(rotation, what: str, where: str) -> None:
 
 
 def check_translation(translation, what: str, where: str) -> None:
-    t = _finite(translation, what, where)
+    t = check_finite(translation, what, where)
     if t.shape != (3,) or np.abs(t).max() > MAX_TRANSLATION_M:
         raise DatasetError(f"{where}: {what} must be 3 finite coordinates in metres, got {t.tolist()}")
 
 
 def check_intrinsics(intrinsics, where: str) -> None:
     """A pinhole camera matrix: finite 3x3, positive focal lengths, last row (0, 0, 1)."""
-    K = _finite(intrinsics, "the camera intrinsics", where)
+    K = check_finite(intrinsics, "the camera intrinsics", where)
     if K.shape != (3, 3):
         raise DatasetError(f"{where}: the camera intrinsics must be a 3x3 matrix, got shape {K.shape}")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
@@ -173,7 +167,7 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
         check_upright(rotation, where, hint)
     except RigError as e:
         raise DatasetError(str(e)) from None
-    problem = camera_heading_problem(channel, rotation) if channel is not None else None
+    problem = camera_heading_problem(channel, rotation)
     if problem is not None:
         raise DatasetError(f"{where}: {problem}")
 
@@ -190,10 +184,10 @@ NOMINAL_CAMERA_YAW_DEG = {
 MAX_CAMERA_YAW_OFF_DEG = 60  # every camera of those real rigs lies within 2 degrees of its channel's direction
 
 
-def camera_heading_problem(channel: str, rotation) -> str | None:
+def camera_heading_problem(channel: str | None, rotation) -> str | None:
     """What is wrong with a camera -> ego ``rotation`` for the known channel ``channel`` (its optical axis
     more than ``MAX_CAMERA_YAW_OFF_DEG`` off the channel's direction: the channels' names swapped, a
-    calibration of another camera), or None (an unknown channel name is not checked)."""
+    calibration of another camera), or None (an unknown channel name, or None, is not checked)."""
     nominal = NOMINAL_CAMERA_YAW_DEG.get(channel)
     if nominal is None:
         return None
@@ -274,14 +268,39 @@ class MapDataset(Dataset):
     def gt_polylines(self, index: int) -> list[dict]:
         raise NotImplementedError
 
-    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-        raise NotImplementedError
-
     def ego_pose(self, index: int) -> torch.Tensor:
         raise NotImplementedError
 
     def camera_files(self, index: int) -> list:
         raise NotImplementedError
+
+    def camera_calibration(self, index: int) -> list:
+        raise NotImplementedError
+
+    def missing_image_hint(self, path: Path) -> str | None:
+        """Why a camera image of ``path`` cannot be read, added to the ``ImageError`` (None: nothing to add)."""
+        return None
+
+    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
+        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
+        post_rot [V, 3, 3], post_tran [V, 3] of one sample (augmented when ``self.augment``)."""
+        d = self.data_cfg
+        if self.augment and rng is None:
+            rng = self.augmentation_rng(index)
+        out: dict[str, list] = {k: [] for k in CAMERA_KEYS}
+        for (path, size), calib in zip(self.camera_files(index), self.camera_calibration(index)):
+            aug = sample_augmentation(d, rng) if self.augment else ImageAug()  # one draw per camera
+            try:
+                image, post_rot, post_tran = load_image(path, size, d.image_size, aug, fit=d.image_fit)
+            except ImageError as e:
+                hint = self.missing_image_hint(path)
+                if hint is None:
+                    raise
+                raise ImageError(f"{e}; {hint}") from None
+            calib = [torch.tensor(v, dtype=torch.float32) for v in calib]  # a copy: av2's arrays are read-only
+            for key, value in zip(CAMERA_KEYS, (image, *calib, post_rot, post_tran)):
+                out[key].append(value)
+        return {k: torch.stack(v) for k, v in out.items()}
 
     def ground_height(self, index: int) -> float:
         raise NotImplementedError
@@ -295,8 +314,8 @@ class MapDataset(Dataset):
         scenes when it has none."""
         names = self.scenes.names
         if name not in names:
-            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
-            raise DatasetError(f"scene '{name}' is not in split '{self.split}' of {self.dataroot}; its scenes: {shown}")
+            raise DatasetError(f"scene '{name}' is not in split '{self.split}' of {self.dataroot}; its scenes: "
+                               f"{some_of(names)}")
         return list(self.scenes.runs[names.index(name)])
 
     def set_epoch(self, epoch: int) -> None:
@@ -486,22 +505,11 @@ def gt_submission(dataset: MapDataset, progress: bool = False) -> dict:
     if first is not None and not results:  # a GT file of no samples, exit 0 (every map unreadable)
         raise DatasetError(f"every sample of split '{dataset.split}' in {dataset.dataroot} is bad "
                            f"(data.on_bad_sample=skip), the first: {first}")
-    meta = {
-        "use_camera": True,
-        "use_lidar": False,
-        "use_radar": False,
-        "use_external": False,
-        "vector": True,
-        "ground_truth": True,
-        "dataset": d.dataset,
-        "version": d.version,
-        "split": dataset.split,
-        "frame": "ego, x forward, y left, metres",
-        "classes": list(d.classes),
-        "xbound": list(g.xbound),
-        "ybound": list(g.ybound),
-        "resolution": g.resolution,  # the raster protocol's pixel in evaluate (evaluate-json: --resolution)
-        "sample_dist": d.sample_dist,
-    }
+    meta = {"use_camera": True, "use_lidar": False, "use_radar": False, "use_external": False, "vector": True,
+            "ground_truth": True, "dataset": d.dataset, "version": d.version, "split": dataset.split,
+            "frame": "ego, x forward, y left, metres", "classes": list(d.classes), "xbound": list(g.xbound),
+            "ybound": list(g.ybound),
+            "resolution": g.resolution,  # the raster protocol's pixel in evaluate (evaluate-json: --resolution)
+            "sample_dist": d.sample_dist}
     return {"meta": meta, "results": results}
 

@@ -54,6 +54,8 @@ geometries are built once per location and queried with an STR-tree, so one samp
 
 from __future__ import annotations
 
+import json
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -123,6 +125,17 @@ class _LocationMap:
             shapely.prepare(self.divider_exclusion)  # point-in-zone tests per sample (_divider_pieces)
 
 
+def some_of(names: Sequence[str], shown: int = 5) -> str:
+    """The first ``shown`` of ``names``, comma-separated, and how many more there are."""
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def heading(rotation) -> float:
+    """The yaw (radians) of an ego -> global rotation [3, 3], as ``LocalMapBuilder`` takes it: the heading of the
+    ego's x axis in the global xy plane."""
+    return math.atan2(rotation[1][0], rotation[0][0])
+
+
 def map_expansion_path(dataroot: str | Path, location: str) -> Path:
     return Path(dataroot) / "maps" / "expansion" / f"{location}.json"
 
@@ -150,15 +163,11 @@ def crossing_geometry(ring_xy: np.ndarray, edges: Sequence[np.ndarray] | None = 
         return [], [], "skipped"
     if not np.array_equal(ring_xy[0], ring_xy[-1]):
         ring_xy = np.concatenate([ring_xy, ring_xy[:1]])
-    poly = Polygon(ring_xy)
-    status = "ok"
-    if not poly.is_valid:
-        parts = [g for g in shapely.get_parts(shapely.make_valid(poly)) if g.geom_type == "Polygon" and g.area > 0]
-        if not parts:
+    polys, status = [Polygon(ring_xy)], "ok"
+    if not polys[0].is_valid:
+        polys, status = _polygons(shapely.make_valid(polys[0])), "repaired"
+        if not polys:
             return [], [], "skipped"
-        polys, status = parts, "repaired"
-    else:
-        polys = [poly]
     if edges is None:
         lines = longest_edges(ring_xy)
     else:
@@ -168,36 +177,30 @@ def crossing_geometry(ring_xy: np.ndarray, edges: Sequence[np.ndarray] | None = 
     return polys, [ln for ln in lines if ln.length > MIN_LENGTH_M], status
 
 
+# crossing_geometry's statuses other than "ok", as collect_crossings reports them
+CROSSING_PROBLEMS = {
+    "repaired": "invalid (self-intersecting) crossing polygon(s) repaired with make_valid",
+    "skipped": "degenerate crossing polygon(s) (< 3 distinct points) skipped",
+    "short edge": "crossing(s) with an edge of fewer than 2 points, that edge not drawn",
+}
+
+
 def collect_crossings(crossings, source: str) -> tuple[np.ndarray, np.ndarray, str]:
     """``crossings``: iterable of ``(crossing id, ring [P, 2] or None when unreadable, edges or None)``
     -> (polygons, edge lines, report). Bad crossings are repaired or skipped (``crossing_geometry``),
     counted and reported in one ``UserWarning`` naming ``source`` (the map file); good ones are kept
     whatever their neighbours are."""
     polys, lines = [], []
-    bad: dict[str, list[str]] = {"repaired": [], "skipped": [], "short edge": []}
+    bad: dict[str, list[str]] = {status: [] for status in CROSSING_PROBLEMS}
     for cid, ring, edges in crossings:
         p, e, status = crossing_geometry(ring, edges) if ring is not None else ([], [], "skipped")
         polys += p
         lines += e
         if status != "ok":
             bad[status].append(str(cid))
-    report = ""
-    if bad["repaired"] or bad["skipped"] or bad["short edge"]:
-        def ids(v: list[str]) -> str:
-            return ", ".join(v[:5]) + (f" and {len(v) - 5} more" if len(v) > 5 else "")
-
-        parts = []
-        if bad["repaired"]:
-            parts.append(f"{len(bad['repaired'])} invalid (self-intersecting) crossing polygon(s) repaired with "
-                         f"make_valid ({ids(bad['repaired'])})")
-        if bad["skipped"]:
-            parts.append(f"{len(bad['skipped'])} degenerate crossing polygon(s) (< 3 distinct points) skipped "
-                         f"({ids(bad['skipped'])})")
-        if bad["short edge"]:
-            parts.append(f"{len(bad['short edge'])} crossing(s) with an edge of fewer than 2 points, that edge not "
-                         "drawn "
-                         f"({ids(bad['short edge'])})")
-        report = f"{source}: " + "; ".join(parts)
+    parts = [f"{len(ids)} {CROSSING_PROBLEMS[status]} ({some_of(ids)})" for status, ids in bad.items() if ids]
+    report = f"{source}: " + "; ".join(parts) if parts else ""
+    if report:
         warnings.warn(report, stacklevel=3)
     return np.array(polys, dtype=object), np.array(lines, dtype=object), report
 
@@ -254,8 +257,7 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
             elif len(xy):
                 dividers.append(LineString(xy))
     if short:
-        warnings.warn(f"{path}: {len(short)} divider line(s) of one point skipped ({', '.join(short[:5])}"
-                      f"{f' and {len(short) - 5} more' if len(short) > 5 else ''})", stacklevel=2)
+        warnings.warn(f"{path}: {len(short)} divider line(s) of one point skipped ({some_of(short)})", stacklevel=2)
     dividers = np.array([g for g in dividers if not g.is_empty], dtype=object)
 
     def crossing_rings():
@@ -278,8 +280,7 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
     invalid = [token for token, a in areas if not a.is_valid]
     if invalid:  # skipped as the devkit's _get_layer_polygon does, but no longer with no word (a boundary lost)
         warnings.warn(f"{path}: {len(invalid)} invalid (self-intersecting) road_segment / lane polygon(s) skipped, "
-                      f"their boundaries not drawn ({', '.join(invalid[:5])}"
-                      f"{f' and {len(invalid) - 5} more' if len(invalid) > 5 else ''})", stacklevel=2)
+                      f"their boundaries not drawn ({some_of(invalid)})", stacklevel=2)
     areas = np.array([a for _, a in areas if a.is_valid and not a.is_empty], dtype=object)
     return _LocationMap(dividers, peds, ped_edges, areas, crossing_report=report)
 
@@ -287,8 +288,6 @@ def load_location_map(dataroot: str | Path, location: str) -> _LocationMap:
 def _map_file_problem(path: Path) -> str | None:
     """Why a map expansion file the devkit refused is not one, in words (an empty object or a list was "an outdated
     map version (%s)", a missing layer a bare KeyError); None when it looks like one."""
-    import json
-
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as e:
@@ -359,6 +358,7 @@ def _lines(geom) -> list[LineString]:
 
 
 def _polygons(geom) -> list[Polygon]:
+    """The polygons of positive area in a clipping result (or of ``make_valid``'s)."""
     return [g for g in shapely.get_parts(geom) if g.geom_type == "Polygon" and g.area > 0]
 
 
@@ -375,7 +375,7 @@ class LocalMapBuilder:
     """``builder(location, x, y, yaw) -> list of polyline dicts`` (see the module docstring).
 
     ``ped_crossing``: the crossing convention, one of ``PED_CROSSING_CONVENTIONS`` (config
-    ``data.ped_crossing``). Map files are read lazily, once per location (or eagerly with ``preload``).
+    ``data.ped_crossing``). Map files are read once per location, when first asked for (``location_map``).
     """
 
     def __init__(self, dataroot: str | Path, grid: BEVGrid, sample_dist: float = 1.5, ped_crossing: str = "edges"):
@@ -389,14 +389,8 @@ class LocalMapBuilder:
         self.sample_dist = sample_dist
         self.ped_crossing = ped_crossing
         self._maps: dict[str, _LocationMap] = {}
-        e = INSIDE_EPS_M
-        self._clip_box = box(grid.xmin + e, grid.ymin + e, grid.xmax - e, grid.ymax - e)
-        m = EDGE_MARGIN_M
-        self._edge_box = box(grid.xmin + m, grid.ymin + m, grid.xmax - m, grid.ymax - m)
-
-    def preload(self, locations) -> None:
-        for loc in locations:
-            self.location_map(loc)
+        self._clip_box, self._edge_box = (box(grid.xmin + m, grid.ymin + m, grid.xmax - m, grid.ymax - m)
+                                          for m in (INSIDE_EPS_M, EDGE_MARGIN_M))
 
     def location_map(self, location: str) -> _LocationMap:
         if location not in self._maps:

@@ -14,22 +14,19 @@ mini_train/mini_val (asked for as "train"/"val"), and ``data.splits_file`` (a JS
 Poses: the map and ``ego_pose`` use the ego pose of the sample's LIDAR_TOP record (the keyframe
 reference, as HDMapNet/MapTR; CAM_FRONT when a dataroot has no lidar). The cameras' ego poses at
 their own timestamps are not used (lift-splat-shoot's simplification): the camera -> ego transform is
-each camera's calibrated sensor.
-
-Bad input raises a ``UserError`` naming the file and sample token; with ``data.on_bad_sample=skip``
-a bad sample is replaced by the next good one (one warning per bad sample) instead (data/base.py).
+each camera's calibrated sensor. Bad input: data/base.py.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
+from pyquaternion import Quaternion
 
 from ..config import ExperimentConfig
 from ..files import relative_path_note
@@ -40,20 +37,20 @@ from .base import (
     check_camera_time,
     check_distinct_images,
     check_ego_level,
+    check_finite,
     check_intrinsics,
     check_translation,
-    reject_text,
 )
 from .geo_split import GeoSplit, from_list, from_networks, synthetic_manifest
-from .local_map import LocalMapBuilder, MapError
+from .local_map import LocalMapBuilder, MapError, heading
 from .rig import CAMERAS
-from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 OFFICIAL_SPLITS = {
     "v1.0-trainval": {"train": "train", "val": "val"},
     "v1.0-mini": {"train": "mini_train", "val": "mini_val"},
     "v1.0-test": {"test": "test"},  # no annotations, but the maps: the devkit's split 'test' (was refused)
 }
+SPLITS_FILE_FORM = '{"train": [scene names], "val": [scene names]}'  # data.splits_file
 
 
 def open_nuscenes(dataroot: str | Path, version: str):
@@ -86,10 +83,8 @@ def open_nuscenes(dataroot: str | Path, version: str):
                 if (root / "sample.json").is_file() else
                 f"(the dataroot is the folder that holds {version}: set data.dataroot to {below[0]})" if below else
                 "(set data.version or --version)")
-        raise DatasetError(
-            f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; versions "
-            f"in {root}: {', '.join(found) or 'none'} " + hint
-        )
+        raise DatasetError(f"nuScenes version '{version}' not found: {table_root}/sample.json does not exist; "
+                           f"versions in {root}: {', '.join(found) or 'none'} " + hint)
     try:
         nusc = NuScenes(version=version, dataroot=str(root), verbose=False)
     except KeyError as e:  # the devkit's reverse index: a record names a token that its table does not hold
@@ -120,20 +115,28 @@ def check_unique_tokens(nusc, table_root: Path) -> None:
         index = getattr(nusc, "_token2ind", {}).get(name)  # the devkit's token -> index: shorter with a duplicate
         if index is not None and len(index) == len(records):
             continue
-        seen: dict[str, int] = {}
-        for i, record in enumerate(records):
-            j = seen.setdefault(record["token"], i)
-            if j != i:
-                raise DatasetError(f"cannot load nuScenes tables from {table_root}: {name}.json holds two records "
-                                   f"with token {record['token']} (records {j} and {i}); a token names one record: "
-                                   "remove or re-token the copy")
-    seen = {}
-    for i, scene in enumerate(nusc.scene):
-        j = seen.setdefault(scene.get("name"), i)
+        repeat = _first_repeat(r["token"] for r in records)
+        if repeat is not None:
+            j, i = repeat
+            raise DatasetError(f"cannot load nuScenes tables from {table_root}: {name}.json holds two records "
+                               f"with token {records[i]['token']} (records {j} and {i}); a token names one record: "
+                               "remove or re-token the copy")
+    repeat = _first_repeat(scene.get("name") for scene in nusc.scene)
+    if repeat is not None:
+        (j, i), scene = repeat, nusc.scene[repeat[1]]
+        raise DatasetError(f"cannot load nuScenes tables from {table_root}: scene.json names two scenes "
+                           f"{scene.get('name')!r} (records {j} and {i}, tokens {nusc.scene[j]['token']} and "
+                           f"{scene['token']}); splits and temporal models tell scenes apart by name: rename one")
+
+
+def _first_repeat(keys) -> tuple[int, int] | None:
+    """The positions ``(first, later)`` of the first key of ``keys`` that came before, or None."""
+    seen: dict = {}
+    for i, key in enumerate(keys):
+        j = seen.setdefault(key, i)
         if j != i:
-            raise DatasetError(f"cannot load nuScenes tables from {table_root}: scene.json names two scenes "
-                               f"{scene.get('name')!r} (records {j} and {i}, tokens {nusc.scene[j]['token']} and "
-                               f"{scene['token']}); splits and temporal models tell scenes apart by name: rename one")
+            return j, i
+    return None
 
 
 def _unparsable_table(table_root: Path) -> str | None:
@@ -195,23 +198,18 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
         except OSError as e:
             raise DatasetError(f"splits file {path} cannot be read ({e.strerror or e})") from None
         except UnicodeDecodeError:
-            raise DatasetError(f"splits file {path} is not a JSON text file (UTF-8); expected "
-                               '{"train": [scene names], "val": [scene names]}') from None
+            raise DatasetError(f"splits file {path} is not a JSON text file (UTF-8); expected {SPLITS_FILE_FORM}"
+                               ) from None
         except json.JSONDecodeError as e:
-            hint = ""
-            if path.suffix.lower() in (".yaml", ".yml"):
-                hint = ' (a YAML file? write it as JSON: {"train": [scene names], "val": [scene names]})'
+            yaml = path.suffix.lower() in (".yaml", ".yml")
+            hint = f" (a YAML file? write it as JSON: {SPLITS_FILE_FORM})" if yaml else ""
             raise DatasetError(f"splits file {path} is not valid JSON: {e}{hint}") from None
         if not isinstance(splits, dict):  # a list of lists said "it has: none"
-            raise DatasetError(
-                f"splits file {path} holds a JSON {type(splits).__name__}, not an object of splits: write it as "
-                f'{{"train": [scene names], "val": [scene names]}}'
-            )
+            raise DatasetError(f"splits file {path} holds a JSON {type(splits).__name__}, not an object of splits: "
+                               f"write it as {SPLITS_FILE_FORM}")
         if split not in splits or not isinstance(splits[split], list):
-            raise DatasetError(
-                f"splits file {path} has no list of scene names for split '{split}'; it has: {', '.join(splits)}"
-                f" (set data.train_split / data.val_split to the file's names)"
-            )
+            raise DatasetError(f"splits file {path} has no list of scene names for split '{split}'; it has: "
+                               f"{', '.join(splits)} (set data.train_split / data.val_split to the file's names)")
         odd = [n for n in splits[split] if not isinstance(n, str)]
         if odd:  # a nested list ({"val": [names]} with names a list already) was a raw TypeError
             raise DatasetError(f"splits file {path}: split '{split}' must list scene names (strings), got "
@@ -224,20 +222,16 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
                 if set(missing) <= {r.get("token") for r in getattr(nusc, table, [])}:
                     hint = (f" (these are {what}: a splits file lists scene names, the 'name' of scene.json, "
                             f"e.g. {present[:1]})")
-            raise DatasetError(
-                f"splits file {path}: split '{split}' names {len(missing)} scene(s) not in version "
-                f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}{hint}"
-            )
+            raise DatasetError(f"splits file {path}: split '{split}' names {len(missing)} scene(s) not in version "
+                               f"'{version}' of {nusc.dataroot}, e.g. {missing[:3]}{hint}")
     elif version in OFFICIAL_SPLITS:
         from nuscenes.utils.splits import create_splits_scenes
 
         official = create_splits_scenes()
         name = OFFICIAL_SPLITS[version].get(split, split)
         if name not in official:
-            raise DatasetError(
-                f"unknown split '{split}' for {version}; use one of {', '.join(OFFICIAL_SPLITS[version])}, "
-                f"{', '.join(official)}, or set data.splits_file"
-            )
+            raise DatasetError(f"unknown split '{split}' for {version}; use one of "
+                               f"{', '.join(OFFICIAL_SPLITS[version])}, {', '.join(official)}, or set data.splits_file")
         wanted = set(official[name])
         if present and not wanted & set(present):  # was "split 'mini_train' ... has no samples", with no word on why
             holding = [k for k, v in official.items() if set(present) & set(v)]
@@ -247,13 +241,10 @@ def split_scene_names(nusc, version: str, split: str, splits_file: str | None = 
                 f"{nusc.dataroot} (e.g. {present[:2]}); "
                 + (f"its scenes are in the official split(s) {', '.join(holding)}: set data.train_split / "
                    "data.val_split to one of them" if holding else
-                   "they are not official nuScenes scenes: set data.splits_file to a JSON file "
-                   '{"train": [scene names], "val": [scene names]}'))
+                   f"they are not official nuScenes scenes: set data.splits_file to a JSON file {SPLITS_FILE_FORM}"))
     else:
-        raise DatasetError(
-            f"version '{version}' has no official split; set data.splits_file to a JSON file "
-            f'{{"train": [scene names], "val": [scene names]}}'
-        )
+        raise DatasetError(f"version '{version}' has no official split; set data.splits_file to a JSON file "
+                           f"{SPLITS_FILE_FORM}")
     return [n for n in present if n in wanted]
 
 
@@ -266,14 +257,6 @@ def geo_split_scenes(nusc, version: str, split: str) -> GeoSplit:
         return from_networks(split, {s["name"]: logs.get(s.get("log_token"), {}).get("location", "?")
                                      for s in nusc.scene}, where)
     return from_list("nuscenes", split, [s["name"] for s in nusc.scene], where)
-
-
-def quaternion_yaw(q_wxyz) -> float:
-    """Yaw (radians) of a rotation quaternion (w, x, y, z): the heading of its x axis in the xy plane."""
-    from pyquaternion import Quaternion
-
-    v = Quaternion(q_wxyz).rotation_matrix[:, 0]
-    return math.atan2(v[1], v[0])
 
 
 QUATERNION_NORM_TOL = 1e-3  # nuScenes stores unit quaternions to ~1e-8; pyquaternion would normalise any
@@ -291,11 +274,9 @@ def _field(record: dict, key: str, table: str):
 def check_pose_record(record: dict, table: str, where: str) -> None:
     """A calibrated_sensor or ego_pose record: finite translation, finite unit quaternion (w, x, y, z)."""
     check_translation(_field(record, "translation", table), "its translation", where)
-    reject_text(_field(record, "rotation", table), "its rotation", where)
-    q = np.asarray(_field(record, "rotation", table), dtype=np.float64)
-    if q.shape != (4,) or not np.isfinite(q).all():
-        raise DatasetError(f"{where}: its rotation must be 4 finite numbers (a quaternion w, x, y, z), got "
-                           f"{q.tolist()} (NaN or infinite values: the record is corrupt)")
+    q = check_finite(_field(record, "rotation", table), "its rotation", where)
+    if q.shape != (4,):
+        raise DatasetError(f"{where}: its rotation must be 4 numbers (a quaternion w, x, y, z), got {q.tolist()}")
     norm = float(np.linalg.norm(q))
     if abs(norm - 1) > QUATERNION_NORM_TOL:
         raise DatasetError(f"{where}: its rotation {q.tolist()} is not a unit quaternion (norm {norm:.6g}); the "
@@ -303,8 +284,6 @@ def check_pose_record(record: dict, table: str, where: str) -> None:
 
 
 def _pose_matrix(rotation_wxyz, translation) -> torch.Tensor:
-    from pyquaternion import Quaternion
-
     T = np.eye(4)
     T[:3, :3] = Quaternion(rotation_wxyz).rotation_matrix
     T[:3, 3] = translation
@@ -312,11 +291,8 @@ def _pose_matrix(rotation_wxyz, translation) -> torch.Tensor:
 
 
 class NuScenesMapDataset(MapDataset):
-    """Samples of one split as dicts (docs/conventions.md, per-sample: no batch dimension; data/base.py).
-
-    ``augment``: train-time image augmentation; default ``cfg.data.augment and split == train_split``.
-    ``nusc``: an already loaded ``NuScenes`` of ``cfg.data.version`` (shared between splits).
-    """
+    """Samples of one split (data/base.py). ``nusc``: an already loaded ``NuScenes`` of ``cfg.data.version``
+    (shared between splits)."""
 
     camera_names = CAMERAS
 
@@ -367,7 +343,7 @@ class NuScenesMapDataset(MapDataset):
         self._map_errors: dict[str, MapError] = {}
         for loc in sorted({self._location(t) for t in self.sample_tokens}):
             try:
-                self.map_builder.preload([loc])
+                self.map_builder.location_map(loc)
             except MapError as e:
                 if d.on_bad_sample == "raise":
                     raise
@@ -403,51 +379,23 @@ class NuScenesMapDataset(MapDataset):
 
     # --- pieces -----------------------------------------------------------------------------------
     def gt_polylines(self, index: int) -> list[dict]:
-        """The sample's local map (polyline dicts, metres, ego frame), without loading images."""
         token = self.sample_tokens[index]
         loc = self._location(token)
         if loc in self._map_errors:
             raise MapError(f"sample {token}: {self._map_errors[loc]}")
         pose = self._reference_pose(self.nusc.get("sample", token))
         x, y = pose["translation"][:2]
-        return self.map_builder(loc, x, y, quaternion_yaw(pose["rotation"]))
+        return self.map_builder(loc, x, y, heading(Quaternion(pose["rotation"]).rotation_matrix))
 
-    def load_cameras(self, index: int, rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Images [V, 3, h, w], intrinsics [V, 3, 3], cam_to_ego_rot [V, 3, 3] / trans [V, 3],
-        post_rot [V, 3, 3], post_tran [V, 3] of one sample (augmented when ``self.augment``)."""
+    def camera_calibration(self, index: int) -> list[tuple]:
         sample = self.nusc.get("sample", self.sample_tokens[index])
-        out: dict[str, list] = {k: [] for k in ("images", "intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}
-        out["post_rot"], out["post_tran"] = [], []
-        if self.augment and rng is None:
-            rng = self.augmentation_rng(index)
+        out = []
         for cam in CAMERAS:
-            sd, cs = self._camera_records(sample, cam)
-            aug = ImageAug()
-            if self.augment:
-                aug = sample_augmentation(self.data_cfg, rng)  # one draw per camera
-            try:
-                image, post_rot, post_tran = load_image(
-                    self.dataroot / sd["filename"], (sd["width"], sd["height"]), self.data_cfg.image_size, aug,
-                    fit=self.data_cfg.image_fit,
-                )
-            except ImageError as e:
-                hint = self._missing_image_hint(self.dataroot / sd["filename"])
-                if hint is None:
-                    raise
-                raise ImageError(f"{e}; {hint}") from None
-            pose = _pose_matrix(cs["rotation"], cs["translation"])
-            out["images"].append(image)
-            out["intrinsics"].append(torch.tensor(cs["camera_intrinsic"], dtype=torch.float32))
-            out["cam_to_ego_rot"].append(pose[:3, :3])
-            out["cam_to_ego_trans"].append(pose[:3, 3])
-            out["post_rot"].append(post_rot)
-            out["post_tran"].append(post_tran)
-        check_distinct_images([self.dataroot / self._camera_records(sample, c)[0]["filename"] for c in CAMERAS],
-                              CAMERAS, f"sample {sample['token']} in {self.dataroot / self.data_cfg.version}/"
-                                       "sample_data.json")
-        return {k: torch.stack(v) for k, v in out.items()}
+            cs = self._camera_records(sample, cam)[1]
+            out.append((cs["camera_intrinsic"], Quaternion(cs["rotation"]).rotation_matrix, cs["translation"]))
+        return out
 
-    def _missing_image_hint(self, path: Path) -> str | None:
+    def missing_image_hint(self, path: Path) -> str | None:
         """Why a camera image of the tables is not on disk, for a dataset downloaded in parts: no ``samples/`` at
         all (the metadata alone), the file under another case, or how many of the split's images are missing
         (some blob parts only). None when the file exists. (Each was one "not found" naming one file.)"""
@@ -463,10 +411,9 @@ class NuScenesMapDataset(MapDataset):
                     f"{self.data_cfg.version}01..10_blobs) and extract them into {self.dataroot} (export-gt needs "
                     "no images)")
         if path.parent.is_dir():
-            names = getattr(self, "_folder_names", {})
-            self._folder_names = names
+            names = self.__dict__.setdefault("_folder_names", {})  # folder -> its file names by lower case
             if path.parent not in names:
-                names[path.parent] = {n.lower(): n for n in (p.name for p in path.parent.iterdir())}
+                names[path.parent] = {p.name.lower(): p.name for p in path.parent.iterdir()}
             other = names[path.parent].get(path.name.lower())
             if other is not None:
                 return (f"the folder holds {other}, its name in another case (the tables name {path.name}, and file "
@@ -550,10 +497,11 @@ class NuScenesMapDataset(MapDataset):
         return 0.0
 
     def camera_files(self, index: int) -> list[tuple[Path, tuple[int, int]]]:
-        """``[(image path, (W, H))]`` of the sample's cameras, in ``CAMERAS`` order."""
         sample = self.nusc.get("sample", self.sample_tokens[index])
         out = []
         for cam in CAMERAS:
             sd, _ = self._camera_records(sample, cam)
             out.append((self.dataroot / sd["filename"], (sd["width"], sd["height"])))
+        check_distinct_images([path for path, _ in out], CAMERAS,
+                              f"sample {sample['token']} in {self.dataroot / self.data_cfg.version}/sample_data.json")
         return out

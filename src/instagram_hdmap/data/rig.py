@@ -26,7 +26,7 @@ import torch
 from pyquaternion import Quaternion
 
 from ..config import UserError
-from .transforms import image_affine
+from .transforms import image_affine, post_transform
 
 NUSCENES_IMAGE_SIZE = (1600, 900)  # (width, height)
 # The order of the camera tensors of a nuScenes sample (data/nuscenes.py): the front row left to
@@ -125,11 +125,7 @@ def nuscenes_like_rig(image_size: tuple[int, int], cameras: int = len(CAMERAS)) 
     ``ground_height`` 0 (a 0-d tensor: its ego frame lies on the road). ``cameras``: an example rig of
     another size (V = ``cameras``, the six cycled: the shapes of an AV2 model's seven cameras)."""
     sensors = rig(NUSCENES_IMAGE_SIZE)
-    A = torch.from_numpy(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size))).float()
-    post_rot = torch.eye(3)
-    post_rot[:2, :2] = A[:2, :2]
-    post_tran = torch.zeros(3)
-    post_tran[:2] = A[:2, 2]
+    post_rot, post_tran = post_transform(image_affine(NUSCENES_IMAGE_SIZE, tuple(image_size)))
     V = cameras
     names = [CAMERAS[i % len(CAMERAS)] for i in range(V)]
     return {

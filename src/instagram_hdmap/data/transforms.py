@@ -38,12 +38,8 @@ from ..config import DataConfig, UserError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-_REDUCED_FLAGS = {
-    1: cv2.IMREAD_COLOR,
-    2: cv2.IMREAD_REDUCED_COLOR_2,
-    4: cv2.IMREAD_REDUCED_COLOR_4,
-    8: cv2.IMREAD_REDUCED_COLOR_8,
-}
+_REDUCED_FLAGS = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                  8: cv2.IMREAD_REDUCED_COLOR_8}
 
 
 _NORM_SCALE = 1 / (255 * torch.tensor(IMAGENET_STD).view(3, 1, 1))
@@ -67,12 +63,9 @@ class ImageAug:
 def sample_augmentation(cfg: DataConfig, rng: np.random.Generator) -> ImageAug:
     """Random scale, crop jitter and rotation within the ``data.aug_*`` ranges."""
     j = cfg.aug_crop_jitter
-    return ImageAug(
-        scale=float(rng.uniform(*cfg.aug_scale)),
-        crop_dx=float(rng.uniform(-j, j)),
-        crop_dy=float(rng.uniform(-j, j)),
-        rotate_deg=float(rng.uniform(-cfg.aug_rotate_deg, cfg.aug_rotate_deg)),
-    )
+    return ImageAug(scale=float(rng.uniform(*cfg.aug_scale)), crop_dx=float(rng.uniform(-j, j)),
+                    crop_dy=float(rng.uniform(-j, j)),
+                    rotate_deg=float(rng.uniform(-cfg.aug_rotate_deg, cfg.aug_rotate_deg)))
 
 
 def _scale_matrix(sx: float, sy: float) -> np.ndarray:
@@ -151,17 +144,25 @@ def read_image(path: str | Path, factor: int = 1) -> tuple[np.ndarray, int]:
     return img, factor
 
 
-def _undecodable_kind(buf: np.ndarray) -> str:
-    """Why OpenCV decoded nothing: a valid image of a kind it does not read (a float TIFF, an animated GIF:
-    PIL opens them) or no image at all."""
+def _pil_header(source, read):
+    """``read(image)`` of PIL's lazily opened image of ``source`` (a path or a buffer's bytes), or None where PIL
+    cannot read it either (not an image, a damaged header)."""
     import io
 
     from PIL import Image
 
     try:
-        with Image.open(io.BytesIO(buf.tobytes())) as im:
-            kind = f"{im.format} {im.mode}" + (", animated" if getattr(im, "is_animated", False) else "")
-    except Exception:  # not an image PIL knows either
+        with Image.open(io.BytesIO(source.tobytes()) if isinstance(source, np.ndarray) else source) as im:
+            return read(im)
+    except Exception:
+        return None
+
+
+def _undecodable_kind(buf: np.ndarray) -> str:
+    """Why OpenCV decoded nothing: a valid image of a kind it does not read (a float TIFF, an animated GIF:
+    PIL opens them) or no image at all."""
+    kind = _pil_header(buf, lambda im: f"{im.format} {im.mode}{', animated' if getattr(im, 'is_animated', 0) else ''}")
+    if kind is None:
         return "corrupt or not an image"
     return f"a {kind} image, which OpenCV does not read; save it as an 8-bit RGB JPEG or PNG"
 
@@ -171,16 +172,9 @@ _ORIENTATIONS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped upside dow
 
 
 def _exif_orientation(buf: np.ndarray) -> int | None:
-    """The EXIF orientation tag (274) of a JPEG's bytes, or None (no tag, or a header PIL cannot read)."""
-    import io
-
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(buf.tobytes())) as im:
-            value = im.getexif().get(0x0112)
-    except Exception:  # a damaged header: decoded (or named) as before
-        return None
+    """The EXIF orientation tag (274) of a JPEG's bytes, or None (no tag, or a header PIL cannot read: the image is
+    decoded, or named, as any other)."""
+    value = _pil_header(buf, lambda im: im.getexif().get(0x0112))
     return int(value) if isinstance(value, int) else None
 
 
@@ -189,14 +183,8 @@ def _axis_scales(A: np.ndarray) -> tuple[float, float]:
     return math.hypot(A[0, 0], A[1, 0]), math.hypot(A[0, 1], A[1, 1])
 
 
-def load_image(
-    path: str | Path,
-    orig_wh: tuple[int, int],
-    out_hw: tuple[int, int],
-    aug: ImageAug = ImageAug(),
-    reduced_decode: bool = True,
-    fit: str = "cover",
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def load_image(path: str | Path, orig_wh: tuple[int, int], out_hw: tuple[int, int], aug: ImageAug = ImageAug(),
+               reduced_decode: bool = True, fit: str = "cover") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Decode, warp and normalise one camera image.
 
     orig_wh: (W, H) of the image file (as in its nuScenes ``sample_data`` record).
@@ -210,21 +198,13 @@ def load_image(
     img, f = read_image(path, f)
     exp_w, exp_h = math.ceil(W / f), math.ceil(H / f)
     if img.shape[1] != exp_w or img.shape[0] != exp_h:
-        # a dataset whose images were resized (a half-resolution copy) or rotated: say what the file is and
-        # what to do, not only the reduced-decode sizes
-        try:
-            from PIL import Image  # the header's exact size (a reduced decode rounds it)
-
-            with Image.open(path) as im:
-                size = "{}x{}".format(*im.size)
-        except (OSError, ValueError):
-            size = f"about {img.shape[1] * f}x{img.shape[0] * f}"
-        raise ImageError(
-            f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected "
-            f"{exp_w}x{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather): the "
-            f"file is {size}, a resized or rotated copy? the calibration is that of the recorded size: use the "
-            "dataset's original images"
-        )
+        # a dataset whose images were resized (a half-resolution copy) or rotated: say what the file is (the
+        # header's exact size; a reduced decode rounds it) and what to do, not only the reduced-decode sizes
+        size = _pil_header(path, lambda im: "{}x{}".format(*im.size)) or f"about {img.shape[1] * f}x{img.shape[0] * f}"
+        raise ImageError(f"camera image {path} decodes to {img.shape[1]}x{img.shape[0]} at 1/{f}, expected {exp_w}x"
+                         f"{exp_h} from its recorded size {W}x{H} (nuScenes sample_data, AV2 intrinsics.feather): the "
+                         f"file is {size}, a resized or rotated copy? the calibration is that of the recorded size: "
+                         "use the dataset's original images")
     return _warp(img, A, f, out_hw, bgr=True)
 
 
@@ -256,11 +236,17 @@ def _warp(img: np.ndarray, A: np.ndarray, f: int, out_hw: tuple[int, int], bgr: 
     channels = torch.from_numpy(out).permute(2, 0, 1)  # [3, h, w]
     rgb = channels.flip(0) if bgr else channels  # OpenCV decodes BGR
     image = torch.addcmul(_NORM_OFFSET, rgb.float(), _NORM_SCALE)  # (x / 255 - mean) / std
+    return (image, *post_transform(A))
+
+
+def post_transform(A: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """``post_rot`` [3, 3] and ``post_tran`` [3] (float32, LSS's: identity / zero on the depth axis) of the
+    3x3 image affine ``A``."""
     post_rot = torch.eye(3)
     post_rot[:2, :2] = torch.from_numpy(A[:2, :2]).float()
     post_tran = torch.zeros(3)
     post_tran[:2] = torch.from_numpy(A[:2, 2]).float()
-    return image, post_rot, post_tran
+    return post_rot, post_tran
 
 
 def denormalize(images: torch.Tensor) -> torch.Tensor:
@@ -273,14 +259,9 @@ def denormalize(images: torch.Tensor) -> torch.Tensor:
 # --- camera geometry with post_rot / post_tran ------------------------------------------------
 
 
-def project_to_image(
-    pts_ego: torch.Tensor,
-    intrinsics: torch.Tensor,
-    cam_to_ego_rot: torch.Tensor,
-    cam_to_ego_trans: torch.Tensor,
-    post_rot: torch.Tensor,
-    post_tran: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor]:
+def project_to_image(pts_ego: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego_rot: torch.Tensor,
+                     cam_to_ego_trans: torch.Tensor, post_rot: torch.Tensor, post_tran: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Ego-frame points [N, 3] -> network-image pixels [N, 2] (u, v) and camera depth [N] (one camera).
 
     Points with depth <= 0 are behind the camera; their pixels are meaningless.
@@ -292,15 +273,9 @@ def project_to_image(
     return net[:, :2], depth
 
 
-def image_to_ground(
-    uv_net: torch.Tensor,
-    intrinsics: torch.Tensor,
-    cam_to_ego_rot: torch.Tensor,
-    cam_to_ego_trans: torch.Tensor,
-    post_rot: torch.Tensor,
-    post_tran: torch.Tensor,
-    ground_z: float = 0.0,
-) -> torch.Tensor:
+def image_to_ground(uv_net: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego_rot: torch.Tensor,
+                    cam_to_ego_trans: torch.Tensor, post_rot: torch.Tensor, post_tran: torch.Tensor,
+                    ground_z: float = 0.0) -> torch.Tensor:
     """Network-image pixels [N, 2] -> the ego-frame points [N, 3] where their rays meet z = ground_z."""
     net = torch.cat([uv_net, torch.ones_like(uv_net[:, :1])], -1)
     uv1 = (net - post_tran) @ torch.linalg.inv(post_rot).T
