@@ -83,9 +83,6 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
 TEMPORAL_INPUTS = ("ego_pose", "scene_start", "frame_index")
 MEMORY_NAMES = tuple(f"memory_{k}" for k in MEMORY_KEYS)
 NEXT_MEMORY_NAMES = tuple(f"next_memory_{k}" for k in MEMORY_KEYS)
-# a frame's ground_height beyond this (metres from the ego origin) is a unit or frame mistake: a vehicle's
-# origin lies on the road (nuScenes) or on its rear axle (AV2, 0.33-0.43 m above it)
-MAX_GROUND_HEIGHT_M = 5.0
 EXPORT_FORMAT = 2  # bump when the graph's inputs, outputs or their meaning change (2: ground_height)
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
@@ -412,7 +409,7 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path, cfg: ExperimentConfig, *, threads: int | None = None,
-                 optimization: str = "all", providers: Sequence[str] = ("CPUExecutionProvider",)):
+                 optimization: str = "all"):
         _, ort = require_onnx()
         self.path = as_path(path, "ONNX file")
         cfg = as_config(cfg, "OnnxModel")  # a YAML file's path: "'str' object has no attribute 'model'" deep inside
@@ -420,13 +417,11 @@ class OnnxModel:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or torch.get_num_threads()
         options.inter_op_num_threads = 1
-        levels = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-                  "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-                  "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-                  "disabled": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
-        options.graph_optimization_level = levels[optimization]
+        level = {"all": "ENABLE_ALL", "extended": "ENABLE_EXTENDED", "basic": "ENABLE_BASIC",
+                 "disabled": "DISABLE_ALL"}[optimization]
+        options.graph_optimization_level = getattr(ort.GraphOptimizationLevel, f"ORT_{level}")
         options.log_severity_level = 3  # errors only
-        self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
+        self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
         self.input_shapes = self.meta["shapes"]["inputs"]
         self.input_types = {i.name: i.type for i in self.session.get_inputs()}  # "tensor(float)", "tensor(bool)", ...
         self.input_names, self.output_names = input_names(cfg), output_names(cfg)

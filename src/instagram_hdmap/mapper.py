@@ -44,7 +44,6 @@ from .evaluation.io import polylines_to_vectors, submission
 from .geometry import BEVGrid
 from .inference import (
     DECODE_OPTIONS,
-    MAX_GROUND_HEIGHT_M,
     OnnxModel,
     exported_config,
     load_weights,
@@ -57,6 +56,14 @@ from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, precision_of, resolve_precision, with_precision
+
+# PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
+# truncates 0..1 values to 0
+PIL_8BIT_MODES = ("1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr")
+# a frame's ground_height beyond this (metres from the ego origin) is a unit or frame mistake: a vehicle's
+# origin lies on the road (nuScenes) or on its rear axle (AV2, 0.33-0.43 m above it)
+MAX_GROUND_HEIGHT_M = 5.0
+FLOAT_IMAGE_SLACK = 0.25  # a resampled 0..1 image may overshoot a little; 0..255 or mean/std-normalised ones do not
 
 
 @dataclass(frozen=True)
@@ -140,7 +147,6 @@ class MapElement:
         return f"MapElement({self.label}, {len(self.points)} points, {shape}, score {self.score:.2f}{track})"
 
 
-
 def to_hdmapnet(elements: Mapping[str, Sequence[MapElement]], meta: dict | None = None) -> dict:
     """``{frame name: elements}`` -> the HDMapNet submission JSON document (``{"meta", "results"}``,
     evaluation/io.py), what ``predict`` writes and ``evaluate-json`` reads."""
@@ -155,7 +161,6 @@ def to_hdmapnet(elements: Mapping[str, Sequence[MapElement]], meta: dict | None 
             raise TypeError(f"to_hdmapnet: frame {name!r}: expected a list of MapElement (one frame's "
                             f"mapper(...) result), got {type(bad).__name__}" + (" in it" if bad is not els else ""))
     return submission({name: [e.as_polyline() for e in els] for name, els in elements.items()}, meta)
-
 
 
 @dataclass
@@ -179,7 +184,6 @@ class Frame:
     ego_pose: np.ndarray | torch.Tensor | None = None
 
 
-
 def _by_camera(values, field: str, cameras: tuple[str, ...]) -> list:
     """A frame's field as a list in ``cameras`` order; a ``RigError`` naming missing and extra cameras."""
     if isinstance(values, Mapping):
@@ -198,7 +202,6 @@ def _by_camera(values, field: str, cameras: tuple[str, ...]) -> list:
         raise RigError(f"the frame holds {len(values)} {field} for the checkpoint's {len(cameras)} cameras "
                        f"({', '.join(cameras)}): give one per camera, in that order, or a mapping by name")
     return list(values)
-
 
 
 def _rgb_array(image, camera: str) -> np.ndarray:
@@ -234,17 +237,6 @@ def _rgb_array(image, camera: str) -> np.ndarray:
     return image.astype(np.float32) * 255
 
 
-
-# PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
-# truncates 0..1 values to 0
-PIL_8BIT_MODES = ("1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr")
-
-
-
-FLOAT_IMAGE_SLACK = 0.25  # a resampled 0..1 image may overshoot a little; 0..255 or mean/std-normalised ones do not
-
-
-
 def _ego_pose(pose) -> torch.Tensor:
     """A frame's ego pose as a [4, 4] float32 tensor (the identity when it has none)."""
     if pose is None:
@@ -273,7 +265,6 @@ def _ego_pose(pose) -> torch.Tensor:
     return torch.cat([T[:3], torch.tensor([[0.0, 0.0, 0.0, 1.0]])]) if T.shape == (3, 4) else T
 
 
-
 def _cam_to_ego(T, camera: str) -> np.ndarray:
     """A camera's ``cam_to_ego`` as a float64 [4, 4] or [3, 4] array, or a ``RigError`` naming the camera:
     not a matrix of numbers (a ``(R, t)`` pair), another shape, or a 4x4 whose last row is not (0, 0, 0, 1)
@@ -295,7 +286,6 @@ def _cam_to_ego(T, camera: str) -> np.ndarray:
     return T
 
 
-
 def image_size_of(path: str | Path, camera: str) -> tuple[int, int]:
     """(width, height) of an image file from its header; a ``RigError`` naming the camera and the file
     when it is not a readable image."""
@@ -305,7 +295,6 @@ def image_size_of(path: str | Path, camera: str) -> tuple[int, int]:
     except (OSError, ValueError) as e:
         raise RigError(f"camera {camera}: image {path} cannot be read as an image ({type(e).__name__}: "
                        f"{str(e)[:120]})") from None
-
 
 
 def with_decoding(cfg: ExperimentConfig, options: Mapping, overrides: Sequence[str] = ()) -> ExperimentConfig:
@@ -321,7 +310,6 @@ def with_decoding(cfg: ExperimentConfig, options: Mapping, overrides: Sequence[s
     deep_update(merged, parse_overrides(list(overrides)))
     merged["model"]["gnn"].update(options)
     return config_from_dict(merged)
-
 
 
 class Mapper:
@@ -407,11 +395,8 @@ class Mapper:
             if device is not None and str(device).split(":")[0] != "cpu":
                 raise TypeError(f"Mapper.from_onnx runs the ONNX file with onnxruntime on the CPU: device={device!r} "
                                 "is not supported; for a GPU use Mapper.from_checkpoint(path, device=...)")
-        meta = read_export(path)
-        if config is None:
-            cfg = exported_config(meta)
-        else:
-            cfg = as_config(config, "Mapper.from_onnx")
+        meta = read_export(path)  # the file is checked before a config is read
+        cfg = exported_config(meta) if config is None else as_config(config, "Mapper.from_onnx")
         cfg = with_decoding(cfg, decode_overrides, overrides)
         return cls(OnnxModel(path, cfg), cfg, source=f"ONNX {path} (onnxruntime)")
 
@@ -553,7 +538,6 @@ class Mapper:
                 f"{self.config.data.image_size[0]}x{self.config.data.image_size[1]} ({self.config.data.image_fit}); "
                 f"classes {', '.join(self.classes)}; decoder {self.config.model.gnn.decoder}; "
                 f"{precision_of(self.model) if isinstance(self.model, torch.nn.Module) else 'fp32'})")
-
 
 
 class MapStream:

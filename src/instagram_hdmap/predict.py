@@ -180,7 +180,8 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
                    gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "fp32"):
     """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint (in ``precision``,
     precision.py), an ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
-    ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT)."""
+    ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT). The notes say where its
+    predictions are not those of the full images or of the config's persistence."""
     if gt_as_prediction and checkpoint is not None:
         raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
                            "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
@@ -189,11 +190,17 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
                            "(GT-derived predictions)")
     if onnx is not None:
         _check_onnx_precision(precision)
-        return OnnxModel(onnx, cfg), cfg, [], f"ONNX {onnx} (onnxruntime)"
-    if checkpoint is not None:
+        model, notes, source = OnnxModel(onnx, cfg), [], f"ONNX {onnx} (onnxruntime)"
+    elif checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision)
-        return model, cfg, notes, f"checkpoint {checkpoint}"
-    return None, cfg, [], "GT-derived predictions (--gt-as-prediction)"
+        source = f"checkpoint {checkpoint}"
+    else:
+        model, notes, source = None, [], "GT-derived predictions (--gt-as-prediction)"
+    notes += camera_dropout_notes(cfg, "the predictions")
+    if gt_as_prediction and cfg.model.temporal.persist_frames:  # it was dropped with no word
+        notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames} is not applied to "
+                     "--gt-as-prediction: the GT misses no element, so there is nothing to keep (persistence.py)")
+    return model, cfg, notes, source
 
 
 def predict_batch(model, batch: dict, cfg: ExperimentConfig, memory: dict | None = None
@@ -279,8 +286,6 @@ def predict_sample(
     check_output_dir(out, "--out")  # before the model runs
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
                                                overrides=overrides, precision=precision)
-    notes += camera_dropout_notes(cfg, "the predictions")
-    notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
@@ -317,14 +322,6 @@ def predict_sample(
             "paths": paths, "notes": notes}
 
 
-def gt_persist_notes(cfg: ExperimentConfig, gt_as_prediction: bool) -> list[str]:
-    """``model.temporal.persist_frames`` given with ``--gt-as-prediction`` (it was dropped with no word)."""
-    if gt_as_prediction and cfg.model.temporal.persist_frames:
-        return [f"model.temporal.persist_frames={cfg.model.temporal.persist_frames} is not applied to "
-                "--gt-as-prediction: the GT misses no element, so there is nothing to keep (persistence.py)"]
-    return []
-
-
 def scene_memory(model, dataset, index: int) -> dict | None:
     """A temporal model's memory just before sample ``index``: its scene walked in order from the first
     frame up to the sample (the memory a streaming evaluation gives it; None at a scene's first frame)."""
@@ -358,11 +355,11 @@ def walk_scene(model, dataset, index: int, persist: Persistence | None = None,
 def load_or_skip(dataset, index: int) -> dict | None:
     """``dataset.load_sample(index)``; with ``data.on_bad_sample=skip``, None for a bad sample (with the
     dataset's warning) instead of its error."""
-    if dataset.data_cfg.on_bad_sample != "skip":
-        return dataset.load_sample(index)
     try:
         return dataset.load_sample(index)
     except UserError as e:
+        if dataset.data_cfg.on_bad_sample != "skip":
+            raise
         warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip): {e}", stacklevel=2)
         return None
 
@@ -400,26 +397,22 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
     if len(images) != len(rig):
         raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
                        f"({', '.join(names)}): give one image per camera, in the rig file's order")
-    seen: dict[str, str] = {}
-    copies: dict[str, tuple[str, str]] = {}  # a byte-identical copy is the same image under another name
+    firsts: dict[str, tuple[str, str]] = {}  # by content: the same file, a link or a byte-identical copy
     for cam, path in zip(rig, images):
         if os.path.exists(path) and not os.path.isfile(path):  # was "cannot be read as an image": the check below
             raise RigError(f"camera {cam.name}: image {path} is a pipe or a device, not a file (a process "  # read it
                            "substitution <(...)): an image is read more than once (checks, then the decoding); "
                            "save it to a file first")
-        # one image for two cameras (the same file, a link or a copy) is a mistake, except a blank frame: the
-        # cameras that failed (data.camera_dropout's case) may all be given one black image
-        other = seen.setdefault(os.path.realpath(path), cam.name)
-        if other != cam.name and not _blank_image(path):
-            raise RigError(f"cameras {other} and {cam.name} are given the same image {path}; give each camera its "
-                           "own image, in the rig file's order (a blank image may stand for several failed cameras)")
+        # one image for two cameras is a mistake, except a blank frame: the cameras that failed
+        # (data.camera_dropout's case) may all be given one black image
         with contextlib.suppress(OSError):  # an unreadable file is named where it is decoded
-            digest = hashlib.sha1(Path(path).read_bytes()).hexdigest()
-            first = copies.setdefault(digest, (cam.name, str(path)))
+            first = firsts.setdefault(hashlib.sha1(Path(path).read_bytes()).hexdigest(), (cam.name, str(path)))
             if first[0] != cam.name and not _blank_image(path):
-                raise RigError(f"cameras {first[0]} and {cam.name} are given the same image: {path} is a copy of "
-                               f"{first[1]} (the same bytes); give each camera its own image, in the rig file's order "
-                               "(a blank image may stand for several failed cameras)")
+                same = os.path.realpath(path) == os.path.realpath(first[1])
+                raise RigError(f"cameras {first[0]} and {cam.name} are given the same image"
+                               + (f" {path}" if same else f": {path} is a copy of {first[1]} (the same bytes)")
+                               + "; give each camera its own image, in the rig file's order (a blank image may stand "
+                               "for several failed cameras)")
         named = camera_named_by(path, names)
         if named is not None and named != cam.name:  # images given in another order than the rig file's cameras
             raise RigError(f"image {path} is named for camera {named} but is given for camera {cam.name}: give the "
@@ -447,6 +440,9 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     if checkpoint is not None and config is not None:
         raise PredictError("--config goes with --onnx (the config an export was made from); a checkpoint carries "
                            "its own config: drop --config")
+    if not str(name).strip():  # `--name "$TOKEN"` of an unset variable: the frame was written under the key ""
+        raise PredictError(f"--name {name!r} is empty: give the frame's name in prediction.json (e.g. its sample "
+                           "token), or leave --name out for 'frame'")
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
     if onnx is not None:
@@ -576,8 +572,6 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
         check_output_file(path, what, inputs)  # before the frames
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
                                                overrides=overrides, precision=precision)
-    notes += camera_dropout_notes(cfg, "the predictions")
-    notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
