@@ -360,10 +360,7 @@ def fast_forward(model: nn.Module, example: dict[str, torch.Tensor], *, compile:
     if cuda_graphs and device.type != "cuda":
         raise DeployError(f"--cuda-graphs needs a CUDA device; the model runs on {device.type}: use --device "
                           f"cuda, or drop --cuda-graphs (--compile works on the CPU)")
-    if not (compile or cuda_graphs):
-        model = model.eval()
-    else:
-        model = inference_copy(model)
+    model = inference_copy(model) if compile or cuda_graphs else model.eval()
     if compile:
         model = torch.compile(model, dynamic=False)
 

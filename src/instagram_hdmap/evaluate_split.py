@@ -35,17 +35,9 @@ from .resources import check_fits, data_workers, size_notes
 from .training_data import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
 
 
-def run_evaluation(
-    cfg: ExperimentConfig,
-    checkpoint: str | Path,
-    protocol: str | None = None,
-    out: str | Path = "eval",
-    *,
-    overrides: Sequence[str] = (),
-    amp: str = "none",
-    precision: str = "fp32",
-    calibration: list[dict] | None = None,
-) -> dict:
+def run_evaluation(cfg: ExperimentConfig, checkpoint: str | Path, protocol: str | None = None, out: str | Path = "eval",
+                   *, overrides: Sequence[str] = (), amp: str = "none", precision: str = "fp32",
+                   calibration: list[dict] | None = None) -> dict:
     """Run ``checkpoint`` on the validation split (``data.val_split``), post-process, evaluate.
 
     Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's

@@ -181,9 +181,8 @@ def weight_differences(expected: Mapping[str, torch.Tensor], got: Mapping[str, t
     unexpected = [k for k in got if k not in expected]
     shapes = [f"{k} {list(got[k].shape)} (model {list(expected[k].shape)})" for k in expected
               if k in got and hasattr(got[k], "shape") and got[k].shape != expected[k].shape]
-    return ([f"missing {some(missing)}"] if missing else []) + ([f"not in the model: {some(unexpected)}"]
-                                                                  if unexpected else []) + (
-        [f"other shapes: {some(shapes)}"] if shapes else [])
+    parts = {"missing": missing, "not in the model:": unexpected, "other shapes:": shapes}
+    return [f"{label} {some(keys)}" for label, keys in parts.items() if keys]
 
 
 def load_weights(model: torch.nn.Module, state: dict, checkpoint: str | Path) -> torch.nn.Module:

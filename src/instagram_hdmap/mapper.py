@@ -609,12 +609,11 @@ class MapStream:
             raise TypeError(f"MapStream.step takes one Frame (or the fields images=, intrinsics=, cam_to_ego=, "
                             f"ego_pose=), got {type(frame).__name__}; call step() once per frame, in order")
         temporal = bool(getattr(self.mapper.model, "is_temporal", False))
-        if temporal and frame.ego_pose is None:
-            raise RigError("a temporal model moves its memory with the ego: give every frame of a stream its "
-                           "ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
-        if self.persist is not None and frame.ego_pose is None:
-            raise RigError("model.temporal.persist_frames moves the elements it keeps with the ego: give every frame "
-                           "of a stream its ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
+        if frame.ego_pose is None and (temporal or self.persist is not None):
+            what = "a temporal model moves its memory" if temporal else \
+                "model.temporal.persist_frames moves the elements it keeps"
+            raise RigError(f"{what} with the ego: give every frame of a stream its ego_pose (4x4 ego -> world), e.g. "
+                           "Frame(..., ego_pose=pose)")
         batch = self.mapper.batch([self._local(frame)])
         batch["scene_start"] = torch.tensor([self.frame_index == 0])
         batch["frame_index"] = torch.tensor([self.frame_index])

@@ -6,12 +6,10 @@
     predict_video(cfg, "scene.mp4", "scene-0103", checkpoint="runs/x/best.pt")   # one frame per sample
     predict_images("rig.json", ["front.jpg", ...], "out/", checkpoint="runs/x/best.pt")
 
-Which config a checkpoint runs with (inference.py): the keys that define the model
-(``inference.MODEL_KEYS``: the grid, the model, the image size, the classes, the distance-transform
-clip, the AV2 camera order) come from the config saved in the checkpoint; everything else (dataroot, splits,
-eval settings) from the CONFIG file. Command-line ``key=value`` overrides win over both, so
-``model.gnn.num_vertices=600`` or ``model.gnn.match_threshold=0.2`` change the inference of a
-trained model. Where the CONFIG file disagrees with the checkpoint on a model key, a note says so.
+Which config a checkpoint runs with: ``inference.inference_config`` (the ``MODEL_KEYS`` from the config saved in
+the checkpoint, everything else, dataroot, splits, eval settings, from the CONFIG file; a note where they disagree).
+Command-line ``key=value`` overrides win over both, so ``model.gnn.num_vertices=600`` or
+``model.gnn.match_threshold=0.2`` change the inference of a trained model.
 
 ``--gt-as-prediction`` draws ``inference.gt_outputs``, what a perfect model would output, so the
 pictures and the evaluation path can be checked without a trained model.
@@ -97,27 +95,17 @@ def find_sample(dataset, index: int | None = None, token: str | None = None) -> 
     return index % n
 
 
-def display_cameras(dataset, index: int, width: int = 480) -> dict[str, torch.Tensor]:
-    """The sample's original camera images, whole, resized to ``width`` for drawing (``display_images``)."""
-    return display_images(dataset.camera_files(index), width)
-
-
 def display_images(files: Sequence[tuple[Path, tuple[int, int]]], width: int = 480) -> dict[str, torch.Tensor]:
-    """Camera images ``[(path, (W, H))]``, whole, resized to ``width`` for drawing: ``images``
-    [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
+    """Camera images ``[(path, (W, H))]`` (a sample's: ``dataset.camera_files(index)``), whole, resized to ``width``
+    for drawing: ``images`` [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
     # one picture size for all cameras, of the median aspect ratio; cameras of another one fit inside
     # (AV2's portrait front camera)
     aspects = sorted(H / W for _, (W, H) in files)
     w = min(width, max(W for _, (W, _) in files))
     out_hw = (round(w * aspects[len(aspects) // 2]), w)
     fit = "cover" if aspects[0] == aspects[-1] else "contain"
-    images, rots, trans = [], [], []
-    for path, (W, H) in files:
-        image, post_rot, post_tran = load_image(path, (W, H), out_hw, fit=fit)
-        images.append(image)
-        rots.append(post_rot)
-        trans.append(post_tran)
-    return {"images": torch.stack(images), "post_rot": torch.stack(rots), "post_tran": torch.stack(trans)}
+    loaded = [load_image(path, (W, H), out_hw, fit=fit) for path, (W, H) in files]  # (image, post_rot, post_tran)
+    return {k: torch.stack(v) for k, v in zip(("images", "post_rot", "post_tran"), zip(*loaded))}
 
 
 def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_threshold: float,
@@ -254,20 +242,10 @@ def write_together(out: Path, figures: dict, predictions: dict, meta: dict) -> l
     return [out / n for n in names]
 
 
-def predict_sample(
-    cfg: ExperimentConfig,
-    out: str | Path,
-    *,
-    checkpoint: str | Path | None = None,
-    index: int | None = None,
-    token: str | None = None,
-    split: str | None = None,
-    overrides: Sequence[str] = (),
-    gt_as_prediction: bool = False,
-    camera_width: int = 480,
-    onnx: str | Path | None = None,
-    precision: str = "fp32",
-) -> dict:
+def predict_sample(cfg: ExperimentConfig, out: str | Path, *, checkpoint: str | Path | None = None,
+                   index: int | None = None, token: str | None = None, split: str | None = None,
+                   overrides: Sequence[str] = (), gt_as_prediction: bool = False, camera_width: int = 480,
+                   onnx: str | Path | None = None, precision: str = "fp32") -> dict:
     """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
 
     * ``prediction_bev.png``: predicted polylines next to the GT (x forward up, y left, metres);
@@ -314,7 +292,8 @@ def predict_sample(
                      f"{persist.kept - walked_kept} element(s) that the frames before it found and it missed are "
                      "kept (persistence.py)")
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
-    figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
+    display = display_images(dataset.camera_files(i), camera_width)
+    figures = prediction_figures(outputs, preds, sample["gt_polylines"], display,
                                  {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
                                  heading, dataset.camera_names, float(sample["ground_height"]))
     paths = write_together(Path(out), figures, {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
@@ -519,7 +498,7 @@ def _video_frame(dataset, index: int, sample: dict, preds: list[dict], cfg: Expe
     grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
     bev = figure_rgb(prediction_bev_figure(preds, sample["gt_polylines"], grid, classes, heading))
     cams = figure_rgb(prediction_cameras_figure(
-        **display_cameras(dataset, index, camera_width), intrinsics=sample["intrinsics"],
+        **display_images(dataset.camera_files(index), camera_width), intrinsics=sample["intrinsics"],
         cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
         predictions=preds, ground_truth=sample["gt_polylines"], camera_names=dataset.camera_names,
         classes=classes, ground_z=float(sample["ground_height"])))
