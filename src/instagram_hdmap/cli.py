@@ -21,10 +21,10 @@ from .data.synthetic import generate_world
 from .data.synthetic.av2_writer import generate_av2_world
 from .data.synthetic.preview import write_preview
 from .demo import run_demo
-from .deploy import export_checkpoint
+from .deploy import DEFAULT_OPSET, export_checkpoint
 from .errors import invisible_character, lookalike_dash
 from .evaluate_split import run_evaluation
-from .evaluation import evaluate_files, format_table
+from .evaluation import PROTOCOLS, evaluate_files, format_table
 from .files import (
     NO_ROOM,
     check_name_lengths,
@@ -37,7 +37,7 @@ from .files import (
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .precision import PRECISIONS
-from .predict import decode_assignments, predict_images, predict_sample, predict_video
+from .predict import decode_assignments, find_sample, predict_images, predict_sample, predict_video
 from .resources import out_of_memory, size_notes, summary_lines
 from .streams import ReportStream, stdout_gone, to_devnull
 from .train import data_worker_died, train
@@ -122,9 +122,7 @@ def _cmd_show_gt(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out")
     args.split = args.split or cfg.data.val_split
     dataset = build_dataset(cfg, args.split, augment=args.augment)
-    if not -len(dataset) <= args.index < len(dataset):
-        raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
-    sample = dataset.load_sample(args.index % len(dataset))
+    sample = dataset.load_sample(find_sample(dataset, args.index))  # (negative counts back, as predict's)
     paths = write_sample_pngs(sample, dataset.grid, args.out, cfg.data.classes, dataset.camera_names)
     print(f"sample {sample['sample_token']}: {len(sample['gt_polylines'])} polylines, "
           f"{len(sample['gt_vertices_px'])} graph vertices; wrote {', '.join(str(p) for p in paths)}")
@@ -403,7 +401,7 @@ def _evaluate_json_parser(sub) -> None:
                     "table and writes --out as JSON (NaN, where the protocol yields 0/0, is written as NaN).")
     p.add_argument("--pred", required=True, help="predictions JSON (confidence_level per vector)")
     p.add_argument("--gt", required=True, help="ground-truth JSON (same format, no confidence_level)")
-    p.add_argument("--protocol", choices=["vector", "raster"], default="vector",
+    p.add_argument("--protocol", choices=PROTOCOLS, default="vector",
                    help="vector: MapTR (default); raster: HDMapNet / InstaGraM paper")
     p.add_argument("--thresholds", type=float, nargs="+", default=[0.5, 1.0, 1.5], help="Chamfer thresholds (m)")
     p.add_argument("--out", help="metrics JSON to write")
@@ -433,7 +431,7 @@ def _evaluate_parser(sub) -> None:
                     "OUT/metrics.json, prints the AP table. The model settings come from the checkpoint's "
                     "saved config; key=value overrides win. torchrun-aware.")
     p.add_argument("--checkpoint", required=True, help="model checkpoint (e.g. runs/x/best.pt)")
-    p.add_argument("--protocol", choices=["vector", "raster"], help="AP protocol (default: eval.protocol)")
+    p.add_argument("--protocol", choices=PROTOCOLS, help="AP protocol (default: eval.protocol)")
     p.add_argument("--out", default="eval", help="output folder (default ./eval)")
     _add_precision(p)
 
@@ -502,7 +500,8 @@ def _export_onnx_parser(sub) -> None:
                     "onnxruntime and prints the interface (docs/deploy.md). Needs the [deploy] extra.")
     p.add_argument("--checkpoint", required=True, help="model checkpoint; its config must match CONFIG + overrides")
     p.add_argument("--out", required=True, help="ONNX file to write")
-    p.add_argument("--opset", type=int, default=18, help="ONNX opset (default 18, the lowest the exporter writes)")
+    p.add_argument("--opset", type=int, default=DEFAULT_OPSET,
+                   help=f"ONNX opset (default {DEFAULT_OPSET}, the lowest the exporter writes)")
 
 
 def _demo_parser(sub) -> None:

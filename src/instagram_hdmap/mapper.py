@@ -102,14 +102,14 @@ class MapElement:
         index = self.class_index
         if getattr(index, "ndim", None) == 0 and hasattr(index, "item"):  # a 0-d tensor or numpy integer
             index = index.item()
+        classes = ", ".join(f"{k} {c}" for k, c in enumerate(MAP_CLASSES))
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or \
                 not 0 <= int(index) < len(MAP_CLASSES):
-            raise ValueError(f"MapElement: class_index must be the class id 0..{len(MAP_CLASSES) - 1} "
-                             f"({', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}), got {self.class_index!r}")
+            raise ValueError(f"MapElement: class_index must be the class id 0..{len(MAP_CLASSES) - 1} ({classes}), "
+                             f"got {self.class_index!r}")
         if self.label != MAP_CLASSES[int(index)]:
             raise ValueError(f"MapElement: label {self.label!r} with class_index {int(index)}, which is "
-                             f"{MAP_CLASSES[int(index)]!r}; the classes are "
-                             f"{', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}")
+                             f"{MAP_CLASSES[int(index)]!r}; the classes are {classes}")
         track = self.track_id
         if track is not None and (isinstance(track, bool) or not isinstance(track, (int, np.integer)) or track < 0):
             raise ValueError(f"MapElement: track_id must be None or an integer >= 0, got {track!r}")
