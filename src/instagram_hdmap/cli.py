@@ -25,15 +25,7 @@ from .deploy import DEFAULT_OPSET, export_checkpoint
 from .errors import invisible_character, lookalike_dash
 from .evaluate_split import run_evaluation
 from .evaluation import PROTOCOLS, evaluate_files, format_table
-from .files import (
-    NO_ROOM,
-    check_name_lengths,
-    check_output_dir,
-    check_output_file,
-    is_stream,
-    os_error_in,
-    write_json,
-)
+from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, is_stream, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .precision import PRECISIONS

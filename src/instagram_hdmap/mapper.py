@@ -42,15 +42,7 @@ from .data.transforms import ImageError, load_image, prepare_image
 from .distributed import resolve_device
 from .evaluation.io import polylines_to_vectors, submission
 from .geometry import BEVGrid
-from .inference import (
-    DECODE_OPTIONS,
-    OnnxModel,
-    exported_config,
-    load_weights,
-    read_export,
-    run_model,
-    saved_config,
-)
+from .inference import DECODE_OPTIONS, OnnxModel, exported_config, load_weights, read_export, run_model, saved_config
 from .models import build_model
 from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker

@@ -46,13 +46,7 @@ from .inference import OnnxModel, gt_outputs, load_model, run_model
 from .mapper import Frame, Mapper, image_size_of
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .visualize import (
-    figure_rgb,
-    intermediate_figure,
-    prediction_bev_figure,
-    prediction_cameras_figure,
-    save_figure,
-)
+from .visualize import figure_rgb, intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
 
 
 class PredictError(UserError):
