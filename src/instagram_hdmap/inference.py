@@ -372,9 +372,7 @@ def exported_config(meta: dict) -> ExperimentConfig:
     for key, value in meta["config"].items():
         set_key(merged, key, value)
     extra = meta.get("inference", {})
-    for key in ("dataset", "av2_cameras", "image_fit"):
-        if key in extra:
-            merged["data"][key] = extra[key]
+    merged["data"].update({k: extra[k] for k in ("dataset", "av2_cameras", "image_fit") if k in extra})
     merged["model"]["gnn"].update(extra.get("decoding", {}))
     return config_from_dict(merged)
 
