@@ -348,13 +348,12 @@ class Mapper:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
                         overrides: Sequence[str] = (), precision: str = "fp32", **decode_overrides) -> Mapper:
-        """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu",
-        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8
-        (calibrated on the saved config's training samples, CPU only) or auto (bf16 where the device computes it
-        natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
-        options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
-        (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
-        architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
+        """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu", "cuda", a
+        ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8 (calibrated on
+        the saved config's training samples, CPU only) or auto (bf16 where the device computes it natively, fp32
+        elsewhere; precision.py). ``decode_overrides``: decoding options (``DECODE_OPTIONS``, e.g.
+        ``match_threshold=0.05``); ``overrides``: dotted config keys (``"model.gnn.num_vertices=600"``). Weights that
+        do not fit (another architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
         config = decode_overrides.pop("config", None)
         if config is not None or isinstance(device, ExperimentConfig) or str(device).endswith((".yaml", ".yml")):
             # from_onnx's config= was "unknown decoding option(s) config", a YAML file "device='x.yaml' is not a device"
