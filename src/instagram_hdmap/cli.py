@@ -21,32 +21,19 @@ from .data.synthetic import generate_world
 from .data.synthetic.av2_writer import generate_av2_world
 from .data.synthetic.preview import write_preview
 from .demo import run_demo
-from .deploy import export_checkpoint
+from .deploy import DEFAULT_OPSET, export_checkpoint
 from .errors import invisible_character, lookalike_dash
 from .evaluate_split import run_evaluation
-from .evaluation import evaluate_files, format_table
-from .files import (
-    NO_ROOM,
-    check_name_lengths,
-    check_output_dir,
-    check_output_file,
-    is_stream,
-    os_error_in,
-    write_json,
-)
+from .evaluation import PROTOCOLS, evaluate_files, format_table
+from .files import NO_ROOM, check_name_lengths, check_output_dir, check_output_file, is_stream, os_error_in, write_json
 from .geometry import BEVGrid
 from .models import build_model, summarize_parameters
 from .precision import PRECISIONS
-from .predict import decode_assignments, predict_images, predict_sample, predict_video
+from .predict import decode_assignments, find_sample, predict_images, predict_sample, predict_video
 from .resources import out_of_memory, size_notes, summary_lines
 from .streams import ReportStream, stdout_gone, to_devnull
 from .train import data_worker_died, train
 from .visualize import write_sample_pngs
-
-
-def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", help="experiment YAML (overrides of the defaults in config.py)")
-    p.add_argument("overrides", nargs="*", help="key.sub=value overrides, e.g. model.gnn.layers=9")
 
 
 def _load(args: argparse.Namespace):
@@ -57,8 +44,6 @@ def _load(args: argparse.Namespace):
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    if not str(args.out).strip():  # '' was taken for the current folder (an unset shell variable: --out "$WORLD")
-        raise UserError(f"--out {args.out!r}: an empty path (an unset shell variable?); name the world's folder")
     generate = generate_av2_world if args.format == "av2" else generate_world
     manifest = generate(
         out=args.out,
@@ -95,12 +80,9 @@ def _cmd_synth_preview(args: argparse.Namespace) -> int:
 
 def _load_data_cfg(args: argparse.Namespace):
     """The experiment config with --dataroot / --version applied (they win over the YAML)."""
-    cfg = _load(args)
     extra = [f"data.dataroot={args.dataroot}"] if args.dataroot else []
     extra += [f"data.version={args.version}"] if args.version else []
-    if extra:
-        cfg = load_config(args.config, [*args.overrides, *extra])
-    return cfg
+    return load_config(args.config, [*args.overrides, *extra])
 
 
 def _cmd_export_gt(args: argparse.Namespace) -> int:
@@ -132,9 +114,7 @@ def _cmd_show_gt(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out")
     args.split = args.split or cfg.data.val_split
     dataset = build_dataset(cfg, args.split, augment=args.augment)
-    if not -len(dataset) <= args.index < len(dataset):
-        raise UserError(f"--index {args.index} is out of range: split '{args.split}' has {len(dataset)} samples")
-    sample = dataset.load_sample(args.index % len(dataset))
+    sample = dataset.load_sample(find_sample(dataset, args.index))  # (negative counts back, as predict's)
     paths = write_sample_pngs(sample, dataset.grid, args.out, cfg.data.classes, dataset.camera_names)
     print(f"sample {sample['sample_token']}: {len(sample['gt_polylines'])} polylines, "
           f"{len(sample['gt_vertices_px'])} graph vertices; wrote {', '.join(str(p) for p in paths)}")
@@ -297,16 +277,12 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 
 
 def _cmd_predict_images(args: argparse.Namespace) -> int:
-    if not args.name.strip():  # `--name "$TOKEN"` of an unset variable: the frame was written under the key ""
-        raise UserError(f"--name {args.name!r} is empty: give the frame's name in prediction.json (e.g. its sample "
-                        "token), or leave --name out for 'frame'")
     result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
                             config=args.config, decode=decode_assignments(args.decode), device=args.device,
                             name=args.name, precision=args.precision)
     print(f"{result['name']} ({result['source']}): {len(result['elements'])} map elements; wrote "
           f"{', '.join(str(p) for p in result['paths'])}")
-    for note in result.get("notes", []):
-        print(f"note: {note}")
+    _print_notes(result.get("notes", []))
     return 0
 
 
@@ -344,8 +320,20 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_parser(sub, name: str, func, config: bool = False, **kwargs) -> argparse.ArgumentParser:
+    """The subcommand ``name`` (``kwargs``: its help and description) running ``func``; with ``config``, CONFIG
+    and its key=value overrides come first."""
+    p = sub.add_parser(name, **kwargs)
+    if config:
+        p.add_argument("config", help="experiment YAML (overrides of the defaults in config.py)")
+        p.add_argument("overrides", nargs="*", help="key.sub=value overrides, e.g. model.gnn.layers=9")
+    p.set_defaults(func=func)
+    return p
+
+
 def _synth_parser(sub) -> None:
-    p = sub.add_parser("synth", help="write a synthetic world in the nuScenes (or Argoverse 2) on-disk format")
+    p = _add_parser(sub, "synth", _cmd_synth,
+                    help="write a synthetic world in the nuScenes (or Argoverse 2) on-disk format")
     p.add_argument("--out", required=True, help="output dataroot (must be empty or absent)")
     p.add_argument("--format", choices=["nuscenes", "av2"], default="nuscenes",
                    help="on-disk layout: nuscenes (default) or av2, the Argoverse 2 sensor dataset (extra [av2])")
@@ -361,57 +349,51 @@ def _synth_parser(sub) -> None:
                         "(a world where a temporal model's memory matters; default 0: none)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes rendering scenes in parallel (0: one per CPU core); same output for any value")
-    p.set_defaults(func=_cmd_synth)
 
 
 def _synth_preview_parser(sub) -> None:
-    p = sub.add_parser("synth-preview", help="PNG of one synthetic sample: cameras with map lines, and BEV")
+    p = _add_parser(sub, "synth-preview", _cmd_synth_preview,
+                    help="PNG of one synthetic sample: cameras with map lines, and BEV")
     p.add_argument("dataroot")
     p.add_argument("--out", required=True)
     p.add_argument("--index", type=int, default=0, help="sample index in the dataroot (negative counts from the end)")
-    p.set_defaults(func=_cmd_synth_preview)
 
 
 def _gt_parser(sub) -> None:
-    for name, help_ in (("export-gt", "write a split's GT polylines as HDMapNet submission JSON"),
-                        ("show-gt", "PNGs of one sample's GT: polylines, vertex cells, DT, cameras")):
-        p = sub.add_parser(name, help=help_)
-        _add_config_args(p)
+    for name, func, help_ in (
+            ("export-gt", _cmd_export_gt, "write a split's GT polylines as HDMapNet submission JSON"),
+            ("show-gt", _cmd_show_gt, "PNGs of one sample's GT: polylines, vertex cells, DT, cameras")):
+        p = _add_parser(sub, name, func, config=True, help=help_)
         p.add_argument("--dataroot", help="dataset root (overrides data.dataroot)")
         p.add_argument("--version", help="version folder, e.g. v1.0-mini (overrides data.version)")
         p.add_argument("--split", help="split name (default: data.val_split, the split evaluate scores)")
         p.add_argument("--out", required=True, help="output JSON file" if name == "export-gt" else "output folder")
-        if name == "export-gt":
-            p.set_defaults(func=_cmd_export_gt)
-        else:
+        if name == "show-gt":
             p.add_argument("--index", type=int, default=0, help="sample index in the split")
             p.add_argument("--augment", action="store_true", help="apply the train-time image augmentation")
-            p.set_defaults(func=_cmd_show_gt)
 
 
 def _model_summary_parser(sub) -> None:
-    p = sub.add_parser("model-summary", help="parameters per component and in total, and the memory a step needs")
-    _add_config_args(p)
-    p.set_defaults(func=_cmd_model_summary)
+    _add_parser(sub, "model-summary", _cmd_model_summary, config=True,
+                help="parameters per component and in total, and the memory a step needs")
 
 
 def _train_parser(sub) -> None:
-    p = sub.add_parser("train", help="train a model; torchrun-aware")
-    _add_config_args(p)
+    p = _add_parser(sub, "train", _cmd_train, config=True, help="train a model; torchrun-aware")
     p.add_argument("--resume", help="checkpoint to continue from (e.g. OUT/last.pt)")
     p.add_argument("--force", action="store_true",
                    help="start over in an output folder that holds a run (removes that run's checkpoints, log and "
                    "TensorBoard events, nothing else)")
-    p.set_defaults(func=_cmd_train)
 
 
 def _evaluate_json_parser(sub) -> None:
-    p = sub.add_parser("evaluate-json", help="AP of a submission JSON against a GT JSON (vector or raster protocol)",
-                       description="Chamfer AP of PRED against GT, both in the HDMapNet submission format. Prints a "
-                       "table and writes --out as JSON (NaN, where the protocol yields 0/0, is written as NaN).")
+    p = _add_parser(sub, "evaluate-json", _cmd_evaluate_json,
+                    help="AP of a submission JSON against a GT JSON (vector or raster protocol)",
+                    description="Chamfer AP of PRED against GT, both in the HDMapNet submission format. Prints a "
+                    "table and writes --out as JSON (NaN, where the protocol yields 0/0, is written as NaN).")
     p.add_argument("--pred", required=True, help="predictions JSON (confidence_level per vector)")
     p.add_argument("--gt", required=True, help="ground-truth JSON (same format, no confidence_level)")
-    p.add_argument("--protocol", choices=["vector", "raster"], default="vector",
+    p.add_argument("--protocol", choices=PROTOCOLS, default="vector",
                    help="vector: MapTR (default); raster: HDMapNet / InstaGraM paper")
     p.add_argument("--thresholds", type=float, nargs="+", default=[0.5, 1.0, 1.5], help="Chamfer thresholds (m)")
     p.add_argument("--out", help="metrics JSON to write")
@@ -425,33 +407,32 @@ def _evaluate_json_parser(sub) -> None:
     p.add_argument("--device", help="raster: where torch.cdist runs, cpu (default) or cuda (the reference ran on CUDA)")
     p.add_argument("--ignore-extra-predictions", action="store_true",
                    help="ignore prediction tokens that are not in the GT file (default: error)")
-    p.set_defaults(func=_cmd_evaluate_json)
 
 
-def _add_precision(p: argparse.ArgumentParser, default: str, why: str) -> None:
-    p.add_argument("--precision", choices=PRECISIONS, default=default,
-                   help=f"the model's precision (default {default}: {why}; int8: the BEV encoder in int8, calibrated "
-                   "on training samples, CPU only; auto: bf16 where the device computes it natively, else fp32)")
+def _add_precision(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                   help="the model's precision (default fp32: the same numbers on every machine; int8: the BEV encoder "
+                   "in int8, calibrated on training samples, CPU only; auto: bf16 where the device computes it "
+                   "natively, else fp32)")
 
 
 def _evaluate_parser(sub) -> None:
-    p = sub.add_parser("evaluate", help="run a checkpoint on the validation split: submission JSON + AP metrics",
-                       description="Runs CKPT on data.val_split, writes OUT/submission.json (HDMapNet format) and "
-                       "OUT/metrics.json, prints the AP table. The model settings come from the checkpoint's "
-                       "saved config; key=value overrides win. torchrun-aware.")
-    _add_config_args(p)
+    p = _add_parser(sub, "evaluate", _cmd_evaluate, config=True,
+                    help="run a checkpoint on the validation split: submission JSON + AP metrics",
+                    description="Runs CKPT on data.val_split, writes OUT/submission.json (HDMapNet format) and "
+                    "OUT/metrics.json, prints the AP table. The model settings come from the checkpoint's "
+                    "saved config; key=value overrides win. torchrun-aware.")
     p.add_argument("--checkpoint", required=True, help="model checkpoint (e.g. runs/x/best.pt)")
-    p.add_argument("--protocol", choices=["vector", "raster"], help="AP protocol (default: eval.protocol)")
+    p.add_argument("--protocol", choices=PROTOCOLS, help="AP protocol (default: eval.protocol)")
     p.add_argument("--out", default="eval", help="output folder (default ./eval)")
-    _add_precision(p, "fp32", "the same numbers on every machine")
-    p.set_defaults(func=_cmd_evaluate)
+    _add_precision(p)
 
 
 def _predict_parser(sub) -> None:
-    p = sub.add_parser("predict", help="PNGs of one sample: prediction vs GT in BEV, cameras, intermediate results",
-                       description="Writes OUT/prediction_bev.png, prediction_cameras.png, "
-                       "prediction_intermediate.png (the paper's Fig. 6) and prediction.json for one sample.")
-    _add_config_args(p)
+    p = _add_parser(sub, "predict", _cmd_predict, config=True,
+                    help="PNGs of one sample: prediction vs GT in BEV, cameras, intermediate results",
+                    description="Writes OUT/prediction_bev.png, prediction_cameras.png, "
+                    "prediction_intermediate.png (the paper's Fig. 6) and prediction.json for one sample.")
     p.add_argument("--checkpoint", help="model checkpoint (required unless --gt-as-prediction)")
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--index", type=int, help="sample index in the split (negative counts from the end)")
@@ -464,16 +445,16 @@ def _predict_parser(sub) -> None:
     p.add_argument("--gt-as-prediction", action="store_true",
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
-    _add_precision(p, "fp32", "the same numbers on every machine")
-    p.set_defaults(func=_cmd_predict)
+    _add_precision(p)
 
 
 def _predict_images_parser(sub) -> None:
-    p = sub.add_parser("predict-images", help="map elements from your own cameras: a rig file and one image per camera",
-                       description="Runs a checkpoint (or an export-onnx file) on one frame of your own cameras, "
-                       "described by a rig file (docs/guide.md, 'Your own cameras': camera names, intrinsics, "
-                       "camera-to-ego rotation and translation, image size), and writes OUT/prediction.json "
-                       "(HDMapNet format) and predict's pictures.")
+    p = _add_parser(sub, "predict-images", _cmd_predict_images,
+                    help="map elements from your own cameras: a rig file and one image per camera",
+                    description="Runs a checkpoint (or an export-onnx file) on one frame of your own cameras, "
+                    "described by a rig file (docs/guide.md, 'Your own cameras': camera names, intrinsics, "
+                    "camera-to-ego rotation and translation, image size), and writes OUT/prediction.json "
+                    "(HDMapNet format) and predict's pictures.")
     p.add_argument("images", nargs="+", help="one image file per camera of the rig file, in its order")
     p.add_argument("--rig", required=True, help="rig file (JSON)")
     p.add_argument("--checkpoint", help="model checkpoint (its saved config describes the model)")
@@ -484,13 +465,12 @@ def _predict_images_parser(sub) -> None:
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: CUDA when available)")
     p.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
                    help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
-    _add_precision(p, "fp32", "the same numbers on every machine")
-    p.set_defaults(func=_cmd_predict_images)
+    _add_precision(p)
 
 
 def _benchmark_parser(sub) -> None:
-    p = sub.add_parser("benchmark", help="inference FPS, batch 1, six cameras, with and without post-processing")
-    _add_config_args(p)
+    p = _add_parser(sub, "benchmark", _cmd_benchmark, config=True,
+                    help="inference FPS, batch 1, six cameras, with and without post-processing")
     p.add_argument("--device", help="cpu, cuda or cuda:i (default: train.device)")
     p.add_argument("--amp", choices=["none", "bf16", "fp16"], default="none", help="autocast precision")
     p.add_argument("--precision", choices=PRECISIONS,
@@ -502,27 +482,27 @@ def _benchmark_parser(sub) -> None:
     p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")
     p.add_argument("--compile", action="store_true", help="torch.compile the whole model (static shapes) first")
     p.add_argument("--cuda-graphs", action="store_true", help="capture the forward in a CUDA graph and replay it")
-    p.set_defaults(func=_cmd_benchmark)
 
 
 def _export_onnx_parser(sub) -> None:
-    p = sub.add_parser("export-onnx", help="export a checkpoint as one static ONNX graph for onnxruntime",
-                       description="Writes the whole model (images + calibration in, the model's output dict out, "
-                       "batch 1, a fixed number of Sinkhorn iterations, standard ops only) to --out, checks it in "
-                       "onnxruntime and prints the interface (docs/deploy.md). Needs the [deploy] extra.")
-    _add_config_args(p)
+    p = _add_parser(sub, "export-onnx", _cmd_export_onnx, config=True,
+                    help="export a checkpoint as one static ONNX graph for onnxruntime",
+                    description="Writes the whole model (images + calibration in, the model's output dict out, "
+                    "batch 1, a fixed number of Sinkhorn iterations, standard ops only) to --out, checks it in "
+                    "onnxruntime and prints the interface (docs/deploy.md). Needs the [deploy] extra.")
     p.add_argument("--checkpoint", required=True, help="model checkpoint; its config must match CONFIG + overrides")
     p.add_argument("--out", required=True, help="ONNX file to write")
-    p.add_argument("--opset", type=int, default=18, help="ONNX opset (default 18, the lowest the exporter writes)")
-    p.set_defaults(func=_cmd_export_onnx)
+    p.add_argument("--opset", type=int, default=DEFAULT_OPSET,
+                   help=f"ONNX opset (default {DEFAULT_OPSET}, the lowest the exporter writes)")
 
 
 def _demo_parser(sub) -> None:
-    p = sub.add_parser("demo", help="the whole pipeline on the synthetic world on a CPU: train, evaluate, draw",
-                       description="Generates (once, cached) a synthetic world, trains configs/synthetic/demo.yaml "
-                       "within --minutes, evaluates it (vector and raster protocols, and a random-training-map "
-                       "baseline), writes OUT/metrics.json, OUT/run (checkpoint, TensorBoard) and OUT/predict PNGs. "
-                       "Run it again to resume an interrupted demo.")
+    p = _add_parser(sub, "demo", _cmd_demo,
+                    help="the whole pipeline on the synthetic world on a CPU: train, evaluate, draw",
+                    description="Generates (once, cached) a synthetic world, trains configs/synthetic/demo.yaml "
+                    "within --minutes, evaluates it (vector and raster protocols, and a random-training-map "
+                    "baseline), writes OUT/metrics.json, OUT/run (checkpoint, TensorBoard) and OUT/predict PNGs. "
+                    "Run it again to resume an interrupted demo.")
     p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     p.add_argument("--minutes", type=float, default=20.0, help="wall-time budget, set-up included (default 20)")
     p.add_argument("--cache", help="world cache folder (default $INSTAGRAM_HDMAP_CACHE, else "
@@ -531,7 +511,9 @@ def _demo_parser(sub) -> None:
     p.add_argument("--workers", type=int, default=2, help="processes generating the world (default 2)")
     p.add_argument("--no-raster", action="store_true", help="skip the raster-protocol evaluation")
     p.add_argument("overrides", nargs="*", help="key=value config overrides")
-    p.set_defaults(func=_cmd_demo)
+
+
+
 
 
 SUBCOMMANDS = (  # each adds one subcommand (or two alike) to the parser, in the order --help lists them
@@ -568,12 +550,11 @@ def _expand_home(args: argparse.Namespace) -> None:
     (``--out=~/eval``) or in quotes, which would write into a folder named ``~`` under the working
     directory while the messages say ``~/eval`` (the config's path keys read ``~`` so too)."""
     for name in PATH_ARGS:
-        value = getattr(args, name, None)
-        if isinstance(value, str) and value.startswith("~"):
+        value = getattr(args, name, None)  # (expanduser changes only a leading ~)
+        if isinstance(value, str):
             setattr(args, name, os.path.expanduser(value))
         elif isinstance(value, list):
-            setattr(args, name, [os.path.expanduser(v) if isinstance(v, str) and v.startswith("~") else v
-                                 for v in value])
+            setattr(args, name, [os.path.expanduser(v) if isinstance(v, str) else v for v in value])
 
 
 def _say(line: str) -> None:

@@ -133,17 +133,20 @@ class TensorInterface(nn.Module):
                 *(outputs[k] for k in NEXT_MEMORY_NAMES))
 
 
-def example_memory(model: nn.Module, batch: dict[str, torch.Tensor]) -> tuple[dict, dict]:
-    """A temporal model's extra inputs for a batch of one, ``(frame keys, memory)``: the frame after a valid
-    memory (``frame_index`` 1, no scene start, the identity pose; the memory's frame 1 m behind, random
-    features), so that an export traces the fused path with real history."""
+def example_call(cfg: ExperimentConfig, model: nn.Module) -> tuple[dict[str, torch.Tensor], dict | None]:
+    """``(batch, memory)`` to run ``model`` on: ``example_inputs`` and, for a temporal model, the frame after a
+    valid memory (``frame_index`` 1, no scene start, the identity pose; the memory's frame 1 m behind, random
+    features), so that an export traces the fused path with real history; a single-frame model's memory is None."""
+    batch = example_inputs(cfg)
+    if not getattr(model, "is_temporal", False):
+        return batch, None
     memory = model.initial_memory(1, batch["images"])
     memory["valid"][:] = True
     memory["ego_pose"][0, 0, 3] = -1.0
     memory["bev"] = torch.randn(memory["bev"].shape, generator=torch.Generator().manual_seed(1))
-    frame = {"ego_pose": torch.eye(4)[None], "scene_start": torch.zeros(1, dtype=torch.bool),
-             "frame_index": torch.ones(1, dtype=torch.long)}
-    return frame, memory
+    batch.update(ego_pose=torch.eye(4)[None], scene_start=torch.zeros(1, dtype=torch.bool),
+                 frame_index=torch.ones(1, dtype=torch.long))
+    return batch, memory
 
 
 def example_inputs(cfg: ExperimentConfig, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -208,10 +211,8 @@ def export_onnx(model: nn.Module, cfg: ExperimentConfig, out: str | Path, *, ops
                           f"(GridSample, ScatterND add and LayerNormalization; the dynamo exporter starts at "
                           f"{MIN_OPSET}; the installed onnx {onnx.__version__} knows up to {max_opset})")
     interface = TensorInterface(inference_copy(model).cpu()).eval()
-    batch = example_inputs(cfg)
-    if interface.temporal:
-        frame, memory = example_memory(interface.model, batch)
-        batch.update(frame, **{f"memory_{k}": v for k, v in memory.items()})
+    batch, memory = example_call(cfg, interface.model)
+    batch.update({f"memory_{k}": v for k, v in (memory or {}).items()})
     names_in, names_out = input_names(cfg), output_names(cfg)
     args = tuple(batch[k] for k in names_in)
     with torch.no_grad(), warnings.catch_warnings():
@@ -287,16 +288,11 @@ def export_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path, out: str | 
     model = load_weights(build_model(cfg), state, checkpoint)
     info = export_onnx(model, cfg, out, opset=opset, source=str(checkpoint))
     if verify:
-        batch, memory = example_inputs(cfg), None
         reference = inference_copy(model)
-        if getattr(model, "is_temporal", False):
-            frame, memory = example_memory(reference, batch)
-            batch.update(frame)
+        batch, memory = example_call(cfg, reference)
         with torch.no_grad():
             expected = reference(batch) if memory is None else reference(batch, memory=memory)
-        onnx_model = OnnxModel(out, cfg)
-        got = onnx_model(batch, memory) if memory is not None else onnx_model(batch)
-        info["check"] = compare_outputs(expected, got)
+        info["check"] = compare_outputs(expected, OnnxModel(out, cfg)(batch, memory))
     info["config"] = cfg
     return info
 
@@ -364,10 +360,7 @@ def fast_forward(model: nn.Module, example: dict[str, torch.Tensor], *, compile:
     if cuda_graphs and device.type != "cuda":
         raise DeployError(f"--cuda-graphs needs a CUDA device; the model runs on {device.type}: use --device "
                           f"cuda, or drop --cuda-graphs (--compile works on the CPU)")
-    if not (compile or cuda_graphs):
-        model = model.eval()
-    else:
-        model = inference_copy(model)
+    model = inference_copy(model) if compile or cuda_graphs else model.eval()
     if compile:
         model = torch.compile(model, dynamic=False)
 

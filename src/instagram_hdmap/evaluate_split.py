@@ -35,17 +35,9 @@ from .resources import check_fits, data_workers, size_notes
 from .training_data import make_cmap_meter, make_flicker_meter, open_files_for_workers, unused_meter_keys
 
 
-def run_evaluation(
-    cfg: ExperimentConfig,
-    checkpoint: str | Path,
-    protocol: str | None = None,
-    out: str | Path = "eval",
-    *,
-    overrides: Sequence[str] = (),
-    amp: str = "none",
-    precision: str = "fp32",
-    calibration: list[dict] | None = None,
-) -> dict:
+def run_evaluation(cfg: ExperimentConfig, checkpoint: str | Path, protocol: str | None = None, out: str | Path = "eval",
+                   *, overrides: Sequence[str] = (), amp: str = "none", precision: str = "fp32",
+                   calibration: list[dict] | None = None) -> dict:
     """Run ``checkpoint`` on the validation split (``data.val_split``), post-process, evaluate.
 
     Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's
@@ -78,24 +70,20 @@ def run_evaluation(
         return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp, precision, calibration)
 
 
-
 def _split_loader(cfg: ExperimentConfig, dataset, temporal: bool, rank: int,
                   world: int) -> tuple[DataLoader, set | None]:
     """The loader of this rank's part of the split and, for a temporal model, the samples it scores: whole
     scenes walked in order as ``eval.batch_size`` streams (data/streaming.py), else every sample in order."""
-    owned = None
     open_files_for_workers(cfg.data.num_workers)
     if temporal:
-        sampler = StreamingBatchSampler(dataset.scenes.runs, cfg.eval.batch_size, shuffle=False, rank=rank,
+        streams = StreamingBatchSampler(dataset.scenes.runs, cfg.eval.batch_size, shuffle=False, rank=rank,
                                         world_size=world)
-        loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate_fn,
-                            num_workers=data_workers(cfg.data.num_workers, len(dataset)))
-        owned = sampler.owned()
+        sampling = {"batch_sampler": streams}
     else:
-        sampler = du.ResumableSampler(len(dataset), shuffle=False)
-        loader = DataLoader(dataset, batch_size=cfg.eval.batch_size, sampler=sampler, collate_fn=collate_fn,
-                            num_workers=data_workers(cfg.data.num_workers, len(dataset)))
-    return loader, owned
+        sampling = {"batch_size": cfg.eval.batch_size, "sampler": du.ResumableSampler(len(dataset), shuffle=False)}
+    loader = DataLoader(dataset, collate_fn=collate_fn, num_workers=data_workers(cfg.data.num_workers, len(dataset)),
+                        **sampling)
+    return loader, streams.owned() if temporal else None
 
 
 def _write_pair(out: Path, results: dict, metrics: dict, meta: dict) -> list[Path]:

@@ -83,9 +83,6 @@ OUTPUT_NAMES = ("pred_vertex_logits", "pred_heatmap", "pred_distance", "pred_ver
 TEMPORAL_INPUTS = ("ego_pose", "scene_start", "frame_index")
 MEMORY_NAMES = tuple(f"memory_{k}" for k in MEMORY_KEYS)
 NEXT_MEMORY_NAMES = tuple(f"next_memory_{k}" for k in MEMORY_KEYS)
-# a frame's ground_height beyond this (metres from the ego origin) is a unit or frame mistake: a vehicle's
-# origin lies on the road (nuScenes) or on its rear axle (AV2, 0.33-0.43 m above it)
-MAX_GROUND_HEIGHT_M = 5.0
 EXPORT_FORMAT = 2  # bump when the graph's inputs, outputs or their meaning change (2: ground_height)
 META_FORMAT = "instagram_hdmap.export_format"
 META_CONFIG = "instagram_hdmap.config"
@@ -184,9 +181,8 @@ def weight_differences(expected: Mapping[str, torch.Tensor], got: Mapping[str, t
     unexpected = [k for k in got if k not in expected]
     shapes = [f"{k} {list(got[k].shape)} (model {list(expected[k].shape)})" for k in expected
               if k in got and hasattr(got[k], "shape") and got[k].shape != expected[k].shape]
-    return ([f"missing {some(missing)}"] if missing else []) + ([f"not in the model: {some(unexpected)}"]
-                                                                  if unexpected else []) + (
-        [f"other shapes: {some(shapes)}"] if shapes else [])
+    parts = {"missing": missing, "not in the model:": unexpected, "other shapes:": shapes}
+    return [f"{label} {some(keys)}" for label, keys in parts.items() if keys]
 
 
 def load_weights(model: torch.nn.Module, state: dict, checkpoint: str | Path) -> torch.nn.Module:
@@ -376,9 +372,7 @@ def exported_config(meta: dict) -> ExperimentConfig:
     for key, value in meta["config"].items():
         set_key(merged, key, value)
     extra = meta.get("inference", {})
-    for key in ("dataset", "av2_cameras", "image_fit"):
-        if key in extra:
-            merged["data"][key] = extra[key]
+    merged["data"].update({k: extra[k] for k in ("dataset", "av2_cameras", "image_fit") if k in extra})
     merged["model"]["gnn"].update(extra.get("decoding", {}))
     return config_from_dict(merged)
 
@@ -412,7 +406,7 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path, cfg: ExperimentConfig, *, threads: int | None = None,
-                 optimization: str = "all", providers: Sequence[str] = ("CPUExecutionProvider",)):
+                 optimization: str = "all"):
         _, ort = require_onnx()
         self.path = as_path(path, "ONNX file")
         cfg = as_config(cfg, "OnnxModel")  # a YAML file's path: "'str' object has no attribute 'model'" deep inside
@@ -420,13 +414,11 @@ class OnnxModel:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or torch.get_num_threads()
         options.inter_op_num_threads = 1
-        levels = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-                  "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-                  "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-                  "disabled": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
-        options.graph_optimization_level = levels[optimization]
+        level = {"all": "ENABLE_ALL", "extended": "ENABLE_EXTENDED", "basic": "ENABLE_BASIC",
+                 "disabled": "DISABLE_ALL"}[optimization]
+        options.graph_optimization_level = getattr(ort.GraphOptimizationLevel, f"ORT_{level}")
         options.log_severity_level = 3  # errors only
-        self.session = ort.InferenceSession(str(self.path), options, providers=list(providers))
+        self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
         self.input_shapes = self.meta["shapes"]["inputs"]
         self.input_types = {i.name: i.type for i in self.session.get_inputs()}  # "tensor(float)", "tensor(bool)", ...
         self.input_names, self.output_names = input_names(cfg), output_names(cfg)

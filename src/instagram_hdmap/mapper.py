@@ -42,21 +42,20 @@ from .data.transforms import ImageError, load_image, prepare_image
 from .distributed import resolve_device
 from .evaluation.io import polylines_to_vectors, submission
 from .geometry import BEVGrid
-from .inference import (
-    DECODE_OPTIONS,
-    MAX_GROUND_HEIGHT_M,
-    OnnxModel,
-    exported_config,
-    load_weights,
-    read_export,
-    run_model,
-    saved_config,
-)
+from .inference import DECODE_OPTIONS, OnnxModel, exported_config, load_weights, read_export, run_model, saved_config
 from .models import build_model
 from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, precision_of, resolve_precision, with_precision
+
+# PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
+# truncates 0..1 values to 0
+PIL_8BIT_MODES = ("1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr")
+# a frame's ground_height beyond this (metres from the ego origin) is a unit or frame mistake: a vehicle's
+# origin lies on the road (nuScenes) or on its rear axle (AV2, 0.33-0.43 m above it)
+MAX_GROUND_HEIGHT_M = 5.0
+FLOAT_IMAGE_SLACK = 0.25  # a resampled 0..1 image may overshoot a little; 0..255 or mean/std-normalised ones do not
 
 
 @dataclass(frozen=True)
@@ -95,14 +94,14 @@ class MapElement:
         index = self.class_index
         if getattr(index, "ndim", None) == 0 and hasattr(index, "item"):  # a 0-d tensor or numpy integer
             index = index.item()
+        classes = ", ".join(f"{k} {c}" for k, c in enumerate(MAP_CLASSES))
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or \
                 not 0 <= int(index) < len(MAP_CLASSES):
-            raise ValueError(f"MapElement: class_index must be the class id 0..{len(MAP_CLASSES) - 1} "
-                             f"({', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}), got {self.class_index!r}")
+            raise ValueError(f"MapElement: class_index must be the class id 0..{len(MAP_CLASSES) - 1} ({classes}), "
+                             f"got {self.class_index!r}")
         if self.label != MAP_CLASSES[int(index)]:
             raise ValueError(f"MapElement: label {self.label!r} with class_index {int(index)}, which is "
-                             f"{MAP_CLASSES[int(index)]!r}; the classes are "
-                             f"{', '.join(f'{k} {c}' for k, c in enumerate(MAP_CLASSES))}")
+                             f"{MAP_CLASSES[int(index)]!r}; the classes are {classes}")
         track = self.track_id
         if track is not None and (isinstance(track, bool) or not isinstance(track, (int, np.integer)) or track < 0):
             raise ValueError(f"MapElement: track_id must be None or an integer >= 0, got {track!r}")
@@ -140,7 +139,6 @@ class MapElement:
         return f"MapElement({self.label}, {len(self.points)} points, {shape}, score {self.score:.2f}{track})"
 
 
-
 def to_hdmapnet(elements: Mapping[str, Sequence[MapElement]], meta: dict | None = None) -> dict:
     """``{frame name: elements}`` -> the HDMapNet submission JSON document (``{"meta", "results"}``,
     evaluation/io.py), what ``predict`` writes and ``evaluate-json`` reads."""
@@ -155,7 +153,6 @@ def to_hdmapnet(elements: Mapping[str, Sequence[MapElement]], meta: dict | None 
             raise TypeError(f"to_hdmapnet: frame {name!r}: expected a list of MapElement (one frame's "
                             f"mapper(...) result), got {type(bad).__name__}" + (" in it" if bad is not els else ""))
     return submission({name: [e.as_polyline() for e in els] for name, els in elements.items()}, meta)
-
 
 
 @dataclass
@@ -179,7 +176,6 @@ class Frame:
     ego_pose: np.ndarray | torch.Tensor | None = None
 
 
-
 def _by_camera(values, field: str, cameras: tuple[str, ...]) -> list:
     """A frame's field as a list in ``cameras`` order; a ``RigError`` naming missing and extra cameras."""
     if isinstance(values, Mapping):
@@ -198,7 +194,6 @@ def _by_camera(values, field: str, cameras: tuple[str, ...]) -> list:
         raise RigError(f"the frame holds {len(values)} {field} for the checkpoint's {len(cameras)} cameras "
                        f"({', '.join(cameras)}): give one per camera, in that order, or a mapping by name")
     return list(values)
-
 
 
 def _rgb_array(image, camera: str) -> np.ndarray:
@@ -234,17 +229,6 @@ def _rgb_array(image, camera: str) -> np.ndarray:
     return image.astype(np.float32) * 255
 
 
-
-# PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
-# truncates 0..1 values to 0
-PIL_8BIT_MODES = ("1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr")
-
-
-
-FLOAT_IMAGE_SLACK = 0.25  # a resampled 0..1 image may overshoot a little; 0..255 or mean/std-normalised ones do not
-
-
-
 def _ego_pose(pose) -> torch.Tensor:
     """A frame's ego pose as a [4, 4] float32 tensor (the identity when it has none)."""
     if pose is None:
@@ -273,7 +257,6 @@ def _ego_pose(pose) -> torch.Tensor:
     return torch.cat([T[:3], torch.tensor([[0.0, 0.0, 0.0, 1.0]])]) if T.shape == (3, 4) else T
 
 
-
 def _cam_to_ego(T, camera: str) -> np.ndarray:
     """A camera's ``cam_to_ego`` as a float64 [4, 4] or [3, 4] array, or a ``RigError`` naming the camera:
     not a matrix of numbers (a ``(R, t)`` pair), another shape, or a 4x4 whose last row is not (0, 0, 0, 1)
@@ -295,7 +278,6 @@ def _cam_to_ego(T, camera: str) -> np.ndarray:
     return T
 
 
-
 def image_size_of(path: str | Path, camera: str) -> tuple[int, int]:
     """(width, height) of an image file from its header; a ``RigError`` naming the camera and the file
     when it is not a readable image."""
@@ -305,7 +287,6 @@ def image_size_of(path: str | Path, camera: str) -> tuple[int, int]:
     except (OSError, ValueError) as e:
         raise RigError(f"camera {camera}: image {path} cannot be read as an image ({type(e).__name__}: "
                        f"{str(e)[:120]})") from None
-
 
 
 def with_decoding(cfg: ExperimentConfig, options: Mapping, overrides: Sequence[str] = ()) -> ExperimentConfig:
@@ -321,7 +302,6 @@ def with_decoding(cfg: ExperimentConfig, options: Mapping, overrides: Sequence[s
     deep_update(merged, parse_overrides(list(overrides)))
     merged["model"]["gnn"].update(options)
     return config_from_dict(merged)
-
 
 
 class Mapper:
@@ -368,13 +348,12 @@ class Mapper:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
                         overrides: Sequence[str] = (), precision: str = "fp32", **decode_overrides) -> Mapper:
-        """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu",
-        "cuda", a ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8
-        (calibrated on the saved config's training samples, CPU only) or auto (bf16 where the device computes it
-        natively, fp32 elsewhere; precision.py). ``decode_overrides``: decoding
-        options (``DECODE_OPTIONS``, e.g. ``match_threshold=0.05``); ``overrides``: dotted config keys
-        (``"model.gnn.num_vertices=600"``). Weights that do not fit (a checkpoint of another
-        architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
+        """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu", "cuda", a
+        ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8 (calibrated on
+        the saved config's training samples, CPU only) or auto (bf16 where the device computes it natively, fp32
+        elsewhere; precision.py). ``decode_overrides``: decoding options (``DECODE_OPTIONS``, e.g.
+        ``match_threshold=0.05``); ``overrides``: dotted config keys (``"model.gnn.num_vertices=600"``). Weights that
+        do not fit (another architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
         config = decode_overrides.pop("config", None)
         if config is not None or isinstance(device, ExperimentConfig) or str(device).endswith((".yaml", ".yml")):
             # from_onnx's config= was "unknown decoding option(s) config", a YAML file "device='x.yaml' is not a device"
@@ -407,11 +386,8 @@ class Mapper:
             if device is not None and str(device).split(":")[0] != "cpu":
                 raise TypeError(f"Mapper.from_onnx runs the ONNX file with onnxruntime on the CPU: device={device!r} "
                                 "is not supported; for a GPU use Mapper.from_checkpoint(path, device=...)")
-        meta = read_export(path)
-        if config is None:
-            cfg = exported_config(meta)
-        else:
-            cfg = as_config(config, "Mapper.from_onnx")
+        meta = read_export(path)  # the file is checked before a config is read
+        cfg = exported_config(meta) if config is None else as_config(config, "Mapper.from_onnx")
         cfg = with_decoding(cfg, decode_overrides, overrides)
         return cls(OnnxModel(path, cfg), cfg, source=f"ONNX {path} (onnxruntime)")
 
@@ -555,7 +531,6 @@ class Mapper:
                 f"{precision_of(self.model) if isinstance(self.model, torch.nn.Module) else 'fp32'})")
 
 
-
 class MapStream:
     """Frames of one drive, in order: ``step(frame)`` returns the frame's elements and keeps the model's
     ``out["memory"]`` for the next step (a temporal model's previous BEV features, ego pose and
@@ -625,12 +600,11 @@ class MapStream:
             raise TypeError(f"MapStream.step takes one Frame (or the fields images=, intrinsics=, cam_to_ego=, "
                             f"ego_pose=), got {type(frame).__name__}; call step() once per frame, in order")
         temporal = bool(getattr(self.mapper.model, "is_temporal", False))
-        if temporal and frame.ego_pose is None:
-            raise RigError("a temporal model moves its memory with the ego: give every frame of a stream its "
-                           "ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
-        if self.persist is not None and frame.ego_pose is None:
-            raise RigError("model.temporal.persist_frames moves the elements it keeps with the ego: give every frame "
-                           "of a stream its ego_pose (4x4 ego -> world), e.g. Frame(..., ego_pose=pose)")
+        if frame.ego_pose is None and (temporal or self.persist is not None):
+            what = "a temporal model moves its memory" if temporal else \
+                "model.temporal.persist_frames moves the elements it keeps"
+            raise RigError(f"{what} with the ego: give every frame of a stream its ego_pose (4x4 ego -> world), e.g. "
+                           "Frame(..., ego_pose=pose)")
         batch = self.mapper.batch([self._local(frame)])
         batch["scene_start"] = torch.tensor([self.frame_index == 0])
         batch["frame_index"] = torch.tensor([self.frame_index])

@@ -6,12 +6,10 @@
     predict_video(cfg, "scene.mp4", "scene-0103", checkpoint="runs/x/best.pt")   # one frame per sample
     predict_images("rig.json", ["front.jpg", ...], "out/", checkpoint="runs/x/best.pt")
 
-Which config a checkpoint runs with (inference.py): the keys that define the model
-(``inference.MODEL_KEYS``: the grid, the model, the image size, the classes, the distance-transform
-clip, the AV2 camera order) come from the config saved in the checkpoint; everything else (dataroot, splits,
-eval settings) from the CONFIG file. Command-line ``key=value`` overrides win over both, so
-``model.gnn.num_vertices=600`` or ``model.gnn.match_threshold=0.2`` change the inference of a
-trained model. Where the CONFIG file disagrees with the checkpoint on a model key, a note says so.
+Which config a checkpoint runs with: ``inference.inference_config`` (the ``MODEL_KEYS`` from the config saved in
+the checkpoint, everything else, dataroot, splits, eval settings, from the CONFIG file; a note where they disagree).
+Command-line ``key=value`` overrides win over both, so ``model.gnn.num_vertices=600`` or
+``model.gnn.match_threshold=0.2`` change the inference of a trained model.
 
 ``--gt-as-prediction`` draws ``inference.gt_outputs``, what a perfect model would output, so the
 pictures and the evaluation path can be checked without a trained model.
@@ -48,13 +46,7 @@ from .inference import OnnxModel, gt_outputs, load_model, run_model
 from .mapper import Frame, Mapper, image_size_of
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, graph_options, neighbours, postprocess_batch
-from .visualize import (
-    figure_rgb,
-    intermediate_figure,
-    prediction_bev_figure,
-    prediction_cameras_figure,
-    save_figure,
-)
+from .visualize import figure_rgb, intermediate_figure, prediction_bev_figure, prediction_cameras_figure, save_figure
 
 
 class PredictError(UserError):
@@ -97,27 +89,17 @@ def find_sample(dataset, index: int | None = None, token: str | None = None) -> 
     return index % n
 
 
-def display_cameras(dataset, index: int, width: int = 480) -> dict[str, torch.Tensor]:
-    """The sample's original camera images, whole, resized to ``width`` for drawing (``display_images``)."""
-    return display_images(dataset.camera_files(index), width)
-
-
 def display_images(files: Sequence[tuple[Path, tuple[int, int]]], width: int = 480) -> dict[str, torch.Tensor]:
-    """Camera images ``[(path, (W, H))]``, whole, resized to ``width`` for drawing: ``images``
-    [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
+    """Camera images ``[(path, (W, H))]`` (a sample's: ``dataset.camera_files(index)``), whole, resized to ``width``
+    for drawing: ``images`` [V, 3, h, w] (normalised) with their ``post_rot`` [V, 3, 3] / ``post_tran`` [V, 3]."""
     # one picture size for all cameras, of the median aspect ratio; cameras of another one fit inside
     # (AV2's portrait front camera)
     aspects = sorted(H / W for _, (W, H) in files)
     w = min(width, max(W for _, (W, _) in files))
     out_hw = (round(w * aspects[len(aspects) // 2]), w)
     fit = "cover" if aspects[0] == aspects[-1] else "contain"
-    images, rots, trans = [], [], []
-    for path, (W, H) in files:
-        image, post_rot, post_tran = load_image(path, (W, H), out_hw, fit=fit)
-        images.append(image)
-        rots.append(post_rot)
-        trans.append(post_tran)
-    return {"images": torch.stack(images), "post_rot": torch.stack(rots), "post_tran": torch.stack(trans)}
+    loaded = [load_image(path, (W, H), out_hw, fit=fit) for path, (W, H) in files]  # (image, post_rot, post_tran)
+    return {k: torch.stack(v) for k, v in zip(("images", "post_rot", "post_tran"), zip(*loaded))}
 
 
 def adjacency_edges(log_assignment: torch.Tensor, mask: torch.Tensor, match_threshold: float,
@@ -180,7 +162,8 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
                    gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "fp32"):
     """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint (in ``precision``,
     precision.py), an ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
-    ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT)."""
+    ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT). The notes say where its
+    predictions are not those of the full images or of the config's persistence."""
     if gt_as_prediction and checkpoint is not None:
         raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
                            "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
@@ -189,11 +172,17 @@ def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = Non
                            "(GT-derived predictions)")
     if onnx is not None:
         _check_onnx_precision(precision)
-        return OnnxModel(onnx, cfg), cfg, [], f"ONNX {onnx} (onnxruntime)"
-    if checkpoint is not None:
+        model, notes, source = OnnxModel(onnx, cfg), [], f"ONNX {onnx} (onnxruntime)"
+    elif checkpoint is not None:
         model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision)
-        return model, cfg, notes, f"checkpoint {checkpoint}"
-    return None, cfg, [], "GT-derived predictions (--gt-as-prediction)"
+        source = f"checkpoint {checkpoint}"
+    else:
+        model, notes, source = None, [], "GT-derived predictions (--gt-as-prediction)"
+    notes += camera_dropout_notes(cfg, "the predictions")
+    if gt_as_prediction and cfg.model.temporal.persist_frames:  # it was dropped with no word
+        notes.append(f"model.temporal.persist_frames={cfg.model.temporal.persist_frames} is not applied to "
+                     "--gt-as-prediction: the GT misses no element, so there is nothing to keep (persistence.py)")
+    return model, cfg, notes, source
 
 
 def predict_batch(model, batch: dict, cfg: ExperimentConfig, memory: dict | None = None
@@ -247,20 +236,10 @@ def write_together(out: Path, figures: dict, predictions: dict, meta: dict) -> l
     return [out / n for n in names]
 
 
-def predict_sample(
-    cfg: ExperimentConfig,
-    out: str | Path,
-    *,
-    checkpoint: str | Path | None = None,
-    index: int | None = None,
-    token: str | None = None,
-    split: str | None = None,
-    overrides: Sequence[str] = (),
-    gt_as_prediction: bool = False,
-    camera_width: int = 480,
-    onnx: str | Path | None = None,
-    precision: str = "fp32",
-) -> dict:
+def predict_sample(cfg: ExperimentConfig, out: str | Path, *, checkpoint: str | Path | None = None,
+                   index: int | None = None, token: str | None = None, split: str | None = None,
+                   overrides: Sequence[str] = (), gt_as_prediction: bool = False, camera_width: int = 480,
+                   onnx: str | Path | None = None, precision: str = "fp32") -> dict:
     """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
 
     * ``prediction_bev.png``: predicted polylines next to the GT (x forward up, y left, metres);
@@ -279,8 +258,6 @@ def predict_sample(
     check_output_dir(out, "--out")  # before the model runs
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
                                                overrides=overrides, precision=precision)
-    notes += camera_dropout_notes(cfg, "the predictions")
-    notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
@@ -309,20 +286,13 @@ def predict_sample(
                      f"{persist.kept - walked_kept} element(s) that the frames before it found and it missed are "
                      "kept (persistence.py)")
     heading = f"sample {sample['sample_token']} (split '{split}', index {i}) - {source}"
-    figures = prediction_figures(outputs, preds, sample["gt_polylines"], display_cameras(dataset, i, camera_width),
+    display = display_images(dataset.camera_files(i), camera_width)
+    figures = prediction_figures(outputs, preds, sample["gt_polylines"], display,
                                  {k: sample[k] for k in ("intrinsics", "cam_to_ego_rot", "cam_to_ego_trans")}, cfg,
                                  heading, dataset.camera_names, float(sample["ground_height"]))
     paths = write_together(Path(out), figures, {sample["sample_token"]: preds}, submission_meta(cfg, split, source))
     return {"sample_token": sample["sample_token"], "index": i, "split": split, "predictions": preds,
             "paths": paths, "notes": notes}
-
-
-def gt_persist_notes(cfg: ExperimentConfig, gt_as_prediction: bool) -> list[str]:
-    """``model.temporal.persist_frames`` given with ``--gt-as-prediction`` (it was dropped with no word)."""
-    if gt_as_prediction and cfg.model.temporal.persist_frames:
-        return [f"model.temporal.persist_frames={cfg.model.temporal.persist_frames} is not applied to "
-                "--gt-as-prediction: the GT misses no element, so there is nothing to keep (persistence.py)"]
-    return []
 
 
 def scene_memory(model, dataset, index: int) -> dict | None:
@@ -358,11 +328,11 @@ def walk_scene(model, dataset, index: int, persist: Persistence | None = None,
 def load_or_skip(dataset, index: int) -> dict | None:
     """``dataset.load_sample(index)``; with ``data.on_bad_sample=skip``, None for a bad sample (with the
     dataset's warning) instead of its error."""
-    if dataset.data_cfg.on_bad_sample != "skip":
-        return dataset.load_sample(index)
     try:
         return dataset.load_sample(index)
     except UserError as e:
+        if dataset.data_cfg.on_bad_sample != "skip":
+            raise
         warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip): {e}", stacklevel=2)
         return None
 
@@ -400,26 +370,22 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
     if len(images) != len(rig):
         raise RigError(f"{len(images)} image(s) for the {len(rig)} cameras of rig file {rig_file} "
                        f"({', '.join(names)}): give one image per camera, in the rig file's order")
-    seen: dict[str, str] = {}
-    copies: dict[str, tuple[str, str]] = {}  # a byte-identical copy is the same image under another name
+    firsts: dict[str, tuple[str, str]] = {}  # by content: the same file, a link or a byte-identical copy
     for cam, path in zip(rig, images):
         if os.path.exists(path) and not os.path.isfile(path):  # was "cannot be read as an image": the check below
             raise RigError(f"camera {cam.name}: image {path} is a pipe or a device, not a file (a process "  # read it
                            "substitution <(...)): an image is read more than once (checks, then the decoding); "
                            "save it to a file first")
-        # one image for two cameras (the same file, a link or a copy) is a mistake, except a blank frame: the
-        # cameras that failed (data.camera_dropout's case) may all be given one black image
-        other = seen.setdefault(os.path.realpath(path), cam.name)
-        if other != cam.name and not _blank_image(path):
-            raise RigError(f"cameras {other} and {cam.name} are given the same image {path}; give each camera its "
-                           "own image, in the rig file's order (a blank image may stand for several failed cameras)")
+        # one image for two cameras is a mistake, except a blank frame: the cameras that failed
+        # (data.camera_dropout's case) may all be given one black image
         with contextlib.suppress(OSError):  # an unreadable file is named where it is decoded
-            digest = hashlib.sha1(Path(path).read_bytes()).hexdigest()
-            first = copies.setdefault(digest, (cam.name, str(path)))
+            first = firsts.setdefault(hashlib.sha1(Path(path).read_bytes()).hexdigest(), (cam.name, str(path)))
             if first[0] != cam.name and not _blank_image(path):
-                raise RigError(f"cameras {first[0]} and {cam.name} are given the same image: {path} is a copy of "
-                               f"{first[1]} (the same bytes); give each camera its own image, in the rig file's order "
-                               "(a blank image may stand for several failed cameras)")
+                same = os.path.realpath(path) == os.path.realpath(first[1])
+                raise RigError(f"cameras {first[0]} and {cam.name} are given the same image"
+                               + (f" {path}" if same else f": {path} is a copy of {first[1]} (the same bytes)")
+                               + "; give each camera its own image, in the rig file's order (a blank image may stand "
+                               "for several failed cameras)")
         named = camera_named_by(path, names)
         if named is not None and named != cam.name:  # images given in another order than the rig file's cameras
             raise RigError(f"image {path} is named for camera {named} but is given for camera {cam.name}: give the "
@@ -447,6 +413,9 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     if checkpoint is not None and config is not None:
         raise PredictError("--config goes with --onnx (the config an export was made from); a checkpoint carries "
                            "its own config: drop --config")
+    if not str(name).strip():  # `--name "$TOKEN"` of an unset variable: the frame was written under the key ""
+        raise PredictError(f"--name {name!r} is empty: give the frame's name in prediction.json (e.g. its sample "
+                           "token), or leave --name out for 'frame'")
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
     if onnx is not None:
@@ -523,7 +492,7 @@ def _video_frame(dataset, index: int, sample: dict, preds: list[dict], cfg: Expe
     grid, classes = BEVGrid.from_config(cfg.grid), cfg.data.classes
     bev = figure_rgb(prediction_bev_figure(preds, sample["gt_polylines"], grid, classes, heading))
     cams = figure_rgb(prediction_cameras_figure(
-        **display_cameras(dataset, index, camera_width), intrinsics=sample["intrinsics"],
+        **display_images(dataset.camera_files(index), camera_width), intrinsics=sample["intrinsics"],
         cam_to_ego_rot=sample["cam_to_ego_rot"], cam_to_ego_trans=sample["cam_to_ego_trans"],
         predictions=preds, ground_truth=sample["gt_polylines"], camera_names=dataset.camera_names,
         classes=classes, ground_z=float(sample["ground_height"])))
@@ -576,8 +545,6 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
         check_output_file(path, what, inputs)  # before the frames
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
                                                overrides=overrides, precision=precision)
-    notes += camera_dropout_notes(cfg, "the predictions")
-    notes += gt_persist_notes(cfg, gt_as_prediction)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
