@@ -167,7 +167,6 @@ def _sigterm_as_interrupt():
     terminal closed without nohup or tmux) where nothing handles it yet (nohup ignores it: left so); the old
     handlers after."""
     import signal
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -471,12 +470,10 @@ class TrainingRun:
         if self.writer is not None:
             for k, v in val["losses"].items():
                 self.writer.add_scalar(f"val/{k}", v, step)
-            if "metrics" in val:
-                self.writer.add_scalar("val/mAP", val["metrics"]["mAP"], step)
-            if "consistency" in val:
-                self.writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], step)
-            if "cmap" in val:
-                self.writer.add_scalar("val/C-mAP", val["cmap"]["C-mAP"], step)
+            for key, name, value in (("metrics", "mAP", "mAP"), ("consistency", "flicker", "flicker_mean"),
+                                     ("cmap", "C-mAP", "C-mAP")):
+                if key in val:
+                    self.writer.add_scalar(f"val/{name}", val[key][value], step)
         self.validation_pending = False
         if not math.isnan(score) and score > self.best["score"]:
             self.best = {"score": score, "epoch": self.position.epoch, "step": step}
