@@ -127,10 +127,8 @@ class ClassDiagnostics:
                     self.totals["closed_as_cycle"][k] += 1
 
     def compute(self) -> dict[str, list[float]]:
-        out = {}
-        for name in METRICS:
-            h, t = self.hits[name], self.totals[name]
-            out[name] = [float(h[k] / t[k]) if t[k] > 0 else float("nan") for k in range(self.K)]
+        out = {name: [float(h / t) if t > 0 else float("nan") for h, t in zip(self.hits[name], self.totals[name])]
+               for name in METRICS}
         out["counts"] = {name: [int(v) for v in self.totals[name]] for name in METRICS}
         return out
 

@@ -350,14 +350,14 @@ def intermediate_figure(
     dt_clip: float = 10.0,
     title: str = "",
 ) -> Figure:
-    """The intermediate results of the paper's Fig. 6 on upright BEV panels: the vertex heatmap
-    [H, W], the distance transform per class [K, H, W] (BEV pixels; None: a model without a distance
-    head, no panel), the real vertices [N, 2] (u, v)
-    coloured by their GNN class [N], and the adjacency: ``edges`` [E, 2] vertex index pairs whose
-    assignment probability exceeds the match threshold, ``edge_kept`` [E] bool for those the
-    post-processing follows (mutual); the others are drawn dashed red. The heatmap is shown through a
-    3 x 3 max filter so that single-pixel peaks stay visible."""
+    """The intermediate results of the paper's Fig. 6 on upright BEV panels: the vertex heatmap [H, W], the distance
+    transform per class [K, H, W] (BEV pixels; None: a model without a distance head, no panel), the real vertices
+    [N, 2] (u, v) coloured by their GNN class [N], and the adjacency: ``edges`` [E, 2] vertex index pairs whose
+    assignment probability exceeds the match threshold, ``edge_kept`` [E] bool for those the post-processing
+    follows (mutual); the others are drawn dashed red. The heatmap is shown through a 3 x 3 max filter so that
+    single-pixel peaks stay visible."""
     from matplotlib.collections import LineCollection
+    from matplotlib.ticker import MaxNLocator
 
     heat = torch.as_tensor(_np(heatmap), dtype=torch.float32)
     heat = torch.nn.functional.max_pool2d(heat[None, None], 3, stride=1, padding=1)[0, 0].numpy()
@@ -376,23 +376,16 @@ def intermediate_figure(
     for ax in axes[panels:]:
         ax.set_axis_off()
 
-    def colorbar(im, ax, label: str) -> None:  # below the axes, without shrinking them
-        from matplotlib.ticker import MaxNLocator
-
-        cax = ax.inset_axes([0.0, -0.14, 1.0, 0.025])
-        fig.colorbar(im, cax=cax, orientation="horizontal", label=label, ticks=MaxNLocator(4), format="%.3g")
-
     names = [classes[k] if k < len(classes) else str(k) for k in range(K)]
     heat_max = max(float(heat.max()), 1e-6)
-    ax = axes[0]
-    im = _upright_image(ax, heat, grid, cmap="magma", vmin=0.0, vmax=heat_max)
-    colorbar(im, ax, "vertex probability")
-    _upright_axes(ax, grid, f"vertex heatmap, 3x3 max filter (peak {heat.max():.2f})")
-    for k in range(n_dt):
-        ax = axes[1 + k]
-        im = _upright_image(ax, dist[k], grid, cmap="magma_r", vmin=0.0, vmax=dt_clip)
-        colorbar(im, ax, "distance (BEV px)")
-        _upright_axes(ax, grid, f"distance transform: {names[k]}")
+    rasters = [(heat, "magma", heat_max, "vertex probability", f"vertex heatmap, 3x3 max filter (peak {heat_max:.2f})")]
+    rasters += [(dist[k], "magma_r", dt_clip, "distance (BEV px)", f"distance transform: {names[k]}")
+                for k in range(n_dt)]
+    for ax, (image, cmap, vmax, label, panel_title) in zip(axes, rasters):
+        im = _upright_image(ax, image, grid, cmap=cmap, vmin=0.0, vmax=vmax)
+        cax = ax.inset_axes([0.0, -0.14, 1.0, 0.025])  # the colour bar below the axes, without shrinking them
+        fig.colorbar(im, cax=cax, orientation="horizontal", label=label, ticks=MaxNLocator(4), format="%.3g")
+        _upright_axes(ax, grid, panel_title)
 
     ax = axes[n_dt + 1]
     _upright_image(ax, heat, grid, cmap="Greys", vmin=0.0, vmax=2 * heat_max)
