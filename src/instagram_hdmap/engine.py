@@ -45,7 +45,6 @@ class StepInfo:
     memory: dict | None = None  # a temporal model's memory after this step (saved for exact resume)
 
 
-
 def bar_interval() -> float:
     """Seconds between two drawings of a progress bar: 0.1 on a terminal, 60 where stderr is a file or a pipe
     (``train ... 2> log``, nohup): a bar drawn at every step filled the log of a long training with megabytes of

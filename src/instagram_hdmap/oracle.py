@@ -175,10 +175,9 @@ def train_oracle(
     log_every: int = 10,
     on_step: Callable[[int, dict], None] | None = None,
 ) -> dict:
-    """Adam on ``graph_head`` with ``losses.Criterion(cfg.loss)`` over random mini-batches of
-    ``samples`` (``load_targets``; batches of similar vertex counts, ``epoch_batches``), at most
-    ``steps`` steps and ``minutes`` of wall time; gradient
-    norm clipped to ``train.grad_clip``. The head is trained where its parameters are.
+    """Adam on ``graph_head`` with ``losses.Criterion(cfg.loss)`` over random mini-batches of ``samples``
+    (``load_targets``; batches of similar vertex counts, ``epoch_batches``), at most ``steps`` steps and ``minutes``
+    of wall time; gradient norm clipped to ``train.grad_clip``. The head is trained where its parameters are.
     ``schedule``: "constant" lr, or "cosine" from ``lr`` to 0 over the run, whose progress is the
     larger of the step and the wall-time fractions (so a run cut by ``minutes`` still anneals).
     ``on_step(step, losses)`` is called after every step (e.g. to evaluate or save along the way).

@@ -14,12 +14,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from . import distributed as du
-from .config import (
-    EvalConfig,
-    ExperimentConfig,
-    GraphHeadConfig,
-    UserError,
-)
+from .config import EvalConfig, ExperimentConfig, GraphHeadConfig, UserError
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
