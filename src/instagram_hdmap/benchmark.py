@@ -83,38 +83,32 @@ def script_main(main: Callable[[], object]) -> None:
 
 def benchmark_rig(cfg: ExperimentConfig) -> tuple[dict[str, torch.Tensor], str]:
     """The calibration [V, ...] to benchmark with and where it came from."""
+    why = "no data.dataroot"
     if Path(cfg.data.dataroot).is_dir():
         try:
             dataset = build_dataset(cfg, cfg.data.val_split, augment=False)
             cams = dataset.load_cameras(0)
         except UserError as e:
-            rig = nuscenes_like_rig(cfg.data.image_size, len(rig_cameras(cfg)))
-            return rig, f"nuScenes-like rig built in code (the dataset at {cfg.data.dataroot} failed: {e})"
-        cams.pop("images")
-        cams["ground_height"] = torch.tensor(dataset.ground_height(0), dtype=torch.float32)
-        return cams, f"rig of sample {dataset.sample_tokens[0]} ({cfg.data.dataroot}, split {dataset.split})"
-    rig = nuscenes_like_rig(cfg.data.image_size, len(rig_cameras(cfg)))
-    return rig, "nuScenes-like rig built in code (no data.dataroot)"
+            why = f"the dataset at {cfg.data.dataroot} failed: {e}"
+        else:
+            cams.pop("images")
+            cams["ground_height"] = torch.tensor(dataset.ground_height(0), dtype=torch.float32)
+            return cams, f"rig of sample {dataset.sample_tokens[0]} ({cfg.data.dataroot}, split {dataset.split})"
+    return nuscenes_like_rig(cfg.data.image_size, len(rig_cameras(cfg))), f"nuScenes-like rig built in code ({why})"
 
 
 def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return f"{device} ({torch.cuda.get_device_name(device)})"
-    name = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                name = line.split(":", 1)[1].strip()
-                break
-    return f"cpu ({name})"
+    models = [line.split(":", 1)[1].strip() for line in (cpuinfo.read_text().splitlines() if cpuinfo.is_file() else [])
+              if line.startswith("model name")]
+    return f"cpu ({models[0] if models else platform.processor() or platform.machine()})"
 
 
 def _percentiles_ms(times_s: list[float]) -> dict[str, float]:
-    t = 1000 * np.asarray(times_s)
-    median = float(np.median(t))
-    return {"median_ms": median, "p10_ms": float(np.percentile(t, 10)), "p90_ms": float(np.percentile(t, 90)),
-            "fps": 1000.0 / median}
+    p10, median, p90 = (float(q) for q in np.percentile(1000 * np.asarray(times_s), [10, 50, 90]))
+    return {"median_ms": median, "p10_ms": p10, "p90_ms": p90, "fps": 1000.0 / median}
 
 
 def time_runs(fn: Callable[[], object], runs: int, warmup: int, sync: Callable[[], None]) -> list[float]:

@@ -201,15 +201,12 @@ def random_map_baseline(cfg: ExperimentConfig, protocol: str, seed: int = 0, pic
     the same world). ``picks`` (one training index per validation sample) replaces the random draw.
     ``cfg`` / ``val_cfg``: ``ExperimentConfig`` objects or YAML files."""
     cfg = as_config(cfg, "random_map_baseline")  # a YAML file's path was a raw "'str' object has no attribute 'data'"
-    val_cfg = None if val_cfg is None else as_config(val_cfg, "random_map_baseline")
+    val_cfg = cfg if val_cfg is None else as_config(val_cfg, "random_map_baseline")
     train_set = build_dataset(cfg, cfg.data.train_split, augment=False)
-    if val_cfg is None or val_cfg.data.dataroot == cfg.data.dataroot:
-        val_cfg = cfg if val_cfg is None else val_cfg
-        val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False, like=train_set)
-    else:
-        val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False)
-    rng = random.Random(seed)
+    same_world = val_cfg.data.dataroot == cfg.data.dataroot  # its loaded tables are shared
+    val_set = build_dataset(val_cfg, val_cfg.data.val_split, augment=False, like=train_set if same_world else None)
     if picks is None:
+        rng = random.Random(seed)
         picks = [rng.randrange(len(train_set)) for _ in range(len(val_set))]
     picks = list(picks)
     # fewer picks scored only that many validation samples, an index past the split was a raw IndexError and a
@@ -254,7 +251,7 @@ def _check_earlier_run(last: Path, cfg: ExperimentConfig, config: Path) -> None:
     evaluated as it was and written up under the new --config's name, exit 0."""
     if not last.is_file():
         return
-    state = _checkpoint_state(last)
+    state = load_checkpoint(last)
     keys = RESUME_KEYS + (STREAM_RESUME_KEYS if cfg.model.temporal.memory != "none" else ())
     differ = config_differences(saved_config(state.get("config"), f"checkpoint {last}"), cfg, keys)
     if differ:
@@ -321,7 +318,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
     last = run_dir / "last.pt"
     resume = str(last) if last.is_file() else None
     train_minutes = _budget_left(t0, minutes) - EVAL_RESERVE_MIN
-    state = _checkpoint_state(last) if resume else None
+    state = load_checkpoint(last) if resume else None
     if state is None and train_minutes < MIN_TRAIN_MIN:
         spent = minutes - _budget_left(t0, minutes)
         raise DemoError(f"--minutes {minutes}: preparing the worlds took {spent:.1f} min, "
@@ -349,7 +346,7 @@ def run_demo(out: str | Path, *, minutes: float = 20.0, cache_dir: str | Path | 
               "checkpoint)", flush=True)
         summary = train(cfg, resume=resume, force=resume is None, validate=False)
     train_s = time.perf_counter() - t_train
-    final = _checkpoint_state(last)
+    final = load_checkpoint(last)
     steps = int(final["step"])
     clock = final.get("clock") or {}
     schedule = _schedule_report(cfg, final, summary)
@@ -408,10 +405,6 @@ def _schedule_report(cfg: ExperimentConfig, state: dict, summary: dict) -> dict:
             "final_lr_reached": bool(progress >= 1.0 and math.isclose(lrs[0], final, rel_tol=1e-6)),
             "time_budget_min": cfg.train.time_budget_min, "epochs": cfg.train.epochs,
             "cpu_threads": summary.get("cpu_threads"), "data_workers": cfg.data.num_workers}
-
-
-def _checkpoint_state(path: Path) -> dict:
-    return load_checkpoint(path)
 
 
 def _brief(m: dict) -> dict:

@@ -71,15 +71,12 @@ class ClassDiagnostics:
         self._add("vertex_precision", ok, pred_mask, pred_cls)
         # distance transform (none without a distance head)
         pred_dt, gt_dt = outputs.get("pred_distance"), batch["gt_distance"].float()
-        band = gt_dt < self.dt_clip
-        err = (pred_dt.float() - gt_dt).abs() if pred_dt is not None else None
-        for k in range(self.K if pred_dt is not None else 0):
-            n = int(band[:, k].sum())
-            self.hits["dt_error_px"][k] += float(err[:, k][band[:, k]].sum())
-            self.totals["dt_error_px"][k] += n
-            line = gt_dt[:, k] == 0
-            self.hits["dt_line_recall"][k] += int((pred_dt[:, k][line] < 1.0).sum())
-            self.totals["dt_line_recall"][k] += int(line.sum())
+        if pred_dt is not None:  # sums over (batch, H, W) per class channel
+            band, line = gt_dt < self.dt_clip, gt_dt == 0
+            err = torch.where(band, (pred_dt.float() - gt_dt).abs(), 0.0)
+            for name, hits, over in (("dt_error_px", err, band), ("dt_line_recall", line & (pred_dt < 1.0), line)):
+                self.hits[name] += hits.sum((0, 2, 3)).double().cpu().numpy()
+                self.totals[name] += over.sum((0, 2, 3)).cpu().numpy()
         # adjacency (representatives of GT vertices of class k)
         rep = assignment["pred_is_representative"]
         rep_cls = gt_labels.gather(1, pred_to_gt.clamp(min=0)) if gt_labels.shape[1] else pred_cls
@@ -130,10 +127,8 @@ class ClassDiagnostics:
                     self.totals["closed_as_cycle"][k] += 1
 
     def compute(self) -> dict[str, list[float]]:
-        out = {}
-        for name in METRICS:
-            h, t = self.hits[name], self.totals[name]
-            out[name] = [float(h[k] / t[k]) if t[k] > 0 else float("nan") for k in range(self.K)]
+        out = {name: [float(h / t) if t > 0 else float("nan") for h, t in zip(self.hits[name], self.totals[name])]
+               for name in METRICS}
         out["counts"] = {name: [int(v) for v in self.totals[name]] for name in METRICS}
         return out
 

@@ -45,7 +45,6 @@ class StepInfo:
     memory: dict | None = None  # a temporal model's memory after this step (saved for exact resume)
 
 
-
 def bar_interval() -> float:
     """Seconds between two drawings of a progress bar: 0.1 on a terminal, 60 where stderr is a file or a pipe
     (``train ... 2> log``, nohup): a bar drawn at every step filled the log of a long training with megabytes of
@@ -110,13 +109,8 @@ def move_to(batch: dict, device: torch.device) -> dict:
 
 def _scalars(d: dict) -> dict[str, float]:
     """The scalar entries of a loss dict as Python floats (for logging)."""
-    out = {}
-    for k, v in d.items():
-        if torch.is_tensor(v) and v.numel() == 1:
-            out[k] = float(v.detach())
-        elif isinstance(v, (int, float)):
-            out[k] = float(v)
-    return out
+    return {k: float(v.detach() if torch.is_tensor(v) else v) for k, v in d.items()
+            if (torch.is_tensor(v) and v.numel() == 1) or isinstance(v, (int, float))}
 
 
 def optimisation_step(loss: torch.Tensor, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -124,11 +118,9 @@ def optimisation_step(loss: torch.Tensor, model: torch.nn.Module, optimizer: tor
     """Backward, gradient clipping (``grad_clip`` > 0; 0: none), optimizer step (through the fp16
     ``scaler`` if any); returns the gradient norm before clipping."""
     optimizer.zero_grad(set_to_none=True)
+    (loss if scaler is None else scaler.scale(loss)).backward()
     if scaler is not None:
-        scaler.scale(loss).backward()
         scaler.unscale_(optimizer)
-    else:
-        loss.backward()
     grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip if grad_clip > 0 else math.inf)
     if scaler is not None:
         scaler.step(optimizer)
@@ -148,12 +140,14 @@ def scored_tokens(loader) -> set[str] | None:
     return {tokens[i] for i in sampler.owned()}
 
 
-def _length(loader) -> int | None:
-    """Batches in ``loader`` for the progress bar (given its iterator, tqdm no longer sees the loader)."""
-    try:
-        return len(loader)
-    except TypeError:  # an iterable-style dataset, a generator
-        return None
+def _bar(batches, loader, total: int | None, desc: str, initial: int = 0) -> tqdm:
+    """Rank 0's progress bar over the iterator ``batches`` of ``loader``: ``total`` batches, None: the loader's
+    length (given its iterator, tqdm no longer sees the loader), unknown for an iterable-style dataset."""
+    if total is None:
+        with contextlib.suppress(TypeError):
+            total = len(loader)
+    return tqdm(batches, total=total, initial=initial, desc=desc, dynamic_ncols=True,
+                disable=not du.is_main_process(), leave=False, mininterval=bar_interval())
 
 
 def shut_down_workers(batches) -> None:
@@ -239,13 +233,11 @@ def train_one_epoch(
     model.train()
     streaming = is_temporal(model)
     sums: dict[str, float] = defaultdict(float)
-    count, n_samples, t_epoch = 0, 0, time.perf_counter()
+    count = n_samples = n_last = 0
     stopped = False
-    t_last, n_last = time.perf_counter(), 0
+    t_epoch = t_last = time.perf_counter()
     batches = iter(loader)
-    bar = tqdm(batches, total=_length(loader) if total is None else total, initial=step_in_epoch,
-               desc=f"epoch {epoch}", dynamic_ncols=True, disable=not du.is_main_process(), leave=False,
-               mininterval=bar_interval())
+    bar = _bar(batches, loader, total, f"epoch {epoch}", initial=step_in_epoch)
     try:
         for batch in bar:
             batch = move_to(batch, device)
@@ -268,10 +260,11 @@ def train_one_epoch(
             for k, v in values.items():
                 sums[k] += v
             count += 1
-            n_samples += batch["images"].shape[0] * du.get_world_size()
+            rows = batch["images"].shape[0] * du.get_world_size()  # the samples of this step over all ranks
+            n_samples += rows
             if global_step % settings.log_every == 0 or step_in_epoch == 1:
                 now = time.perf_counter()
-                throughput = batch["images"].shape[0] * du.get_world_size() * (count - n_last) / max(now - t_last, 1e-9)
+                throughput = rows * (count - n_last) / max(now - t_last, 1e-9)
                 t_last, n_last = now, count
                 _log_step(bar, hooks.writer, values, throughput, optimizer.param_groups[0]["lr"], global_step, device)
             if hooks.on_step is not None:
@@ -331,16 +324,6 @@ def _mean_over_ranks(sums: dict, count: int, device: torch.device) -> dict[str, 
     return du.reduce_dict({k: v / max(count, 1) for k, v in sums.items()}, device if device.type == "cuda" else None)
 
 
-def _reduced(sums: dict, count: int, status_counts: dict | None, device: torch.device) -> dict:
-    """The mean losses over the batches and the memory status counts (summed over the ranks)."""
-    on = device if device.type == "cuda" else None
-    result = {"losses": _mean_over_ranks(sums, count, device)}
-    if status_counts is not None:
-        result["memory"] = {k: int(round(v * du.get_world_size()))  # the mean over ranks, times the ranks
-                            for k, v in du.reduce_dict(dict(status_counts), on).items()}
-    return result
-
-
 def meter_results(flicker, cmap, evaluator) -> dict:
     """Each meter's result over all ranks: the flicker rate, the consistency-aware mAP and the AP metrics."""
     result = {}
@@ -394,9 +377,7 @@ def evaluate(
     n_samples = 0
     batches = iter(loader)
     try:
-        for batch in tqdm(batches, total=_length(loader) if total is None else total, desc="eval",
-                          dynamic_ncols=True, disable=not du.is_main_process(), leave=False,
-                          mininterval=bar_interval()):
+        for batch in _bar(batches, loader, total, "eval"):
             batch = move_to(batch, device)
             with autocast_context(device, amp):
                 outputs = model(batch, memory=memory) if streaming else model(batch)
@@ -425,7 +406,10 @@ def evaluate(
     except BaseException:
         shut_down_workers(batches)
         raise
-    result = _reduced(sums, count, status_counts if streaming else None, device)
+    result = {"losses": _mean_over_ranks(sums, count, device)}
+    if streaming:  # the memory status counts summed over the ranks: their mean, times the ranks
+        result["memory"] = {k: int(round(v * du.get_world_size()))
+                            for k, v in _mean_over_ranks(status_counts, 1, device).items()}
     result.update(meter_results(flicker, cmap, evaluator))
     if persist is not None:  # summed over ranks (under torchrun a temporal model's scenes are spread over them)
         result["persisted"] = sum(du.all_gather_object(persisted))

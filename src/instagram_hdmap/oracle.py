@@ -175,10 +175,9 @@ def train_oracle(
     log_every: int = 10,
     on_step: Callable[[int, dict], None] | None = None,
 ) -> dict:
-    """Adam on ``graph_head`` with ``losses.Criterion(cfg.loss)`` over random mini-batches of
-    ``samples`` (``load_targets``; batches of similar vertex counts, ``epoch_batches``), at most
-    ``steps`` steps and ``minutes`` of wall time; gradient
-    norm clipped to ``train.grad_clip``. The head is trained where its parameters are.
+    """Adam on ``graph_head`` with ``losses.Criterion(cfg.loss)`` over random mini-batches of ``samples``
+    (``load_targets``; batches of similar vertex counts, ``epoch_batches``), at most ``steps`` steps and ``minutes``
+    of wall time; gradient norm clipped to ``train.grad_clip``. The head is trained where its parameters are.
     ``schedule``: "constant" lr, or "cosine" from ``lr`` to 0 over the run, whose progress is the
     larger of the step and the wall-time fractions (so a run cut by ``minutes`` still anneals).
     ``on_step(step, losses)`` is called after every step (e.g. to evaluate or save along the way).
@@ -269,19 +268,14 @@ def evaluate_oracle(
     sums: dict[str, float] = dict.fromkeys(DIAGNOSTICS, 0.0)
     num_classes = len(cfg.data.classes)
     per_class = torch.zeros(num_classes, 2, dtype=torch.long)  # [K, (correct, total)]
-    batches = 0
     starts = range(0, len(samples), batch_size)
     for s in tqdm(starts, desc="oracle eval", disable=not progress, dynamic_ncols=True):
         batch = collate_targets(samples[s:s + batch_size], device)
-        if graph_head is None:
-            outputs = gt_outputs(batch, grid, len(cfg.data.classes))
-        else:
-            outputs = oracle_forward(graph_head, batch)
+        outputs = gt_outputs(batch, grid, num_classes) if graph_head is None else oracle_forward(graph_head, batch)
         assignment = criterion.assign(outputs, batch)
         losses = criterion(outputs, batch, assignment)
         for k in DIAGNOSTICS:
             sums[k] += float(losses[k])
-        batches += 1
         correct = adjacency_correct(outputs["pred_log_assignment"], outputs["pred_vertex_mask"],
                                     assignment["target_next"], assignment["target_prev"])
         for k in range(num_classes):  # vertices that represent a GT vertex of class k
@@ -290,7 +284,7 @@ def evaluate_oracle(
         preds = postprocess_batch(outputs, grid, **decode_options(cfg.model.gnn, grid))
         evaluator.update(preds, batch["gt_polylines"], sample_ids=batch["index"], tokens=batch["sample_token"])
     metrics = evaluator.compute()
-    metrics["diagnostics"] = {k: (v / batches if batches else math.nan) for k, v in sums.items()}
+    metrics["diagnostics"] = {k: (v / len(starts) if starts else math.nan) for k, v in sums.items()}
     metrics["diagnostics"]["adjacency_accuracy_class"] = {
         c: (int(per_class[k, 0]) / int(per_class[k, 1]) if per_class[k, 1] else math.nan)
         for k, c in enumerate(cfg.data.classes)}

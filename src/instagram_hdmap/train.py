@@ -2,13 +2,11 @@
 
 The output folder holds ``config.yaml`` (resolved), ``log.jsonl`` (one line per epoch and
 validation), ``tb/`` (TensorBoard events), ``last.pt`` and ``best.pt``.
-A run killed at any point resumes with ``--resume OUT/last.pt`` on the next unseen batch, with
-the same optimizer, schedule progress, scaler and RNG states: on CPU with
-``train.deterministic=true`` the resumed weights equal those of an uninterrupted run to float32
-rounding (oneDNN's convolutions may round a last bit differently in a new process), with
-augmentation and data workers too, since each sample's augmentation is drawn from
-(train.seed, epoch, index) alone
-(``NuScenesMapDataset.augmentation_rng``).
+A run killed at any point resumes with ``--resume OUT/last.pt`` on the next unseen batch, with the same optimizer,
+schedule progress, scaler and RNG states: on CPU with ``train.deterministic=true`` the resumed weights equal those of
+an uninterrupted run to float32 rounding (oneDNN's convolutions may round a last bit differently in a new process),
+with augmentation and data workers too, since each sample's augmentation is drawn from (train.seed, epoch, index)
+alone (``NuScenesMapDataset.augmentation_rng``).
 
 A temporal model (``model.temporal.memory=bev``) trains on drives: its batch rows are streams walking
 whole scenes in order (``data.streaming.StreamingBatchSampler``) and each step gets the memory the
@@ -33,13 +31,7 @@ import numpy as np
 import torch
 
 from . import distributed as du
-from .checkpoint import (
-    CheckpointError,
-    rng_preserved,
-    rng_state,
-    save_checkpoint,
-    set_rng_state,
-)
+from .checkpoint import CheckpointError, rng_preserved, rng_state, save_checkpoint, set_rng_state
 from .config import (
     DataConfig,
     ExperimentConfig,
@@ -54,11 +46,7 @@ from .config import (
 from .data.streaming import StreamingBatchSampler
 from .engine import EpochHooks, Position, StepInfo, StepSettings, evaluate, train_one_epoch
 from .evaluation import Evaluator
-from .files import (
-    json_safe,
-    json_text,
-    unlock_folder,
-)
+from .files import json_safe, json_text, unlock_folder
 from .geometry import BEVGrid
 from .losses import Criterion
 from .models import build_model, random_init_warning
@@ -167,7 +155,6 @@ def _sigterm_as_interrupt():
     terminal closed without nohup or tmux) where nothing handles it yet (nohup ignores it: left so); the old
     handlers after."""
     import signal
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -203,6 +190,7 @@ def _sigterm_as_interrupt():
     caught = [signal.SIGTERM] + ([hup] if hup is not None and signal.getsignal(hup) is signal.SIG_DFL else [])
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # Ctrl-C: the same, whole steps
         caught.append(signal.SIGINT)
+
     def unraisable(info):  # that dropped KeyboardInterrupt is raised again at the next step: no traceback for it
         if not (isinstance(info.exc_value, KeyboardInterrupt) and _SIGNALS_RECEIVED):
             hook(info)
@@ -471,12 +459,10 @@ class TrainingRun:
         if self.writer is not None:
             for k, v in val["losses"].items():
                 self.writer.add_scalar(f"val/{k}", v, step)
-            if "metrics" in val:
-                self.writer.add_scalar("val/mAP", val["metrics"]["mAP"], step)
-            if "consistency" in val:
-                self.writer.add_scalar("val/flicker", val["consistency"]["flicker_mean"], step)
-            if "cmap" in val:
-                self.writer.add_scalar("val/C-mAP", val["cmap"]["C-mAP"], step)
+            for key, name, value in (("metrics", "mAP", "mAP"), ("consistency", "flicker", "flicker_mean"),
+                                     ("cmap", "C-mAP", "C-mAP")):
+                if key in val:
+                    self.writer.add_scalar(f"val/{name}", val[key][value], step)
         self.validation_pending = False
         if not math.isnan(score) and score > self.best["score"]:
             self.best = {"score": score, "epoch": self.position.epoch, "step": step}
@@ -532,6 +518,7 @@ def run_threads(run: TrainingRun):
     finally:
         torch.set_num_threads(before)
 
+
 @contextlib.contextmanager
 def run_outputs(run: TrainingRun):
     """Rank 0 writes config.yaml, TensorBoard events (tb/) and log.jsonl; closed at the end."""
@@ -564,7 +551,6 @@ def run_outputs(run: TrainingRun):
                 except OSError:  # the folder moved away: fit said so; its error is not hidden by this one
                     if not run.out_dir_moved():
                         raise
-
 
 
 def start_run(cfg: ExperimentConfig, *, resume: str | None, force: bool, loaders, validate: bool) -> TrainingRun:

@@ -14,12 +14,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from . import distributed as du
-from .config import (
-    EvalConfig,
-    ExperimentConfig,
-    GraphHeadConfig,
-    UserError,
-)
+from .config import EvalConfig, ExperimentConfig, GraphHeadConfig, UserError
 from .data import build_dataset
 from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
@@ -122,15 +117,11 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
             du.print_main(f"warning: {len(shared)} of the {len(val_set)} samples of split '{cfg.data.val_split}' are "
                           f"also in the training split '{cfg.data.train_split}'; the validation score is not measured "
                           "on unseen data (check data.splits_file)")
-        if streaming:
-            val_sampler = StreamingBatchSampler(val_set.scenes.runs, cfg.eval.batch_size, shuffle=False,
-                                                rank=du.get_rank(), world_size=world_size)
-            val_loader = DataLoader(val_set, batch_sampler=val_sampler, collate_fn=collate_fn,
-                                    num_workers=data_workers(cfg.data.num_workers, len(val_set)))
-        else:
-            val_sampler = ResumableSampler(len(val_set), shuffle=False)
-            val_loader = DataLoader(val_set, batch_size=cfg.eval.batch_size, sampler=val_sampler,
-                                    collate_fn=collate_fn, num_workers=data_workers(cfg.data.num_workers, len(val_set)))
+        batching = ({"batch_sampler": StreamingBatchSampler(val_set.scenes.runs, cfg.eval.batch_size, shuffle=False,
+                                                            rank=du.get_rank(), world_size=world_size)} if streaming
+                    else {"batch_size": cfg.eval.batch_size, "sampler": ResumableSampler(len(val_set), shuffle=False)})
+        workers = data_workers(cfg.data.num_workers, len(val_set))
+        val_loader = DataLoader(val_set, collate_fn=collate_fn, num_workers=workers, **batching)
     return train_loader, sampler, val_loader
 
 

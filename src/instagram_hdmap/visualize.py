@@ -31,17 +31,19 @@ def _np(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def _bev_axes(ax, grid: BEVGrid, title: str) -> None:
+def _class_color(label: int) -> str:
+    return CLASS_COLORS[int(label) % len(CLASS_COLORS)]
+
+
+def _bev_axes(ax, grid: BEVGrid, title: str, ego: bool = True) -> None:
+    if ego:
+        ax.plot([0], [0], marker=">", color="k", markersize=8)
     ax.set_xlim(grid.xmin, grid.xmax)
     ax.set_ylim(grid.ymin, grid.ymax)
     ax.set_aspect("equal")
     ax.set_xlabel("x forward (m)")
     ax.set_ylabel("y left (m)")
     ax.set_title(title, fontsize=9)
-
-
-def _ego_marker(ax) -> None:
-    ax.plot([0], [0], marker=">", color="k", markersize=8)
 
 
 def figure_rgb(fig: Figure, dpi: int = 100) -> np.ndarray:
@@ -69,16 +71,15 @@ def bev_polylines_figure(
     ax = fig.add_subplot()
     for poly in polylines:
         pts = _np(poly["pts"])
-        color = CLASS_COLORS[int(poly["label"]) % len(CLASS_COLORS)]
+        color = _class_color(poly["label"])
         ax.plot(pts[:, 0], pts[:, 1], "-", color=color, linewidth=1.5)
         ax.plot(pts[:, 0], pts[:, 1], ".", color=color, markersize=3)
         if poly.get("closed"):
             ax.fill(pts[:, 0], pts[:, 1], color=color, alpha=0.12)
     for k, name in enumerate(classes):
         n = sum(int(p["label"]) == k for p in polylines)
-        ax.plot([], [], "-", color=CLASS_COLORS[k % len(CLASS_COLORS)], label=f"{name} ({n})")
+        ax.plot([], [], "-", color=_class_color(k), label=f"{name} ({n})")
     ax.legend(loc="upper right", fontsize=8)
-    _ego_marker(ax)
     _bev_axes(ax, grid, title or f"GT polylines ({len(polylines)})")
     return fig
 
@@ -113,8 +114,7 @@ def vertex_cells_figure(
         ax.annotate("", xy=b, xytext=a, arrowprops={"arrowstyle": "->", "color": "0.3", "linewidth": 0.6})
     for k in np.unique(labels):
         sel = labels == k
-        ax.plot(pts[sel, 0], pts[sel, 1], "o", color=CLASS_COLORS[int(k) % len(CLASS_COLORS)], markersize=2.5)
-    _ego_marker(ax)
+        ax.plot(pts[sel, 0], pts[sel, 1], "o", color=_class_color(k), markersize=2.5)
     n_cells = int((cells < S * S).sum())
     _bev_axes(ax, grid, title or f"vertex cells: {n_cells} of {cells.size} occupied, {len(verts)} graph vertices, "
               f"{int((nxt >= 0).sum())} edges")
@@ -132,7 +132,7 @@ def distance_figure(distance: torch.Tensor, grid: BEVGrid, classes: Sequence[str
                        cmap="magma_r", vmin=0, vmax=max(float(dist.max()), 1e-6), interpolation="nearest")
         fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01, label="px")
         name = classes[k] if k < len(classes) else str(k)
-        _bev_axes(ax, grid, f"distance transform: {name} (zero pixels: {int((dist[k] == 0).sum())})")
+        _bev_axes(ax, grid, f"distance transform: {name} (zero pixels: {int((dist[k] == 0).sum())})", ego=False)
     return fig
 
 
@@ -142,6 +142,44 @@ def _densify(pts: np.ndarray, step: float) -> np.ndarray:
     t = np.concatenate([np.arange(k) / k for k in n])
     start = np.repeat(pts[:-1], n, axis=0)
     return np.concatenate([start + np.repeat(seg, n, axis=0) * t[:, None], pts[-1:]])
+
+
+def _project_polyline(pts_m: np.ndarray, intrinsics, cam_to_ego_rot, cam_to_ego_trans, post_rot, post_tran,
+                      image_hw: tuple[int, int], ground_z: float = 0.0) -> np.ndarray:
+    """A BEV polyline [P, 2] (metres, on the plane z = ground_z) -> image pixels [P', 2] of one camera,
+    densified every 0.25 m, NaN where the line is behind the camera or far outside the image."""
+    h, w = image_hw
+    pts = _densify(pts_m.astype(np.float64), 0.25)
+    pts3 = torch.from_numpy(np.c_[pts, np.full(len(pts), ground_z)]).float()
+    uv, depth = project_to_image(pts3, intrinsics.float(), cam_to_ego_rot.float(), cam_to_ego_trans.float(),
+                                 post_rot.float(), post_tran.float())
+    uv, depth = uv.numpy(), depth.numpy()
+    ok = (depth > 0.5) & (uv[:, 0] > -w) & (uv[:, 0] < 2 * w) & (uv[:, 1] > -h) & (uv[:, 1] < 2 * h)
+    return np.where(ok[:, None], uv, np.nan)  # NaNs break the line
+
+
+def _camera_lines_figure(images: torch.Tensor, calibration: Sequence[torch.Tensor], camera_names: Sequence[str],
+                         ground_z: float, extra_height: float, layers) -> Figure:
+    """The V camera images [V, 3, h, w] (ImageNet-normalised) in a 2 x ceil(V/2) grid with polylines projected
+    into each (``_project_polyline``); ``calibration``: the five tensors [V, ...] of ``project_to_image``,
+    ``layers``: (polylines, polyline -> ``ax.plot`` keywords) drawn in order."""
+    V, _, h, w = images.shape
+    rgb = denormalize(images.detach().float().cpu()).permute(0, 2, 3, 1).numpy()
+    calibration = [t.detach().cpu() for t in calibration]
+    cols = (V + 1) // 2
+    fig = Figure(figsize=(4.2 * cols, 2 * 4.2 * h / w + extra_height))
+    for v in range(V):
+        ax = fig.add_subplot(2, cols, v + 1)
+        ax.imshow(rgb[v])
+        for polylines, style in layers:
+            for poly in polylines:
+                uv = _project_polyline(_np(poly["pts"]), *(t[v] for t in calibration), (h, w), ground_z)
+                ax.plot(uv[:, 0], uv[:, 1], **style(poly))
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+        ax.set_axis_off()
+        ax.set_title(camera_names[v] if v < len(camera_names) else f"camera {v}", fontsize=8)
+    return fig
 
 
 def cameras_figure(
@@ -158,26 +196,9 @@ def cameras_figure(
     """The V camera images [V, 3, h, w] (ImageNet-normalised) in a 2 x ceil(V/2) grid, with the GT
     polylines (metres, ego frame, on the plane z = ground_z) projected through the calibration and
     post_rot/post_tran."""
-    V, _, h, w = images.shape
-    rgb = denormalize(images.detach().float().cpu()).permute(0, 2, 3, 1).numpy()
-    cols = (V + 1) // 2
-    fig = Figure(figsize=(4.2 * cols, 2 * 4.2 * h / w + 0.8))
-    for v in range(V):
-        ax = fig.add_subplot(2, cols, v + 1)
-        ax.imshow(rgb[v])
-        for poly in polylines:
-            pts = _densify(_np(poly["pts"]).astype(np.float64), 0.25)
-            pts3 = torch.from_numpy(np.c_[pts, np.full(len(pts), ground_z)]).float()
-            uv, depth = project_to_image(pts3, intrinsics[v].float(), cam_to_ego_rot[v].float(),
-                                         cam_to_ego_trans[v].float(), post_rot[v].float(), post_tran[v].float())
-            uv, depth = uv.numpy(), depth.numpy()
-            ok = (depth > 0.5) & (uv[:, 0] > -w) & (uv[:, 0] < 2 * w) & (uv[:, 1] > -h) & (uv[:, 1] < 2 * h)
-            uv = np.where(ok[:, None], uv, np.nan)  # NaNs break the line behind the camera
-            ax.plot(uv[:, 0], uv[:, 1], "-", color=CLASS_COLORS[int(poly["label"]) % 3], linewidth=1.2)
-        ax.set_xlim(-0.5, w - 0.5)
-        ax.set_ylim(h - 0.5, -0.5)
-        ax.set_axis_off()
-        ax.set_title(camera_names[v] if v < len(camera_names) else f"camera {v}", fontsize=8)
+    calibration = (intrinsics, cam_to_ego_rot, cam_to_ego_trans, post_rot, post_tran)
+    fig = _camera_lines_figure(images, calibration, camera_names, ground_z, 0.8, [
+        (polylines, lambda p: {"linestyle": "-", "color": _class_color(p["label"]), "linewidth": 1.2})])
     fig.subplots_adjust(wspace=0.02, hspace=0.12)
     return fig
 
@@ -247,10 +268,6 @@ def _upright_panel_size(grid: BEVGrid, height: float) -> tuple[float, float]:
     """(width, height) in inches of one upright BEV panel of the given height."""
     aspect = (grid.ymax - grid.ymin) / (grid.xmax - grid.xmin)
     return max(height * aspect, 1.5), height
-
-
-def _class_color(label: int) -> str:
-    return CLASS_COLORS[int(label) % len(CLASS_COLORS)]
 
 
 def _track_color(track_id: int) -> tuple:
@@ -333,14 +350,14 @@ def intermediate_figure(
     dt_clip: float = 10.0,
     title: str = "",
 ) -> Figure:
-    """The intermediate results of the paper's Fig. 6 on upright BEV panels: the vertex heatmap
-    [H, W], the distance transform per class [K, H, W] (BEV pixels; None: a model without a distance
-    head, no panel), the real vertices [N, 2] (u, v)
-    coloured by their GNN class [N], and the adjacency: ``edges`` [E, 2] vertex index pairs whose
-    assignment probability exceeds the match threshold, ``edge_kept`` [E] bool for those the
-    post-processing follows (mutual); the others are drawn dashed red. The heatmap is shown through a
-    3 x 3 max filter so that single-pixel peaks stay visible."""
+    """The intermediate results of the paper's Fig. 6 on upright BEV panels: the vertex heatmap [H, W], the distance
+    transform per class [K, H, W] (BEV pixels; None: a model without a distance head, no panel), the real vertices
+    [N, 2] (u, v) coloured by their GNN class [N], and the adjacency: ``edges`` [E, 2] vertex index pairs whose
+    assignment probability exceeds the match threshold, ``edge_kept`` [E] bool for those the post-processing
+    follows (mutual); the others are drawn dashed red. The heatmap is shown through a 3 x 3 max filter so that
+    single-pixel peaks stay visible."""
     from matplotlib.collections import LineCollection
+    from matplotlib.ticker import MaxNLocator
 
     heat = torch.as_tensor(_np(heatmap), dtype=torch.float32)
     heat = torch.nn.functional.max_pool2d(heat[None, None], 3, stride=1, padding=1)[0, 0].numpy()
@@ -359,23 +376,16 @@ def intermediate_figure(
     for ax in axes[panels:]:
         ax.set_axis_off()
 
-    def colorbar(im, ax, label: str) -> None:  # below the axes, without shrinking them
-        from matplotlib.ticker import MaxNLocator
-
-        cax = ax.inset_axes([0.0, -0.14, 1.0, 0.025])
-        fig.colorbar(im, cax=cax, orientation="horizontal", label=label, ticks=MaxNLocator(4), format="%.3g")
-
     names = [classes[k] if k < len(classes) else str(k) for k in range(K)]
     heat_max = max(float(heat.max()), 1e-6)
-    ax = axes[0]
-    im = _upright_image(ax, heat, grid, cmap="magma", vmin=0.0, vmax=heat_max)
-    colorbar(im, ax, "vertex probability")
-    _upright_axes(ax, grid, f"vertex heatmap, 3x3 max filter (peak {heat.max():.2f})")
-    for k in range(n_dt):
-        ax = axes[1 + k]
-        im = _upright_image(ax, dist[k], grid, cmap="magma_r", vmin=0.0, vmax=dt_clip)
-        colorbar(im, ax, "distance (BEV px)")
-        _upright_axes(ax, grid, f"distance transform: {names[k]}")
+    rasters = [(heat, "magma", heat_max, "vertex probability", f"vertex heatmap, 3x3 max filter (peak {heat_max:.2f})")]
+    rasters += [(dist[k], "magma_r", dt_clip, "distance (BEV px)", f"distance transform: {names[k]}")
+                for k in range(n_dt)]
+    for ax, (image, cmap, vmax, label, panel_title) in zip(axes, rasters):
+        im = _upright_image(ax, image, grid, cmap=cmap, vmin=0.0, vmax=vmax)
+        cax = ax.inset_axes([0.0, -0.14, 1.0, 0.025])  # the colour bar below the axes, without shrinking them
+        fig.colorbar(im, cax=cax, orientation="horizontal", label=label, ticks=MaxNLocator(4), format="%.3g")
+        _upright_axes(ax, grid, panel_title)
 
     ax = axes[n_dt + 1]
     _upright_image(ax, heat, grid, cmap="Greys", vmin=0.0, vmax=2 * heat_max)
@@ -403,20 +413,6 @@ def intermediate_figure(
     return fig
 
 
-def _project_polyline(pts_m: np.ndarray, intrinsics, cam_to_ego_rot, cam_to_ego_trans, post_rot, post_tran,
-                      image_hw: tuple[int, int], ground_z: float = 0.0) -> np.ndarray:
-    """A BEV polyline [P, 2] (metres, on the plane z = ground_z) -> image pixels [P', 2] of one camera,
-    densified every 0.25 m, NaN where the line is behind the camera or far outside the image."""
-    h, w = image_hw
-    pts = _densify(pts_m.astype(np.float64), 0.25)
-    pts3 = torch.from_numpy(np.c_[pts, np.full(len(pts), ground_z)]).float()
-    uv, depth = project_to_image(pts3, intrinsics.float(), cam_to_ego_rot.float(), cam_to_ego_trans.float(),
-                                 post_rot.float(), post_tran.float())
-    uv, depth = uv.numpy(), depth.numpy()
-    ok = (depth > 0.5) & (uv[:, 0] > -w) & (uv[:, 0] < 2 * w) & (uv[:, 1] > -h) & (uv[:, 1] < 2 * h)
-    return np.where(ok[:, None], uv, np.nan)  # NaNs break the line
-
-
 @_default_style
 def prediction_cameras_figure(
     images: torch.Tensor,
@@ -436,25 +432,11 @@ def prediction_cameras_figure(
     the ground plane z = ground_z of the ego frame through the calibration."""
     from matplotlib.lines import Line2D
 
-    V, _, h, w = images.shape
-    rgb = denormalize(images.detach().float().cpu()).permute(0, 2, 3, 1).numpy()
-    calib = [t.detach().cpu() for t in (intrinsics, cam_to_ego_rot, cam_to_ego_trans, post_rot, post_tran)]
-    cols = (V + 1) // 2
-    fig = Figure(figsize=(4.2 * cols, 2 * 4.2 * h / w + 1.1))
-    for v in range(V):
-        ax = fig.add_subplot(2, cols, v + 1)
-        ax.imshow(rgb[v])
-        cam = [t[v] for t in calib]
-        for poly in predictions:
-            uv = _project_polyline(_np(poly["pts"]), *cam, (h, w), ground_z)
-            ax.plot(uv[:, 0], uv[:, 1], "-", color=_class_color(poly["label"]), linewidth=1.8)
-        for poly in ground_truth:  # on top, thin, so both stay visible where they agree
-            uv = _project_polyline(_np(poly["pts"]), *cam, (h, w), ground_z)
-            ax.plot(uv[:, 0], uv[:, 1], "--", color="white", linewidth=0.8, alpha=0.9)
-        ax.set_xlim(-0.5, w - 0.5)
-        ax.set_ylim(h - 0.5, -0.5)
-        ax.set_axis_off()
-        ax.set_title(camera_names[v] if v < len(camera_names) else f"camera {v}", fontsize=8)
+    calibration = (intrinsics, cam_to_ego_rot, cam_to_ego_trans, post_rot, post_tran)
+    fig = _camera_lines_figure(images, calibration, camera_names, ground_z, 1.1, [
+        (predictions, lambda p: {"linestyle": "-", "color": _class_color(p["label"]), "linewidth": 1.8}),
+        # the GT on top, thin, so both stay visible where they agree
+        (ground_truth, lambda p: {"linestyle": "--", "color": "white", "linewidth": 0.8, "alpha": 0.9})])
     handles = [Line2D([], [], color=_class_color(k), linewidth=1.6, label=f"predicted {name}")
                for k, name in enumerate(classes)]
     handles.append(Line2D([], [], color="0.4", linestyle="--", linewidth=0.9, label="ground truth"))
