@@ -101,15 +101,6 @@ class BEVGrid:
     def Hc(self) -> int:
         return self.H // self.cell_size
 
-    @property
-    def patch_size_m(self) -> tuple[float, float]:
-        """(lateral extent along y, extent along x) in metres: nuScenes' ``patch_box`` order (h, w)."""
-        return (self.ymax - self.ymin, self.xmax - self.xmin)
-
-    @property
-    def center_m(self) -> tuple[float, float]:
-        return ((self.xmin + self.xmax) / 2, (self.ymin + self.ymax) / 2)
-
     # --- conversions (numpy arrays or tensors, [..., 2] with (x, y) / (u, v) last) -------------
     def _origin_scale(self, like: ArrayLike):
         if not isinstance(like, (torch.Tensor, np.ndarray)):  # a list was a raw "'list' object has no attribute"
@@ -128,17 +119,15 @@ class BEVGrid:
         lo, res = self._origin_scale(pts_px)
         return (pts_px + 0.5) * res + lo
 
+    def _size(self, like: ArrayLike) -> ArrayLike:
+        """(W, H) as ``like``'s kind: filled on the tensor's device (``pair_like``), float64 for arrays."""
+        return pair_like(like, self.W, self.H) if isinstance(like, torch.Tensor) else np.array([self.W, self.H], float)
+
     def px_to_norm(self, pts_px: ArrayLike) -> ArrayLike:
-        if isinstance(pts_px, torch.Tensor):
-            size = pair_like(pts_px, self.W, self.H)
-        else:
-            size = np.array([self.W, self.H], dtype=float)
-        return (pts_px + 0.5) / size * 2 - 1
+        return (pts_px + 0.5) / self._size(pts_px) * 2 - 1
 
     def norm_to_px(self, pts_norm: ArrayLike) -> ArrayLike:
-        size = [self.W, self.H]
-        size = pts_norm.new_tensor(size) if isinstance(pts_norm, torch.Tensor) else np.asarray(size, dtype=float)
-        return (pts_norm + 1) / 2 * size - 0.5
+        return (pts_norm + 1) / 2 * self._size(pts_norm) - 0.5
 
     def m_to_norm(self, pts_m: ArrayLike) -> ArrayLike:
         return self.px_to_norm(self.m_to_px(pts_m))

@@ -156,8 +156,7 @@ class EfficientNetBackbone(nn.Module):
 
     def load_imagenet_state(self, state: object, source: str) -> None:
         """Load an ImageNet state dict in efficientnet_pytorch's format (``source`` names it in errors)."""
-        key = "model.backbone.weights"
-        path = source
+        key, path = "model.backbone.weights", source
         if isinstance(state, dict) and len(state) == 1 and isinstance(next(iter(state.values())), dict):
             state = next(iter(state.values()))  # a wrapper: {"state_dict": ...}, {"model": ...}
         if isinstance(state, dict) and state and all(isinstance(k, str) and k.startswith("module.") for k in state):
@@ -173,10 +172,8 @@ class EfficientNetBackbone(nn.Module):
         unexpected = sorted(set(state) - set(own))
         wrong_shape = [k for k in own if k in state and state[k].shape != own[k].shape]
         if missing or unexpected or wrong_shape:
-            details = []
-            for label, keys in (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong_shape)):
-                if keys:
-                    details.append(f"{len(keys)} {label} (e.g. {', '.join(keys[:3])})")
+            details = [f"{len(keys)} {label} (e.g. {', '.join(keys[:3])})" for label, keys in
+                       (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong_shape)) if keys]
             raise UserError(
                 f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
                 f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?"
