@@ -89,18 +89,17 @@ def _next_represented(step: torch.Tensor, represented: torch.Tensor, skip_missed
     """
     M = step.shape[1] - 1
     first = step  # the direct successor
+    idx = torch.arange(M + 1, device=step.device).expand_as(step)
     if not skip_missed:
         ok = represented.gather(1, first)
         out = torch.where(ok, first, torch.full_like(first, M))
     else:
         # T(x) = x if x is terminal else T(step(x)); by pointer jumping on P(x) = x | step(x).
-        idx = torch.arange(M + 1, device=step.device).expand_as(step)
         P = torch.where(represented, idx, step)
         for _ in range(max(1, math.ceil(math.log2(M + 1))) + 1):
             P = P.gather(1, P)
         T = torch.where(represented.gather(1, P), P, torch.full_like(P, M))  # a cycle of misses -> none
         out = T.gather(1, first)
-    idx = torch.arange(M + 1, device=step.device).expand_as(step)
     return torch.where(out == idx, torch.full_like(out, M), out)  # only vertex of its cycle -> none
 
 
@@ -216,7 +215,6 @@ def assign(
         out = nxt_pred.gather(1, slot)  # [B, N]: non-representatives look up the scratch slot...
         out = torch.where(is_rep, out, torch.full_like(out, N))  # ...and go to the dustbin
         return torch.where(pred_mask, out, torch.full_like(out, IGNORE_INDEX))
-
 
     return {
         "pred_to_gt": pred_to_gt,
