@@ -198,12 +198,9 @@ def summarize_parameters(model: InstaGraM) -> str:
     if model.temporal is not None:
         rows.append((f"temporal ({model.temporal.fusion} fusion, {model.temporal.memory} memory)",
                      _count(model.temporal)))
-    total = _count(model)
-    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
     width = max(len(name) for name, _ in rows) + 2
+    rows += [("total", _count(model)), ("trainable", sum(p.numel() for p in model.parameters() if p.requires_grad))]
     lines = [f"{'component':<{width}}{'parameters':>14}{'':>10}"]
     lines += [f"{name:<{width}}{n:>14,}{n / 1e6:>9.3f}M" for name, n in rows]
-    lines.append("-" * (width + 24))
-    lines.append(f"{'total':<{width}}{total:>14,}{total / 1e6:>9.3f}M")
-    lines.append(f"{'trainable':<{width}}{trainable:>14,}{trainable / 1e6:>9.3f}M")
+    lines.insert(-2, "-" * (width + 24))
     return "\n".join(lines)

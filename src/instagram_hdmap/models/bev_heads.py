@@ -88,12 +88,9 @@ class BEVHeads(nn.Module):
         self.cell_size, self.dt_clip = cell_size, dt_clip
         c0 = stage_channels[0]
         self.stem = conv_bn_relu(in_channels, c0, kernel=7, stride=stem_stride)
-        stages, cin = [], c0
-        for i, c in enumerate(stage_channels):
-            stride = 1 if i == 0 else 2
-            stages.append(nn.Sequential(BasicBlock(cin, c, stride), BasicBlock(c, c)))
-            cin = c
-        self.stages = nn.ModuleList(stages)
+        widths = (c0, *stage_channels)  # strides 1, 2, 2, ...
+        self.stages = nn.ModuleList(nn.Sequential(BasicBlock(cin, c, 2 if i else 1), BasicBlock(c, c))
+                                    for i, (cin, c) in enumerate(zip(widths[:-1], widths[1:])))
         self.up = Up(stage_channels[0], stage_channels[-1], channels)
         s1, s2 = cell_strides(cell_size)
         self.vertex_head = nn.Sequential(
