@@ -120,12 +120,14 @@ class InstaGraM(nn.Module):
         features = self.backbone(images.flatten(0, 1)).unflatten(0, (B, V))  # [B, V, C, h/16, w/16]
         bev = self.view_transform(features, {k: batch[k] for k in CALIBRATION_KEYS})
         temporal: dict[str, torch.Tensor] = {}
+        if self.temporal is None:
+            heads = self.bev_heads(bev)
+        else:
+            def fuse(first: torch.Tensor) -> torch.Tensor:
+                fused, temporal["memory"], temporal["memory_status"] = self.temporal(first, batch, memory)
+                return fused
 
-        def fuse(first: torch.Tensor) -> torch.Tensor:
-            fused, temporal["memory"], temporal["memory_status"] = self.temporal(first, batch, memory)
-            return fused
-
-        heads = self.bev_heads(bev, fuse=None if self.temporal is None else fuse)
+            heads = self.bev_heads(bev, fuse=fuse)
         distance = heads.get("pred_distance")  # None without a distance head
         graph = self.graph_head(heads["pred_vertex_logits"], distance, heads["bev_features"])
         if self.temporal is not None:  # a graph memory holds this frame's predicted graph
