@@ -114,7 +114,7 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
     """
     check_polylines(polylines, where="vertex_graph")
     S, Wc = grid.cell_size, grid.Wc
-    uv, counts = _polyline_pixels(polylines, grid)  # [Q, 2] all candidates, in (instance, order) order
+    uv, counts = _polyline_pixels(polylines, grid)  # [Q, 2] all candidates, in (instance, order) order; Q may be 0
     closed = np.array([bool(p.get("closed", False)) or _is_loop(p["pts"]) for p in polylines], dtype=bool)
     labels = np.array([int(p["label"]) for p in polylines], dtype=np.int64)
     inst, order = _instance_index(counts)
@@ -125,8 +125,6 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
         uv = uv[~repeat]
         counts = counts - np.bincount(inst[repeat], minlength=len(counts))
         inst, order = _instance_index(counts)
-    if len(uv) == 0:
-        return _empty_graph()
 
     is_end = ~closed[inst] & ((order == 0) | (order == counts[inst] - 1))
     cell = (uv[:, 1] // S) * Wc + uv[:, 0] // S
@@ -163,13 +161,6 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
         "gt_vertex_next": torch.from_numpy(nxt.astype(np.int64)),
         "gt_vertex_prev": torch.from_numpy(prv.astype(np.int64)),
     }
-
-
-def _empty_graph() -> dict[str, torch.Tensor]:
-    out = {"gt_vertices_px": torch.zeros(0, 2), "gt_vertices_m": torch.zeros(0, 2)}
-    for k in ("labels", "instance", "order", "next", "prev"):
-        out[f"gt_vertex_{k}"] = torch.zeros(0, dtype=torch.int64)
-    return out
 
 
 @torch.no_grad()
