@@ -149,21 +149,10 @@ def _class_targets(gt_vertex_labels: torch.Tensor, nearest: torch.Tensor, neares
 
 
 @torch.no_grad()
-def assign(
-    pred_vertices_px: torch.Tensor,
-    pred_vertex_mask: torch.Tensor,
-    gt_vertices_px: torch.Tensor,
-    gt_vertex_mask: torch.Tensor,
-    gt_vertex_labels: torch.Tensor,
-    gt_vertex_next: torch.Tensor,
-    gt_vertex_prev: torch.Tensor,
-    grid: BEVGrid,
-    match_dist_m: float,
-    skip_missed: bool = True,
-    *,
-    match_space: str = "metres",
-    class_targets: str = "matched",
-) -> dict[str, torch.Tensor]:
+def assign(pred_vertices_px: torch.Tensor, pred_vertex_mask: torch.Tensor, gt_vertices_px: torch.Tensor,
+           gt_vertex_mask: torch.Tensor, gt_vertex_labels: torch.Tensor, gt_vertex_next: torch.Tensor,
+           gt_vertex_prev: torch.Tensor, grid: BEVGrid, match_dist_m: float, skip_missed: bool = True, *,
+           match_space: str = "metres", class_targets: str = "matched") -> dict[str, torch.Tensor]:
     """Match predicted to GT vertices and derive the graph targets (module docstring has the rules).
 
     pred_vertices_px [B, N, 2] (u, v), pred_vertex_mask [B, N] bool;

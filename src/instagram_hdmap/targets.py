@@ -187,9 +187,8 @@ def cells_to_vertices_px(cells: torch.Tensor, cell_size: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def distance_transform(
-    polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
-) -> torch.Tensor:
+def distance_transform(polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
+                      ) -> torch.Tensor:
     """Per-class distance transform [K, H, W] float32 in [0, dt_clip] BEV pixels (see module docstring)."""
     check_polylines(polylines, num_classes, where="distance_transform")
     canvas = np.full((num_classes, grid.H, grid.W), 255, dtype=np.uint8)
@@ -209,9 +208,8 @@ def distance_transform(
 
 
 @torch.no_grad()
-def build_targets(
-    polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
-) -> dict[str, torch.Tensor]:
+def build_targets(polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
+                 ) -> dict[str, torch.Tensor]:
     """All targets of one sample: the vertex graph (``vertex_graph``), ``gt_vertex_mask`` [M] (all
     True), ``gt_vertex_cells`` [Hc, Wc] and ``gt_distance`` [K, H, W]. ``gt_vertices_m`` is not
     returned (use ``grid.px_to_m(gt_vertices_px)``) so that the keys are those of docs/conventions.md.
@@ -226,13 +224,7 @@ def build_targets(
     }
 
 
-def graph_to_polylines(
-    vertices_m,
-    labels,
-    next_idx,
-    mask=None,
-    min_vertices: int = 2,
-) -> list[dict]:
+def graph_to_polylines(vertices_m, labels, next_idx, mask=None, min_vertices: int = 2) -> list[dict]:
     """Vertex graph -> polyline dicts (metres): follow ``next`` from every vertex without a
     predecessor; what is left are cycles, returned closed (first point repeated, ``closed=True``).
 

@@ -71,19 +71,9 @@ def cell_strides(cell_size: int) -> tuple[int, int]:
 class BEVHeads(nn.Module):
     """BEV features -> {F_bev, vertex logits, distance transform}."""
 
-    def __init__(
-        self,
-        *,
-        in_channels: int,
-        num_classes: int,
-        cell_size: int,
-        dt_clip: float,
-        channels: int = 256,
-        stage_channels: tuple[int, ...] = (64, 128, 256),
-        head_channels: int = 128,
-        stem_stride: int = 1,
-        distance_head: bool = True,
-    ):
+    def __init__(self, *, in_channels: int, num_classes: int, cell_size: int, dt_clip: float, channels: int = 256,
+                 stage_channels: tuple[int, ...] = (64, 128, 256), head_channels: int = 128, stem_stride: int = 1,
+                 distance_head: bool = True):
         super().__init__()
         self.cell_size, self.dt_clip = cell_size, dt_clip
         c0 = stage_channels[0]
@@ -93,11 +83,9 @@ class BEVHeads(nn.Module):
                                     for i, (cin, c) in enumerate(zip(widths[:-1], widths[1:])))
         self.up = Up(stage_channels[0], stage_channels[-1], channels)
         s1, s2 = cell_strides(cell_size)
-        self.vertex_head = nn.Sequential(
-            strided_conv_bn_relu(channels, channels, s1),
-            strided_conv_bn_relu(channels, head_channels, s2),
-            nn.Conv2d(head_channels, cell_size * cell_size + 1, kernel_size=1),
-        )
+        self.vertex_head = nn.Sequential(strided_conv_bn_relu(channels, channels, s1),
+                                         strided_conv_bn_relu(channels, head_channels, s2),
+                                         nn.Conv2d(head_channels, cell_size * cell_size + 1, kernel_size=1))
         # without it (model.bev_heads.distance_head=false): no pred_distance, as the official
         # visual-descriptor variant (its BevEncode built without distance_reg)
         self.distance_head = nn.Sequential(

@@ -101,10 +101,8 @@ def _cell_pixels(cells: torch.Tensor, pos: torch.Tensor, Wc: int, S: int) -> tup
     return u, v
 
 
-def extract_vertices(
-    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float, nms_radius: float = 0.0,
-    nms: str = "cells",
-) -> dict[str, torch.Tensor]:
+def extract_vertices(vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float,
+                     nms_radius: float = 0.0, nms: str = "cells") -> dict[str, torch.Tensor]:
     """Top-N vertices, one per cell, and with ``nms_radius`` > 0 pixels a suppression of the cell
     winners: ``nms="cells"`` drops a winner within that distance of a stronger winner of a
     neighbouring cell (``neighbour_suppression``); ``nms="superpoint"`` runs ``superpoint_nms`` with

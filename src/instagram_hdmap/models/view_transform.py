@@ -166,15 +166,8 @@ class LSSViewTransform(nn.Module):
     ``depth_net``: 1x1 conv C -> D + C (depth logits, context), as the official InstaGraM LSS.
     """
 
-    def __init__(
-        self,
-        bev_grid: BEVGrid,
-        image_size: tuple[int, int],
-        channels: int,
-        depth_bound: tuple[float, float, float],
-        zbound: tuple[float, float],
-        downsample: int = 16,
-    ):
+    def __init__(self, bev_grid: BEVGrid, image_size: tuple[int, int], channels: int,
+                 depth_bound: tuple[float, float, float], zbound: tuple[float, float], downsample: int = 16):
         super().__init__()
         self.bev_grid, self.image_size, self.out_channels, self.zbound = bev_grid, image_size, channels, zbound
         depths = torch.arange(*depth_bound, dtype=torch.float32)  # 4, 5, ..., 44 -> D = 41
@@ -242,16 +235,8 @@ class MLPViewTransform(nn.Module):
     cameras that cover the cell are averaged.
     """
 
-    def __init__(
-        self,
-        bev_grid: BEVGrid,
-        image_size: tuple[int, int],
-        channels: int,
-        camera_bev_size: tuple[int, int],
-        num_cameras: int,
-        height: float = 0.0,
-        downsample: int = 16,
-    ):
+    def __init__(self, bev_grid: BEVGrid, image_size: tuple[int, int], channels: int, camera_bev_size: tuple[int, int],
+                 num_cameras: int, height: float = 0.0, downsample: int = 16):
         super().__init__()
         self.bev_grid, self.image_size, self.out_channels = bev_grid, image_size, channels
         self.num_cameras, self.camera_bev_size = num_cameras, camera_bev_size
