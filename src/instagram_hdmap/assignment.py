@@ -74,9 +74,7 @@ from .geometry import BEVGrid
 UNMATCHED = -1  # a predicted vertex with no GT vertex within D0 / a GT vertex with no representative
 IGNORE_INDEX = -100  # target value the losses skip (torch's nll_loss default ignore_index)
 
-GT_GRAPH_KEYS = (
-    "gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_next", "gt_vertex_prev",
-)
+GT_GRAPH_KEYS = ("gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_next", "gt_vertex_prev")
 
 
 def _next_represented(step: torch.Tensor, represented: torch.Tensor, skip_missed: bool) -> torch.Tensor:

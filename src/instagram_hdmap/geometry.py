@@ -74,15 +74,11 @@ class BEVGrid:
         for name, extent in (("grid.xbound", self.xmax - self.xmin), ("grid.ybound", self.ymax - self.ymin)):
             n = extent / self.resolution
             if abs(n - round(n)) > 1e-6:
-                raise ConfigError(
-                    f"config key '{name}': extent {extent} m is not a whole number of "
-                    f"{self.resolution} m pixels"
-                )
+                raise ConfigError(f"config key '{name}': extent {extent} m is not a whole number of "
+                                  f"{self.resolution} m pixels")
         if self.W % self.cell_size or self.H % self.cell_size:
-            raise ConfigError(
-                f"config key 'grid.cell_size': BEV size {self.H}x{self.W} (HxW) is not divisible by "
-                f"S={self.cell_size}; choose a cell size that divides both"
-            )
+            raise ConfigError(f"config key 'grid.cell_size': BEV size {self.H}x{self.W} (HxW) is not divisible by "
+                              f"S={self.cell_size}; choose a cell size that divides both")
 
     # --- sizes -------------------------------------------------------------------------------
     @property

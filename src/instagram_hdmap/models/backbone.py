@@ -162,10 +162,8 @@ class EfficientNetBackbone(nn.Module):
         if isinstance(state, dict) and state and all(isinstance(k, str) and k.startswith("module.") for k in state):
             state = {k[len("module."):]: v for k, v in state.items()}  # saved from a DataParallel / DDP wrapper
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-            raise UserError(
-                f"{key}: {path} is not a state dict of tensors; save one with "
-                f"torch.save(EfficientNet.from_pretrained('{self.name}').state_dict(), path)"
-            )
+            raise UserError(f"{key}: {path} is not a state dict of tensors; save one with "
+                            f"torch.save(EfficientNet.from_pretrained('{self.name}').state_dict(), path)")
         state = {k: v for k, v in state.items() if not k.startswith(_UNUSED_PREFIXES)}
         own = self.trunk.state_dict()
         missing = sorted(set(own) - set(state))
@@ -174,10 +172,8 @@ class EfficientNetBackbone(nn.Module):
         if missing or unexpected or wrong_shape:
             details = [f"{len(keys)} {label} (e.g. {', '.join(keys[:3])})" for label, keys in
                        (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong_shape)) if keys]
-            raise UserError(
-                f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
-                f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?"
-            )
+            raise UserError(f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
+                            f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?")
         bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
         if bad:  # loaded silently, then every loss NaN from the first step
             more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""

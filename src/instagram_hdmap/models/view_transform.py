@@ -252,10 +252,8 @@ class MLPViewTransform(nn.Module):
         """features [B, V, C, fh, fw] -> camera-aligned top-down maps [B, V, C, bh, bw]."""
         B, V, C = features.shape[:3]
         if V != self.num_cameras:
-            raise ValueError(
-                f"the MLP view transform was built for {self.num_cameras} cameras "
-                f"(model.view_transform.num_cameras) but the batch has {V}"
-            )
+            raise ValueError(f"the MLP view transform was built for {self.num_cameras} cameras "
+                             f"(model.view_transform.num_cameras) but the batch has {V}")
         x = features.flatten(3).transpose(0, 1).reshape(V, B * C, -1)  # [V, B*C, fh*fw]
         x = F.relu(self.fc2(F.relu(self.fc1(x))))  # [V, B*C, bh*bw]
         return x.view(V, B, C, *self.camera_bev_size).transpose(0, 1)
