@@ -131,16 +131,14 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
 
     # one winner per cell: the smallest (not endpoint, label, instance, order); lexsort: last key primary
     rank = np.lexsort((order, inst, labels[inst], ~is_end, cell))
-    first = np.ones(len(rank), dtype=bool)
-    first[1:] = cell[rank[1:]] != cell[rank[:-1]]
+    first = np.diff(cell[rank], prepend=-1) != 0  # cells are >= 0
     keep = np.zeros(len(uv), dtype=bool)
     keep[rank[first]] = True
 
     uv, inst = uv[keep], inst[keep]  # still in (instance, order) order
     M = len(uv)
     idx = np.arange(M)
-    new_start = np.ones(M, dtype=bool)
-    new_start[1:] = inst[1:] != inst[:-1]
+    new_start = np.diff(inst, prepend=-1) != 0
     group = np.cumsum(new_start) - 1  # instance groups of kept vertices
     group_start = idx[new_start]
     start = group_start[group]  # first / last kept vertex of each vertex's instance

@@ -100,9 +100,7 @@ class EfficientNetBackbone(nn.Module):
         trunk = EfficientNet.from_name(name, image_size=list(image_size))
         for unused in ("_conv_head", "_bn1", "_avg_pooling", "_dropout", "_fc"):
             delattr(trunk, unused)
-        self.trunk = trunk
-        self.name = name
-        self.out_channels = out_channels
+        self.trunk, self.name, self.out_channels = trunk, name, out_channels
         # The last block at stride 16 ends reduction_4; the last block overall is reduction_5.
         stride, self._r4_index = 2, -1  # the stem has stride 2
         for i, block in enumerate(trunk._blocks):
