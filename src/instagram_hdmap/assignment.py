@@ -74,9 +74,7 @@ from .geometry import BEVGrid
 UNMATCHED = -1  # a predicted vertex with no GT vertex within D0 / a GT vertex with no representative
 IGNORE_INDEX = -100  # target value the losses skip (torch's nll_loss default ignore_index)
 
-GT_GRAPH_KEYS = (
-    "gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_next", "gt_vertex_prev",
-)
+GT_GRAPH_KEYS = ("gt_vertices_px", "gt_vertex_mask", "gt_vertex_labels", "gt_vertex_next", "gt_vertex_prev")
 
 
 def _next_represented(step: torch.Tensor, represented: torch.Tensor, skip_missed: bool) -> torch.Tensor:
@@ -89,18 +87,17 @@ def _next_represented(step: torch.Tensor, represented: torch.Tensor, skip_missed
     """
     M = step.shape[1] - 1
     first = step  # the direct successor
+    idx = torch.arange(M + 1, device=step.device).expand_as(step)
     if not skip_missed:
         ok = represented.gather(1, first)
         out = torch.where(ok, first, torch.full_like(first, M))
     else:
         # T(x) = x if x is terminal else T(step(x)); by pointer jumping on P(x) = x | step(x).
-        idx = torch.arange(M + 1, device=step.device).expand_as(step)
         P = torch.where(represented, idx, step)
         for _ in range(max(1, math.ceil(math.log2(M + 1))) + 1):
             P = P.gather(1, P)
         T = torch.where(represented.gather(1, P), P, torch.full_like(P, M))  # a cycle of misses -> none
         out = T.gather(1, first)
-    idx = torch.arange(M + 1, device=step.device).expand_as(step)
     return torch.where(out == idx, torch.full_like(out, M), out)  # only vertex of its cycle -> none
 
 
@@ -150,21 +147,10 @@ def _class_targets(gt_vertex_labels: torch.Tensor, nearest: torch.Tensor, neares
 
 
 @torch.no_grad()
-def assign(
-    pred_vertices_px: torch.Tensor,
-    pred_vertex_mask: torch.Tensor,
-    gt_vertices_px: torch.Tensor,
-    gt_vertex_mask: torch.Tensor,
-    gt_vertex_labels: torch.Tensor,
-    gt_vertex_next: torch.Tensor,
-    gt_vertex_prev: torch.Tensor,
-    grid: BEVGrid,
-    match_dist_m: float,
-    skip_missed: bool = True,
-    *,
-    match_space: str = "metres",
-    class_targets: str = "matched",
-) -> dict[str, torch.Tensor]:
+def assign(pred_vertices_px: torch.Tensor, pred_vertex_mask: torch.Tensor, gt_vertices_px: torch.Tensor,
+           gt_vertex_mask: torch.Tensor, gt_vertex_labels: torch.Tensor, gt_vertex_next: torch.Tensor,
+           gt_vertex_prev: torch.Tensor, grid: BEVGrid, match_dist_m: float, skip_missed: bool = True, *,
+           match_space: str = "metres", class_targets: str = "matched") -> dict[str, torch.Tensor]:
     """Match predicted to GT vertices and derive the graph targets (module docstring has the rules).
 
     pred_vertices_px [B, N, 2] (u, v), pred_vertex_mask [B, N] bool;
@@ -216,7 +202,6 @@ def assign(
         out = nxt_pred.gather(1, slot)  # [B, N]: non-representatives look up the scratch slot...
         out = torch.where(is_rep, out, torch.full_like(out, N))  # ...and go to the dustbin
         return torch.where(pred_mask, out, torch.full_like(out, IGNORE_INDEX))
-
 
     return {
         "pred_to_gt": pred_to_gt,

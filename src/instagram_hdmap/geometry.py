@@ -74,15 +74,11 @@ class BEVGrid:
         for name, extent in (("grid.xbound", self.xmax - self.xmin), ("grid.ybound", self.ymax - self.ymin)):
             n = extent / self.resolution
             if abs(n - round(n)) > 1e-6:
-                raise ConfigError(
-                    f"config key '{name}': extent {extent} m is not a whole number of "
-                    f"{self.resolution} m pixels"
-                )
+                raise ConfigError(f"config key '{name}': extent {extent} m is not a whole number of "
+                                  f"{self.resolution} m pixels")
         if self.W % self.cell_size or self.H % self.cell_size:
-            raise ConfigError(
-                f"config key 'grid.cell_size': BEV size {self.H}x{self.W} (HxW) is not divisible by "
-                f"S={self.cell_size}; choose a cell size that divides both"
-            )
+            raise ConfigError(f"config key 'grid.cell_size': BEV size {self.H}x{self.W} (HxW) is not divisible by "
+                              f"S={self.cell_size}; choose a cell size that divides both")
 
     # --- sizes -------------------------------------------------------------------------------
     @property
@@ -100,15 +96,6 @@ class BEVGrid:
     @property
     def Hc(self) -> int:
         return self.H // self.cell_size
-
-    @property
-    def patch_size_m(self) -> tuple[float, float]:
-        """(lateral extent along y, extent along x) in metres: nuScenes' ``patch_box`` order (h, w)."""
-        return (self.ymax - self.ymin, self.xmax - self.xmin)
-
-    @property
-    def center_m(self) -> tuple[float, float]:
-        return ((self.xmin + self.xmax) / 2, (self.ymin + self.ymax) / 2)
 
     # --- conversions (numpy arrays or tensors, [..., 2] with (x, y) / (u, v) last) -------------
     def _origin_scale(self, like: ArrayLike):
@@ -128,17 +115,15 @@ class BEVGrid:
         lo, res = self._origin_scale(pts_px)
         return (pts_px + 0.5) * res + lo
 
+    def _size(self, like: ArrayLike) -> ArrayLike:
+        """(W, H) as ``like``'s kind: filled on the tensor's device (``pair_like``), float64 for arrays."""
+        return pair_like(like, self.W, self.H) if isinstance(like, torch.Tensor) else np.array([self.W, self.H], float)
+
     def px_to_norm(self, pts_px: ArrayLike) -> ArrayLike:
-        if isinstance(pts_px, torch.Tensor):
-            size = pair_like(pts_px, self.W, self.H)
-        else:
-            size = np.array([self.W, self.H], dtype=float)
-        return (pts_px + 0.5) / size * 2 - 1
+        return (pts_px + 0.5) / self._size(pts_px) * 2 - 1
 
     def norm_to_px(self, pts_norm: ArrayLike) -> ArrayLike:
-        size = [self.W, self.H]
-        size = pts_norm.new_tensor(size) if isinstance(pts_norm, torch.Tensor) else np.asarray(size, dtype=float)
-        return (pts_norm + 1) / 2 * size - 0.5
+        return (pts_norm + 1) / 2 * self._size(pts_norm) - 0.5
 
     def m_to_norm(self, pts_m: ArrayLike) -> ArrayLike:
         return self.px_to_norm(self.m_to_px(pts_m))

@@ -119,14 +119,8 @@ class Criterion(nn.Module):
         self.grid = as_grid(grid, "Criterion")
         # with_distance=False (model.bev_heads.distance_head=false): no loss_distance term at all
         self.with_distance = with_distance
-        self.weight_dict = {
-            "loss_vertex": cfg.vertex_weight,
-            "loss_distance": cfg.distance_weight,
-            "loss_adjacency": cfg.adjacency_weight,
-            "loss_class": cfg.class_weight,
-        }
-        if not with_distance:
-            del self.weight_dict["loss_distance"]
+        terms = ("vertex", "distance", "adjacency", "class") if with_distance else ("vertex", "adjacency", "class")
+        self.weight_dict = {f"loss_{t}": getattr(cfg, f"{t}_weight") for t in terms}
 
     def assign(self, outputs: dict, batch: dict) -> dict[str, torch.Tensor]:
         """The graph targets for these outputs (no autograd), see assignment.py."""
@@ -146,15 +140,11 @@ class Criterion(nn.Module):
                              f"pred_vertex_mask [{B}, {N}], got {list(outputs['pred_log_assignment'].shape)}")
         if assignment is None:
             assignment = self.assign(outputs, batch)
-        target_next, target_prev = assignment["target_next"], assignment["target_prev"]
-        target_class = assignment["target_class"]
-        log_assignment = outputs["pred_log_assignment"]
-        class_log_probs = outputs["pred_class_log_probs"]
-
         losses = {
             "loss_vertex": F.cross_entropy(outputs["pred_vertex_logits"].float(), batch["gt_vertex_cells"].long()),
-            "loss_adjacency": adjacency_nll(log_assignment, target_next, target_prev).mean(),
-            "loss_class": class_nll(class_log_probs, target_class).mean(),
+            "loss_adjacency": adjacency_nll(outputs["pred_log_assignment"], assignment["target_next"],
+                                            assignment["target_prev"]).mean(),
+            "loss_class": class_nll(outputs["pred_class_log_probs"], assignment["target_class"]).mean(),
         }
         if self.with_distance:
             losses["loss_distance"] = F.mse_loss(outputs["pred_distance"].float(), batch["gt_distance"].float())
@@ -168,23 +158,19 @@ class Criterion(nn.Module):
     @torch.no_grad()
     def _diagnostics(self, outputs: dict, batch: dict, assignment: dict) -> dict[str, torch.Tensor]:
         pred_mask = outputs["pred_vertex_mask"].bool()
-        target_next, target_prev = assignment["target_next"], assignment["target_prev"]
-        correct = adjacency_correct(outputs["pred_log_assignment"], pred_mask, target_next, target_prev)
-        rep = assignment["pred_is_representative"]
+        correct = adjacency_correct(outputs["pred_log_assignment"], pred_mask, assignment["target_next"],
+                                    assignment["target_prev"])
         target_class = assignment["target_class"]
-        has_class = target_class != IGNORE_INDEX
-        class_ok = outputs["pred_class_log_probs"].argmax(2) == target_class
-        matched = assignment["pred_to_gt"] >= 0
 
         def frac(hit: torch.Tensor, over: torch.Tensor) -> torch.Tensor:
             return (hit & over).sum().float() / over.sum().clamp(min=1).float()
 
-        gt_mask = batch["gt_vertex_mask"].bool()
         return {
-            "adjacency_accuracy": frac(correct, rep),
+            "adjacency_accuracy": frac(correct, assignment["pred_is_representative"]),
             "adjacency_accuracy_all": frac(correct, pred_mask),
-            "class_accuracy": frac(class_ok, has_class),
+            "class_accuracy": frac(outputs["pred_class_log_probs"].argmax(2) == target_class,
+                                   target_class != IGNORE_INDEX),
             "num_pred_vertices": pred_mask.sum(1).float().mean(),
-            "matched_fraction": frac(matched, pred_mask),
-            "gt_vertex_recall": frac(assignment["gt_to_pred"] >= 0, gt_mask),
+            "matched_fraction": frac(assignment["pred_to_gt"] >= 0, pred_mask),
+            "gt_vertex_recall": frac(assignment["gt_to_pred"] >= 0, batch["gt_vertex_mask"].bool()),
         }

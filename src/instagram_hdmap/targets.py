@@ -114,7 +114,7 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
     """
     check_polylines(polylines, where="vertex_graph")
     S, Wc = grid.cell_size, grid.Wc
-    uv, counts = _polyline_pixels(polylines, grid)  # [Q, 2] all candidates, in (instance, order) order
+    uv, counts = _polyline_pixels(polylines, grid)  # [Q, 2] all candidates, in (instance, order) order; Q may be 0
     closed = np.array([bool(p.get("closed", False)) or _is_loop(p["pts"]) for p in polylines], dtype=bool)
     labels = np.array([int(p["label"]) for p in polylines], dtype=np.int64)
     inst, order = _instance_index(counts)
@@ -125,24 +125,20 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
         uv = uv[~repeat]
         counts = counts - np.bincount(inst[repeat], minlength=len(counts))
         inst, order = _instance_index(counts)
-    if len(uv) == 0:
-        return _empty_graph()
 
     is_end = ~closed[inst] & ((order == 0) | (order == counts[inst] - 1))
     cell = (uv[:, 1] // S) * Wc + uv[:, 0] // S
 
     # one winner per cell: the smallest (not endpoint, label, instance, order); lexsort: last key primary
     rank = np.lexsort((order, inst, labels[inst], ~is_end, cell))
-    first = np.ones(len(rank), dtype=bool)
-    first[1:] = cell[rank[1:]] != cell[rank[:-1]]
+    first = np.diff(cell[rank], prepend=-1) != 0  # cells are >= 0
     keep = np.zeros(len(uv), dtype=bool)
     keep[rank[first]] = True
 
     uv, inst = uv[keep], inst[keep]  # still in (instance, order) order
     M = len(uv)
     idx = np.arange(M)
-    new_start = np.ones(M, dtype=bool)
-    new_start[1:] = inst[1:] != inst[:-1]
+    new_start = np.diff(inst, prepend=-1) != 0
     group = np.cumsum(new_start) - 1  # instance groups of kept vertices
     group_start = idx[new_start]
     start = group_start[group]  # first / last kept vertex of each vertex's instance
@@ -163,13 +159,6 @@ def vertex_graph(polylines: Sequence[dict], grid: BEVGrid) -> dict[str, torch.Te
         "gt_vertex_next": torch.from_numpy(nxt.astype(np.int64)),
         "gt_vertex_prev": torch.from_numpy(prv.astype(np.int64)),
     }
-
-
-def _empty_graph() -> dict[str, torch.Tensor]:
-    out = {"gt_vertices_px": torch.zeros(0, 2), "gt_vertices_m": torch.zeros(0, 2)}
-    for k in ("labels", "instance", "order", "next", "prev"):
-        out[f"gt_vertex_{k}"] = torch.zeros(0, dtype=torch.int64)
-    return out
 
 
 @torch.no_grad()
@@ -196,9 +185,8 @@ def cells_to_vertices_px(cells: torch.Tensor, cell_size: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def distance_transform(
-    polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
-) -> torch.Tensor:
+def distance_transform(polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
+                      ) -> torch.Tensor:
     """Per-class distance transform [K, H, W] float32 in [0, dt_clip] BEV pixels (see module docstring)."""
     check_polylines(polylines, num_classes, where="distance_transform")
     canvas = np.full((num_classes, grid.H, grid.W), 255, dtype=np.uint8)
@@ -218,9 +206,8 @@ def distance_transform(
 
 
 @torch.no_grad()
-def build_targets(
-    polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
-) -> dict[str, torch.Tensor]:
+def build_targets(polylines: Sequence[dict], grid: BEVGrid, num_classes: int = 3, dt_clip: float = 10.0
+                 ) -> dict[str, torch.Tensor]:
     """All targets of one sample: the vertex graph (``vertex_graph``), ``gt_vertex_mask`` [M] (all
     True), ``gt_vertex_cells`` [Hc, Wc] and ``gt_distance`` [K, H, W]. ``gt_vertices_m`` is not
     returned (use ``grid.px_to_m(gt_vertices_px)``) so that the keys are those of docs/conventions.md.
@@ -235,13 +222,7 @@ def build_targets(
     }
 
 
-def graph_to_polylines(
-    vertices_m,
-    labels,
-    next_idx,
-    mask=None,
-    min_vertices: int = 2,
-) -> list[dict]:
+def graph_to_polylines(vertices_m, labels, next_idx, mask=None, min_vertices: int = 2) -> list[dict]:
     """Vertex graph -> polyline dicts (metres): follow ``next`` from every vertex without a
     predecessor; what is left are cycles, returned closed (first point repeated, ``closed=True``).
 

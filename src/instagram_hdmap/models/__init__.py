@@ -128,31 +128,27 @@ def build_model(cfg: ExperimentConfig, *, pretrained: bool = False, download=Non
     vt = m.view_transform
     view_grid = BEVGrid(grid.xmin, grid.xmax, grid.ymin, grid.ymax, grid.resolution * vt.bev_downsample, 1)
     if vt.kind == "lss":
-        view_transform: nn.Module = LSSViewTransform(
-            view_grid, image_size, channels, vt.depth_bound, vt.zbound, FEATURE_DOWNSAMPLE
-        )
+        view_transform: nn.Module = LSSViewTransform(view_grid, image_size, channels, vt.depth_bound, vt.zbound,
+                                                     FEATURE_DOWNSAMPLE)
     elif vt.kind == "ipm":
         view_transform = IPMViewTransform(view_grid, image_size, channels, vt.ipm_height)
     else:
         camera_bev = (grid.H // vt.mlp_bev_downsample, grid.W // vt.mlp_bev_downsample)
-        view_transform = MLPViewTransform(
-            view_grid, image_size, channels, camera_bev, vt.num_cameras, vt.ipm_height, FEATURE_DOWNSAMPLE
-        )
+        view_transform = MLPViewTransform(view_grid, image_size, channels, camera_bev, vt.num_cameras, vt.ipm_height,
+                                          FEATURE_DOWNSAMPLE)
 
     num_classes = len(cfg.data.classes)
     bh = m.bev_heads
-    bev_heads = BEVHeads(
-        in_channels=channels, num_classes=num_classes, cell_size=grid.cell_size, dt_clip=cfg.data.dt_clip,
-        channels=bh.channels, stage_channels=tuple(bh.stage_channels), head_channels=bh.head_channels,
-        stem_stride=2 // vt.bev_downsample, distance_head=bh.distance_head,
-    )
+    bev_heads = BEVHeads(in_channels=channels, num_classes=num_classes, cell_size=grid.cell_size,
+                         dt_clip=cfg.data.dt_clip, channels=bh.channels, stage_channels=tuple(bh.stage_channels),
+                         head_channels=bh.head_channels, stem_stride=2 // vt.bev_downsample,
+                         distance_head=bh.distance_head)
     gh = m.gnn
-    graph_head = GraphHead(
-        grid=grid, num_classes=num_classes, dt_clip=cfg.data.dt_clip, bev_channels=bh.channels,
-        num_vertices=gh.num_vertices, conf_threshold=gh.conf_threshold, embedding=gh.embedding, dim=gh.dim,
-        pe_frequencies=gh.pe_frequencies, layers=gh.layers, heads=gh.heads, sinkhorn_iters=gh.sinkhorn_iters,
-        sinkhorn_grad=gh.sinkhorn_grad, nms_radius=gh.nms_radius, nms=gh.nms, vd_sampling=gh.vd_sampling,
-    )
+    graph_head = GraphHead(grid=grid, num_classes=num_classes, dt_clip=cfg.data.dt_clip, bev_channels=bh.channels,
+                           num_vertices=gh.num_vertices, conf_threshold=gh.conf_threshold, embedding=gh.embedding,
+                           dim=gh.dim, pe_frequencies=gh.pe_frequencies, layers=gh.layers, heads=gh.heads,
+                           sinkhorn_iters=gh.sinkhorn_iters, sinkhorn_grad=gh.sinkhorn_grad, nms_radius=gh.nms_radius,
+                           nms=gh.nms, vd_sampling=gh.vd_sampling)
     tc = m.temporal
     temporal = None
     if tc.memory != "none":  # fused after the BEV encoder's first stage, at H/2 x W/2 (models/bev_heads.py)
@@ -198,12 +194,9 @@ def summarize_parameters(model: InstaGraM) -> str:
     if model.temporal is not None:
         rows.append((f"temporal ({model.temporal.fusion} fusion, {model.temporal.memory} memory)",
                      _count(model.temporal)))
-    total = _count(model)
-    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
     width = max(len(name) for name, _ in rows) + 2
+    rows += [("total", _count(model)), ("trainable", sum(p.numel() for p in model.parameters() if p.requires_grad))]
     lines = [f"{'component':<{width}}{'parameters':>14}{'':>10}"]
     lines += [f"{name:<{width}}{n:>14,}{n / 1e6:>9.3f}M" for name, n in rows]
-    lines.append("-" * (width + 24))
-    lines.append(f"{'total':<{width}}{total:>14,}{total / 1e6:>9.3f}M")
-    lines.append(f"{'trainable':<{width}}{trainable:>14,}{trainable / 1e6:>9.3f}M")
+    lines.insert(-2, "-" * (width + 24))
     return "\n".join(lines)

@@ -100,9 +100,7 @@ class EfficientNetBackbone(nn.Module):
         trunk = EfficientNet.from_name(name, image_size=list(image_size))
         for unused in ("_conv_head", "_bn1", "_avg_pooling", "_dropout", "_fc"):
             delattr(trunk, unused)
-        self.trunk = trunk
-        self.name = name
-        self.out_channels = out_channels
+        self.trunk, self.name, self.out_channels = trunk, name, out_channels
         # The last block at stride 16 ends reduction_4; the last block overall is reduction_5.
         stride, self._r4_index = 2, -1  # the stem has stride 2
         for i, block in enumerate(trunk._blocks):
@@ -156,31 +154,24 @@ class EfficientNetBackbone(nn.Module):
 
     def load_imagenet_state(self, state: object, source: str) -> None:
         """Load an ImageNet state dict in efficientnet_pytorch's format (``source`` names it in errors)."""
-        key = "model.backbone.weights"
-        path = source
+        key, path = "model.backbone.weights", source
         if isinstance(state, dict) and len(state) == 1 and isinstance(next(iter(state.values())), dict):
             state = next(iter(state.values()))  # a wrapper: {"state_dict": ...}, {"model": ...}
         if isinstance(state, dict) and state and all(isinstance(k, str) and k.startswith("module.") for k in state):
             state = {k[len("module."):]: v for k, v in state.items()}  # saved from a DataParallel / DDP wrapper
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-            raise UserError(
-                f"{key}: {path} is not a state dict of tensors; save one with "
-                f"torch.save(EfficientNet.from_pretrained('{self.name}').state_dict(), path)"
-            )
+            raise UserError(f"{key}: {path} is not a state dict of tensors; save one with "
+                            f"torch.save(EfficientNet.from_pretrained('{self.name}').state_dict(), path)")
         state = {k: v for k, v in state.items() if not k.startswith(_UNUSED_PREFIXES)}
         own = self.trunk.state_dict()
         missing = sorted(set(own) - set(state))
         unexpected = sorted(set(state) - set(own))
         wrong_shape = [k for k in own if k in state and state[k].shape != own[k].shape]
         if missing or unexpected or wrong_shape:
-            details = []
-            for label, keys in (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong_shape)):
-                if keys:
-                    details.append(f"{len(keys)} {label} (e.g. {', '.join(keys[:3])})")
-            raise UserError(
-                f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
-                f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?"
-            )
+            details = [f"{len(keys)} {label} (e.g. {', '.join(keys[:3])})" for label, keys in
+                       (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong_shape)) if keys]
+            raise UserError(f"{key}: {path} does not match {self.name} in efficientnet_pytorch's format: "
+                            f"{'; '.join(details)}. Is it a checkpoint of another EfficientNet variant?")
         bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
         if bad:  # loaded silently, then every loss NaN from the first step
             more = f" (and {len(bad) - 1} more tensors)" if len(bad) > 1 else ""

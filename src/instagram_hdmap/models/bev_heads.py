@@ -40,11 +40,9 @@ class BasicBlock(nn.Module):
         self.conv2 = nn.Conv2d(cout, cout, 3, padding=1, bias=False)
         self.bn2 = nn.BatchNorm2d(cout)
         nn.init.zeros_(self.bn2.weight)  # zero-init residual, as the official encoder
-        self.shortcut = (
-            nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride, bias=False), nn.BatchNorm2d(cout))
-            if stride != 1 or cin != cout
-            else nn.Identity()
-        )
+        self.shortcut = nn.Identity()
+        if stride != 1 or cin != cout:  # projected identity
+            self.shortcut = nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride, bias=False), nn.BatchNorm2d(cout))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = F.relu(self.bn1(self.conv1(x)), inplace=True)
@@ -71,36 +69,21 @@ def cell_strides(cell_size: int) -> tuple[int, int]:
 class BEVHeads(nn.Module):
     """BEV features -> {F_bev, vertex logits, distance transform}."""
 
-    def __init__(
-        self,
-        *,
-        in_channels: int,
-        num_classes: int,
-        cell_size: int,
-        dt_clip: float,
-        channels: int = 256,
-        stage_channels: tuple[int, ...] = (64, 128, 256),
-        head_channels: int = 128,
-        stem_stride: int = 1,
-        distance_head: bool = True,
-    ):
+    def __init__(self, *, in_channels: int, num_classes: int, cell_size: int, dt_clip: float, channels: int = 256,
+                 stage_channels: tuple[int, ...] = (64, 128, 256), head_channels: int = 128, stem_stride: int = 1,
+                 distance_head: bool = True):
         super().__init__()
         self.cell_size, self.dt_clip = cell_size, dt_clip
         c0 = stage_channels[0]
         self.stem = conv_bn_relu(in_channels, c0, kernel=7, stride=stem_stride)
-        stages, cin = [], c0
-        for i, c in enumerate(stage_channels):
-            stride = 1 if i == 0 else 2
-            stages.append(nn.Sequential(BasicBlock(cin, c, stride), BasicBlock(c, c)))
-            cin = c
-        self.stages = nn.ModuleList(stages)
+        widths = (c0, *stage_channels)  # strides 1, 2, 2, ...
+        self.stages = nn.ModuleList(nn.Sequential(BasicBlock(cin, c, 2 if i else 1), BasicBlock(c, c))
+                                    for i, (cin, c) in enumerate(zip(widths[:-1], widths[1:])))
         self.up = Up(stage_channels[0], stage_channels[-1], channels)
         s1, s2 = cell_strides(cell_size)
-        self.vertex_head = nn.Sequential(
-            strided_conv_bn_relu(channels, channels, s1),
-            strided_conv_bn_relu(channels, head_channels, s2),
-            nn.Conv2d(head_channels, cell_size * cell_size + 1, kernel_size=1),
-        )
+        self.vertex_head = nn.Sequential(strided_conv_bn_relu(channels, channels, s1),
+                                         strided_conv_bn_relu(channels, head_channels, s2),
+                                         nn.Conv2d(head_channels, cell_size * cell_size + 1, kernel_size=1))
         # without it (model.bev_heads.distance_head=false): no pred_distance, as the official
         # visual-descriptor variant (its BevEncode built without distance_reg)
         self.distance_head = nn.Sequential(

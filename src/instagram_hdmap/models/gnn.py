@@ -86,26 +86,10 @@ class AttentionalGNN(nn.Module):
 class GraphHead(nn.Module):
     """Vertex heatmap + distance transform (+ F_bev) -> vertices, classes and adjacency."""
 
-    def __init__(
-        self,
-        *,
-        grid: BEVGrid,
-        num_classes: int,
-        dt_clip: float,
-        bev_channels: int,
-        num_vertices: int = 400,
-        conf_threshold: float = 0.01,
-        embedding: str = "pe+dt",
-        dim: int = 256,
-        pe_frequencies: int = 10,
-        layers: int = 7,
-        heads: int = 4,
-        sinkhorn_iters: int = 100,
-        sinkhorn_grad: str = "implicit",
-        nms_radius: float = 0.0,
-        nms: str = "cells",
-        vd_sampling: str = "vertex",
-    ):
+    def __init__(self, *, grid: BEVGrid, num_classes: int, dt_clip: float, bev_channels: int, num_vertices: int = 400,
+                 conf_threshold: float = 0.01, embedding: str = "pe+dt", dim: int = 256, pe_frequencies: int = 10,
+                 layers: int = 7, heads: int = 4, sinkhorn_iters: int = 100, sinkhorn_grad: str = "implicit",
+                 nms_radius: float = 0.0, nms: str = "cells", vd_sampling: str = "vertex"):
         super().__init__()
         self.grid, self.dt_clip, self.embedding = grid, dt_clip, embedding
         self.num_vertices, self.conf_threshold, self.nms_radius = num_vertices, conf_threshold, nms_radius
@@ -129,9 +113,8 @@ class GraphHead(nn.Module):
         return extract_vertices(vertex_logits, self.grid.cell_size, self.num_vertices, self.conf_threshold,
                                 self.nms_radius, self.nms)
 
-    def embed(
-        self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
-    ) -> torch.Tensor:
+    def embed(self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
+             ) -> torch.Tensor:
         """Initial graph g0 [B, N, D] (Eq. 1) from the vertices, distance [B, K, H, W] in
         [0, dt_clip] (used by the 'dt' embeddings only; None without a distance head) and
         bev_features [B, C, H/2, W/2] (used by 'pe+vd' only)."""
@@ -155,9 +138,8 @@ class GraphHead(nn.Module):
         return log_optimal_transport(score_matrix(self.match_head(g)), self.bin_score, mask, self.sinkhorn_iters,
                                      self.sinkhorn_grad)
 
-    def associate(
-        self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
-    ) -> dict[str, torch.Tensor]:
+    def associate(self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
+                 ) -> dict[str, torch.Tensor]:
         """Given vertices (``vertices_px`` [B, N, 2], ``scores`` [B, N], ``mask`` [B, N], ``cells``
         [B, N]) -> ``pred_class_log_probs`` [B, N, K], ``pred_log_assignment`` [B, N+1, N+1]."""
         g = self.gnn(self.embed(vertices, distance, bev_features), vertices["mask"])
@@ -166,9 +148,8 @@ class GraphHead(nn.Module):
             "pred_log_assignment": self.match(g, vertices["mask"]),
         }
 
-    def forward(
-        self, vertex_logits: torch.Tensor, distance: torch.Tensor | None, bev_features: torch.Tensor
-    ) -> dict[str, torch.Tensor]:
+    def forward(self, vertex_logits: torch.Tensor, distance: torch.Tensor | None, bev_features: torch.Tensor
+               ) -> dict[str, torch.Tensor]:
         """-> ``pred_vertices_px``, ``pred_vertex_mask``, ``pred_vertex_scores``,
         ``pred_class_log_probs``, ``pred_log_assignment`` (docs/conventions.md)."""
         vertices = self.extract(vertex_logits)

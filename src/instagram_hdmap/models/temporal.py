@@ -88,20 +88,6 @@ def bev_plane_m(grid: BEVGrid, h: int, w: int, like: torch.Tensor) -> torch.Tens
     return torch.stack([xx, yy, zeros, zeros + 1], -1).reshape(h * w, 4)
 
 
-def warp_grid(plane: torch.Tensor, cur_to_prev: torch.Tensor, grid: BEVGrid, h: int, w: int
-              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sampling positions of the current cells in the previous map.
-
-    plane [h*w, 4] (``bev_plane_m``), cur_to_prev [B, 4, 4] -> (``norm`` [B, h, w, 2] in grid_sample's
-    (x, y) order, ``inside`` [B, 1, h, w] bool: the position lies within the previous grid)."""
-    prev = torch.einsum("bij,pj->bpi", cur_to_prev.float(), plane)  # [B, h*w, 4]
-    gx = (prev[..., 0] - grid.xmin) * (2.0 / (grid.xmax - grid.xmin)) - 1.0
-    gy = (prev[..., 1] - grid.ymin) * (2.0 / (grid.ymax - grid.ymin)) - 1.0
-    norm = torch.stack([gx, gy], -1).reshape(-1, h, w, 2)
-    inside = (gx > -1) & (gx < 1) & (gy > -1) & (gy < 1)
-    return norm, inside.reshape(-1, 1, h, w)
-
-
 def warp_bev(features: torch.Tensor, cur_to_prev: torch.Tensor, grid: BEVGrid,
              plane: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """A BEV map of the previous frame seen from the current one.
@@ -112,10 +98,14 @@ def warp_bev(features: torch.Tensor, cur_to_prev: torch.Tensor, grid: BEVGrid,
     h, w = features.shape[-2:]
     if plane is None:
         plane = bev_plane_m(grid, h, w, features)
-    norm, inside = warp_grid(plane, cur_to_prev, grid, h, w)
+    prev = torch.einsum("bij,pj->bpi", cur_to_prev.float(), plane)  # [B, h*w, 4] the cells in the previous frame
+    gx = (prev[..., 0] - grid.xmin) * (2.0 / (grid.xmax - grid.xmin)) - 1.0  # grid_sample's (x, y) order
+    gy = (prev[..., 1] - grid.ymin) * (2.0 / (grid.ymax - grid.ymin)) - 1.0
+    norm = torch.stack([gx, gy], -1).reshape(-1, h, w, 2)
+    inside = (gx > -1) & (gx < 1) & (gy > -1) & (gy < 1)
     warped = F.grid_sample(features, norm.to(features.dtype), mode="bilinear", padding_mode="border",
                            align_corners=False)
-    return warped, inside
+    return warped, inside.reshape(-1, 1, h, w)
 
 
 # --- the graph memory: the previous frame's map graph as a raster --------------------------------------
@@ -186,10 +176,10 @@ def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: floa
         turn = (memory["ego_pose"][:, :3, :3].float() * batch["ego_pose"][:, :3, :3].float()).sum((-1, -2))
         jump = jump | ((turn - 1) * 0.5 < math.cos(math.radians(max_turn_deg)))
     frame = batch.get("frame_index")
+    replaced = _replaced(batch, B, valid)
     if frame is not None:
         gap = frame.reshape(B).long() - memory["frame_index"].long()
         missing = gap != 1
-        replaced = _replaced(batch, B, valid)
         _check_order(batch, valid & ~start & ~replaced & (gap <= 0), frame, memory["frame_index"])
     else:
         missing = valid.new_zeros(B)
@@ -199,7 +189,7 @@ def memory_status(batch: dict, memory: dict[str, torch.Tensor], max_jump_m: floa
     if drop is not None:
         status = torch.where(drop, torch.full_like(status, DROPPED), status)
     status = torch.where(~valid | start, torch.full_like(status, NO_MEMORY), status)
-    return torch.where(_replaced(batch, B, valid), torch.full_like(status, MISSING_FRAME), status)
+    return torch.where(replaced, torch.full_like(status, MISSING_FRAME), status)
 
 
 def _replaced(batch: dict, B: int, like: torch.Tensor) -> torch.Tensor:

@@ -94,10 +94,15 @@ def superpoint_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     return keep
 
 
-def extract_vertices(
-    vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float, nms_radius: float = 0.0,
-    nms: str = "cells",
-) -> dict[str, torch.Tensor]:
+def _cell_pixels(cells: torch.Tensor, pos: torch.Tensor, Wc: int, S: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """BEV pixel (u, v) of position ``pos`` (``dy * S + dx``) inside flat cell ``cells`` (``row * Wc + col``)."""
+    u = (cells % Wc) * S + pos % S
+    v = torch.div(cells, Wc, rounding_mode="floor") * S + torch.div(pos, S, rounding_mode="floor")
+    return u, v
+
+
+def extract_vertices(vertex_logits: torch.Tensor, cell_size: int, num_vertices: int, threshold: float,
+                     nms_radius: float = 0.0, nms: str = "cells") -> dict[str, torch.Tensor]:
     """Top-N vertices, one per cell, and with ``nms_radius`` > 0 pixels a suppression of the cell
     winners: ``nms="cells"`` drops a winner within that distance of a stronger winner of a
     neighbouring cell (``neighbour_suppression``); ``nms="superpoint"`` runs ``superpoint_nms`` with
@@ -113,31 +118,23 @@ def extract_vertices(
     S = cell_size
     probs = vertex_logits.softmax(dim=1)[:, :-1].flatten(2)  # [B, S*S, Hc*Wc]
     best_prob, best_pos = probs.max(dim=1)  # [B, Hc*Wc]: the one vertex of each cell
-    if nms_radius > 0 and nms == "superpoint":
-        winners = torch.zeros_like(probs).scatter_(1, best_pos[:, None], best_prob[:, None])  # [B, S*S, Hc*Wc]
-        kept = superpoint_nms(depth_to_space(winners.view(B, S * S, Hc, Wc), S), round(nms_radius))  # [B, H, W]
-        cell = torch.arange(Hc * Wc, device=best_pos.device)
-        row = torch.div(cell, Wc, rounding_mode="floor") * S + torch.div(best_pos, S, rounding_mode="floor")
-        col = (cell % Wc) * S + best_pos % S
-        gone = ~kept.flatten(1).gather(1, row * (Wc * S) + col)  # [B, Hc*Wc] at each cell's winner pixel
-        best_prob = torch.where(gone, torch.zeros_like(best_prob), best_prob)
-    elif nms_radius > 0:
-        cell = torch.arange(Hc * Wc, device=best_pos.device)
-        cu = (cell % Wc) * S + best_pos % S  # [B, Hc*Wc] pixel u, v of each cell's winner
-        cv = torch.div(cell, Wc, rounding_mode="floor") * S + torch.div(best_pos, S, rounding_mode="floor")
-        grid = (B, Hc, Wc)
-        gone = neighbour_suppression(best_prob.view(grid), cu.view(grid), cv.view(grid), nms_radius).flatten(1)
+    if nms_radius > 0:
+        cu, cv = _cell_pixels(torch.arange(Hc * Wc, device=best_pos.device), best_pos, Wc, S)  # each cell's winner
+        if nms == "superpoint":
+            winners = torch.zeros_like(probs).scatter_(1, best_pos[:, None], best_prob[:, None])  # [B, S*S, Hc*Wc]
+            kept = superpoint_nms(depth_to_space(winners.view(B, S * S, Hc, Wc), S), round(nms_radius))  # [B, H, W]
+            gone = ~kept.flatten(1).gather(1, cv * (Wc * S) + cu)  # [B, Hc*Wc] at each cell's winner pixel
+        else:
+            grid = (B, Hc, Wc)
+            gone = neighbour_suppression(best_prob.view(grid), cu.view(grid), cv.view(grid), nms_radius).flatten(1)
         best_prob = torch.where(gone, torch.zeros_like(best_prob), best_prob)  # below any threshold
     k = min(num_vertices, Hc * Wc)
     # Cells below the threshold sort after every real vertex and are masked out below.
     ranked = torch.where(best_prob > threshold, best_prob, best_prob - 2.0)
     _, cells = ranked.topk(k, dim=1)  # [B, k], by decreasing probability
     scores = best_prob.gather(1, cells)
-    pos = best_pos.gather(1, cells)
     mask = scores > threshold
-    u = (cells % Wc) * S + pos % S
-    v = torch.div(cells, Wc, rounding_mode="floor") * S + torch.div(pos, S, rounding_mode="floor")
-    vertices = torch.stack([u, v], -1).to(scores.dtype)
+    vertices = torch.stack(_cell_pixels(cells, best_pos.gather(1, cells), Wc, S), -1).to(scores.dtype)
     zero = scores.new_zeros(())
     out = {
         "vertices_px": torch.where(mask[..., None], vertices, zero),

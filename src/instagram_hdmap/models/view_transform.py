@@ -45,6 +45,12 @@ _MIN_DEPTH = 1e-3  # metres in front of the camera for a projection to count
 # ---------------------------------------------------------------------------------------------
 
 
+def _ego_to_camera(points_m: torch.Tensor, calib: dict[str, torch.Tensor]) -> torch.Tensor:
+    """points_m [B, V, P, 3] (ego frame) -> [B, V, P, 3] in each camera's frame: R^T (p - t), float32."""
+    rot, trans = calib["cam_to_ego_rot"].float(), calib["cam_to_ego_trans"].float()
+    return torch.einsum("bvji,bvpj->bvpi", rot, points_m.float() - trans[:, :, None])
+
+
 def ego_to_input_pixels(points_m: torch.Tensor, calib: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """Project ego-frame points into each camera's network input.
 
@@ -52,10 +58,7 @@ def ego_to_input_pixels(points_m: torch.Tensor, calib: dict[str, torch.Tensor]) 
     the optical axis). ``uv_px`` is meaningless where ``depth <= 0``.
     """
     with torch.autocast(points_m.device.type, enabled=False):
-        points_m = points_m.float()
-        rot, trans = calib["cam_to_ego_rot"].float(), calib["cam_to_ego_trans"].float()
-        cam = torch.einsum("bvji,bvpj->bvpi", rot, points_m - trans[:, :, None])  # R^T (p - t)
-        pix = torch.einsum("bvij,bvpj->bvpi", calib["intrinsics"].float(), cam)
+        pix = torch.einsum("bvij,bvpj->bvpi", calib["intrinsics"].float(), _ego_to_camera(points_m, calib))
         depth = pix[..., 2]
         uvd = torch.cat([pix[..., :2] / depth.clamp(min=_MIN_DEPTH)[..., None], depth[..., None]], -1)
         uvd = torch.einsum("bvij,bvpj->bvpi", calib["post_rot"].float(), uvd) + calib["post_tran"].float()[:, :, None]
@@ -121,10 +124,14 @@ def _on_ground(cell_centres_m: torch.Tensor, ground_height: torch.Tensor, V: int
     return (cell_centres_m[None, None] + lift).expand(-1, V, -1, -1)
 
 
-def _average_cameras(sampled: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """sampled [B, V, C, Hb, Wb], valid [B, V, Hb, Wb] bool -> [B, C, Hb, Wb], the mean over the
-    cameras that see each cell (zero where none does)."""
-    weight = valid.to(sampled.dtype)[:, :, None]
+def _sample_cameras(maps: torch.Tensor, grid: torch.Tensor, valid: torch.Tensor, Hb: int, Wb: int) -> torch.Tensor:
+    """maps [B, V, C, h, w] sampled (float32, bilinear) at ``grid`` [B, V, Hb*Wb, 2] and averaged over the
+    cameras that see each cell (``valid`` [B, V, Hb*Wb]; zero where none does) -> [B, C, Hb, Wb]."""
+    B, V, C = maps.shape[:3]
+    # float32: bf16 sampling coordinates would be off by up to a BEV pixel
+    sampled = F.grid_sample(maps.flatten(0, 1).float(), grid.view(B * V, Hb, Wb, 2), align_corners=False)
+    sampled = sampled.view(B, V, C, Hb, Wb)
+    weight = valid.view(B, V, Hb, Wb).to(sampled.dtype)[:, :, None]
     count = weight.sum(1).clamp(min=1)
     return (sampled * weight).sum(1) / count
 
@@ -145,16 +152,12 @@ class IPMViewTransform(nn.Module):
 
     def forward(self, features: torch.Tensor, calib: dict[str, torch.Tensor]) -> torch.Tensor:
         """features [B, V, C, fh, fw] -> bev [B, C, Hb, Wb]."""
-        B, V, C, fh, fw = features.shape
-        Hb, Wb = self.bev_grid.H, self.bev_grid.W
-        points = _on_ground(self.cell_centres_m, calib["ground_height"], V)
+        points = _on_ground(self.cell_centres_m, calib["ground_height"], features.shape[1])
         uv, depth = ego_to_input_pixels(points, calib)  # [B, V, Hb*Wb, 2], [B, V, Hb*Wb]
         grid = pixel_to_sample_grid(uv, self.image_size)
         valid = (depth > _MIN_DEPTH) & (grid.abs() <= 1).all(-1)
         grid = torch.where(valid[..., None], grid, torch.full_like(grid, -2.0))  # outside -> zeros
-        # float32: bf16 sampling coordinates would be off by up to a BEV pixel
-        sampled = F.grid_sample(features.flatten(0, 1).float(), grid.view(B * V, Hb, Wb, 2), align_corners=False)
-        return _average_cameras(sampled.view(B, V, C, Hb, Wb), valid.view(B, V, Hb, Wb))
+        return _sample_cameras(features, grid, valid, self.bev_grid.H, self.bev_grid.W)
 
 
 class LSSViewTransform(nn.Module):
@@ -163,15 +166,8 @@ class LSSViewTransform(nn.Module):
     ``depth_net``: 1x1 conv C -> D + C (depth logits, context), as the official InstaGraM LSS.
     """
 
-    def __init__(
-        self,
-        bev_grid: BEVGrid,
-        image_size: tuple[int, int],
-        channels: int,
-        depth_bound: tuple[float, float, float],
-        zbound: tuple[float, float],
-        downsample: int = 16,
-    ):
+    def __init__(self, bev_grid: BEVGrid, image_size: tuple[int, int], channels: int,
+                 depth_bound: tuple[float, float, float], zbound: tuple[float, float], downsample: int = 16):
         super().__init__()
         self.bev_grid, self.image_size, self.out_channels, self.zbound = bev_grid, image_size, channels, zbound
         depths = torch.arange(*depth_bound, dtype=torch.float32)  # 4, 5, ..., 44 -> D = 41
@@ -239,16 +235,8 @@ class MLPViewTransform(nn.Module):
     cameras that cover the cell are averaged.
     """
 
-    def __init__(
-        self,
-        bev_grid: BEVGrid,
-        image_size: tuple[int, int],
-        channels: int,
-        camera_bev_size: tuple[int, int],
-        num_cameras: int,
-        height: float = 0.0,
-        downsample: int = 16,
-    ):
+    def __init__(self, bev_grid: BEVGrid, image_size: tuple[int, int], channels: int, camera_bev_size: tuple[int, int],
+                 num_cameras: int, height: float = 0.0, downsample: int = 16):
         super().__init__()
         self.bev_grid, self.image_size, self.out_channels = bev_grid, image_size, channels
         self.num_cameras, self.camera_bev_size = num_cameras, camera_bev_size
@@ -264,28 +252,21 @@ class MLPViewTransform(nn.Module):
         """features [B, V, C, fh, fw] -> camera-aligned top-down maps [B, V, C, bh, bw]."""
         B, V, C = features.shape[:3]
         if V != self.num_cameras:
-            raise ValueError(
-                f"the MLP view transform was built for {self.num_cameras} cameras "
-                f"(model.view_transform.num_cameras) but the batch has {V}"
-            )
+            raise ValueError(f"the MLP view transform was built for {self.num_cameras} cameras "
+                             f"(model.view_transform.num_cameras) but the batch has {V}")
         x = features.flatten(3).transpose(0, 1).reshape(V, B * C, -1)  # [V, B*C, fh*fw]
         x = F.relu(self.fc2(F.relu(self.fc1(x))))  # [V, B*C, bh*bw]
         return x.view(V, B, C, *self.camera_bev_size).transpose(0, 1)
 
     def place(self, maps: torch.Tensor, calib: dict[str, torch.Tensor]) -> torch.Tensor:
         """Camera-aligned maps [B, V, C, bh, bw] -> ego-frame bev [B, C, Hb, Wb]."""
-        B, V, C = maps.shape[:3]
-        Hb, Wb = self.bev_grid.H, self.bev_grid.W
         with torch.autocast(maps.device.type, enabled=False):
-            rot, trans = calib["cam_to_ego_rot"].float(), calib["cam_to_ego_trans"].float()
-            points = _on_ground(self.cell_centres_m, calib["ground_height"].float(), V) - trans[:, :, None]
-            cam = torch.einsum("bvji,bvpj->bvpi", rot, points)  # R^T (p - t): x right, z forward
-            lateral, forward = cam[..., 0], cam[..., 2]
+            cam = _ego_to_camera(_on_ground(self.cell_centres_m, calib["ground_height"].float(), maps.shape[1]), calib)
+            lateral, forward = cam[..., 0], cam[..., 2]  # camera frame: x right, z forward
             # grid_sample coordinates: x (columns) <- forward in [0, R], y (rows) <- lateral in [-R, R]
             grid = torch.stack([forward / self.reach_m * 2 - 1, lateral / self.reach_m], -1)
             valid = (forward > 0) & (grid.abs() <= 1).all(-1)
-        sampled = F.grid_sample(maps.flatten(0, 1).float(), grid.view(B * V, Hb, Wb, 2), align_corners=False)
-        return _average_cameras(sampled.view(B, V, C, Hb, Wb), valid.view(B, V, Hb, Wb))
+        return _sample_cameras(maps, grid, valid, self.bev_grid.H, self.bev_grid.W)
 
     def forward(self, features: torch.Tensor, calib: dict[str, torch.Tensor]) -> torch.Tensor:
         """features [B, V, C, fh, fw] -> bev [B, C, Hb, Wb]."""
