@@ -117,8 +117,15 @@ def test_outputs_stay_close_to_fp32_and_decode_to_the_same_elements(trained, pre
     half, _, _ = load_model(ckpt, cfg, device=CPU, precision=precision)  # int8: calibrated on training samples
     assert precision_of(half) == precision and isinstance(half, Int8Model) == (precision == "int8")
     assert half.is_temporal == model.is_temporal  # attributes read through
+    # int8: the BEV encoder is two quantized graphs whose last 1x1 layers stay float32; the rest is bf16
+    encoder = {id(m) for m in half.model.bev_heads.modules()} if precision == "int8" else set()
     weights = {type(m).__name__: m.weight.dtype for m in half.modules() if hasattr(m, "weight") and
-               isinstance(m.weight, torch.Tensor)}
+               isinstance(m.weight, torch.Tensor) and id(m) not in encoder}
+    if precision == "int8":
+        kinds = {type(m).__module__ for m in half.model.bev_heads.modules()}
+        assert any("quantized" in k for k in kinds)
+        assert {m.weight.dtype for m in half.model.bev_heads.modules() if type(m) is torch.nn.Conv2d} == {
+            torch.float32}
     assert weights["Conv2d"] == weights["Linear"] == torch.bfloat16 and weights["LayerNorm"] == torch.float32
     assert next(model.parameters()).dtype == torch.float32
     with torch.no_grad():
@@ -183,3 +190,30 @@ def test_int8_needs_training_samples(trained, tmp_path):
     missing = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, dataroot=str(tmp_path / "nowhere")))
     with pytest.raises(PrecisionError, match="int8 calibrates on training samples, which could not be read"):
         calibration_batches(missing)
+
+
+def test_an_int8_temporal_model_fuses_its_memory_between_the_two_int8_graphs():
+    """The temporal fusion sits after the BEV encoder's first stage: int8 quantizes the stages before and after it
+    as two graphs and runs the fusion (in bf16) between them, carrying the memory as the fp32 model does."""
+    from instagram_hdmap.models import build_model
+
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_temporal import TINY, random_batch
+
+    cfg = load_config(None, [*TINY, "model.temporal.memory=bev"])
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    frames = [random_batch(cfg, B=1, seed=s) for s in range(3)]
+    int8 = with_precision(model, "int8", calibration=frames)
+    calls = []
+    int8.model.temporal.register_forward_hook(lambda *_: calls.append(1))
+    memory = memory8 = None
+    with torch.no_grad():
+        for batch in frames:
+            out, out8 = model(batch, memory=memory), int8(batch, memory=memory8)
+            memory, memory8 = out["memory"], out8["memory"]
+            assert out8["pred_vertex_logits"].dtype == torch.float32
+            scale = out["pred_vertex_logits"].abs().max()
+            assert (out8["pred_vertex_logits"] - out["pred_vertex_logits"]).abs().max() < 0.35 * scale
+    assert len(calls) == len(frames)  # the fusion ran every frame
+    assert memory8["bev"].shape == memory["bev"].shape and torch.isfinite(memory8["bev"]).all()

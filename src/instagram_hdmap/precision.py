@@ -8,21 +8,21 @@
 convolutions, linear layers and attention in bfloat16 (``torch.autocast``; their weights stored in bfloat16, the
 convolutions' channels-last), and keeps in float32 what needs it: the camera geometry of the view transform, the
 score matrix and the log-space Sinkhorn (models/view_transform.py, models/matching.py disable autocast there), and
-the decoding, which reads the outputs cast back to float32. ``int8`` is ``bf16`` with the BEV encoder's
-convolutions (the BEV heads up to their last 1x1 layers, which stay bf16) quantized by torch's FX graph mode
-(``x86`` engine: per-channel int8 weights, uint8 activations), their activation ranges calibrated on training
-samples; it runs on the CPU. Quantized part by part (the temporal fusion sits between the first stage and the
-rest), it runs no faster than ``bf16`` and costs some accuracy (docs/deploy.md, "Precision"); onnxruntime's static
-int8 of the whole graph was measured slower than ``bf16`` eager. ``auto`` picks bf16 where the
-hardware computes it natively (a CUDA device that supports it; a CPU with AVX512-BF16 or AMX-BF16, or ARM's BF16,
-read from its flags, never assumed) and fp32 elsewhere, and says what it chose; it never picks int8, which needs
-training samples. Forcing bf16 (or int8) on a CPU without native bf16 works (torch emulates it) but is slower than
-fp32: a note says so.
+the decoding, which reads the outputs cast back to float32. ``int8`` is ``bf16`` with the BEV encoder quantized
+by torch's FX graph mode (``x86`` engine: per-channel int8 weights, uint8 activations) as two graphs, before and
+after the temporal fusion's place (``BEVHeads.first_stage`` / ``.rest``), the heads' last 1x1 layers kept float32;
+its activation ranges are calibrated on training samples, and it runs on the CPU (docs/deploy.md, "Precision", for
+its speed and accuracy; onnxruntime's static int8 of the whole graph was measured slower than ``bf16`` eager).
+``auto`` picks bf16 where the hardware computes it natively (a CUDA device that supports it; a CPU with AVX512-BF16
+or AMX-BF16, or ARM's BF16, read from its flags, never assumed) and fp32 elsewhere, and says what it chose; it never
+picks int8, which needs training samples. Forcing bf16 (or int8) on a CPU without native bf16 works (torch emulates
+it) but is slower than fp32: a note says so.
 """
 
 from __future__ import annotations
 
 import copy
+import warnings
 
 import torch
 import torch.nn.functional as F
@@ -155,10 +155,12 @@ def _as_float32(value):
 
 def _in_bf16(model: nn.Module) -> nn.Module:
     """``model`` (an inference copy) with its convolution and linear weights in bfloat16 (what autocast would cast
-    them to at every call), the convolutions' channels-last; other parameters stay float32. In place."""
+    them to at every call), the convolutions' channels-last; other parameters, and the float layers of an int8
+    encoder (``_Int8Heads``, run with autocast off), stay float32. In place."""
     model.to(memory_format=torch.channels_last)
+    int8 = {id(m) for heads in model.modules() if isinstance(heads, _Int8Heads) for m in heads.modules()}
     for module in model.modules():
-        if isinstance(module, (nn.Conv2d, nn.Linear)):
+        if isinstance(module, (nn.Conv2d, nn.Linear)) and id(module) not in int8:
             module.to(torch.bfloat16)
     return model
 
@@ -186,66 +188,63 @@ class Bf16Model(nn.Module):
         return _as_float32(out)
 
 
-class _Int8(nn.Module):
-    """An FX-quantized module in a bf16 model: its input in float32 (quantized inside), autocast off."""
+class _Stage(nn.Module):
+    """One of the BEV encoder's two stages (``BEVHeads.first_stage`` or ``.rest``) as a module for FX to trace."""
 
-    def __init__(self, quantized: nn.Module):
+    def __init__(self, heads: nn.Module, stage: str):
         super().__init__()
-        self.quantized = quantized
+        self.heads, self.stage = heads, stage
 
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        with torch.autocast(inputs[0].device.type, enabled=False):
-            return self.quantized(*(x.float() for x in inputs))
+    def forward(self, x: torch.Tensor):
+        return getattr(self.heads, self.stage)(x)
 
 
-def _int8_parts(heads: nn.Module) -> dict[str, nn.Module]:
-    """The BEV encoder's parts that run in int8 (name in ``heads`` -> module), each quantized on its own; the last
-    1x1 layers of the vertex and distance heads (the logits and the distance transform) stay bf16."""
-    parts = {"stem": heads.stem, "up.conv": heads.up.conv}  # the upsampling and concatenation stay bf16
-    parts.update({f"stages.{i}": stage for i, stage in enumerate(heads.stages)})
-    parts["vertex_head"] = heads.vertex_head[:-1]
-    if heads.distance_head is not None:
-        parts["distance_head"] = heads.distance_head[:-1]
-    return parts
+class _Int8Heads(nn.Module):
+    """The BEV encoder as two int8 graphs, ``BEVHeads.forward``'s split: the stem and first stage, then the
+    temporal fusion (``fuse``, in bf16) where there is one, then the rest. Autocast is off in the graphs: their
+    float inputs are quantized inside, their outputs come back in float32."""
+
+    def __init__(self, first: nn.Module, rest: nn.Module):
+        super().__init__()
+        self.first, self.rest = first, rest
+
+    def forward(self, bev: torch.Tensor, fuse=None) -> dict[str, torch.Tensor]:
+        with torch.autocast(bev.device.type, enabled=False):
+            first = self.first(bev.float())
+        if fuse is not None:
+            first = fuse(first)
+        with torch.autocast(bev.device.type, enabled=False), warnings.catch_warnings():
+            # the up-block concatenates the first stage (its own scale) with the upsampled last one: the
+            # quantized cat requantizes both to its output's scale, which torch warns of (the AP holds: docs/deploy.md)
+            warnings.filterwarnings("ignore", message="All inputs of this cat operator")
+            return self.rest(first.float())
 
 
 def _quantize_bev_heads(model: nn.Module, calibration: list[dict]) -> None:
-    """``model.bev_heads``' int8 parts (``_int8_parts``) quantized in place, calibrated on ``calibration``. Sets
-    torch's quantized engine (process-wide) to x86 where it has it, else qnnpack."""
-    import warnings
-
+    """``model.bev_heads`` as ``_Int8Heads``, calibrated on ``calibration`` in float32. The last 1x1 layers of
+    the vertex and distance heads (the logits, the distance transform) stay float (with them in int8 too, the
+    demo's ped-crossing AP fell by 0.006 more: docs/deploy.md). Sets torch's quantized engine (process-wide) to
+    x86 where it has it, else qnnpack."""
     from torch.ao.quantization import get_default_qconfig_mapping
     from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
 
     engine = "x86" if "x86" in torch.backends.quantized.supported_engines else "qnnpack"
     torch.backends.quantized.engine = engine
     heads = model.bev_heads
+    qconfig = get_default_qconfig_mapping(engine)
+    for name in ("vertex_head", "distance_head"):
+        if getattr(heads, name) is not None:
+            qconfig = qconfig.set_module_name(f"heads.{name}.{len(getattr(heads, name)) - 1}", None)
+    inputs = {"first_stage": heads.stem[0].in_channels, "rest": heads.stem[0].out_channels}  # their channels
     with warnings.catch_warnings():  # torch's notices that its FX quantization moves to torchao
         warnings.simplefilter("ignore")
-        prepared = {}
-        for name, part in _int8_parts(heads).items():
-            example = _example_input(part)
-            prepared[name] = prepare_fx(copy.deepcopy(part), get_default_qconfig_mapping(engine), example)
-        _swap_parts(heads, prepared)
+        first, rest = (prepare_fx(_Stage(copy.deepcopy(heads), stage), qconfig, (torch.zeros(1, c, 16, 16),))
+                       for stage, c in inputs.items())
+        model.bev_heads = _Int8Heads(first, rest)
         with torch.no_grad():
             for batch in calibration:
                 model(batch)
-        _swap_parts(heads, {name: _Int8(convert_fx(p)) for name, p in prepared.items()})
-
-
-def _example_input(part: nn.Module) -> tuple:
-    """An input of the right rank and channels for FX's trace (values and sizes do not matter)."""
-    return (torch.zeros(1, next(m for m in part.modules() if isinstance(m, nn.Conv2d)).in_channels, 8, 8),)
-
-
-def _swap_parts(heads: nn.Module, parts: dict[str, nn.Module]) -> None:
-    """Each part in place of the module of its dotted name in ``heads``; a head's part is the head less its last
-    layer (``_int8_parts``), which it keeps."""
-    for name, part in parts.items():
-        if name in ("vertex_head", "distance_head"):
-            part = nn.Sequential(part, getattr(heads, name)[-1])
-        parent, _, leaf = name.rpartition(".")
-        setattr(heads.get_submodule(parent), leaf, part)  # "stages.0": a ModuleList's item by its name
+        model.bev_heads = _Int8Heads(convert_fx(first), convert_fx(rest))
 
 
 def calibration_batches(cfg, count: int = INT8_CALIBRATION_SAMPLES, device: torch.device | str = "cpu",
@@ -274,7 +273,7 @@ class Int8Model(Bf16Model):
         folded = fold_batchnorm(model)
         _quantize_bev_heads(folded, calibration)  # in float32, before the rest goes to bf16
         nn.Module.__init__(self)
-        self.model = _in_bf16(folded)  # the quantized parts hold no nn.Conv2d: they stay int8
+        self.model = _in_bf16(folded)
 
 
 def with_precision(model: nn.Module, precision: str, calibration: list[dict] | None = None) -> nn.Module:

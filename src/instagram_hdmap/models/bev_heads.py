@@ -97,10 +97,18 @@ class BEVHeads(nn.Module):
         ``pred_distance`` [B, K, H, W] in [0, dt_clip] (only with the distance head).
 
         ``fuse``: applied to the first stage's output [B, stage_channels[0], H/2, W/2] (the temporal
-        memory's fusion, models/temporal.py); the rest of the encoder sees its result."""
-        x = first = self.stages[0](self.stem(bev))
-        if fuse is not None:
-            x = first = fuse(first)
+        memory's fusion, models/temporal.py); the rest of the encoder sees its result. The two halves are
+        methods of their own so that int8 (precision.py) quantizes each as one graph."""
+        first = self.first_stage(bev)
+        return self.rest(first if fuse is None else fuse(first))
+
+    def first_stage(self, bev: torch.Tensor) -> torch.Tensor:
+        """The stem and the first stage: bev -> [B, stage_channels[0], H/2, W/2]."""
+        return self.stages[0](self.stem(bev))
+
+    def rest(self, first: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The first stage's (fused) output -> the later stages, the up-block and the heads (``forward``)."""
+        x = first
         for stage in self.stages[1:]:
             x = stage(x)
         features = self.up(first, x)  # F_bev
