@@ -1,5 +1,5 @@
 """Ground-truth statistics of the ped-crossing conventions (data.ped_crossing: edges, union, each; and
-the exterior-only union this project used before issue 18), on the real AV2 log of ../shared/av2_real
+the exterior-only union this project used earlier), on the real AV2 log of ../shared/av2_real
 and on the synthetic world's road networks.
 
 Per convention and per setting (the paper's grid, 60 m x 30 m at 0.15 m, S = 8, sample_dist 1.5; the
@@ -75,7 +75,7 @@ def sample_stats(builders: dict, grid: BEVGrid, location: str, x: float, y: floa
     out = {}
     for name in CONVENTIONS:
         polys = builders["union" if name == "exterior-only" else name](location, x, y, yaw)
-        if name == "exterior-only":  # the union's exterior rings only (clockwise): the code before issue 18
+        if name == "exterior-only":  # the union's exterior rings only (clockwise): the earlier code
             polys = [p for p in polys if p["label"] != PED_CROSSING or not LinearRing(p["pts"]).is_ccw]
         peds = [p for p in polys if p["label"] == PED_CROSSING]
         labels = vertex_graph(polys, grid)["gt_vertex_labels"].numpy()

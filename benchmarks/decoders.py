@@ -6,10 +6,10 @@
         --variant official=model.gnn.decoder=official,model.gnn.match_threshold=0.1,model.gnn.max_edge_m=null \\
         --variant greedy=model.gnn.match_threshold=0.1,model.gnn.same_class_edges=false,model.gnn.max_edge_m=null
 
-(a variant is one argument: no space after its commas). ``mutual`` is the official rule since issue 18
+(a variant is one argument: no space after its commas). ``mutual`` is the official rule
 (both ends of an edge of the same argmax class, the mean class probability as the confidence); the
-figures in benchmarks/README.md's "Decoding" section were measured with the class-agnostic rule of
-before, which no decoder reproduces any more.
+figures in benchmarks/README.md's "Decoding" section were measured with the earlier class-agnostic
+rule, which no decoder reproduces any more.
 
 Each checkpoint runs once over the val split of each world (``[NAME=]DATAROOT``, a synthetic world
 as the demo writes it); its post-processing inputs are kept and decoded by every ``--variant``

@@ -7,7 +7,7 @@ real chains. Prints median milliseconds per call over ``--repeats`` runs.
 
     python benchmarks/graph_speed.py [--batch 1 8 32] [--device cpu|cuda] [--threads 2]
 
-The last lines compare the classwise decoder (the demo's settings) with issue 20's targets: <= 2 ms
+The last lines compare the classwise decoder (the demo's settings) with its targets: <= 2 ms
 per sample at batch 1, <= 40 ms for a batch of 32 on the CPU.
 """
 

@@ -15,7 +15,7 @@ Printed: one row every ``--every`` steps with the total loss, the four raw loss 
 criterion's ``adjacency_accuracy`` (losses.Criterion: the fraction of predicted vertices that
 represent a GT vertex whose two best assignment columns are exactly their {next, prev} targets),
 all measured in train mode during the step (before its update). At the end the model is switched
-to eval mode and measured again on the same batch. Targets (issue 6): the total loss falls by
+to eval mode and measured again on the same batch. Targets: the total loss falls by
 >= 80 % (first step, train mode -> end, eval mode) and the eval-mode adjacency accuracy is >= 90 %.
 
 What the runs show (4 samples, 22 GT vertices each, tiny.yaml, the paper's loss weights):

@@ -10,7 +10,7 @@ the single-frame model (``model.temporal.memory=none``), the same model with the
 so the warp and the fusion run on real history), and the fusion module alone on the first-stage features
 (``BEVMemoryFusion``: the warp, the gates, the new memory) and, for a graph memory, the drawing of the
 frame's predicted graph (``render_graph``). Prints the medians (p10-p90) and the two
-shares: (temporal - single) / single and fusion alone / single (issue 19's budget: <= 10 %).
+shares: (temporal - single) / single and fusion alone / single (budget: <= 10 %).
 """
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ targets in its formats) runs as one more variant per config and batch, in a fres
 with the same torch and thread count. ``--rounds R`` runs every variant R times in turn (round
 robin), so a change of the machine's load hits every variant alike; the times of a variant are
 pooled over its rounds and its memory is its largest peak. The ratio columns compare each of our
-rows with the official row of the same config and batch *of the same run*. Targets (issue 6): <= 0.7x
+rows with the official row of the same config and batch *of the same run*. Targets: <= 0.7x
 the official time and <= 0.8x its memory at batch 1. Torch's default thread count is kept (printed).
 """
 
@@ -76,7 +76,7 @@ from instagram_hdmap.targets import build_targets
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
-TIME_TARGET, MEMORY_TARGET = 0.7, 0.8  # x the official step time and peak memory, batch 1 (issue 6)
+TIME_TARGET, MEMORY_TARGET = 0.7, 0.8  # x the official step time and peak memory, batch 1
 DEFAULTS = {"cpu": {"batch": [1, 2], "amp": ["none"], "ckpt": ["off", "on"], "steps": 5, "warmup": 2},
             "cuda": {"batch": [8], "amp": ["none", "bf16"], "ckpt": ["off"], "steps": 20, "warmup": 5}}
 RESULT_TAG = "RESULT "
