@@ -154,7 +154,7 @@ def row_mapper_calibration_mistakes(env):
     from instagram_hdmap.data.rig import RigError
 
     mapper, images, K, poses = mapper_frame(env, intrinsics_size=(1600, 900))  # K of the full-size images
-    with pytest.raises(RigError, match=r"camera CAM_FRONT_LEFT: 'intrinsics' put the principal point .* outside its "
+    with pytest.raises(RigError, match=r"camera CAM_FRONT_LEFT: 'intrinsics' puts the principal point .* outside its "
                                        r"400x225 image"):
         mapper(images=images, intrinsics=K, cam_to_ego=poses)
     mapper, images, K, poses = mapper_frame(env)
@@ -201,7 +201,7 @@ for _name, _edit, _pattern in (
      lambda d: d["cameras"]["CAM_BACK"].__setitem__("translation", [28.3, 3.5, 1579.1]),
      r"rig\.json: camera CAM_BACK: 'translation' .* m from the ego origin"),
     ("rig_intrinsics_of_the_full_size_images", _full_size_intrinsics,
-     r"'intrinsics' put the principal point .* outside its 400x225 image"),
+     r"'intrinsics' puts the principal point .* outside its 400x225 image"),
 ):
     add(_name, f"predict-images: {_name}", _rig_row(_edit, _pattern))
 
@@ -412,7 +412,8 @@ def row_dataset_calibration_consistent_but_wrong(env):
 
     where = r"camera CAM_FRONT: calibrated_sensor \w+ in .*calibrated_sensor\.json: "
     evaluate_world(env, edit(mm), where + r"its translation .* puts the camera \d{4} m from the ego .*millimetres")
-    evaluate_world(env, edit(intrinsics_1600x900), where + r"its principal point .* outside its 400x225 image")
+    evaluate_world(env, edit(intrinsics_1600x900),
+                   where + r"its intrinsics matrix puts the principal point .* outside its 400x225 image")
     for change in (xyzw, inverse):  # CAM_FRONT's quaternion read so still gives a level camera: a rig's trips on others
         evaluate_world(env, edit(change, "CAM_FRONT_LEFT"), r"camera CAM_FRONT_LEFT: .*: the camera (looks|is "
                         r"rolled|is upside down).*\(w, x, y, z\) order")
@@ -430,7 +431,8 @@ def row_av2_calibration_consistent_but_wrong(env):
     root, log = av2_copy(env) if shutil.rmtree(root) is None else (None, None)
     intrinsics = log / "calibration" / "intrinsics.feather"
     _edit_feather(intrinsics, "cx_px", 0, 5 * feather.read_table(str(intrinsics)).column("cx_px")[0].as_py())
-    av2_error(env, root, rf"log {log.name}: camera \w+ in .*intrinsics\.feather: its principal point .* outside")
+    av2_error(env, root, rf"log {log.name}: camera \w+ in .*intrinsics\.feather: its intrinsics matrix puts the "
+                         r"principal point .* outside")
 
 
 @row("nuScenes tables: ego poses whose quaternion is in x, y, z, w order, or in millimetres, are named (the GT "

@@ -38,7 +38,7 @@ from ..config import ConfigError, ExperimentConfig, UserError
 from ..geometry import BEVGrid
 from ..targets import build_targets
 from .local_map import some_of
-from .rig import MAX_CAMERA_OFFSET_M, MAX_FOV_RATIO, RigError, check_upright, principal_point_implausible
+from .rig import RigError, check_camera_offset, check_pinhole, check_upright
 from .transforms import ImageAug, ImageError, load_image, sample_augmentation
 
 # padding of the per-vertex keys in collate_fn (everything else is -1)
@@ -126,15 +126,14 @@ def check_translation(translation, what: str, where: str) -> None:
 
 
 def check_intrinsics(intrinsics, where: str) -> None:
-    """A pinhole camera matrix: finite 3x3, positive focal lengths, last row (0, 0, 1)."""
+    """A pinhole camera matrix: finite 3x3, positive focal lengths, last row (0, 0, 1) (``check_pinhole``)."""
     K = check_finite(intrinsics, "the camera intrinsics", where)
     if K.shape != (3, 3):
         raise DatasetError(f"{where}: the camera intrinsics must be a 3x3 matrix, got shape {K.shape}")
-    if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise DatasetError(f"{where}: the camera intrinsics have focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g}; "
-                           "both must be > 0 (pixels)")
-    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
-        raise DatasetError(f"{where}: the camera intrinsics' last row must be (0, 0, 1), got {K[2].tolist()}")
+    try:
+        check_pinhole(K, where, "its intrinsics matrix")
+    except RigError as e:
+        raise DatasetError(str(e)) from None
 
 
 MAX_EGO_TILT_DEG = 25  # the ego frame's z axis off the vertical: the steepest public roads are ~20 degrees
@@ -142,28 +141,15 @@ MAX_EGO_TILT_DEG = 25  # the ego frame's z axis off the vertical: the steepest p
 
 def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[int, int], where: str,
                            hint: str, channel: str | None = None) -> None:
-    """A calibration whose every field is well formed but that no surround camera has (Mapper's checks,
-    data/rig.py): a camera more than ``MAX_CAMERA_OFFSET_M`` from the ego origin (millimetres), a focal
-    length of a field of view over 175 degrees (intrinsics normalised or in millimetres), a principal point
-    that no crop of the ``image_size`` (width, height) image has (``principal_point_implausible``: intrinsics
-    of another image size), a camera looking up or down, rolled or upside down (``check_upright``: ego ->
-    camera, a quaternion in another order), and a camera of a known ``channel`` looking where that channel
-    does not (``camera_heading_problem``)."""
-    K, t = np.asarray(intrinsics, dtype=np.float64), np.asarray(translation, dtype=np.float64)
-    dist = float(np.linalg.norm(t))
-    if dist > MAX_CAMERA_OFFSET_M:
-        raise DatasetError(f"{where}: its translation {t.round(3).tolist()} puts the camera {dist:.4g} m from the ego "
-                           f"origin (more than {MAX_CAMERA_OFFSET_M:g} m): a calibration in millimetres? the "
-                           "translation is in metres")
-    w, h = image_size
-    if K[0, 0] < w / MAX_FOV_RATIO or K[1, 1] < h / MAX_FOV_RATIO:
-        raise DatasetError(f"{where}: its focal length (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels for a {w}x{h} "
-                           "image is a field of view over 175 degrees: intrinsics normalised by the image size "
-                           "(or in millimetres)? they are in pixels")
-    if principal_point_implausible(K, (w, h)):
-        raise DatasetError(f"{where}: its principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) lies outside its "
-                           f"{w}x{h} image: intrinsics of another image size? scale them with the image")
+    """A calibration whose every field is well formed but that no surround camera has (the Mapper's checks,
+    data/rig.py): a camera far from the ego origin (``check_camera_offset``: millimetres), intrinsics that no
+    camera of the ``image_size`` (width, height) image has (``check_pinhole``: normalised, or of another image
+    size), a camera looking up or down, rolled or upside down (``check_upright``: ego -> camera, a quaternion in
+    another order), and a camera of a known ``channel`` looking where that channel does not
+    (``camera_heading_problem``)."""
     try:
+        check_camera_offset(np.asarray(translation, dtype=np.float64), where, "its translation")
+        check_pinhole(np.asarray(intrinsics, dtype=np.float64), where, "its intrinsics matrix", image_size)
         check_upright(rotation, where, hint)
     except RigError as e:
         raise DatasetError(str(e)) from None
