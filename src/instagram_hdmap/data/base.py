@@ -131,7 +131,7 @@ def check_intrinsics(intrinsics, where: str) -> None:
     if K.shape != (3, 3):
         raise DatasetError(f"{where}: the camera intrinsics must be a 3x3 matrix, got shape {K.shape}")
     try:
-        check_pinhole(K, where, "its intrinsics matrix")
+        check_pinhole(K, f"{where}: its intrinsics matrix")
     except RigError as e:
         raise DatasetError(str(e)) from None
 
@@ -148,8 +148,8 @@ def check_camera_plausible(intrinsics, rotation, translation, image_size: tuple[
     another order), and a camera of a known ``channel`` looking where that channel does not
     (``camera_heading_problem``)."""
     try:
-        check_camera_offset(np.asarray(translation, dtype=np.float64), where, "its translation")
-        check_pinhole(np.asarray(intrinsics, dtype=np.float64), where, "its intrinsics matrix", image_size)
+        check_camera_offset(np.asarray(translation, dtype=np.float64), f"{where}: its translation")
+        check_pinhole(np.asarray(intrinsics, dtype=np.float64), f"{where}: its intrinsics matrix", image_size)
         check_upright(rotation, where, hint)
     except RigError as e:
         raise DatasetError(str(e)) from None

@@ -190,40 +190,36 @@ def principal_point_implausible(intrinsics, image_size: tuple[int, int]) -> bool
     return bool((cx > w and cy > h) or not (-w <= cx <= 2 * w and -h <= cy <= 2 * h))
 
 
-def check_pinhole(K: np.ndarray, where: str, what: str, image_size: tuple[int, int] | None = None) -> None:
-    """A ``RigError`` "``where``: ``what`` ..." (the caller's names of the camera and of its matrix) for a float64
-    3x3 ``K`` that is no pinhole camera matrix: a focal length <= 0, a last row other than (0, 0, 1) (transposed)
-    or, given the (width, height) ``image_size`` of its images, a field of view over 175 degrees (normalised, or in
-    millimetres) or a principal point no crop of the image has (``principal_point_implausible``: intrinsics in the
-    pixels of another image size)."""
-    name = f"{where}: {what}"
+def check_pinhole(K: np.ndarray, what: str, image_size: tuple[int, int] | None = None) -> None:
+    """A ``RigError`` "``what`` ..." (the caller's names of the camera and its matrix) for a float64 3x3 ``K`` with a
+    focal length <= 0 or a last row other than (0, 0, 1) (transposed) or, given its images' (width, height)
+    ``image_size``, a field of view over 175 degrees (normalised, or in millimetres) or a principal point no crop of
+    the image has (``principal_point_implausible``: intrinsics in the pixels of another image size)."""
     if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise RigError(f"{name} has a focal length <= 0 (fx = {K[0, 0]:g}, fy = {K[1, 1]:g}); "
+        raise RigError(f"{what} has a focal length <= 0 (fx = {K[0, 0]:g}, fy = {K[1, 1]:g}); "
                        "give [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
     if not np.allclose(K[2], (0.0, 0.0, 1.0), atol=1e-6):
-        raise RigError(f"{name} is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (rows "
+        raise RigError(f"{what} is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (rows "
                        f"{K.round(3).tolist()}); transposed?")
-    if image_size is None:
-        return
-    w, h = image_size
-    if K[0, 0] < w / MAX_FOV_RATIO or K[1, 1] < h / MAX_FOV_RATIO:  # a field of view over 175 degrees
-        raise RigError(f"{name} has a focal length of (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels for a {w}x{h} "
-                       "image, a field of view over 175 degrees that no pinhole camera has: intrinsics normalised by "
-                       "the image size (or in millimetres)? give them in pixels")
-    if principal_point_implausible(K, (w, h)):
-        raise RigError(f"{name} puts the principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) outside its {w}x{h} "
-                       "image: intrinsics of another image size? they are in the pixels of the image given (scaled "
-                       "with it when the image is resized)")
+    if image_size is not None:
+        w, h = image_size
+        if K[0, 0] < w / MAX_FOV_RATIO or K[1, 1] < h / MAX_FOV_RATIO:  # a field of view over 175 degrees
+            raise RigError(f"{what} has a focal length of (fx, fy) = ({K[0, 0]:g}, {K[1, 1]:g}) pixels for a {w}x{h} "
+                           "image, a field of view over 175 degrees that no pinhole camera has: intrinsics normalised "
+                           "by the image size (or in millimetres)? give them in pixels")
+        if principal_point_implausible(K, (w, h)):
+            raise RigError(f"{what} puts the principal point (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g}) outside its {w}x{h} "
+                           "image: intrinsics of another image size? they are in the pixels of the image given "
+                           "(scaled with it when the image is resized)")
 
 
-def check_camera_offset(t: np.ndarray, where: str, what: str) -> None:
-    """A ``RigError`` "``where``: ``what`` ..." for a camera -> ego translation ``t`` [3] that puts the camera more
-    than ``MAX_CAMERA_OFFSET_M`` from the ego origin: not on the vehicle (millimetres)."""
-    dist = float(np.linalg.norm(t))
-    if dist > MAX_CAMERA_OFFSET_M:
-        raise RigError(f"{where}: {what} {t.round(3).tolist()} puts the camera {dist:.4g} m from the ego origin (more "
-                       f"than {MAX_CAMERA_OFFSET_M:g} m): a calibration in millimetres? give the camera's position on "
-                       "the vehicle in metres")
+def check_camera_offset(t: np.ndarray, what: str) -> None:
+    """A ``RigError`` "``what`` ..." for a camera -> ego translation ``t`` [3] more than ``MAX_CAMERA_OFFSET_M``
+    from the ego origin: not on the vehicle (millimetres)."""
+    if float(np.linalg.norm(t)) > MAX_CAMERA_OFFSET_M:
+        raise RigError(f"{what} {t.round(3).tolist()} puts the camera {np.linalg.norm(t):.4g} m from the ego origin "
+                       f"(more than {MAX_CAMERA_OFFSET_M:g} m): a calibration in millimetres? give the camera's "
+                       "position on the vehicle in metres")
 
 
 def check_calibration(name: str, intrinsics, rotation, translation, source: str = "",
@@ -234,7 +230,7 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
     that is not 3 numbers in metres within ``MAX_CAMERA_OFFSET_M`` of the ego origin."""
     where = f"{source}: camera {name}" if source else f"camera {name}"
     K = _matrix(intrinsics, (3, 3), f"{where}: 'intrinsics'")
-    check_pinhole(K, where, "'intrinsics'", image_size)
+    check_pinhole(K, f"{where}: 'intrinsics'", image_size)
     R = _matrix(rotation, (3, 3), f"{where}: 'rotation'")
     off, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
     if off > 1e-2 or det < 0:  # 1e-2: a matrix written with 3 decimals passes
@@ -242,7 +238,7 @@ def check_calibration(name: str, intrinsics, rotation, translation, source: str 
                        "the camera -> ego rotation (its columns: the camera's x right, y down, z forward in the ego "
                        "frame)")
     t = _matrix(translation, (3,), f"{where}: 'translation'")
-    check_camera_offset(t, where, "'translation'")
+    check_camera_offset(t, f"{where}: 'translation'")
     return CameraCalibration(name, K, R, t)
 
 
