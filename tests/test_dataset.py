@@ -681,3 +681,39 @@ def test_camera_dropout_blanks_the_same_cameras_for_every_model(tiny_world, worl
     # over many samples the share blanked is the probability
     share = np.mean([float(blank_cameras(torch.ones(6, 1, 1, 1), 0.3, i).eq(0).float().mean()) for i in range(2000)])
     assert abs(share - 0.3) < 0.02
+
+
+def test_a_dataset_kept_in_memory_reads_each_sample_from_disk_once(copy_world, world_overrides, capsys):
+    """data.cache_in_memory: after the first read, a sample comes from memory (its images may be gone from disk),
+    equal to the first read; a caller's keys stay out of the kept copy; the loader keeps it only when the samples
+    fit in half the free memory."""
+    from instagram_hdmap import training_data
+    from instagram_hdmap.data.nuscenes import NuScenesMapDataset
+
+    root = copy_world()
+    cfg = _world_cfg(root, world_overrides, "data.cache_in_memory=true", "data.num_workers=0")
+    loader, _, _ = training_data.build_loaders(cfg, 1, with_val=False)
+    kept = loader.dataset
+    assert kept.kept is not None and list(kept.kept) == [0]  # the first sample sized the cache
+    room = 2.5 * training_data.sample_bytes(kept[0]) * len(kept)  # more than twice what the samples need: kept
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(training_data, "memory_available", lambda: (room, "this machine has"))
+        assert training_data.build_loaders(cfg, 1, with_val=False)[0].dataset.kept is not None
+        mp.setattr(training_data, "memory_available", lambda: (room / 4, "this machine has"))
+        capsys.readouterr()
+        assert training_data.build_loaders(cfg, 1, with_val=False)[0].dataset.kept is None
+    assert "each epoch reads them from disk" in capsys.readouterr().out
+    first = [kept[i] for i in range(len(kept))]
+    for jpeg in root.glob("samples/CAM_*/*.jpg"):
+        jpeg.unlink()
+    fresh = NuScenesMapDataset(_world_cfg(root, world_overrides), "train", nusc=kept.nusc)
+    with pytest.raises(ImageError):
+        fresh[0]  # from disk: the images are gone
+    for i, sample in enumerate(first):
+        again = kept[i]
+        assert again["sample_token"] == sample["sample_token"]
+        assert torch.equal(again["images"], sample["images"]) and torch.equal(again["gt_distance"],
+                                                                             sample["gt_distance"])
+    assert kept.scenes.frame[2] != 0 and bool(kept[(2, True)]["scene_start"])  # a streaming read's own dict
+    assert not bool(kept[2]["scene_start"])
+

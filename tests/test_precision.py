@@ -217,3 +217,16 @@ def test_an_int8_temporal_model_fuses_its_memory_between_the_two_int8_graphs():
             assert (out8["pred_vertex_logits"] - out["pred_vertex_logits"]).abs().max() < 0.35 * scale
     assert len(calls) == len(frames)  # the fusion ran every frame
     assert memory8["bev"].shape == memory["bev"].shape and torch.isfinite(memory8["bev"]).all()
+
+
+def test_train_amp_auto_is_bf16_only_where_the_device_computes_it_natively():
+    from instagram_hdmap.precision import training_amp
+
+    assert training_amp("auto", CPU, {"avx2", "amx_bf16"}) == (
+        "bf16", "train.amp auto: bf16, since this CPU computes bfloat16 natively")
+    amp, note = training_amp("auto", CPU, {"avx2", "avx512f"})
+    assert amp == "none" and "no native bfloat16" in note
+    amp, note = training_amp("bf16", CPU, {"avx2"})  # forced: it trains, emulated, and says so
+    assert amp == "bf16" and "emulated, slower than float32" in note
+    assert training_amp("bf16", CPU, {"avx512_bf16"}) == ("bf16", None)
+    assert training_amp("none", CPU, set()) == ("none", None)

@@ -13,6 +13,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from instagram_hdmap import train as train_module
 from instagram_hdmap.checkpoint import CheckpointError, load_checkpoint
 from instagram_hdmap.config import ConfigError, UserError, load_config
 from instagram_hdmap.data.base import collate_fn
@@ -355,3 +356,27 @@ def test_validation_runs_the_model_without_autograd():
 
     result = engine.evaluate(Probe(), None, [{"images": torch.zeros(1, 1, 3, 4, 4)}], torch.device("cpu"))
     assert seen == [False] and result["losses"] == {}
+
+
+def test_bf16_training_on_the_cpu_runs_the_convolutions_in_bf16_and_the_graph_head_in_float32(tmp_path, capsys,
+                                                                                                monkeypatch):
+    """train.amp=auto on a CPU with native bfloat16 trains in bf16 (and says so); under the CPU's autocast the
+    BEV encoder's convolutions give bf16 and the graph network float32; the losses stay finite."""
+    from instagram_hdmap import precision
+
+    monkeypatch.setattr(precision, "cpu_flags", lambda: {"avx512f", "amx_bf16", "avx512_bf16"})
+    cfg = _tiny_cfg(tmp_path, "train.epochs=2", "train.amp=auto")
+    seen: dict[str, set] = {"bev": set(), "gnn": set()}
+    real_build = train_module.build_model
+
+    def build(c, **kwargs):
+        model = real_build(c, **kwargs)
+        model.bev_heads.stem.register_forward_hook(lambda m, i, o: seen["bev"].add(o.dtype))
+        model.graph_head.gnn.register_forward_hook(lambda m, i, o: seen["gnn"].add(o.dtype))
+        return model
+
+    monkeypatch.setattr(train_module, "build_model", build)
+    summary = train(cfg, loaders=_loaders(cfg), validate=False)
+    assert "train.amp auto: bf16" in capsys.readouterr().out
+    assert seen == {"bev": {torch.bfloat16}, "gnn": {torch.float32}}
+    assert summary["step"] == 4 and math.isfinite(summary["train"]["loss_total"])

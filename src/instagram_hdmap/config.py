@@ -161,6 +161,10 @@ class DataConfig:
     # raise: a UserError naming the file and sample; skip: warn once per bad sample, use the next good one
     on_bad_sample: Literal["raise", "skip"] = "raise"
     num_workers: int = bounded(4, ge=0, note="data-loader processes; 0 loads in the main process")
+    # keep each training sample in memory once loaded: later epochs skip the image decoding and the targets
+    # (a world that fits in RAM; the loader checks the room after the first sample). Needs data.augment off
+    # (a kept sample would repeat its first draw) and data.num_workers=0 (a worker's copy ends with its epoch)
+    cache_in_memory: bool = False
 
 
 @dataclass
@@ -335,7 +339,8 @@ class TrainConfig:
     warmup: float = bounded(0.0, ge=0, lt=1, note="a fraction of training")  # fraction of progress
     min_lr_factor: float = bounded(0.0, ge=0, le=1)  # cosine only
     grad_clip: float = bounded(5.0, ge=0, note="0: no clipping")
-    amp: Literal["none", "bf16", "fp16"] = "none"
+    # autocast: auto = bf16 where the device computes bfloat16 natively (AMX / AVX512-BF16 CPUs, most GPUs), else none
+    amp: Literal["none", "bf16", "fp16", "auto"] = "none"
     seed: int = bounded(0, ge=0, lt=2**32)
     on_nonfinite: Literal["stop", "skip"] = "stop"
     log_every: int = bounded(10, ge=1)
@@ -597,6 +602,13 @@ def validate_config(cfg: ExperimentConfig) -> None:
     lo, hi = d.aug_scale
     if lo > hi:
         raise ConfigError(f"config key 'data.aug_scale': (low, high) with low <= high, got {(lo, hi)}")
+    clashes = [what for clash, what in ((d.augment, "data.augment=true (a kept sample would repeat its first "
+                                                   "augmentation): set data.augment=false"),
+                                        (d.num_workers, f"data.num_workers={d.num_workers} (a worker's copy ends with "
+                                                        "its epoch): set data.num_workers=0")) if clash]
+    if d.cache_in_memory and clashes:
+        raise ConfigError("config key 'data.cache_in_memory' keeps each training sample as first loaded, in the "
+                          f"process that loads it; it cannot go with {' or '.join(clashes)}")
     bad = [c for c in d.av2_cameras if c not in AV2_RING_CAMERAS]
     if not d.av2_cameras or bad or len(set(d.av2_cameras)) != len(d.av2_cameras):
         raise ConfigError(f"config key 'data.av2_cameras' must list distinct AV2 ring cameras out of "

@@ -77,6 +77,20 @@ def resolve_precision(precision: str, device: torch.device, flags: set[str] | No
     return precision, []
 
 
+def training_amp(amp: str, device: torch.device, flags: set[str] | None = None) -> tuple[str, str | None]:
+    """``(none | bf16 | fp16, note)`` for ``train.amp`` on ``device``: ``auto`` is bf16 where the device computes
+    bfloat16 natively, none elsewhere (with a note saying which); bf16 on a CPU without it gets a note that it is
+    emulated and slower than float32."""
+    if amp == "auto":
+        if native_bf16(device, flags):
+            return "bf16", f"train.amp auto: bf16, since this {device.type.upper()} computes bfloat16 natively"
+        return "none", f"train.amp auto: float32, since this {device.type.upper()} has no native bfloat16"
+    if amp == "bf16" and device.type == "cpu" and not native_bf16(device, flags):
+        return amp, ("note: train.amp bf16 on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 flag) "
+                     "is emulated, slower than float32 (train.amp=auto picks float32 here)")
+    return amp, None
+
+
 # (conv, BatchNorm) attribute pairs of the modules whose forward applies that BatchNorm right after that conv
 # (efficientnet_pytorch's blocks and stem; our ResNet block); an nn.Sequential's adjacent pairs fold too
 FOLDED_PAIRS = {

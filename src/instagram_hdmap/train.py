@@ -25,6 +25,7 @@ import os
 import random
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,7 @@ from .models import build_model, random_init_warning
 from .models.backbone import imagenet_state
 from .persistence import Persistence
 from .postprocess import decode_options, postprocess_batch
+from .precision import training_amp
 from .resources import check_fits, size_notes, usable_cores
 from .resume import (
     MEMORY_ONLY_KEYS,
@@ -240,7 +242,9 @@ class TrainingRun:
                 du.print_main(note)
         trainable = freeze_parameters(self.model, cfg.train.trainable)
         self.criterion = Criterion(cfg.loss, self.grid, with_distance=cfg.model.bev_heads.distance_head)
-        self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr)
+        # fused: one kernel for all parameters instead of a loop of small ops (~3 ms of the demo's ~60 ms CPU step)
+        self.optimizer = torch.optim.Adam(param_groups(self.model, trainable, cfg.train.weight_decay), lr=cfg.train.lr,
+                                          fused=True)
         self.batch_size = loader_batch_size(self.train_loader)
         self.steps_per_epoch = math.ceil(self.sampler.num_samples / self.batch_size)
         # the schedule's length (max_steps only cuts it): a temporal training's single-frame epochs
@@ -250,7 +254,8 @@ class TrainingRun:
                             if isinstance(self.sampler, StreamingBatchSampler)
                             else cfg.train.epochs * self.steps_per_epoch)
         self.clock = ProgressClock(cfg.train, self.total_steps)
-        self.scaler = torch.amp.GradScaler(device.type) if cfg.train.amp == "fp16" else None
+        self.amp, self.amp_note = training_amp(cfg.train.amp, device)
+        self.scaler = torch.amp.GradScaler(device.type) if self.amp == "fp16" else None
         self.position = Position(epoch=0)
         self.best: dict = {"score": -math.inf}
         self.memory: dict | None = None  # a temporal model's memory of this rank's streams, mid-epoch
@@ -306,6 +311,8 @@ class TrainingRun:
                    " (OMP_NUM_THREADS)" if self.chosen_threads is None else "")
             du.print_main(f"cpu: {torch.get_num_threads()} torch thread(s), {cfg.data.num_workers} data worker(s), "
                           f"{usable_cores()} usable core(s)" + how)
+        if self.amp_note:
+            du.print_main(self.amp_note)
         du.print_main(f"schedule: {cfg.train.schedule}, {self.total_steps} steps"
                       + (f" or {cfg.train.time_budget_min:g} min, whichever comes first" if clock.budget_s else "")
                       + f"; progress {clock.last:.3f}, lr {self.optimizer.param_groups[0]['lr']:.3g}")
@@ -405,7 +412,7 @@ class TrainingRun:
             self.train_loader.dataset.set_epoch(p.epoch)  # augmentation draws follow (seed, epoch, index)
         result = train_one_epoch(
             self.net, self.criterion, self.train_loader, self.optimizer, self.device, p,
-            settings=StepSettings.from_config(self.cfg.train), scaler=self.scaler,
+            settings=replace(StepSettings.from_config(self.cfg.train), amp=self.amp), scaler=self.scaler,
             total=(self.sampler.steps_of_epoch(p.epoch) if isinstance(self.sampler, StreamingBatchSampler)
                    else self.steps_per_epoch),
             hooks=EpochHooks(before_step=self.before_step, on_step=self.on_step, should_stop=self.should_stop,
@@ -450,7 +457,7 @@ class TrainingRun:
         with rng_preserved():  # validation draws nothing from the training's random streams
             val = evaluate(self.net, self.criterion, self.val_loader, self.device,
                            postprocess=lambda out: postprocess_batch(out, self.grid, **self.decode),
-                           evaluator=Evaluator.from_config(self.cfg), amp=self.cfg.train.amp,
+                           evaluator=Evaluator.from_config(self.cfg), amp=self.amp,
                            flicker=make_flicker_meter(self.cfg), persist=Persistence.from_config(self.cfg),
                            cmap=make_cmap_meter(self.cfg))
         self.summary["val"] = val

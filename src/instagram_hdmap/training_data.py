@@ -20,7 +20,7 @@ from .data.base import collate_fn
 from .data.streaming import StreamingBatchSampler
 from .evaluation.consistency import ConsistentAPMeter, FlickerMeter
 from .geometry import BEVGrid
-from .resources import data_workers
+from .resources import data_workers, human, memory_available
 
 WORKER_DIED = re.compile(r"DataLoader worker \(pids?\(?s?\)? ?[\d, ]+\)? (is killed by signal|exited unexpectedly)")
 
@@ -73,6 +73,29 @@ def open_files_for_workers(num_workers: int) -> None:
         torch.multiprocessing.set_sharing_strategy("file_system")
 
 
+CACHE_SHARE = 0.5  # data.cache_in_memory keeps the samples when they take at most this share of the free memory
+
+
+def sample_bytes(sample: dict) -> int:
+    """The bytes of a sample's tensors and arrays (its GT polylines included)."""
+    arrays = [v for v in sample.values() if isinstance(v, (torch.Tensor, np.ndarray))]
+    arrays += [p for line in sample.get("gt_polylines", ()) for p in line.values() if isinstance(p, np.ndarray)]
+    return sum(a.nbytes for a in arrays)
+
+
+def keep_in_memory(dataset) -> None:
+    """``data.cache_in_memory``: the dataset keeps its samples once loaded, if all of them (sized from the first)
+    fit in ``CACHE_SHARE`` of the free memory; otherwise a note, and each epoch reads the files again."""
+    dataset.keep_in_memory()
+    need = sample_bytes(dataset[0]) * len(dataset)
+    room, what = memory_available()
+    if need > CACHE_SHARE * room:
+        dataset.kept = None
+        du.print_main(f"note: data.cache_in_memory: the {len(dataset)} training samples would hold {human(need)}, "
+                      f"more than {CACHE_SHARE:.0%} of the {human(room)} {what} free: each epoch reads them from "
+                      "disk")
+
+
 def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True):
     """(train loader, its sampler, val loader). A temporal model (``model.temporal.memory`` not none)
     reads drives: each rank's batch rows are streams walking whole scenes in order
@@ -80,6 +103,8 @@ def build_loaders(cfg: ExperimentConfig, world_size: int, with_val: bool = True)
     of ``train.stream_frames``, after ``train.stream_warmup`` of the epochs on shuffled single frames;
     the validation loader ``eval.batch_size`` streams of whole scenes)."""
     train_set = build_dataset(cfg, cfg.data.train_split, augment=cfg.data.augment)
+    if cfg.data.cache_in_memory:
+        keep_in_memory(train_set)
     open_files_for_workers(cfg.data.num_workers)
     per_rank = max(cfg.train.batch_size // world_size, 1)
     streaming = cfg.model.temporal.memory != "none"

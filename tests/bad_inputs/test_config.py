@@ -52,6 +52,14 @@ def row_duplicate_yaml_section(env):
     env.error(r"twice\.yaml.*'model'.*(twice|duplicate)", "model-summary", path)
 
 
+@row("data.cache_in_memory with augmentation or data workers: the setting that rules it out is named")
+def row_cache_in_memory_with_augment_or_workers(env):
+    for bad, named in ((("data.augment=true", "data.num_workers=0"), r"data\.augment=true.*set data\.augment=false$"),
+                       (("data.num_workers=2",), r"data\.num_workers=2.*set data\.num_workers=0$")):
+        env.error(rf"data\.cache_in_memory.*cannot go with {named}", "model-summary", env.yaml,
+                  "data.cache_in_memory=true", *bad)
+
+
 @row("data.classes with unknown names")
 def row_unknown_class_names(env):
     env.error(r"data\.classes.*divider.*ped_crossing.*boundary", "model-summary", env.yaml,

@@ -238,6 +238,7 @@ class MapDataset(Dataset):
         self.augment = (d.augment and split == d.train_split) if augment is None else augment
         self.epoch = 0  # see set_epoch
         self._bad: set[int] = set()  # indices of the samples found bad (on_bad_sample=skip)
+        self.kept: dict[int, dict] | None = None  # the samples kept in memory (keep_in_memory), by index
 
     def set_scenes(self, scenes: list[str], timestamps_us: list[int]) -> None:
         """The scene name and timestamp (microseconds) of every sample (``SceneIndex``)."""
@@ -366,6 +367,20 @@ class MapDataset(Dataset):
             raise IndexError(f"sample index {i} is out of range: split '{self.split}' has {n} samples (0..{n - 1})")
         return i % n
 
+    def keep_in_memory(self) -> None:
+        """Keep each sample once loaded (``data.cache_in_memory``): a later read of it skips the files and the
+        targets. Only for a dataset without augmentation, whose samples are the same in every epoch."""
+        if self.augment:
+            raise ValueError("keep_in_memory: an augmented dataset's samples differ in each epoch")
+        self.kept = {}
+
+    def _load(self, index: int) -> dict:
+        if self.kept is None:
+            return self.load_sample(index)
+        if index not in self.kept:
+            self.kept[index] = self.load_sample(index)
+        return dict(self.kept[index])  # a new dict: a caller's keys (scene_start, replaced) stay out of it
+
     def __getitem__(self, index: int | tuple[int, bool]) -> dict:
         """Sample ``index``; ``(index, start)`` (a streaming sampler's pieces, data/streaming.py): the sample
         with ``scene_start`` = ``start``."""
@@ -376,14 +391,14 @@ class MapDataset(Dataset):
             return sample
         index = self._sample_index(index)
         if self.data_cfg.on_bad_sample == "raise":
-            return self.load_sample(index)
+            return self._load(index)
         n = len(self)
         for k in range(n):
             j = (index + k) % n
             if j in self._bad:
                 continue
             try:
-                sample = self.load_sample(j)
+                sample = self._load(j)
             except UserError as e:
                 self._bad.add(j)
                 warnings.warn(f"skipping a bad sample (data.on_bad_sample=skip, {len(self._bad)} so far): {e}",

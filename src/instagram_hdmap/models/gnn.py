@@ -141,7 +141,17 @@ class GraphHead(nn.Module):
     def associate(self, vertices: dict[str, torch.Tensor], distance: torch.Tensor | None, bev_features: torch.Tensor
                  ) -> dict[str, torch.Tensor]:
         """Given vertices (``vertices_px`` [B, N, 2], ``scores`` [B, N], ``mask`` [B, N], ``cells``
-        [B, N]) -> ``pred_class_log_probs`` [B, N, K], ``pred_log_assignment`` [B, N+1, N+1]."""
+        [B, N]) -> ``pred_class_log_probs`` [B, N, K], ``pred_log_assignment`` [B, N+1, N+1].
+
+        Training under autocast on the CPU runs it in float32: the bfloat16 backward of torch's CPU attention
+        takes ~3x float32's, and the head's layers are small (the rest of the model stays in bfloat16)."""
+        device = vertices["mask"].device
+        if not vertices["mask"].is_cuda and torch.is_grad_enabled() and torch.is_autocast_enabled(device.type):
+            def fp32(t):
+                return t.float() if t is not None and t.is_floating_point() else t
+
+            with torch.autocast(device.type, enabled=False):
+                return self.associate({k: fp32(v) for k, v in vertices.items()}, fp32(distance), fp32(bev_features))
         g = self.gnn(self.embed(vertices, distance, bev_features), vertices["mask"])
         return {
             "pred_class_log_probs": F.log_softmax(self.class_head(g).float(), dim=-1),
