@@ -196,3 +196,27 @@ def test_a_killed_generation_leaves_no_lasting_debris(tmp_path, monkeypatch):
     with pytest.raises(demo.DemoError, match="stop here"):
         demo.ensure_world(cache, WORLD, progress=False)
     assert not dead.exists() and alive.exists() and not root.exists()
+
+
+def test_demo_speed_pools_each_epoch_by_its_samples_and_checks_its_options(tmp_path, capsys):
+    """benchmarks/demo_speed.py: the whole run's rate is its samples over its seconds (not a mean of the epoch
+    rates), per round; the first epoch apart; a world without splits.json and --epochs 1 are refused."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import demo_speed
+
+    # two rounds of 3 epochs of 120 steps (batch 4: 480 samples each); epoch rates 40, 60, 80 then 40, 40, 40
+    runs = [[{"epoch": e, "step": 120 * (e + 1), "samples_per_s": r, "cpu_threads": 2} for e, r in enumerate(rates)]
+            for rates in ((40, 60, 80), (40, 40, 40))]
+    s = demo_speed.summary(runs)
+    assert s["first"] == 40 and s["later"] == 50 and s["threads"] == 2  # the median of 60, 80, 40, 40
+    assert s["whole"] == pytest.approx(6 * 480 / (480 / 40 * 4 + 480 / 60 + 480 / 80))
+    with pytest.raises(SystemExit):
+        demo_speed.parse(["--world", str(tmp_path)])
+    assert "no splits.json" in capsys.readouterr().err
+    (tmp_path / "splits.json").write_text("{}")
+    with pytest.raises(SystemExit):
+        demo_speed.parse(["--world", str(tmp_path), "--epochs", "1"])
+    assert "--epochs must be at least 2" in capsys.readouterr().err
