@@ -10,10 +10,10 @@ precision, with ``--epochs`` epochs of the demo's 120 steps (``train.lr_step`` o
 run folder. ``--checkout NAME=PATH`` adds another checkout (this one is ``new``); ``--extra NAME=KEY=VALUE[,...]``
 adds this checkout with overrides. The variants run in turn, ``--rounds`` times, so machine load hits them alike.
 
-Per variant, from the run's ``log.jsonl`` (each epoch's ``samples_per_s``): the first epoch (which reads the world
-from disk: an in-memory sample cache fills there), the median of the later epochs, and the whole run's rate
-(its samples over the sum of the epochs' training seconds); the ratio columns divide the later epochs' and the whole
-run's rates by the first variant's. The demo trains 60 epochs, so its rate is close to the later epochs'.
+Per variant, from the run's ``log.jsonl`` (each epoch's ``samples_per_s`` and ``train_seconds``): the first epoch
+(which reads the world from disk: an in-memory sample cache fills there), the median of the later epochs, and the
+whole run's rate (its samples over its seconds); the ratio columns divide the later epochs' and the whole run's rates
+by the first variant's. The demo trains 60 epochs, so its rate is close to the later epochs'.
 """
 
 from __future__ import annotations
@@ -48,17 +48,16 @@ def train_once(checkout: Path, world: Path, epochs: int, overrides: list[str], t
         return [r for r in map(json.loads, log.read_text().splitlines()) if "samples_per_s" in r]
 
 
-def summary(rounds: list[list[dict]], batch: int = 4) -> dict:
-    """First-epoch, later-epoch (medians over the rounds) and whole-run rates of a variant's rounds."""
-    first = [r["samples_per_s"] for run in rounds for r in run if r["epoch"] == 0]
-    later = [r["samples_per_s"] for run in rounds for r in run if r["epoch"] > 0]
-    samples = seconds = 0.0
-    for run in rounds:  # an epoch record's samples: its steps since the record before, of the same run
-        steps = [r["step"] for r in run]
-        for r, n in zip(run, [s - p for s, p in zip(steps, [0, *steps[:-1]])]):
-            samples, seconds = samples + batch * n, seconds + batch * n / r["samples_per_s"]
-    return {"first": statistics.median(first), "later": statistics.median(later) if later else float("nan"),
-            "whole": samples / seconds, "threads": rounds[0][0].get("cpu_threads")}
+def summary(rounds: list[list[dict]]) -> dict:
+    """First-epoch and later-epoch rates (medians over the rounds) and the whole runs' rate (their samples over
+    their seconds) of a variant's rounds."""
+    records = [r for run in rounds for r in run]
+    later = [r["samples_per_s"] for r in records if r["epoch"] > 0]
+    seconds = sum(r["train_seconds"] for r in records)
+    return {"first": statistics.median(r["samples_per_s"] for r in records if r["epoch"] == 0),
+            "later": statistics.median(later) if later else float("nan"),
+            "whole": sum(r["samples_per_s"] * r["train_seconds"] for r in records) / seconds,
+            "threads": records[0].get("cpu_threads")}
 
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:

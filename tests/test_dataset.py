@@ -695,7 +695,9 @@ def test_a_dataset_kept_in_memory_reads_each_sample_from_disk_once(copy_world, w
     loader, _, _ = training_data.build_loaders(cfg, 1, with_val=False)
     kept = loader.dataset
     assert kept.kept is not None and list(kept.kept) == [0]  # the first sample sized the cache
-    room = 2.5 * training_data.sample_bytes(kept[0]) * len(kept)  # more than twice what the samples need: kept
+    from instagram_hdmap.data.base import sample_bytes
+
+    room = 2.5 * sample_bytes(kept[0]) * len(kept)  # more than twice what the samples need: kept
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(training_data, "memory_available", lambda: (room, "this machine has"))
         assert training_data.build_loaders(cfg, 1, with_val=False)[0].dataset.kept is not None

@@ -208,7 +208,7 @@ def test_demo_speed_pools_each_epoch_by_its_samples_and_checks_its_options(tmp_p
     import demo_speed
 
     # two rounds of 3 epochs of 120 steps (batch 4: 480 samples each); epoch rates 40, 60, 80 then 40, 40, 40
-    runs = [[{"epoch": e, "step": 120 * (e + 1), "samples_per_s": r, "cpu_threads": 2} for e, r in enumerate(rates)]
+    runs = [[{"epoch": e, "samples_per_s": r, "train_seconds": 480 / r, "cpu_threads": 2} for e, r in enumerate(rates)]
             for rates in ((40, 60, 80), (40, 40, 40))]
     s = demo_speed.summary(runs)
     assert s["first"] == 40 and s["later"] == 50 and s["threads"] == 2  # the median of 60, 80, 40, 40

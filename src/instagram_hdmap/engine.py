@@ -95,11 +95,14 @@ class EpochHooks:
 
 
 def autocast_context(device: torch.device, amp: str):
-    """``torch.autocast`` for "bf16"/"fp16", a no-op for "none"."""
+    """``torch.autocast`` for "bf16"/"fp16", a no-op for "none" (``train.amp=auto`` is resolved before:
+    ``precision.training_amp``)."""
     if amp == "none":
         return contextlib.nullcontext()
-    dtype = torch.bfloat16 if amp == "bf16" else torch.float16
-    return torch.autocast(device_type=device.type, dtype=dtype)
+    dtypes = {"bf16": torch.bfloat16, "fp16": torch.float16}
+    if amp not in dtypes:
+        raise ValueError(f"autocast_context: amp must be none, bf16 or fp16, got {amp!r}")
+    return torch.autocast(device_type=device.type, dtype=dtypes[amp])
 
 
 def move_to(batch: dict, device: torch.device) -> dict:

@@ -255,6 +255,7 @@ class TrainingRun:
                             else cfg.train.epochs * self.steps_per_epoch)
         self.clock = ProgressClock(cfg.train, self.total_steps)
         self.amp, self.amp_note = training_amp(cfg.train.amp, device)
+        self.step_settings = replace(StepSettings.from_config(cfg.train), amp=self.amp)
         self.scaler = torch.amp.GradScaler(device.type) if self.amp == "fp16" else None
         self.position = Position(epoch=0)
         self.best: dict = {"score": -math.inf}
@@ -412,7 +413,7 @@ class TrainingRun:
             self.train_loader.dataset.set_epoch(p.epoch)  # augmentation draws follow (seed, epoch, index)
         result = train_one_epoch(
             self.net, self.criterion, self.train_loader, self.optimizer, self.device, p,
-            settings=replace(StepSettings.from_config(self.cfg.train), amp=self.amp), scaler=self.scaler,
+            settings=self.step_settings, scaler=self.scaler,
             total=(self.sampler.steps_of_epoch(p.epoch) if isinstance(self.sampler, StreamingBatchSampler)
                    else self.steps_per_epoch),
             hooks=EpochHooks(before_step=self.before_step, on_step=self.on_step, should_stop=self.should_stop,

@@ -76,21 +76,12 @@ def open_files_for_workers(num_workers: int) -> None:
 CACHE_SHARE = 0.5  # data.cache_in_memory keeps the samples when they take at most this share of the free memory
 
 
-def sample_bytes(sample: dict) -> int:
-    """The bytes of a sample's tensors and arrays (its GT polylines included)."""
-    arrays = [v for v in sample.values() if isinstance(v, (torch.Tensor, np.ndarray))]
-    arrays += [p for line in sample.get("gt_polylines", ()) for p in line.values() if isinstance(p, np.ndarray)]
-    return sum(a.nbytes for a in arrays)
-
-
 def keep_in_memory(dataset) -> None:
-    """``data.cache_in_memory``: the dataset keeps its samples once loaded, if all of them (sized from the first)
-    fit in ``CACHE_SHARE`` of the free memory; otherwise a note, and each epoch reads the files again."""
-    dataset.keep_in_memory()
-    need = sample_bytes(dataset[0]) * len(dataset)
+    """``data.cache_in_memory``: the dataset keeps its samples once loaded if they fit in ``CACHE_SHARE`` of the
+    free memory; otherwise a note, and each epoch reads the files again."""
     room, what = memory_available()
-    if need > CACHE_SHARE * room:
-        dataset.kept = None
+    need = dataset.keep_in_memory(CACHE_SHARE * room)
+    if dataset.kept is None:
         du.print_main(f"note: data.cache_in_memory: the {len(dataset)} training samples would hold {human(need)}, "
                       f"more than {CACHE_SHARE:.0%} of the {human(room)} {what} free: each epoch reads them from "
                       "disk")

@@ -367,12 +367,16 @@ class MapDataset(Dataset):
             raise IndexError(f"sample index {i} is out of range: split '{self.split}' has {n} samples (0..{n - 1})")
         return i % n
 
-    def keep_in_memory(self) -> None:
+    def keep_in_memory(self, max_bytes: float) -> float:
         """Keep each sample once loaded (``data.cache_in_memory``): a later read of it skips the files and the
-        targets. Only for a dataset without augmentation, whose samples are the same in every epoch."""
+        targets. Only for a dataset without augmentation, whose samples are the same in every epoch. The samples'
+        bytes are sized from the first one; over ``max_bytes`` nothing is kept. Returns that size."""
         if self.augment:
             raise ValueError("keep_in_memory: an augmented dataset's samples differ in each epoch")
-        self.kept = {}
+        first = self.load_sample(0) if len(self) else {}
+        need = float(sample_bytes(first) * len(self))
+        self.kept = {0: first} if need <= max_bytes else None
+        return need
 
     def _load(self, index: int) -> dict:
         if self.kept is None:
@@ -410,6 +414,13 @@ class MapDataset(Dataset):
             sample["stands_for"] = self.sample_tokens[index]
             return sample
         raise DatasetError(f"every sample of split '{self.split}' in {self.dataroot} is bad; see the warnings")
+
+
+def sample_bytes(sample: dict) -> int:
+    """The bytes of a sample's tensors and arrays (its GT polylines included)."""
+    arrays = [v for v in sample.values() if isinstance(v, (torch.Tensor, np.ndarray))]
+    arrays += [p for line in sample.get("gt_polylines", ()) for p in line.values() if isinstance(p, np.ndarray)]
+    return sum(a.nbytes for a in arrays)
 
 
 CAMERA_DROPOUT_STREAM = 0xD209  # the random stream of data.camera_dropout, apart from augmentation's

@@ -145,12 +145,12 @@ class GraphHead(nn.Module):
 
         Training under autocast on the CPU runs it in float32: the bfloat16 backward of torch's CPU attention
         takes ~3x float32's, and the head's layers are small (the rest of the model stays in bfloat16)."""
-        device = vertices["mask"].device
-        if not vertices["mask"].is_cuda and torch.is_grad_enabled() and torch.is_autocast_enabled(device.type):
+        mask = vertices["mask"]
+        if not mask.is_cuda and torch.is_grad_enabled() and torch.is_autocast_enabled(mask.device.type):
             def fp32(t):
                 return t.float() if t is not None and t.is_floating_point() else t
 
-            with torch.autocast(device.type, enabled=False):
+            with torch.autocast(mask.device.type, enabled=False):
                 return self.associate({k: fp32(v) for k, v in vertices.items()}, fp32(distance), fp32(bev_features))
         g = self.gnn(self.embed(vertices, distance, bev_features), vertices["mask"])
         return {
