@@ -513,9 +513,6 @@ def _demo_parser(sub) -> None:
     p.add_argument("overrides", nargs="*", help="key=value config overrides")
 
 
-
-
-
 SUBCOMMANDS = (  # each adds one subcommand (or two alike) to the parser, in the order --help lists them
     _synth_parser,
     _synth_preview_parser,
