@@ -380,3 +380,30 @@ def test_bf16_training_on_the_cpu_runs_the_convolutions_in_bf16_and_the_graph_he
     assert "train.amp auto: bf16" in capsys.readouterr().out
     assert seen == {"bev": {torch.bfloat16}, "gnn": {torch.float32}}
     assert summary["step"] == 4 and math.isfinite(summary["train"]["loss_total"])
+
+
+def _signal_itself_while_starting():
+    import signal
+    import time
+
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(5)  # (not reached when the signal ends it)
+
+
+def test_a_worker_signalled_as_it_starts_ends_quietly_and_the_run_still_catches_the_signal(capfd):
+    """A scheduler's SIGTERM to the process group can reach a data-loader worker while it is still starting, outside
+    torch's worker loop, with the training's handler inherited from the fork: it ends with exit code 0 and no
+    traceback; the training process itself still turns the signal into KeyboardInterrupt."""
+    import multiprocessing
+    import signal
+
+    with train_module._sigterm_as_interrupt():
+        child = multiprocessing.get_context("fork").Process(target=_signal_itself_while_starting)
+        child.start()
+        child.join(30)
+        with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(100):  # the handler runs at the next bytecode
+                pass
+    assert child.exitcode == 0
+    assert "Traceback" not in capfd.readouterr().err

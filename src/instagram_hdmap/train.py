@@ -164,8 +164,13 @@ def _sigterm_as_interrupt():
 
     chld = getattr(signal, "SIGCHLD", None)
     held: list = []
+    owner = os.getpid()
 
     def interrupt(signum, frame):
+        if os.getpid() != owner:  # a forked data-loader worker inherits this handler: the group's signal ends it
+            for sig in caught:  # quietly (exit 0, as torch's worker loop does on KeyboardInterrupt), also while it
+                signal.signal(sig, signal.SIG_IGN)  # is still starting, outside the loop's own handling, where the
+            raise SystemExit(0)  # KeyboardInterrupt came out as a traceback under the run's one-line message
         if signum == signal.SIGINT and _IN_STEP[0] and _SIGNALS_RECEIVED:  # Ctrl-C again while the step ends: the
             _IN_STEP[0] = False  # user's choice (a step that hangs), at once, as before
             raise KeyboardInterrupt("Ctrl-C twice")
