@@ -3,7 +3,8 @@
     python benchmarks/model_speed.py                      # CPU, 2 threads, B0 and B4 with LSS, 128x352
     python benchmarks/model_speed.py --runs 9 --threads 2
     python benchmarks/model_speed.py --official OFFICIAL  # + the official model, timed in the same run
-    python benchmarks/model_speed.py --precision fp32     # our fp32 alone (default: fp32, bf16 and int8)
+    python benchmarks/model_speed.py --precision fp32     # our fp32 alone (default: fp32, bf16 and int8;
+                                                          # bf16 only where the CPU has it natively)
     python benchmarks/model_speed.py --device cuda        # + GPU latency / FPS, fp32 and bf16 autocast
 
 Each component is timed by calling the model's parts in the order of ``InstaGraM.forward`` (backbone,
@@ -38,7 +39,7 @@ from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
 from instagram_hdmap.postprocess import decode_options, postprocess_batch
-from instagram_hdmap.precision import PRECISIONS, resolve_precision, with_precision
+from instagram_hdmap.precision import PRECISIONS, native_bf16, resolve_precision, with_precision
 from instagram_hdmap.resources import cpu_capability
 
 CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
@@ -146,7 +147,8 @@ def _components(model, precision: str, batch: dict, runs: int) -> dict[str, floa
     autocast, as ``Bf16Model.forward`` runs it)."""
     if precision == "fp32":
         return time_components(model, batch, runs, lambda: None)
-    with torch.autocast("cpu", dtype=torch.bfloat16):
+    bf16 = getattr(model, "bf16", True)  # int8's float part: bf16 where the CPU computes it natively, else float32
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         return time_components(model.model, batch, runs, lambda: None)
 
 
@@ -158,7 +160,12 @@ def run_cpu(args: argparse.Namespace) -> None:
 
         code = load_official(args.official)
     cpu = torch.device("cpu")
-    precisions = [resolve_precision(p, cpu, flag="--precision")[0] for p in args.precision]
+    asked = args.precision
+    if asked is None:  # the default: bf16 only where it is native (emulated, one forward of B4 takes seconds)
+        asked = ["fp32", "bf16", "int8"] if native_bf16(cpu) else ["fp32", "int8"]
+        if "bf16" not in asked:
+            print("this CPU has no native bfloat16: bf16 left out (--precision bf16 to time it emulated)")
+    precisions = [resolve_precision(p, cpu, flag="--precision")[0] for p in asked]
     columns, official = {}, {}
     for path in args.configs or CPU_CONFIGS:
         cfg = load_config(path)
@@ -219,8 +226,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="CPU threads (torch.set_num_threads)")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--configs", nargs="*", help="experiment YAMLs (default: the Table I LSS rows)")
-    parser.add_argument("--precision", nargs="+", choices=PRECISIONS, default=["fp32", "bf16", "int8"],
-                        help="CPU: the precisions of our model to time (precision.py; default fp32 bf16 int8)")
+    parser.add_argument("--precision", nargs="+", choices=PRECISIONS,
+                        help="CPU: the precisions of our model to time (precision.py; default fp32 bf16 int8, "
+                             "bf16 only where the CPU computes it natively)")
     parser.add_argument("--official", metavar="DIR",
                         help="a local checkout of the official InstaGraM code: time its model too (CPU only)")
     args = parser.parse_args()

@@ -8,15 +8,18 @@
 convolutions, linear layers and attention in bfloat16 (``torch.autocast``; their weights stored in bfloat16, the
 convolutions' channels-last), and keeps in float32 what needs it: the camera geometry of the view transform, the
 score matrix and the log-space Sinkhorn (models/view_transform.py, models/matching.py disable autocast there), and
-the decoding, which reads the outputs cast back to float32. ``int8`` is ``bf16`` with the BEV encoder quantized
+the decoding, which reads the outputs cast back to float32. ``int8`` quantizes the BEV encoder
 by torch's FX graph mode (``x86`` engine: per-channel int8 weights, uint8 activations) as two graphs, before and
 after the temporal fusion's place (``BEVHeads.first_stage`` / ``.rest``), the heads' last 1x1 layers kept float32;
 its activation ranges are calibrated on training samples, and it runs on the CPU (docs/deploy.md, "Precision", for
-its speed and accuracy; onnxruntime's static int8 of the whole graph was measured slower than ``bf16`` eager).
+its speed and accuracy; onnxruntime's static int8 of the whole graph was measured slower than ``bf16`` eager). The
+rest of an int8 model runs as ``bf16`` does where the CPU computes bfloat16 natively, and in float32 (BatchNorm
+folded) where it does not: there, emulated bfloat16 is several times slower than float32 (the depthwise
+convolutions of EfficientNet fall back to one slow convolution per channel group), while int8 runs on AVX2 too.
 ``auto`` picks bf16 where the hardware computes it natively (a CUDA device that supports it; a CPU with AVX512-BF16
 or AMX-BF16, or ARM's BF16, read from its flags, never assumed) and fp32 elsewhere, and says what it chose; it never
-picks int8, which needs training samples. Forcing bf16 (or int8) on a CPU without native bf16 works (torch emulates
-it) but is slower than fp32: a note says so.
+picks int8, which needs training samples. Forcing bf16 on a CPU without native bf16 works (torch emulates it) but
+is slower than fp32: a note says so; int8 there says that its float part runs in float32.
 """
 
 from __future__ import annotations
@@ -72,6 +75,9 @@ def resolve_precision(precision: str, device: torch.device, flags: set[str] | No
         if device.type == "cuda":
             raise PrecisionError(f"{flag} bf16: this GPU ({torch.cuda.get_device_name(device)}) has no bfloat16; "
                                  f"use {flag} fp32")
+        if precision == "int8":
+            return precision, [f"{flag} int8 on a CPU without native bfloat16: the BEV encoder in int8, the rest in "
+                               "float32 (emulated bfloat16 would be slower than float32)"]
         return precision, [f"{flag} {precision} on a CPU without native bfloat16 (no AVX512-BF16 / AMX-BF16 / BF16 "
                            f"flag): its bf16 parts are emulated, slower than fp32 ({flag} auto picks fp32 here)"]
     return precision, []
@@ -278,16 +284,23 @@ def calibration_batches(cfg, count: int = INT8_CALIBRATION_SAMPLES, device: torc
 
 
 class Int8Model(Bf16Model):
-    """``Bf16Model`` with the BEV encoder in int8 (module docstring), calibrated on ``calibration``: batches as the
-    model takes them (``data.collate_fn`` of training samples), run in float32 to record the activation ranges."""
+    """The BEV encoder in int8 (module docstring), calibrated on ``calibration``: batches as the model takes them
+    (``data.collate_fn`` of training samples), run in float32 to record the activation ranges. The rest as
+    ``Bf16Model`` runs it where ``bf16`` (default: where this CPU computes bfloat16 natively), else in float32."""
 
-    def __init__(self, model: nn.Module, calibration: list[dict]):
+    def __init__(self, model: nn.Module, calibration: list[dict], bf16: bool | None = None):
         if not calibration:
             raise PrecisionError("int8 needs calibration batches (training samples): none given")
         folded = fold_batchnorm(model)
         _quantize_bev_heads(folded, calibration)  # in float32, before the rest goes to bf16
         nn.Module.__init__(self)
-        self.model = _in_bf16(folded)
+        self.bf16 = native_bf16(torch.device("cpu")) if bf16 is None else bf16
+        self.model = _in_bf16(folded) if self.bf16 else folded
+
+    def forward(self, batch: dict, memory: dict | None = None) -> dict:
+        if self.bf16:
+            return super().forward(batch, memory)
+        return self.model(batch) if memory is None else self.model(batch, memory=memory)
 
 
 def with_precision(model: nn.Module, precision: str, calibration: list[dict] | None = None) -> nn.Module:
