@@ -162,8 +162,9 @@ def run_cpu(args: argparse.Namespace) -> None:
     cpu = torch.device("cpu")
     asked = args.precision
     if asked is None:  # the default: bf16 only where it is native (emulated, one forward of B4 takes seconds)
-        asked = ["fp32", "bf16", "int8"] if native_bf16(cpu) else ["fp32", "int8"]
-        if "bf16" not in asked:
+        asked = ["fp32", "bf16", "int8"]
+        if not native_bf16(cpu):
+            asked.remove("bf16")
             print("this CPU has no native bfloat16: bf16 left out (--precision bf16 to time it emulated)")
     precisions = [resolve_precision(p, cpu, flag="--precision")[0] for p in asked]
     columns, official = {}, {}

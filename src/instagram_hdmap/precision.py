@@ -292,7 +292,7 @@ class Int8Model(Bf16Model):
         if not calibration:
             raise PrecisionError("int8 needs calibration batches (training samples): none given")
         folded = fold_batchnorm(model)
-        _quantize_bev_heads(folded, calibration)  # in float32, before the rest goes to bf16
+        _quantize_bev_heads(folded, calibration)  # in float32, before the rest goes to bf16 (where it does)
         nn.Module.__init__(self)
         self.bf16 = native_bf16(torch.device("cpu")) if bf16 is None else bf16
         self.model = _in_bf16(folded) if self.bf16 else folded
