@@ -290,7 +290,7 @@ def row_raster_canvas_advice_with_resolution(env):
             "exit 0, no word). export-gt and evaluate state the grid's resolution in the meta; the advice names it "
             "and another resolution is noted")
 def row_evaluate_json_raster_resolution_of_the_gt(env):
-    from instagram_hdmap.evaluation.evaluator import evaluate_files
+    from instagram_hdmap.evaluation import evaluate_files
     from instagram_hdmap.geometry import BEVGrid
 
     gt = env.tmp / "gt.json"

@@ -6,9 +6,10 @@
 """
 
 from .consistency import ConsistentAPMeter, FlickerMeter
-from .evaluator import CLASSES, PROTOCOLS, Evaluator, evaluate_files, format_table
+from .evaluator import CLASSES, PROTOCOLS, Evaluator, format_table
 from .inputs import EvaluationInputError
 from .io import SubmissionError, read_submission, write_submission
+from .submission_ap import evaluate_files
 
 __all__ = [
     "CLASSES",
