@@ -40,7 +40,7 @@ from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
 from instagram_hdmap.postprocess import decode_options, postprocess_batch
 from instagram_hdmap.precision import PRECISIONS, native_bf16, resolve_precision, with_precision
-from instagram_hdmap.resources import cpu_capability
+from instagram_hdmap.resources import cpu_capability, reuse_freed_memory
 
 CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
 GPU_CONFIGS = [*CPU_CONFIGS, "configs/paper/table1_b4_lss_256x704.yaml"]
@@ -154,6 +154,7 @@ def _components(model, precision: str, batch: dict, runs: int) -> dict[str, floa
 
 def run_cpu(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
+    reused = reuse_freed_memory()  # as inference runs (precision.with_precision), for every model timed here
     code = None
     if args.official:
         from official import build_official, load_official, official_inputs, uses_standins
@@ -189,7 +190,8 @@ def run_cpu(args: argparse.Namespace) -> None:
             official[name] = {k: 1000 * statistics.median(v) for k, v in times.items()}
             official[name]["params_m"] = sum(p.numel() for p in theirs.parameters()) / 1e6
     print(f"CPU, {args.threads} threads, batch 1 x 6 cameras, LSS, {args.runs} runs, torch {torch.__version__}, "
-          f"load average {os.getloadavg()[0]:.1f} at the end; {cpu_capability()}")
+          f"load average {os.getloadavg()[0]:.1f} at the end; {cpu_capability()}; freed memory "
+          f"{'kept for reuse' if reused else 'returned (not glibc)'}")
     if code is not None:
         standins = uses_standins()
         print(f"official code: {code.root}, fp32" + (f" (stand-ins for {', '.join(standins)}: benchmarks/official.py)"

@@ -476,6 +476,23 @@ def test_cpu_capability_reads_the_flags_it_is_given(tmp_path):
     assert resources.cpu_capability(plain) == f"none of AVX2 / AVX512 / AMX; torch kernels: {level}"
 
 
+def test_inference_keeps_the_memory_a_forward_frees_for_the_next(monkeypatch):
+    """On glibc a large freed block stays in the process for the next forward to reuse (by default glibc unmaps
+    every block over 32 MiB when freed, and the next forward faults it in page by page again); on another C
+    library nothing is changed."""
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc's mallopt only")
+    assert resources.reuse_freed_memory()
+    block = torch.ones(200 * 2**20 // 4)  # 200 MiB, every page touched
+    held = resources.resident_bytes()
+    del block
+    assert held - resources.resident_bytes() < 20 * 2**20  # kept, not returned to the kernel
+    monkeypatch.setattr(platform, "libc_ver", lambda: ("", ""))
+    assert resources.reuse_freed_memory() is False
+
+
 def test_benchmark_prints_the_cpu_it_ran_on(capsys):
     assert main(["benchmark", str(TINY), *FAST, "data.dataroot=/nonexistent", "--device", "cpu", "--runs", "1",
                  "--warmup", "0"]) == 0

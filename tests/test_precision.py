@@ -5,6 +5,7 @@ where a result is written."""
 
 from __future__ import annotations
 
+import copy
 import json
 import sys
 import warnings
@@ -13,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from efficientnet_pytorch.model import MBConvBlock
 
-from instagram_hdmap import Mapper
+from instagram_hdmap import Mapper, precision
 from instagram_hdmap.config import load_config
 from instagram_hdmap.precision import (
     Bf16Model,
@@ -50,10 +52,11 @@ def test_auto_picks_bf16_only_where_the_cpu_computes_it_natively():
         resolve_precision("int8", torch.device("cuda"))
 
 
-def test_the_folded_inference_copy_computes_the_same_function():
+def test_the_folded_inference_copy_computes_the_same_function(monkeypatch):
     """BatchNorm folded into the convolutions (with running statistics far from the identity), EfficientNet's
     static "same" paddings (symmetric and the asymmetric ones of its stride-2 convolutions) moved into them: the
-    outputs of the original model to float rounding, and the original left as it was."""
+    outputs of the original model to float rounding, also channels-last (the blocks' squeeze-and-excitation mean by
+    avg_pool2d there), and the original left as it was."""
     from instagram_hdmap.models import build_model
 
     cfg = load_config(REPO / "configs/synthetic/tiny.yaml", ["model.backbone.name=efficientnet-b0"])
@@ -69,11 +72,19 @@ def test_the_folded_inference_copy_computes_the_same_function():
     assert kinds(model, torch.nn.BatchNorm2d) > 20 and kinds(folded, torch.nn.BatchNorm2d) == 0
     assert kinds(folded, torch.nn.ZeroPad2d) == 0 < kinds(model, torch.nn.ZeroPad2d)
     assert any(m.kernel_size == (4, 4) for m in folded.modules() if isinstance(m, torch.nn.Conv2d))  # asymmetric
+    assert kinds(folded, precision._InferenceMBConv) == kinds(model, MBConvBlock) > 0
     batch = _rig_batch(cfg)
+    pooled = []  # the squeeze-and-excitation's mean: avg_pool2d where the activations are channels-last
+    avg_pool2d = torch.nn.functional.avg_pool2d
+    monkeypatch.setattr(precision.F, "avg_pool2d", lambda x, k: pooled.append(k) or avg_pool2d(x, k))
     with torch.no_grad():
         a, b = model(batch), folded(batch)
+        assert not pooled
+        c = copy.deepcopy(folded).to(memory_format=torch.channels_last)(batch)
+        assert len(pooled) == kinds(model, MBConvBlock)
     for key in ("pred_vertex_logits", "pred_distance"):
         assert torch.allclose(a[key], b[key], atol=1e-5, rtol=1e-4), key
+        assert torch.allclose(a[key], c[key], atol=1e-5, rtol=1e-4), key
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
 
 

@@ -40,7 +40,7 @@ from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, resolve_precision, with_precision
-from .resources import check_fits, cpu_capability
+from .resources import check_fits, cpu_capability, reuse_freed_memory
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
 DEFAULT_WARMUP = {"cuda": 10, "cpu": 2}
@@ -195,7 +195,10 @@ def _dtype_label(amp: str, precision: str | None) -> str:
 
 def _benchmark_model(cfg: ExperimentConfig, checkpoint, overrides, dev: torch.device, seed: int,
                      notes: list[str]) -> tuple[torch.nn.Module, ExperimentConfig]:
-    """The checkpoint's model (its notes added to ``notes``), or reproducible random weights."""
+    """The checkpoint's model (its notes added to ``notes``), or reproducible random weights. On the CPU, freed
+    blocks are kept for reuse, as inference keeps them (``resources.reuse_freed_memory``)."""
+    if dev.type == "cpu":
+        reuse_freed_memory()
     if checkpoint is not None:
         model, cfg, loaded = load_model(checkpoint, cfg, overrides, device=dev)
         notes += loaded

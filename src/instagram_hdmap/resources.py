@@ -325,6 +325,35 @@ def cpu_capability(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     return f"{have}; torch kernels: {level}"
 
 
+# glibc's mallopt parameters (malloc.h) and the values inference sets: blocks up to 1 GiB come from the heap, and up
+# to 2 GiB of free heap top is kept (mallopt takes a C int)
+M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
+REUSED_MEMORY = {M_MMAP_THRESHOLD: 1 << 30, M_TRIM_THRESHOLD: (1 << 31) - 1, M_TOP_PAD: 64 << 20}
+
+
+def reuse_freed_memory() -> bool:
+    """Have glibc's malloc keep the large blocks a forward frees, for the next forward to reuse: True where it
+    did (Linux with glibc), False elsewhere (another C library: nothing is changed).
+
+    By default glibc maps every block over 32 MiB afresh from the kernel and returns it when freed, so each
+    forward of a paper config faults in its BEV tensors (B4 at 200 x 400 cells: 80 MB each) page by page again:
+    10-20 % of a bf16 / int8 forward on the CPU (``benchmarks/model_speed.py``). With this, such blocks come
+    from the heap and stay there once freed. Process-wide, as the environment variables ``MALLOC_MMAP_THRESHOLD_``
+    / ``MALLOC_TRIM_THRESHOLD_`` / ``MALLOC_TOP_PAD_`` would set it: the process keeps the memory of its largest
+    forward instead of handing it back between forwards. Inference (``Mapper``, predict, evaluate, benchmark)
+    calls it on the CPU."""
+    import ctypes
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    return all(mallopt(param, value) == 1 for param, value in REUSED_MEMORY.items())
+
+
 def out_of_memory(e: BaseException) -> bool:
     """Whether ``e`` says that memory ran out: Python's (numpy's) ``MemoryError``, torch's CUDA
     ``OutOfMemoryError``, or the RuntimeError of torch's CPU allocator."""

@@ -135,21 +135,21 @@ def _sinkhorn_potentials_scaling(couplings: torch.Tensor, log_mu: torch.Tensor, 
     matrix-vector product instead of a log-sum-exp with an exp() of the whole matrix, ~10x less CPU
     time. u = log a - max C, v = log b are the log-space potentials (same iterates, in float64).
     Returns None when a scaling under- or overflows (scores spanning > ~700 in one sample); the
-    caller then runs the log-space iterations."""
+    caller then runs the log-space iterations.
+
+    A padded vertex gets a 1 on K's diagonal, 0 elsewhere in its row and column, and marginal 1: its scalings
+    stay 1 and never reach a real entry, so that each half-iteration is one product and one division."""
     pair = valid[:, :, None] & valid[:, None, :]
     c = couplings.double().masked_fill(~pair, -math.inf)
     peak = c.flatten(1).amax(1).clamp(min=-1e300)[:, None, None]  # [B, 1, 1]
-    kernel = (c - peak).exp()  # [B, N+1, N+1], 0 outside the valid block
+    kernel = (c - peak).exp() + torch.diag_embed((~valid).double())  # [B, N+1, N+1], 0 outside the valid block
     kernel_t = kernel.transpose(1, 2).contiguous()
     # row vectors [B, 1, N+1]: x^T M is MKL's fast batched product here (3x faster than M x)
-    mu = torch.where(valid, log_mu.double().exp(), torch.zeros_like(log_mu, dtype=torch.float64))[:, None, :]
-    one = torch.ones_like(mu)
-    row_valid = valid[:, None, :]
-    b = valid.double()[:, None, :]
-    a = b
+    mu = torch.where(valid, log_mu.double().exp(), torch.ones_like(log_mu, dtype=torch.float64))[:, None, :]
+    a = b = torch.ones_like(mu)
     for _ in range(iters):
-        a = mu / torch.where(row_valid, torch.bmm(b, kernel_t), one)  # (K b)^T = b^T K^T
-        b = mu / torch.where(row_valid, torch.bmm(a, kernel), one)  # (K^T a)^T = a^T K
+        a = mu / torch.bmm(b, kernel_t)  # (K b)^T = b^T K^T
+        b = mu / torch.bmm(a, kernel)  # (K^T a)^T = a^T K
     a, b = a[:, 0], b[:, 0]
     ok = torch.where(valid, (a > 0) & torch.isfinite(a) & (b > 0) & torch.isfinite(b), True)
     if not bool(ok.all()):

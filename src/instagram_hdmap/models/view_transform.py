@@ -100,13 +100,14 @@ def sum_pool(values: torch.Tensor, cells: torch.Tensor, num_cells: int) -> torch
     """Sum the values of the points that fall into the same cell (the LSS "splat").
 
     values [B, P, C], cells [B, P] int64 in [0, num_cells) or -1 (outside, dropped)
-    -> [B, num_cells, C]. One batched ``index_add`` (its gradient is a gather, exactly autograd's).
+    -> [B, num_cells, C]. One batched ``index_add_`` into fresh zeros (its gradient is a gather, exactly
+    autograd's); in place, since out of place it copies the zeros, a whole BEV grid, once more.
     """
     B, P, C = values.shape
     trash = B * num_cells  # one extra row collects the points outside the grid
     offset = torch.arange(B, device=cells.device)[:, None] * num_cells
     flat = torch.where(cells >= 0, cells + offset, torch.full_like(cells, trash))
-    out = values.new_zeros(trash + 1, C).index_add(0, flat.reshape(-1), values.reshape(B * P, C))
+    out = values.new_zeros(trash + 1, C).index_add_(0, flat.reshape(-1), values.reshape(B * P, C))
     return out[:trash].view(B, num_cells, C)
 
 
