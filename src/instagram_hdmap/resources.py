@@ -20,6 +20,8 @@ on this package's models (benchmarks/memory_estimate.py prints estimate against 
 (``memory_available``: a cgroup's limit, else the kernel's MemAvailable; on a GPU its free memory) and
 raises one ``UserError`` naming the key whose size dominates, before any data worker starts.
 ``data_workers(requested, samples)`` lowers ``data.num_workers`` to the usable cores and the samples.
+``cpu_flags`` / ``cpu_capability`` read the CPU's extensions; ``reuse_freed_memory`` has glibc keep the large blocks
+an inference forward frees for the next one.
 """
 
 from __future__ import annotations
