@@ -443,7 +443,7 @@ def test_bad_exports_are_one_line_errors(ort, world, checkpoint, exported, tmp_p
 @pytest.mark.slow
 def test_default_sinkhorn_iterations_export_with_parity(ort, tmp_path, monkeypatch):
     """The exported graph runs the log-space Sinkhorn iterations (what GPUs and tracing run); on the CPU
-    the eager model runs the same iterations in float64 scaling form, whose rounding differs by more
+    the eager model runs the same iterations in scaling form, whose rounding differs by more
     than the tolerance after 100 iterations on these sharp random scores: compare with the traced path."""
     from instagram_hdmap.models import matching
 

@@ -410,13 +410,16 @@ def test_implicit_sinkhorn_backward_survives_underflow_and_non_finite_scores():
         torch.testing.assert_close(s.grad[1:], alone.grad)
 
 
-@pytest.mark.parametrize("spread", [1.0, 6.0, 400.0])  # 400: beyond the scaling form's float64 range
-def test_cpu_scaling_sinkhorn_equals_the_log_space_iterations(spread):
-    """The CPU's float64 scaling-form iterations give the log-space iterations' potentials (same
-    iterates); where the scores span more than float64's exp() range they decline and the
-    log-space path runs."""
+@pytest.mark.parametrize(("spread", "route"), [(1.0, torch.float32), (6.0, torch.float64), (400.0, None)])
+def test_cpu_scaling_sinkhorn_equals_the_log_space_iterations(spread, route, monkeypatch):
+    """The CPU's scaling-form iterations give the log-space iterations' potentials (same iterates): in
+    float32 where the real scores span at most 40 (here ~6), in float64 where they span more (~200); where
+    they span more than float64's exp() range (~1e6) they decline and the log-space path runs."""
     from instagram_hdmap.models import matching
 
+    ran = []
+    iterations = matching._scaling_iterations
+    monkeypatch.setattr(matching, "_scaling_iterations", lambda c, *a: ran.append(c.dtype) or iterations(c, *a))
     gen = torch.Generator().manual_seed(4)
     scores = score_matrix(torch.randn(3, 20, 8, generator=gen) * spread)
     mask = torch.arange(20)[None] < torch.tensor([20, 11, 1])[:, None]
@@ -429,15 +432,37 @@ def test_cpu_scaling_sinkhorn_equals_the_log_space_iterations(spread):
     norm = -(2 * n).log()
     log_mu = torch.cat([norm[:, None].expand(B, N), (n.log() + norm)[:, None]], 1)
     scaled = matching._sinkhorn_potentials_scaling(couplings, log_mu, valid, 50)
-    if spread > 100:
-        assert scaled is None
+    if route is None:
+        assert scaled is None and ran == []
         return
+    assert ran == [route]
     logspace = matching._sinkhorn_potentials_inplace(couplings, log_mu, valid, 50)
     block = valid[:, :, None] & valid[:, None]
     z_s = couplings + scaled[0][:, :, None] + scaled[1][:, None, :]
     z_l = couplings + logspace[0][:, :, None] + logspace[1][:, None, :]
     torch.testing.assert_close(z_s[block], z_l[block], atol=2e-4, rtol=1e-5)
     assert (scaled[0][~valid] == matching.NEG_SCORE).all() and (scaled[1][~valid] == matching.NEG_SCORE).all()
+
+
+def test_cpu_scaling_sinkhorn_in_float32_that_fails_runs_again_in_float64(monkeypatch):
+    """A float32 scaling run whose scalings leave float32's range is not returned: the float64 run is."""
+    from instagram_hdmap.models import matching
+
+    ran = []
+    iterations = matching._scaling_iterations
+
+    def flaky(c, *args):
+        ran.append(c.dtype)
+        return None if c.dtype == torch.float32 else iterations(c, *args)
+
+    monkeypatch.setattr(matching, "_scaling_iterations", flaky)
+    couplings = torch.tensor([[[0.0, -1.0, 0.5], [-2.0, matching.NEG_SCORE, 0.5], [0.5, 0.5, 0.5]]])
+    valid = torch.ones(1, 3, dtype=torch.bool)
+    log_mu = torch.tensor([[-1.4, -1.4, -0.7]])
+    out = matching._sinkhorn_potentials_scaling(couplings, log_mu, valid, 20)
+    assert ran == [torch.float32, torch.float64]
+    expected = matching._sinkhorn_potentials_inplace(couplings, log_mu, valid, 20)
+    torch.testing.assert_close(out[0] + out[1][:, :1], expected[0] + expected[1][:, :1], atol=1e-4, rtol=1e-5)
 
 
 def test_floored_cpu_logsumexp_matches_torch_on_confident_and_padded_rows():
