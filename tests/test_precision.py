@@ -88,6 +88,35 @@ def test_the_folded_inference_copy_computes_the_same_function(monkeypatch):
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
 
 
+def test_the_bf16_copy_attends_as_the_fused_kernel_does():
+    """The bf16 copy's GNN layers take their attention as two products around a softmax with the key mask as a
+    bias: scaled_dot_product_attention's function, padded keys ignored, in float32 to rounding and in bfloat16
+    close to float32."""
+    from instagram_hdmap.models import build_model
+    from instagram_hdmap.models.gnn import AttentionalPropagation
+
+    cfg = load_config(REPO / "configs/synthetic/tiny.yaml")
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    half = precision.Bf16Model(model)
+    layers = sum(isinstance(m, AttentionalPropagation) for m in model.modules())
+    assert sum(type(m) is precision._Bf16Attention for m in half.modules()) == layers == cfg.model.gnn.layers
+    layer = AttentionalPropagation(32, 4).eval()
+    fast = copy.deepcopy(layer)
+    fast.__class__ = precision._Bf16Attention
+    g = torch.randn(2, 10, 32)
+    keys = (torch.arange(10)[None] < torch.tensor([10, 6])[:, None])[:, None, None, :]
+    with torch.no_grad():
+        expected = layer(g, keys)
+        torch.testing.assert_close(fast(g, keys), expected, atol=1e-5, rtol=1e-5)
+        moved = g.clone()
+        moved[1, 6:] = 100.0  # what a padded key holds never reaches a real vertex
+        torch.testing.assert_close(fast(moved, keys)[1, :6], expected[1, :6], atol=1e-5, rtol=1e-5)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = fast(g, keys).float()
+    assert (low - expected).abs().max() <= 0.05 * expected.abs().max()
+
+
 def _rig_batch(cfg, seed: int = 0) -> dict:
     sys.path.insert(0, str(REPO / "benchmarks"))
     from model_speed import example_batch
