@@ -6,6 +6,7 @@
     python benchmarks/model_speed.py --precision fp32     # our fp32 alone (default: fp32, bf16 and int8;
                                                           # bf16 only where the CPU has it natively)
     python benchmarks/model_speed.py --device cuda        # + GPU latency / FPS, fp32 and bf16 autocast
+    python benchmarks/model_speed.py --official OFFICIAL --compile-backbone  # + each precision, backbone compiled
 
 Each component is timed by calling the model's parts in the order of ``InstaGraM.forward`` (backbone,
 view transform, BEV heads, then the graph head's vertex extraction, embedding + GNN + class head,
@@ -35,6 +36,7 @@ import torch.nn.functional as F
 
 from instagram_hdmap.benchmark import time_runs
 from instagram_hdmap.config import load_config
+from instagram_hdmap.deploy import compile_backbone
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
@@ -126,19 +128,20 @@ def time_interleaved(fns: dict[str, Callable[[], object]], runs: int, warmup: in
 
 def _table(columns: dict[str, dict[str, float]], official: dict[str, dict[str, float]] | None = None) -> str:
     names = list(next(iter(columns.values())))
-    width = max(len(n) for n in [*names, "ours bf16 / official forward"]) + 2
-    lines = [f"{'ms (median)':<{width}}" + "".join(f"{c:>22}" for c in columns)]
-    lines += [f"{n:<{width}}" + "".join(f"{col[n]:>22.1f}" for col in columns.values()) for n in names]
+    width = max(len(n) for n in [*names, "ours int8+cb / official forward"]) + 2
+    cw = max(22, *(len(c) + 2 for c in columns))
+    lines = [f"{'ms (median)':<{width}}" + "".join(f"{c:>{cw}}" for c in columns)]
+    lines += [f"{n:<{width}}" + "".join(f"{col[n]:>{cw}.1f}" for col in columns.values()) for n in names]
     if official:
         ours = [k for k in next(iter(official.values())) if k.startswith("ours ")]
         rows = [(f"{k} + decoding, interleaved", k) for k in ours] + [("official forward, interleaved", "official")]
         for label, key in rows:
-            lines.append(f"{label:<{width}}" + "".join(f"{official[c][key]:>22.1f}" for c in official))
+            lines.append(f"{label:<{width}}" + "".join(f"{official[c][key]:>{cw}.1f}" for c in official))
         for key in ours:
             lines.append(f"{key + ' / official forward':<{width}}"
-                         + "".join(f"{official[c][key] / official[c]['official']:>22.3f}" for c in official))
+                         + "".join(f"{official[c][key] / official[c]['official']:>{cw}.3f}" for c in official))
         lines.append(f"{'official parameters':<{width}}"
-                     + "".join(f"{official[c]['params_m']:>21.2f}M" for c in official))
+                     + "".join(f"{official[c]['params_m']:>{cw - 1}.2f}M" for c in official))
     return "\n".join(lines)
 
 
@@ -176,8 +179,11 @@ def run_cpu(args: argparse.Namespace) -> None:
         batch = example_batch(cfg.data.image_size, cpu)
         # int8 calibrates on the timed batch (random weights and images: only its speed is measured here)
         models = {p: with_precision(fp32, p, [batch] if p == "int8" else None) for p in dict.fromkeys(precisions)}
+        if args.compile_backbone:  # each precision again with its backbone compiled (compiles in the warm-up call)
+            models.update({f"{p}+cb": compile_backbone(with_precision(fp32, p, [batch] if p == "int8" else None))
+                           for p in dict.fromkeys(precisions)})
         for p, model in models.items():
-            columns[f"{name} {p}"] = _components(model, p, batch, args.runs)
+            columns[f"{name} {p}"] = _components(model, p.removesuffix("+cb"), batch, args.runs)
         if code is not None:
             grid = BEVGrid.from_config(cfg.grid)
             decode = decode_options(cfg.model.gnn, grid)
@@ -232,6 +238,9 @@ def main() -> None:
     parser.add_argument("--precision", nargs="+", choices=PRECISIONS,
                         help="CPU: the precisions of our model to time (precision.py; default fp32 bf16 int8, "
                              "bf16 only where the CPU computes it natively)")
+    parser.add_argument("--compile-backbone", action="store_true",
+                        help="CPU: also time each precision with its image backbone compiled (deploy.compile_backbone; "
+                             "'+cb' in the column names; each compiles in its warm-up call, tens of seconds)")
     parser.add_argument("--official", metavar="DIR",
                         help="a local checkout of the official InstaGraM code: time its model too (CPU only)")
     args = parser.parse_args()

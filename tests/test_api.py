@@ -203,6 +203,20 @@ def test_stream_carries_the_models_memory_and_resets(mapper, sample):
         (None, True), (1.0, False), (2.0, False), (None, True)]
 
 
+def test_a_mapper_with_its_backbone_compiled_maps_as_the_eager_one(checkpoint, sample, mapper):
+    """``compile_backbone=True``: the image backbone through torch.compile (deploy.compile_backbone), the same map."""
+    from instagram_hdmap.deploy import CompiledBackbone
+
+    fast = Mapper.from_checkpoint(checkpoint, "cpu", compile_backbone=True)
+    assert isinstance(fast.model.backbone, CompiledBackbone) and not isinstance(mapper.model.backbone, CompiledBackbone)
+    inputs = {k: sample[k] for k in ("images", "intrinsics", "cam_to_ego")}
+    got, expected = _as_list(fast(**inputs)), _as_list(mapper(**inputs))
+    assert fast.model.backbone.compiled is not None and expected  # it compiled (no fallback to eager), it maps
+    assert [(e["type"], len(e["pts"])) for e in got] == [(e["type"], len(e["pts"])) for e in expected]
+    for a, b in zip(got, expected):
+        np.testing.assert_allclose(a["pts"], b["pts"], atol=1e-3)
+
+
 def test_decoding_options_and_their_errors(checkpoint, sample):
     loose = Mapper.from_checkpoint(checkpoint, "cpu", match_threshold=0.01, min_vertices=3)
     assert loose.config.model.gnn.match_threshold == 0.01 and loose.decode_options["min_vertices"] == 3

@@ -498,3 +498,53 @@ def test_benchmark_prints_the_cpu_it_ran_on(capsys):
                  "--warmup", "0"]) == 0
     out = capsys.readouterr().out
     assert f"cpu:         {resources.cpu_capability()} (decoding runs on it)" in out and "dtype:       float32" in out
+
+
+def test_a_compiled_backbone_computes_the_eager_backbones_function():
+    """``compile_backbone`` compiles the image backbone of an inference model in place (inside a precision
+    wrapper, not on it): the first forward compiles, the outputs are the eager model's to float rounding."""
+    from instagram_hdmap.precision import Bf16Model, fold_batchnorm
+
+    cfg = load_config(TINY, FAST)
+    model = fold_batchnorm(random_model(cfg))
+    batch = batch_for(cfg, 0)
+    with torch.no_grad():
+        expected = model(batch)
+    compiled = deploy.compile_backbone(fold_batchnorm(model))
+    assert isinstance(compiled.backbone, deploy.CompiledBackbone)
+    with torch.no_grad():
+        got = compiled(batch)
+    assert compiled.backbone.compiled is not None  # compiled, not fallen back to eager
+    for key in ("pred_vertex_logits", "pred_distance"):
+        torch.testing.assert_close(got[key], expected[key], atol=1e-4, rtol=1e-4)
+    wrapped = Bf16Model(model)
+    assert deploy.compile_backbone(wrapped) is wrapped and "backbone" not in wrapped._modules
+    assert isinstance(wrapped.model.backbone, deploy.CompiledBackbone)
+    with pytest.raises(deploy.DeployError, match="has no image backbone"):
+        deploy.compile_backbone(torch.nn.Linear(2, 2))
+
+
+def test_a_backbone_that_fails_to_compile_warns_once_and_runs_eagerly(monkeypatch):
+    """No C++ compiler, an inductor error: one warning naming the failure, then the eager backbone."""
+    cfg = load_config(TINY, FAST)
+    model = random_model(cfg).eval()
+    batch = batch_for(cfg, 0)
+    with torch.no_grad():
+        expected = model(batch)
+
+    def failing(module, **kwargs):
+        def run(*args):
+            raise RuntimeError("C++ compile error\nlong log")
+        return run
+
+    monkeypatch.setattr(deploy.torch, "compile", failing)
+    deploy.compile_backbone(model)
+    with pytest.warns(UserWarning, match=r"torch.compile failed \(RuntimeError: C\+\+ compile error\); the backbone"):
+        first = model(batch)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        second = model(batch)
+    for got in (first, second):
+        torch.testing.assert_close(got["pred_vertex_logits"], expected["pred_vertex_logits"])

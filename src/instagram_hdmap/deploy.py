@@ -380,3 +380,45 @@ def fast_forward(model: nn.Module, example: dict[str, torch.Tensor], *, compile:
     if cuda_graphs:
         return CUDAGraphRunner(forward, example)
     return forward
+
+
+class CompiledBackbone(nn.Module):
+    """An inference model's image backbone run through ``torch.compile`` (inductor, weight freezing: the weights
+    become constants of generated kernels that fuse each convolution's activation and the squeeze-and-excitation
+    arithmetic). The first forward compiles (tens of seconds for an EfficientNet; again for another input shape,
+    dtype or autocast state); a compilation that fails (no C++ compiler, an inductor error) warns once and the
+    backbone runs eagerly from then on. Inference only: the forward runs without autograd."""
+
+    def __init__(self, backbone: nn.Module):
+        super().__init__()
+        self.backbone = backbone
+        self.compiled: Callable | None = torch.compile(backbone, dynamic=False)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        import torch._inductor.config as inductor_config
+
+        with torch.no_grad():
+            if self.compiled is not None:
+                try:
+                    with inductor_config.patch(freezing=True):
+                        return self.compiled(images)
+                except Exception as e:  # any backend failure: the eager backbone computes the same function
+                    self.compiled = None
+                    warnings.warn(f"compile_backbone: torch.compile failed ({type(e).__name__}: "
+                                  f"{str(e).strip().splitlines()[0][:200] if str(e).strip() else ''}); the backbone "
+                                  "runs eagerly", stacklevel=2)
+            return self.backbone(images)
+
+
+def compile_backbone(model: nn.Module) -> nn.Module:
+    """``model`` (an inference model: eval mode, e.g. ``precision.with_precision``'s) with its image backbone as a
+    ``CompiledBackbone``, in place; the rest stays eager (the whole model compiled, ``fast_forward(compile=True)``,
+    took minutes to compile and ran slower on the CPU: docs/deploy.md). Returns ``model``."""
+    inner = model
+    while "backbone" not in inner._modules and isinstance(inner._modules.get("model"), nn.Module):
+        inner = inner._modules["model"]  # Bf16Model / Int8Model wrap the inference copy (and read its attributes)
+    if "backbone" not in inner._modules:
+        raise DeployError(f"compile_backbone: {type(model).__name__} has no image backbone")
+    if not isinstance(inner.backbone, CompiledBackbone):
+        inner.backbone = CompiledBackbone(inner.backbone.eval())
+    return model

@@ -39,6 +39,7 @@ from .data import rig_cameras
 from .data.base import camera_heading_problem
 from .data.rig import RigError, camera_named_by, check_calibration, check_upright
 from .data.transforms import ImageError, load_image, prepare_image
+from .deploy import compile_backbone as compile_image_backbone
 from .distributed import resolve_device
 from .evaluation.io import polylines_to_vectors, submission
 from .geometry import BEVGrid
@@ -347,11 +348,14 @@ class Mapper:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device | None = None, *,
-                        overrides: Sequence[str] = (), precision: str = "fp32", **decode_overrides) -> Mapper:
+                        overrides: Sequence[str] = (), precision: str = "fp32", compile_backbone: bool = False,
+                        **decode_overrides) -> Mapper:
         """The model of a ``train`` checkpoint, built from the config saved in it. ``device``: "cpu", "cuda", a
         ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8 (calibrated on
         the saved config's training samples, CPU only) or auto (bf16 where the device computes it natively, fp32
-        elsewhere; precision.py). ``decode_overrides``: decoding options (``DECODE_OPTIONS``, e.g.
+        elsewhere; precision.py). ``compile_backbone``: the image backbone through ``torch.compile``
+        (``deploy.compile_backbone``: the first frame compiles it, tens of seconds; then a faster backbone on the
+        CPU). ``decode_overrides``: decoding options (``DECODE_OPTIONS``, e.g.
         ``match_threshold=0.05``); ``overrides``: dotted config keys (``"model.gnn.num_vertices=600"``). Weights that
         do not fit (another architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""
         config = decode_overrides.pop("config", None)
@@ -371,6 +375,8 @@ class Mapper:
         chosen, notes = resolve_precision(precision, dev, flag="precision")
         calibration = calibration_batches(cfg, device=dev, flag="precision") if chosen == "int8" else None
         model = with_precision(load_weights(build_model(cfg), state, path).eval().to(dev), chosen, calibration)
+        if compile_backbone:
+            model = compile_image_backbone(model)
         for note in notes:
             warnings.warn(note, stacklevel=2)
         return cls(model, cfg, device=dev, source=f"checkpoint {path}", notes=notes)
