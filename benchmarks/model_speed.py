@@ -36,12 +36,11 @@ import torch.nn.functional as F
 
 from instagram_hdmap.benchmark import time_runs
 from instagram_hdmap.config import load_config
-from instagram_hdmap.deploy import compile_backbone
 from instagram_hdmap.geometry import BEVGrid
 from instagram_hdmap.models import build_model
 from instagram_hdmap.models.view_transform import CALIBRATION_KEYS
 from instagram_hdmap.postprocess import decode_options, postprocess_batch
-from instagram_hdmap.precision import PRECISIONS, native_bf16, resolve_precision, with_precision
+from instagram_hdmap.precision import PRECISIONS, compile_backbone, native_bf16, resolve_precision, with_precision
 from instagram_hdmap.resources import cpu_capability, reuse_freed_memory
 
 CPU_CONFIGS = ["configs/paper/table1_b0_lss_128x352.yaml", "configs/paper/table1_b4_lss_128x352.yaml"]
@@ -239,7 +238,7 @@ def main() -> None:
                         help="CPU: the precisions of our model to time (precision.py; default fp32 bf16 int8, "
                              "bf16 only where the CPU computes it natively)")
     parser.add_argument("--compile-backbone", action="store_true",
-                        help="CPU: also time each precision with its image backbone compiled (deploy.compile_backbone; "
+                        help="CPU: also time each precision with its image backbone compiled (compile_backbone; "
                              "'+cb' in the column names; each compiles in its warm-up call, tens of seconds)")
     parser.add_argument("--official", metavar="DIR",
                         help="a local checkout of the official InstaGraM code: time its model too (CPU only)")

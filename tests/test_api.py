@@ -204,8 +204,8 @@ def test_stream_carries_the_models_memory_and_resets(mapper, sample):
 
 
 def test_a_mapper_with_its_backbone_compiled_maps_as_the_eager_one(checkpoint, sample, mapper):
-    """``compile_backbone=True``: the image backbone through torch.compile (deploy.compile_backbone), the same map."""
-    from instagram_hdmap.deploy import CompiledBackbone
+    """``compile_backbone=True``: the backbone through torch.compile (precision.compile_backbone), the same map."""
+    from instagram_hdmap.precision import CompiledBackbone
 
     fast = Mapper.from_checkpoint(checkpoint, "cpu", compile_backbone=True)
     assert isinstance(fast.model.backbone, CompiledBackbone) and not isinstance(mapper.model.backbone, CompiledBackbone)

@@ -277,3 +277,70 @@ def test_train_amp_auto_is_bf16_only_where_the_device_computes_it_natively():
     assert amp == "bf16" and "emulated, slower than float32" in note
     assert training_amp("bf16", CPU, {"avx512_bf16"}) == ("bf16", None)
     assert training_amp("none", CPU, set()) == ("none", None)
+
+
+TINY = REPO / "configs/synthetic/tiny.yaml"
+FAST = ["model.gnn.sinkhorn_iters=5", "model.gnn.num_vertices=128"]
+
+
+def random_model(cfg, seed: int = 0):
+    from instagram_hdmap.models import build_model
+
+    torch.manual_seed(seed)
+    return build_model(cfg).eval()
+
+
+def batch_for(cfg, seed: int) -> dict:
+    from instagram_hdmap.deploy import example_inputs
+
+    return example_inputs(cfg, seed)
+
+
+def test_a_compiled_backbone_computes_the_eager_backbones_function():
+    """``compile_backbone`` compiles the image backbone of an inference model in place (inside a precision
+    wrapper, not on it): the first forward compiles, the outputs are the eager model's to float rounding."""
+    cfg = load_config(TINY, FAST)
+    model = fold_batchnorm(random_model(cfg))
+    batch = batch_for(cfg, 0)
+    with torch.no_grad():
+        expected = model(batch)
+    compiled = precision.compile_backbone(fold_batchnorm(model))
+    assert isinstance(compiled.backbone, precision.CompiledBackbone)
+    assert sorted(compiled.state_dict()) == sorted(k.replace("backbone.", "backbone.backbone.", 1)
+                                                   for k in model.state_dict())  # each weight once
+    with torch.no_grad():
+        got = compiled(batch)
+    assert compiled.backbone.compiled is not None  # compiled, not fallen back to eager
+    for key in ("pred_vertex_logits", "pred_distance"):
+        torch.testing.assert_close(got[key], expected[key], atol=1e-4, rtol=1e-4)
+    wrapped = Bf16Model(model)
+    assert precision.compile_backbone(wrapped) is wrapped and "backbone" not in wrapped._modules
+    assert isinstance(wrapped.model.backbone, precision.CompiledBackbone)
+    with pytest.raises(PrecisionError, match="has no image backbone"):
+        precision.compile_backbone(torch.nn.Linear(2, 2))
+
+
+def test_a_backbone_that_fails_to_compile_warns_once_and_runs_eagerly(monkeypatch):
+    """No C++ compiler, an inductor error: one warning naming the failure, then the eager backbone."""
+    import warnings
+
+    cfg = load_config(TINY, FAST)
+    model = random_model(cfg).eval()
+    batch = batch_for(cfg, 0)
+    with torch.no_grad():
+        expected = model(batch)
+
+    def failing(module, **kwargs):
+        def run(*args):
+            raise RuntimeError("C++ compile error\nlong log")
+        return run
+
+    monkeypatch.setattr(precision.torch, "compile", failing)
+    precision.compile_backbone(model)
+    with pytest.warns(UserWarning, match=r"torch.compile failed \(RuntimeError: C\+\+ compile error\); the backbone"):
+        first = model(batch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        second = model(batch)
+    for got in (first, second):
+        torch.testing.assert_close(got["pred_vertex_logits"], expected["pred_vertex_logits"])

@@ -39,7 +39,6 @@ from .data import rig_cameras
 from .data.base import camera_heading_problem
 from .data.rig import RigError, camera_named_by, check_calibration, check_upright
 from .data.transforms import ImageError, load_image, prepare_image
-from .deploy import compile_backbone as compile_image_backbone
 from .distributed import resolve_device
 from .evaluation.io import polylines_to_vectors, submission
 from .geometry import BEVGrid
@@ -49,6 +48,7 @@ from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, precision_of, resolve_precision, with_precision
+from .precision import compile_backbone as compile_image_backbone
 
 # PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
 # truncates 0..1 values to 0
@@ -354,7 +354,7 @@ class Mapper:
         ``torch.device`` or None (CUDA when available). ``precision``: fp32 (the default), bf16, int8 (calibrated on
         the saved config's training samples, CPU only) or auto (bf16 where the device computes it natively, fp32
         elsewhere; precision.py). ``compile_backbone``: the image backbone through ``torch.compile``
-        (``deploy.compile_backbone``: the first frame compiles it, tens of seconds; then a faster backbone on the
+        (``precision.compile_backbone``: the first frame compiles it, tens of seconds; then a faster backbone on the
         CPU). ``decode_overrides``: decoding options (``DECODE_OPTIONS``, e.g.
         ``match_threshold=0.05``); ``overrides``: dotted config keys (``"model.gnn.num_vertices=600"``). Weights that
         do not fit (another architecture, an override of a layer size) are a ``CheckpointError`` naming the keys."""

@@ -20,6 +20,10 @@ convolutions of EfficientNet fall back to one slow convolution per channel group
 or AMX-BF16, or ARM's BF16, read from its flags, never assumed) and fp32 elsewhere, and says what it chose; it never
 picks int8, which needs training samples. Forcing bf16 on a CPU without native bf16 works (torch emulates it) but
 is slower than fp32: a note says so; int8 there says that its float part runs in float32.
+
+``compile_backbone(model)`` (``Mapper.from_checkpoint(..., compile_backbone=True)``) runs such a model's image
+backbone through ``torch.compile`` with inductor's weight freezing, the rest eager: on the CPU the part that gains
+(docs/deploy.md, "Fast torch paths").
 """
 
 from __future__ import annotations
@@ -372,3 +376,47 @@ def with_precision(model: nn.Module, precision: str, calibration: list[dict] | N
 def precision_of(model: nn.Module) -> str:
     """The precision ``model`` runs in: int8 for an ``Int8Model``, bf16 for a ``Bf16Model``, else fp32."""
     return "int8" if isinstance(model, Int8Model) else "bf16" if isinstance(model, Bf16Model) else "fp32"
+
+
+class CompiledBackbone(nn.Module):
+    """An inference model's image backbone run through ``torch.compile`` (inductor, weight freezing: the weights
+    become constants of generated kernels that fuse each convolution's activation and the squeeze-and-excitation
+    arithmetic). The first forward compiles (tens of seconds for an EfficientNet; again for another input shape,
+    dtype or autocast state); a compilation that fails (no C++ compiler, an inductor error) warns once and the
+    backbone runs eagerly from then on. Inference only: the forward runs without autograd."""
+
+    def __init__(self, backbone: nn.Module):
+        super().__init__()
+        self.backbone = backbone
+        # not a submodule (torch.compile's wrapper is a Module): the weights stay listed once, under backbone.*
+        object.__setattr__(self, "compiled", torch.compile(backbone, dynamic=False))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        import torch._inductor.config as inductor_config
+
+        with torch.no_grad():
+            if self.compiled is not None:
+                try:
+                    with inductor_config.patch(freezing=True):
+                        return self.compiled(images)
+                except Exception as e:  # any backend failure: the eager backbone computes the same function
+                    self.compiled = None
+                    warnings.warn(f"compile_backbone: torch.compile failed ({type(e).__name__}: "
+                                  f"{str(e).strip().splitlines()[0][:200] if str(e).strip() else ''}); the backbone "
+                                  "runs eagerly", stacklevel=2)
+            return self.backbone(images)
+
+
+def compile_backbone(model: nn.Module) -> nn.Module:
+    """``model`` (an inference model: eval mode, e.g. ``with_precision``'s) with its image backbone as a
+    ``CompiledBackbone``, in place; the rest stays eager (the whole model compiled,
+    ``deploy.fast_forward(compile=True)``, took minutes to compile and ran slower on the CPU: docs/deploy.md).
+    Returns ``model``."""
+    inner = model
+    while "backbone" not in inner._modules and isinstance(inner._modules.get("model"), nn.Module):
+        inner = inner._modules["model"]  # Bf16Model / Int8Model wrap the inference copy (and read its attributes)
+    if "backbone" not in inner._modules:
+        raise PrecisionError(f"compile_backbone: {type(model).__name__} has no image backbone")
+    if not isinstance(inner.backbone, CompiledBackbone):
+        inner.backbone = CompiledBackbone(inner.backbone.eval())
+    return model
