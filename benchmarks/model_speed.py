@@ -177,10 +177,12 @@ def run_cpu(args: argparse.Namespace) -> None:
         name = cfg.model.backbone.name
         batch = example_batch(cfg.data.image_size, cpu)
         # int8 calibrates on the timed batch (random weights and images: only its speed is measured here)
-        models = {p: with_precision(fp32, p, [batch] if p == "int8" else None) for p in dict.fromkeys(precisions)}
+        def as_run(p: str, model=fp32, batch=batch):
+            return with_precision(model, p, [batch] if p == "int8" else None)
+
+        models = {p: as_run(p) for p in dict.fromkeys(precisions)}
         if args.compile_backbone:  # each precision again with its backbone compiled (compiles in the warm-up call)
-            models.update({f"{p}+cb": compile_backbone(with_precision(fp32, p, [batch] if p == "int8" else None))
-                           for p in dict.fromkeys(precisions)})
+            models.update({f"{p}+cb": compile_backbone(as_run(p)) for p in dict.fromkeys(precisions)})
         for p, model in models.items():
             columns[f"{name} {p}"] = _components(model, p.removesuffix("+cb"), batch, args.runs)
         if code is not None:

@@ -212,17 +212,14 @@ class _Bf16Attention(AttentionalPropagation):
     AVX512-BF16). The same function; its probabilities are rounded to bfloat16 where the fused kernel keeps them
     in float32 (the outputs' mean difference from float32 1.4x the kernel's). On a GPU, the fused kernel runs."""
 
-    def forward(self, g: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
-        if not g.is_cpu:
-            return super().forward(g, attn_mask)
-        q, k, v = self.qkv(g).unflatten(-1, (3, self.heads, -1)).permute(2, 0, 3, 1, 4)  # 3 x [B, h, N, D/h]
+    def attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
+        if not q.is_cpu:
+            return super().attend(q, k, v, attn_mask)
         B, h, N, d = q.shape
         bias = torch.zeros(attn_mask.shape, dtype=q.dtype, device=q.device).masked_fill_(~attn_mask, -math.inf)
         scores = torch.baddbmm(bias.expand(B, h, 1, N).reshape(B * h, 1, N), q.reshape(B * h, N, d),
                                k.reshape(B * h, N, d).transpose(1, 2), alpha=d ** -0.5)  # [B h, N, N]
-        message = torch.bmm(scores.softmax(-1), v.reshape(B * h, N, d)).view(B, h, N, d)
-        message = self.merge(message.transpose(1, 2).flatten(2))
-        return self.mlp(torch.cat([g, message], dim=-1))
+        return torch.bmm(scores.softmax(-1), v.reshape(B * h, N, d)).view(B, h, N, d)
 
 
 def _in_bf16(model: nn.Module) -> nn.Module:
@@ -401,9 +398,9 @@ class CompiledBackbone(nn.Module):
                         return self.compiled(images)
                 except Exception as e:  # any backend failure: the eager backbone computes the same function
                     self.compiled = None
-                    warnings.warn(f"compile_backbone: torch.compile failed ({type(e).__name__}: "
-                                  f"{str(e).strip().splitlines()[0][:200] if str(e).strip() else ''}); the backbone "
-                                  "runs eagerly", stacklevel=2)
+                    first_line = (str(e).strip().splitlines() or [""])[0][:200]
+                    warnings.warn(f"compile_backbone: torch.compile failed ({type(e).__name__}: {first_line}); the "
+                                  "backbone runs eagerly", stacklevel=2)
             return self.backbone(images)
 
 

@@ -61,9 +61,12 @@ class AttentionalPropagation(nn.Module):
     def forward(self, g: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
         """g [B, N, D], attn_mask [B, 1, 1, N] bool (True = may attend) -> update [B, N, D]."""
         q, k, v = self.qkv(g).unflatten(-1, (3, self.heads, -1)).permute(2, 0, 3, 1, 4)  # 3 x [B, h, N, D/h]
-        message = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)  # [B, h, N, D/h]
-        message = self.merge(message.transpose(1, 2).flatten(2))
+        message = self.merge(self.attend(q, k, v, attn_mask).transpose(1, 2).flatten(2))
         return self.mlp(torch.cat([g, message], dim=-1))
+
+    def attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
+        """Masked multi-head attention: q, k, v [B, h, N, D/h], attn_mask [B, 1, 1, N] -> [B, h, N, D/h]."""
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
 
 
 class AttentionalGNN(nn.Module):
