@@ -222,6 +222,22 @@ def test_the_precision_is_chosen_and_recorded_where_results_are_written(trained,
     assert json.loads((tmp_path / "e" / "metrics.json").read_text())["meta"]["precision"] == "bf16"
 
 
+def test_evaluate_with_the_backbone_compiled_scores_as_the_eager_backbone(trained, tmp_path):
+    """``evaluate --compile-backbone`` (``run_evaluation(compile_backbone=True)``): the image backbone through
+    torch.compile, the same AP as the eager backbone's, and the metrics say that it was compiled."""
+    from instagram_hdmap.evaluate_split import run_evaluation
+
+    ckpt, cfg, _ = trained
+    eager = run_evaluation(cfg, ckpt, "vector", tmp_path / "eager")["metrics"]
+    result = run_evaluation(cfg, ckpt, "vector", tmp_path / "compiled", compile_backbone=True)
+    compiled = json.loads((tmp_path / "compiled" / "metrics.json").read_text())
+    assert compiled["meta"]["compile_backbone"] is True and eager["meta"]["compile_backbone"] is False
+    assert any("torch.compile" in n for n in result["notes"])
+    assert eager["mAP"] > 0  # a model that maps something
+    for name, ap in eager["AP_class"].items():  # float rounding of the fused kernels moves no element
+        assert compiled["AP_class"][name] == pytest.approx(ap, abs=0.01)
+
+
 def test_int8_needs_training_samples(trained, tmp_path):
     import dataclasses
 

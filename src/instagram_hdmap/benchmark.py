@@ -40,6 +40,7 @@ from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, resolve_precision, with_precision
+from .precision import compile_backbone as compile_image_backbone
 from .resources import check_fits, cpu_capability, reuse_freed_memory
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
@@ -230,6 +231,7 @@ def run_benchmark(
     compile: bool = False,
     cuda_graphs: bool = False,
     precision: str | None = None,
+    compile_backbone: bool = False,
 ) -> dict:
     """Time the model (and model + post-processing) on batch 1 with six cameras; see the module docstring.
     ``precision`` (fp32, bf16, int8, auto; precision.py): the model as inference runs it (``with_precision``),
@@ -239,7 +241,12 @@ def run_benchmark(
     default to 50 / 10 on a GPU and 10 / 2 on the CPU. Returns a dict of settings and per-row
     statistics (``median_ms``, ``p10_ms``, ``p90_ms``, ``fps``). ``compile`` / ``cuda_graphs``: time
     ``deploy.fast_forward`` (``torch.compile``, compiled before the warm-up; CUDA-graph replay).
+    ``compile_backbone``: only the image backbone through ``torch.compile`` (``precision.compile_backbone``, as
+    ``Mapper`` and ``evaluate --compile-backbone`` run it; it compiles in the first warm-up run).
     """
+    if compile_backbone and compile:
+        raise BenchmarkError("--compile compiles the whole model, the image backbone included; --compile-backbone "
+                             "compiles the backbone alone: give one of them")
     dev, runs, warmup = _checked_settings(cfg, device, amp, runs, warmup)
     precision, notes = _precision_of(precision, amp, dev)
     model, cfg = _benchmark_model(cfg, checkpoint, overrides, dev, seed, notes)
@@ -248,6 +255,8 @@ def run_benchmark(
     rig, rig_source = benchmark_rig(cfg)
     batch = _random_batch(model, cfg, rig, dev, seed, notes)
     model = _in_precision(model, cfg, precision, checkpoint, batch)
+    if compile_backbone:
+        model = compile_image_backbone(model)
     h, w = cfg.data.image_size
     V = rig["intrinsics"].shape[0]
     decode = decode_options(cfg.model.gnn, grid)
@@ -282,7 +291,8 @@ def run_benchmark(
         "device": device_name(dev),
         "cpu": cpu_capability(),
         "dtype": _dtype_label(amp, precision)
-        + "".join(f", {name}" for name, on in (("torch.compile", compile), ("CUDA graph", cuda_graphs)) if on),
+        + "".join(f", {name}" for name, on in (("torch.compile", compile), ("backbone compiled", compile_backbone),
+                                               ("CUDA graph", cuda_graphs)) if on),
         "threads": torch.get_num_threads(),
         "batch": f"1 x {V} cameras x {h}x{w}",
         "backbone": cfg.model.backbone.name,

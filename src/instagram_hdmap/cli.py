@@ -218,7 +218,7 @@ def _load_evaluate(args: argparse.Namespace):
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     result = run_evaluation(_load_evaluate(args), args.checkpoint, args.protocol, args.out, overrides=args.overrides,
-                            precision=args.precision)
+                            precision=args.precision, compile_backbone=args.compile_backbone)
     if not result["paths"]:  # not rank 0 under torchrun
         return 0
     metrics = result["metrics"]
@@ -257,7 +257,7 @@ def _cmd_predict(args: argparse.Namespace) -> int:
         result = predict_video(_load(args), args.video, args.scene, checkpoint=args.checkpoint, onnx=args.onnx,
                                gt_as_prediction=args.gt_as_prediction, split=args.split, overrides=args.overrides,
                                fps=args.fps if args.fps is not None else 2.0, progress=sys.stderr.isatty(),
-                               precision=args.precision)
+                               precision=args.precision, compile_backbone=args.compile_backbone)
         _print_notes(result["notes"])
         print(f"scene {result['scene']} (split '{result['split']}'): {result['frames']} frames, {result['tracks']} "
               f"tracked elements; wrote {result['video']} and {result['predictions']}")
@@ -269,7 +269,7 @@ def _cmd_predict(args: argparse.Namespace) -> int:
                         "pictures have none: drop --fps")
     result = predict_sample(_load(args), args.out, checkpoint=args.checkpoint, index=args.index, token=args.token,
                             split=args.split, overrides=args.overrides, gt_as_prediction=args.gt_as_prediction,
-                            onnx=args.onnx, precision=args.precision)
+                            onnx=args.onnx, precision=args.precision, compile_backbone=args.compile_backbone)
     _print_notes(result["notes"])
     print(f"sample {result['sample_token']} (split '{result['split']}', index {result['index']}): "
           f"{len(result['predictions'])} predicted instances; wrote {', '.join(str(p) for p in result['paths'])}")
@@ -279,7 +279,7 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 def _cmd_predict_images(args: argparse.Namespace) -> int:
     result = predict_images(args.rig, args.images, args.out, checkpoint=args.checkpoint, onnx=args.onnx,
                             config=args.config, decode=decode_assignments(args.decode), device=args.device,
-                            name=args.name, precision=args.precision)
+                            name=args.name, precision=args.precision, compile_backbone=args.compile_backbone)
     print(f"{result['name']} ({result['source']}): {len(result['elements'])} map elements; wrote "
           f"{', '.join(str(p) for p in result['paths'])}")
     _print_notes(result.get("notes", []))
@@ -289,7 +289,8 @@ def _cmd_predict_images(args: argparse.Namespace) -> int:
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     result = run_benchmark(_load(args), device=args.device, amp=args.amp, runs=args.runs, warmup=args.warmup,
                            checkpoint=args.checkpoint, overrides=args.overrides, compile=args.compile,
-                           cuda_graphs=args.cuda_graphs, precision=args.precision)
+                           cuda_graphs=args.cuda_graphs, precision=args.precision,
+                           compile_backbone=args.compile_backbone)
     print(format_benchmark(result, args.config))
     return 0
 
@@ -416,6 +417,12 @@ def _add_precision(p: argparse.ArgumentParser) -> None:
                    "natively, else fp32)")
 
 
+def _add_compile_backbone(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--compile-backbone", action="store_true",
+                   help="run the image backbone through torch.compile (the first batch compiles it, tens of seconds; "
+                   "then a faster backbone, docs/deploy.md); the rest of the model stays as it is")
+
+
 def _evaluate_parser(sub) -> None:
     p = _add_parser(sub, "evaluate", _cmd_evaluate, config=True,
                     help="run a checkpoint on the validation split: submission JSON + AP metrics",
@@ -426,6 +433,7 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--protocol", choices=PROTOCOLS, help="AP protocol (default: eval.protocol)")
     p.add_argument("--out", default="eval", help="output folder (default ./eval)")
     _add_precision(p)
+    _add_compile_backbone(p)
 
 
 def _predict_parser(sub) -> None:
@@ -446,6 +454,7 @@ def _predict_parser(sub) -> None:
                    help="no model: draw the predictions a perfect model would make (GT targets -> post-processing)")
     p.add_argument("--onnx", help="run an export-onnx file in onnxruntime instead of a checkpoint ([deploy] extra)")
     _add_precision(p)
+    _add_compile_backbone(p)
 
 
 def _predict_images_parser(sub) -> None:
@@ -466,6 +475,7 @@ def _predict_images_parser(sub) -> None:
     p.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
                    help="a decoding option, e.g. match_threshold=0.05 (model.gnn.*; repeatable)")
     _add_precision(p)
+    _add_compile_backbone(p)
 
 
 def _benchmark_parser(sub) -> None:
@@ -481,6 +491,7 @@ def _benchmark_parser(sub) -> None:
     p.add_argument("--warmup", type=int, help="untimed warm-up runs (default 10 on a GPU, 2 on the CPU)")
     p.add_argument("--checkpoint", help="load trained weights (post-processing cost depends on them)")
     p.add_argument("--compile", action="store_true", help="torch.compile the whole model (static shapes) first")
+    _add_compile_backbone(p)
     p.add_argument("--cuda-graphs", action="store_true", help="capture the forward in a CUDA graph and replay it")
 
 

@@ -37,7 +37,7 @@ from .training_data import make_cmap_meter, make_flicker_meter, open_files_for_w
 
 def run_evaluation(cfg: ExperimentConfig, checkpoint: str | Path, protocol: str | None = None, out: str | Path = "eval",
                    *, overrides: Sequence[str] = (), amp: str = "none", precision: str = "fp32",
-                   calibration: list[dict] | None = None) -> dict:
+                   calibration: list[dict] | None = None, compile_backbone: bool = False) -> dict:
     """Run ``checkpoint`` on the validation split (``data.val_split``), post-process, evaluate.
 
     Writes ``out/submission.json`` (HDMapNet format) and ``out/metrics.json`` (the evaluator's
@@ -45,7 +45,8 @@ def run_evaluation(cfg: ExperimentConfig, checkpoint: str | Path, protocol: str 
     plus ``meta``: checkpoint, config name, split, sample count, speed, config notes). ``protocol``
     overrides ``eval.protocol``. ``precision``: fp32 (the default), bf16, int8 or auto
     (precision.py; int8 calibrates on ``calibration`` batches, by default on training samples of
-    ``cfg``). Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
+    ``cfg``). ``compile_backbone``: the image backbone through ``torch.compile`` (``precision.compile_backbone``;
+    the first batch compiles it). Returns ``{"metrics", "paths", "notes", "num_samples", "samples_per_s"}``.
 
     Under torchrun each rank runs every world-size-th sample; the sampler's wrap-around padding is
     not scored twice (a sample is scored by the rank ``index % world_size``, once), the evaluator
@@ -67,7 +68,8 @@ def run_evaluation(cfg: ExperimentConfig, checkpoint: str | Path, protocol: str 
     # a second evaluation into the same --out while this one runs is refused (the pair of files of one and the
     # other could otherwise end up side by side)
     with locked_folder(out, "evaluation", "choose another --out", du.print_main, enabled=du.is_main_process()):
-        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp, precision, calibration)
+        return _evaluate_into(cfg, checkpoint, protocol, Path(out), device, overrides, amp, precision, calibration,
+                              compile_backbone)
 
 
 def _split_loader(cfg: ExperimentConfig, dataset, temporal: bool, rank: int,
@@ -99,10 +101,11 @@ def _write_pair(out: Path, results: dict, metrics: dict, meta: dict) -> list[Pat
 
 
 def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out: Path, device: torch.device,
-                   overrides: Sequence[str], amp: str, precision: str = "fp32", calibration=None) -> dict:
+                   overrides: Sequence[str], amp: str, precision: str = "fp32", calibration=None,
+                   compile_backbone: bool = False) -> dict:
     """``run_evaluation``'s work, its output folder checked and held."""
     model, cfg, notes = load_model(checkpoint, cfg, overrides, device=device, precision=precision,
-                                   calibration=calibration)
+                                   calibration=calibration, compile_backbone=compile_backbone)
     if protocol is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, protocol=protocol))
     notes += camera_dropout_notes(cfg, "the AP") + unused_meter_keys(cfg) + size_notes(cfg)
@@ -172,7 +175,8 @@ def _evaluate_into(cfg: ExperimentConfig, checkpoint, protocol: str | None, out:
     metrics["meta"] = {"checkpoint": str(checkpoint), "config_name": cfg.name, "dataroot": cfg.data.dataroot,
                        "version": cfg.data.version, "split": split, "num_samples": len(dataset),
                        "samples_per_s": samples_per_s, **{k: v for k, v in decode.items() if k != "max_edge_px"},
-                       "max_edge_m": cfg.model.gnn.max_edge_m, "precision": precision_of(model), "config_notes": notes}
+                       "max_edge_m": cfg.model.gnn.max_edge_m, "precision": precision_of(model),
+                       "compile_backbone": compile_backbone, "config_notes": notes}
     paths = _write_pair(Path(out), results, metrics, submission_meta(cfg, split, f"checkpoint {checkpoint}"))
     return {"metrics": metrics, "paths": paths, "notes": notes, "num_samples": len(dataset),
             "samples_per_s": samples_per_s}

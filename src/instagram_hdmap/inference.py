@@ -57,6 +57,7 @@ from .models.vertices import vertex_heatmap
 from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS
 from .precision import calibration_batches, resolve_precision, with_precision
+from .precision import compile_backbone as compile_image_backbone
 
 # Config keys that define a model: its weights and how its outputs are read.
 # data.av2_cameras: the order of the camera tensors (the MLP view transform has one layer per camera)
@@ -205,11 +206,12 @@ def load_weights(model: torch.nn.Module, state: dict, checkpoint: str | Path) ->
 
 def load_model(
     checkpoint: str | Path, cfg: ExperimentConfig, overrides: Sequence[str] = (), device: torch.device | None = None,
-    precision: str = "fp32", calibration: list[dict] | None = None,
+    precision: str = "fp32", calibration: list[dict] | None = None, compile_backbone: bool = False,
 ) -> tuple[torch.nn.Module, ExperimentConfig, list[str]]:
     """Build the model of ``checkpoint`` (see ``inference_config``), load its weights, eval mode, in
     ``precision`` (precision.py: fp32, bf16, int8 or auto; int8 calibrates on ``calibration`` batches, by default
-    on the config's training samples).
+    on the config's training samples). ``compile_backbone``: the image backbone through ``torch.compile``
+    (``precision.compile_backbone``: the first batch compiles it, tens of seconds).
 
     Returns ``(model, config, notes)``; ``device`` defaults to ``train.device`` ("auto": CUDA if any).
     Raises ``CheckpointError`` for a missing / corrupt checkpoint or weights that do not fit. ``cfg``: an
@@ -227,7 +229,12 @@ def load_model(
     chosen, precision_notes = resolve_precision(precision, torch.device(device))
     if chosen == "int8" and calibration is None:
         calibration = calibration_batches(cfg, device=device)
-    return with_precision(model.eval().to(device), chosen, calibration), cfg, notes + precision_notes
+    model = with_precision(model.eval().to(device), chosen, calibration)
+    if compile_backbone:
+        model = compile_image_backbone(model)
+        precision_notes.append("the image backbone runs through torch.compile: the first batch compiles it (tens "
+                               "of seconds), the later ones run its compiled kernels")
+    return model, cfg, notes + precision_notes
 
 
 # --- predictions from the GT ---------------------------------------------------------------------------

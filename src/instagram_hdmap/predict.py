@@ -151,30 +151,40 @@ def decode_assignments(items: list[str]) -> dict:
     return options
 
 
-def _check_onnx_precision(precision: str) -> None:
-    """An --onnx export is a float32 graph: a lower --precision with it was dropped with no word."""
+def _check_onnx_precision(precision: str, compile_backbone: bool = False) -> None:
+    """An --onnx export is a float32 graph run by onnxruntime: a lower --precision or --compile-backbone with it
+    would be dropped with no word."""
     if precision in ("bf16", "int8"):
         raise PredictError(f"--precision {precision} runs a checkpoint; an --onnx export runs in float32 in "
                            "onnxruntime")
+    if compile_backbone:
+        raise PredictError("--compile-backbone compiles a checkpoint's backbone with torch.compile; an --onnx export "
+                           "runs in onnxruntime: drop one of them")
 
 
 def load_predictor(cfg: ExperimentConfig, *, checkpoint: str | Path | None = None, onnx: str | Path | None = None,
-                   gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "fp32"):
+                   gt_as_prediction: bool = False, overrides: Sequence[str] = (), precision: str = "fp32",
+                   compile_backbone: bool = False):
     """``(model, config, notes, source)`` of ``predict``'s choice of predictor: a checkpoint (in ``precision``,
-    precision.py), an ``export-onnx`` file (onnxruntime; its baked config must be ``cfg``'s) or, with
-    ``gt_as_prediction``, None (``inference.gt_outputs``: predictions built from the GT). The notes say where its
-    predictions are not those of the full images or of the config's persistence."""
+    precision.py; ``compile_backbone``: its image backbone through ``torch.compile``), an ``export-onnx`` file
+    (onnxruntime; its baked config must be ``cfg``'s) or, with ``gt_as_prediction``, None (``inference.gt_outputs``:
+    predictions built from the GT). The notes say where its predictions are not those of the full images or of the
+    config's persistence."""
     if gt_as_prediction and checkpoint is not None:
         raise PredictError("--gt-as-prediction draws predictions built from the GT and loads no model; "
                            "drop --checkpoint (or drop --gt-as-prediction to run the checkpoint)")
+    if gt_as_prediction and compile_backbone:
+        raise PredictError("--compile-backbone compiles a checkpoint's image backbone; --gt-as-prediction loads no "
+                           "model: drop --compile-backbone")
     if sum(x is not None for x in (checkpoint, onnx)) + gt_as_prediction != 1:
         raise PredictError("pass one of --checkpoint CKPT, --onnx FILE (an export-onnx file) or --gt-as-prediction "
                            "(GT-derived predictions)")
     if onnx is not None:
-        _check_onnx_precision(precision)
+        _check_onnx_precision(precision, compile_backbone)
         model, notes, source = OnnxModel(onnx, cfg), [], f"ONNX {onnx} (onnxruntime)"
     elif checkpoint is not None:
-        model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision)
+        model, cfg, notes = load_model(checkpoint, cfg, overrides, precision=precision,
+                                       compile_backbone=compile_backbone)
         source = f"checkpoint {checkpoint}"
     else:
         model, notes, source = None, [], "GT-derived predictions (--gt-as-prediction)"
@@ -239,7 +249,7 @@ def write_together(out: Path, figures: dict, predictions: dict, meta: dict) -> l
 def predict_sample(cfg: ExperimentConfig, out: str | Path, *, checkpoint: str | Path | None = None,
                    index: int | None = None, token: str | None = None, split: str | None = None,
                    overrides: Sequence[str] = (), gt_as_prediction: bool = False, camera_width: int = 480,
-                   onnx: str | Path | None = None, precision: str = "fp32") -> dict:
+                   onnx: str | Path | None = None, precision: str = "fp32", compile_backbone: bool = False) -> dict:
     """Run the model (or ``gt_outputs``) on one sample and write, in ``out``:
 
     * ``prediction_bev.png``: predicted polylines next to the GT (x forward up, y left, metres);
@@ -257,7 +267,8 @@ def predict_sample(cfg: ExperimentConfig, out: str | Path, *, checkpoint: str | 
     """
     check_output_dir(out, "--out")  # before the model runs
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
-                                               overrides=overrides, precision=precision)
+                                               overrides=overrides, precision=precision,
+                                               compile_backbone=compile_backbone)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     i = find_sample(dataset, index, token)
@@ -402,7 +413,8 @@ def rig_frame(rig: Sequence[CameraCalibration], images: Sequence[str | Path], ri
 def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str | Path, *,
                    checkpoint: str | Path | None = None, onnx: str | Path | None = None,
                    config: str | Path | None = None, decode: Mapping | None = None, device: str | None = None,
-                   name: str = "frame", camera_width: int = 480, precision: str = "fp32") -> dict:
+                   name: str = "frame", camera_width: int = 480, precision: str = "fp32",
+                   compile_backbone: bool = False) -> dict:
     """``predict-images``: the model (a checkpoint, or an ``export-onnx`` file with the ``config`` it was
     exported from, default: the one stamped in it) on one frame of your own cameras, described by a
     rig file (``data.rig.read_rig_file``), and ``predict``'s pictures (no GT) and ``prediction.json``
@@ -419,10 +431,11 @@ def predict_images(rig_file: str | Path, images: Sequence[str | Path], out: str 
     check_output_dir(out, "--out")  # before the model runs
     decode = dict(decode or {})
     if onnx is not None:
-        _check_onnx_precision(precision)
+        _check_onnx_precision(precision, compile_backbone)
     with warnings.catch_warnings():  # its precision note comes back in the result's notes
         warnings.simplefilter("ignore")
-        mapper = (Mapper.from_checkpoint(checkpoint, device, precision=precision, **decode) if checkpoint is not None
+        mapper = (Mapper.from_checkpoint(checkpoint, device, precision=precision, compile_backbone=compile_backbone,
+                                         **decode) if checkpoint is not None
                   else Mapper.from_onnx(onnx, config, **decode))
     rig = read_rig_file(rig_file)
     frame = rig_frame(rig, images, rig_file, mapper.cameras)
@@ -524,7 +537,7 @@ class _VideoWriter:
 def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, checkpoint: str | Path | None = None,
                   onnx: str | Path | None = None, gt_as_prediction: bool = False, split: str | None = None,
                   overrides: Sequence[str] = (), fps: float = 2.0, camera_width: int = 320,
-                  progress: bool = True, precision: str = "fp32") -> dict:
+                  progress: bool = True, precision: str = "fp32", compile_backbone: bool = False) -> dict:
     """Every sample of ``scene`` (a nuScenes scene name or an AV2 log id) of ``split``, in time order,
     as one MP4 frame each (OpenCV's ``VideoWriter``, ``mp4v``): the BEV prediction next to the GT on
     the left, the cameras with the predictions projected on the right. Frames run through the model in
@@ -544,7 +557,8 @@ def predict_video(cfg: ExperimentConfig, video: str | Path, scene: str, *, check
     for path, what in ((video, "--video"), (video.with_suffix(".json"), "--video's predictions (.json)")):
         check_output_file(path, what, inputs)  # before the frames
     model, cfg, notes, source = load_predictor(cfg, checkpoint=checkpoint, onnx=onnx, gt_as_prediction=gt_as_prediction,
-                                               overrides=overrides, precision=precision)
+                                               overrides=overrides, precision=precision,
+                                               compile_backbone=compile_backbone)
     split = split or cfg.data.val_split
     dataset = build_dataset(cfg, split, augment=False)
     indices = dataset.scene_indices(scene)
