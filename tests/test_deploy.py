@@ -481,13 +481,14 @@ def test_default_sinkhorn_iterations_export_with_parity(ort, tmp_path, monkeypat
 def test_cpu_capability_reads_the_flags_it_is_given(tmp_path):
     """A figure carries what it was measured on: the CPU's extensions from its flags, never assumed."""
     amx = tmp_path / "amx"
-    amx.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16 amx_bf16 amx_int8 amx_tile\n"
-                   "processor\t: 1\nflags\t\t: fpu\n")
+    amx.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_vnni avx512_bf16 amx_bf16 amx_int8 "
+                   "amx_tile\nprocessor\t: 1\nflags\t\t: fpu\n")
     plain = tmp_path / "plain"
     plain.write_text("processor\t: 0\nflags\t\t: fpu sse2 sse4_2\n")
     assert resources.cpu_flags(amx) >= {"avx2", "amx_bf16"} and resources.cpu_flags(tmp_path / "none") == set()
     level = torch.backends.cpu.get_cpu_capability()
-    assert resources.cpu_capability(amx) == f"AVX2 AVX512 AVX512-BF16 AMX-BF16 AMX-INT8; torch kernels: {level}"
+    assert resources.cpu_capability(amx) == (f"AVX2 AVX512 AVX512-VNNI AVX512-BF16 AMX-BF16 AMX-INT8; torch kernels: "
+                                             f"{level}")
     assert resources.cpu_capability(plain) == f"none of AVX2 / AVX512 / AMX; torch kernels: {level}"
 
 

@@ -298,8 +298,9 @@ def summary_lines(cfg: ExperimentConfig) -> list[str]:
 
 # /proc/cpuinfo flags of the instruction sets that decide a convolution's speed here, in the order they build on
 # each other: AVX2, AVX-512, AVX-512 with bf16 dot products, AMX tiles for bf16 and int8 matrix products
-CPU_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX512"), ("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16"),
-             ("amx_int8", "AMX-INT8"))
+# (int8 convolutions run on the VNNI dot products where a CPU has them, bf16 on AVX512-BF16 or AMX)
+CPU_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX512"), ("avx_vnni", "AVX-VNNI"), ("avx512_vnni", "AVX512-VNNI"),
+             ("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16"), ("amx_int8", "AMX-INT8"))
 
 
 def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> set[str]:
