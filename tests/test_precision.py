@@ -360,3 +360,19 @@ def test_a_backbone_that_fails_to_compile_warns_once_and_runs_eagerly(monkeypatc
         second = model(batch)
     for got in (first, second):
         torch.testing.assert_close(got["pred_vertex_logits"], expected["pred_vertex_logits"])
+
+
+def test_the_bev_encoder_benchmark_counts_macs_and_times_each_precision(capsys):
+    """benchmarks/bev_encoder_speed.py: the MAC count of a convolution is C_out x H_out x W_out x C_in / groups x
+    kh x kw, and a run prints a row per precision (int8 on any CPU; bf16 where it is native)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bev_encoder_speed import conv_macs, main
+
+    conv = torch.nn.Sequential(torch.nn.Conv2d(6, 4, 3, stride=2, padding=1, groups=2), torch.nn.ReLU())
+    assert conv_macs(conv, torch.zeros(1, 6, 10, 12)) == 4 * 5 * 6 * (3 * 3 * 3)
+    main(["--config", str(TINY), "--runs", "1", "--threads", str(torch.get_num_threads())])  # (process-wide)
+    out = capsys.readouterr().out
+    rows = [line.split(" | ")[0].strip("| ") for line in out.splitlines() if line.startswith("| ") and "ms" not in line
+            and "---" not in line]
+    assert rows == (["fp32", "bf16", "int8"] if native_bf16(CPU) else ["fp32", "int8"])
+    assert " GMAC;" in out
