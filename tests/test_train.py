@@ -251,20 +251,23 @@ def test_cpu_threads_leave_a_core_to_each_data_worker(tmp_path, monkeypatch):
 
 
 def test_training_runs_with_its_threads_and_gives_the_setting_back(tmp_path, monkeypatch):
+    """A CPU run trains with its threads (given back afterwards), and with the freed blocks kept for the next step
+    (``resources.reuse_freed_memory``) from before its first step."""
     from instagram_hdmap import train as train_module
 
-    seen = []
+    seen, kept = [], []
     original = train_module.train_one_epoch
 
     def spy(*args, **kwargs):
-        seen.append(torch.get_num_threads())
+        seen.append((torch.get_num_threads(), len(kept)))
         return original(*args, **kwargs)
 
     monkeypatch.setattr(train_module, "train_one_epoch", spy)
+    monkeypatch.setattr(train_module, "reuse_freed_memory", lambda: kept.append(True) or True)
     before = torch.get_num_threads()
     cfg = _tiny_cfg(tmp_path, "train.epochs=1", "train.cpu_threads=1")
     summary = train(cfg, loaders=_loaders(cfg), validate=False)
-    assert seen == [1] and summary["cpu_threads"] == 1
+    assert seen == [(1, 1)] and summary["cpu_threads"] == 1
     assert torch.get_num_threads() == before
 
 

@@ -55,7 +55,7 @@ from .models.backbone import imagenet_state
 from .persistence import Persistence
 from .postprocess import decode_options, postprocess_batch
 from .precision import training_amp
-from .resources import check_fits, size_notes, usable_cores
+from .resources import check_fits, reuse_freed_memory, size_notes, usable_cores
 from .resume import (
     MEMORY_ONLY_KEYS,
     best_score_in,
@@ -519,11 +519,16 @@ class TrainingRun:
 
 @contextlib.contextmanager
 def run_threads(run: TrainingRun):
-    """torch's intra-op threads for a CPU run (``cpu_threads``), restored afterwards."""
+    """torch's intra-op threads for a CPU run (``cpu_threads``), restored afterwards. A CPU run also has glibc's
+    malloc keep the blocks a step frees for the next step (``resources.reuse_freed_memory``, process-wide, as
+    inference does): by default the demo's steps faulted ~2000 freed pages a step in again, and a 3-epoch demo
+    run spent twice the kernel time (benchmarks/README.md, "The demo's training speed")."""
     before = torch.get_num_threads()
     threads = (cpu_threads(run.cfg, int(os.environ.get("LOCAL_WORLD_SIZE", 1)))
                if run.device.type == "cpu" else None)
     run.chosen_threads = threads
+    if run.device.type == "cpu":
+        reuse_freed_memory()
     if threads is not None:
         torch.set_num_threads(threads)
     try:
