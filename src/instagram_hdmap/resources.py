@@ -344,7 +344,8 @@ def reuse_freed_memory() -> bool:
     from the heap and stay there once freed. Process-wide, as the environment variables ``MALLOC_MMAP_THRESHOLD_``
     / ``MALLOC_TRIM_THRESHOLD_`` / ``MALLOC_TOP_PAD_`` would set it: the process keeps the memory of its largest
     forward instead of handing it back between forwards. Inference (``Mapper``, predict, evaluate, benchmark)
-    calls it on the CPU."""
+    and training call it on the CPU (a training step frees and takes again its activations, smaller blocks that
+    glibc's trimming handed back all the same)."""
     import ctypes
     import platform
 
