@@ -209,13 +209,35 @@ def _benchmark_model(cfg: ExperimentConfig, checkpoint, overrides, dev: torch.de
         return build_model(cfg).eval().to(dev), cfg
 
 
-def _in_precision(model, cfg: ExperimentConfig, precision: str | None, checkpoint, batch: dict):
+def _in_precision(model, cfg: ExperimentConfig, precision: str | None, checkpoint, batch: dict,
+                  compile_backbone: bool = False):
     """``model`` as inference runs it in ``precision`` (None: as it is); int8 calibrates on the training split of a
-    checkpoint's config, else on the timed ``batch``."""
-    if precision != "int8":
-        return model if precision is None else with_precision(model, precision)
-    calibration = calibration_batches(cfg, device=batch["images"].device) if checkpoint is not None else [batch]
-    return with_precision(model, precision, calibration)
+    checkpoint's config, else on the timed ``batch``. ``compile_backbone``: its image backbone then through
+    ``torch.compile`` (``precision.compile_backbone``)."""
+    if precision == "int8":
+        calibration = calibration_batches(cfg, device=batch["images"].device) if checkpoint is not None else [batch]
+        model = with_precision(model, precision, calibration)
+    elif precision is not None:
+        model = with_precision(model, precision)
+    return compile_image_backbone(model) if compile_backbone else model
+
+
+def _dtype_with_paths(amp: str, precision: str | None, compile: bool, compile_backbone: bool,
+                      cuda_graphs: bool) -> str:
+    """The result's ``dtype``: the precision, then the fast paths timed with it."""
+    paths = (("torch.compile", compile), ("backbone compiled", compile_backbone), ("CUDA graph", cuda_graphs))
+    return _dtype_label(amp, precision) + "".join(f", {name}" for name, on in paths if on)
+
+
+def _run_notes(checkpoint, runs: int, dev: torch.device) -> list[str]:
+    """What a reader of the figures should know about the weights and the number of runs."""
+    notes = []
+    if checkpoint is None:
+        notes.append("random weights: few edges pass the match threshold, so post-processing is cheaper than "
+                     "with a trained model (pass --checkpoint)")
+    if runs < DEFAULT_RUNS[dev.type]:
+        notes.append(f"only {runs} runs (default {DEFAULT_RUNS[dev.type]} on {dev.type}): the spread is rough")
+    return notes
 
 
 def run_benchmark(
@@ -254,9 +276,7 @@ def run_benchmark(
     grid = BEVGrid.from_config(cfg.grid)
     rig, rig_source = benchmark_rig(cfg)
     batch = _random_batch(model, cfg, rig, dev, seed, notes)
-    model = _in_precision(model, cfg, precision, checkpoint, batch)
-    if compile_backbone:
-        model = compile_image_backbone(model)
+    model = _in_precision(model, cfg, precision, checkpoint, batch, compile_backbone)
     h, w = cfg.data.image_size
     V = rig["intrinsics"].shape[0]
     decode = decode_options(cfg.model.gnn, grid)
@@ -281,18 +301,12 @@ def run_benchmark(
     model_times, full_times, outputs = _timed(forward, forward_post, runs, warmup, sync, amp, dev)
     num_vertices = int(outputs["pred_vertex_mask"].sum())
     num_instances = len(postprocess_batch(outputs, grid, **decode)[0])
-    if checkpoint is None:
-        notes.append("random weights: few edges pass the match threshold, so post-processing is cheaper than "
-                      "with a trained model (pass --checkpoint)")
-    if runs < DEFAULT_RUNS[dev.type]:
-        notes.append(f"only {runs} runs (default {DEFAULT_RUNS[dev.type]} on {dev.type}): the spread is rough")
+    notes += _run_notes(checkpoint, runs, dev)
     return {
         "config_name": cfg.name,
         "device": device_name(dev),
         "cpu": cpu_capability(),
-        "dtype": _dtype_label(amp, precision)
-        + "".join(f", {name}" for name, on in (("torch.compile", compile), ("backbone compiled", compile_backbone),
-                                               ("CUDA graph", cuda_graphs)) if on),
+        "dtype": _dtype_with_paths(amp, precision, compile, compile_backbone, cuda_graphs),
         "threads": torch.get_num_threads(),
         "batch": f"1 x {V} cameras x {h}x{w}",
         "backbone": cfg.model.backbone.name,
