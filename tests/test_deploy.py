@@ -219,17 +219,13 @@ def test_benchmark_flags_reach_the_fast_forward(monkeypatch, capsys):
 
 def test_benchmark_compile_backbone_compiles_the_image_backbone_alone(monkeypatch, capsys):
     """``benchmark --compile-backbone`` times the model with ``precision.compile_backbone`` applied (its
-    compilation is tested in test_precision.py; a stand-in keeps this fast); with ``--compile`` (the whole model,
-    the backbone included) it is refused."""
+    compilation is tested in test_precision.py; a stand-in keeps this fast)."""
     compiled = []
     monkeypatch.setattr(benchmark, "compile_image_backbone", lambda model: compiled.append(model) or model)
     args = ["benchmark", str(TINY), *FAST, "data.dataroot=/nonexistent", "--device", "cpu", "--runs", "1",
             "--warmup", "0"]
     assert main([*args, "--compile-backbone"]) == 0
     assert len(compiled) == 1 and "float32, backbone compiled" in capsys.readouterr().out
-    assert main([*args, "--compile-backbone", "--compile"]) == 2
-    assert "--compile-backbone compiles the backbone alone: give one of them" in _error_line(capsys)
-    assert len(compiled) == 1
 
 
 # --- ONNX: import hygiene and the missing extra ------------------------------------------------------------

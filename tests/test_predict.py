@@ -321,10 +321,6 @@ def test_bad_index_token_and_arguments_are_one_line_errors(world, checkpoint, tm
     assert "--checkpoint" in _error_line(capsys)
     assert main([*base, "--index", "0", "--gt-as-prediction", "--checkpoint", str(checkpoint)]) == 2
     assert "drop --checkpoint" in _error_line(capsys)
-    assert main([*base, "--index", "0", "--gt-as-prediction", "--compile-backbone"]) == 2
-    assert "--gt-as-prediction loads no model: drop --compile-backbone" in _error_line(capsys)
-    assert main([*base, "--index", "0", "--onnx", str(tmp_path / "m.onnx"), "--compile-backbone"]) == 2
-    assert "an --onnx export runs in onnxruntime" in _error_line(capsys)
     # an override that changes layer sizes cannot load the weights
     assert main(["predict", str(TINY_YAML), *world, "model.gnn.dim=64", "--out", str(tmp_path), "--index", "0",
                  "--checkpoint", str(checkpoint)]) == 2

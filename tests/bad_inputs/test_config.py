@@ -332,6 +332,18 @@ def row_precision_of_an_onnx_export(env):
               env.tmp / "model.onnx", "--index", "0", "--out", env.tmp / "out", "--precision", "bf16")
 
 
+@row("--compile-backbone with what has no torch backbone to compile (predict --onnx, predict --gt-as-prediction) or "
+     "with benchmark --compile (which compiles the backbone already) is one line before any model is built")
+def row_compile_backbone_with_nothing_to_compile(env):
+    env.error(r"--compile-backbone compiles a checkpoint's backbone .* an --onnx export runs in onnxruntime", "predict",
+              env.yaml, "--onnx", env.tmp / "model.onnx", "--index", "0", "--out", env.tmp / "out",
+              "--compile-backbone")
+    env.error(r"--gt-as-prediction loads no model: drop --compile-backbone", "predict", env.yaml, "--gt-as-prediction",
+              "--index", "0", "--out", env.tmp / "out", "--compile-backbone")
+    env.error(r"--compile compiles the whole model.* give one of them", "benchmark", env.yaml, "--device", "cpu",
+              "--compile", "--compile-backbone")
+
+
 @row("predict --gt-as-prediction model.temporal.persist_frames=2 dropped the persistence with no word; a note "
             "says it is not applied to the GT")
 def row_persist_with_gt_as_prediction(env):
