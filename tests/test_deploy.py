@@ -220,8 +220,10 @@ def test_benchmark_flags_reach_the_fast_forward(monkeypatch, capsys):
 def test_benchmark_compile_backbone_compiles_the_image_backbone_alone(monkeypatch, capsys):
     """``benchmark --compile-backbone`` times the model with ``precision.compile_backbone`` applied (its
     compilation is tested in test_precision.py; a stand-in keeps this fast)."""
-    compiled = []
-    monkeypatch.setattr(benchmark, "compile_image_backbone", lambda model: compiled.append(model) or model)
+    from instagram_hdmap import precision
+
+    compiled = []  # what with_precision(..., compile_backbone=True) compiles
+    monkeypatch.setattr(precision, "_compile_backbone", lambda model: compiled.append(model) or model)
     args = ["benchmark", str(TINY), *FAST, "data.dataroot=/nonexistent", "--device", "cpu", "--runs", "1",
             "--warmup", "0"]
     assert main([*args, "--compile-backbone"]) == 0

@@ -40,7 +40,6 @@ from .inference import load_model
 from .models import build_model
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, resolve_precision, with_precision
-from .precision import compile_backbone as compile_image_backbone
 from .resources import check_fits, cpu_capability, reuse_freed_memory
 
 DEFAULT_RUNS = {"cuda": 50, "cpu": 10}
@@ -214,12 +213,10 @@ def _in_precision(model, cfg: ExperimentConfig, precision: str | None, checkpoin
     """``model`` as inference runs it in ``precision`` (None: as it is); int8 calibrates on the training split of a
     checkpoint's config, else on the timed ``batch``. ``compile_backbone``: its image backbone then through
     ``torch.compile`` (``precision.compile_backbone``)."""
+    calibration = None
     if precision == "int8":
         calibration = calibration_batches(cfg, device=batch["images"].device) if checkpoint is not None else [batch]
-        model = with_precision(model, precision, calibration)
-    elif precision is not None:
-        model = with_precision(model, precision)
-    return compile_image_backbone(model) if compile_backbone else model
+    return with_precision(model, precision or "fp32", calibration, compile_backbone)  # None: as it is (fp32's)
 
 
 def _dtype_with_paths(amp: str, precision: str | None, compile: bool, compile_backbone: bool,

@@ -57,7 +57,6 @@ from .models.vertices import vertex_heatmap
 from .models.view_transform import CALIBRATION_KEYS
 from .postprocess import DECODE_KEYS
 from .precision import calibration_batches, resolve_precision, with_precision
-from .precision import compile_backbone as compile_image_backbone
 
 # Config keys that define a model: its weights and how its outputs are read.
 # data.av2_cameras: the order of the camera tensors (the MLP view transform has one layer per camera)
@@ -229,9 +228,8 @@ def load_model(
     chosen, precision_notes = resolve_precision(precision, torch.device(device))
     if chosen == "int8" and calibration is None:
         calibration = calibration_batches(cfg, device=device)
-    model = with_precision(model.eval().to(device), chosen, calibration)
+    model = with_precision(model.eval().to(device), chosen, calibration, compile_backbone)
     if compile_backbone:
-        model = compile_image_backbone(model)
         precision_notes.append("the image backbone runs through torch.compile: the first batch compiles it (tens "
                                "of seconds), the later ones run its compiled kernels")
     return model, cfg, notes + precision_notes

@@ -48,7 +48,6 @@ from .models.temporal import STATUS_NAMES
 from .persistence import Persistence, stream_tracker
 from .postprocess import decode_options, postprocess_batch
 from .precision import calibration_batches, precision_of, resolve_precision, with_precision
-from .precision import compile_backbone as compile_image_backbone
 
 # PIL modes of 8-bit pixels, which convert("RGB") keeps; "I;16" (16-bit) saturates at 255 and "F" (float)
 # truncates 0..1 values to 0
@@ -374,9 +373,8 @@ class Mapper:
         dev = resolve_device(device, key="device")
         chosen, notes = resolve_precision(precision, dev, flag="precision")
         calibration = calibration_batches(cfg, device=dev, flag="precision") if chosen == "int8" else None
-        model = with_precision(load_weights(build_model(cfg), state, path).eval().to(dev), chosen, calibration)
-        if compile_backbone:
-            model = compile_image_backbone(model)
+        model = with_precision(load_weights(build_model(cfg), state, path).eval().to(dev), chosen, calibration,
+                               compile_backbone)
         for note in notes:
             warnings.warn(note, stacklevel=2)
         return cls(model, cfg, device=dev, source=f"checkpoint {path}", notes=notes)

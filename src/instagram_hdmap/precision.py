@@ -355,19 +355,21 @@ class Int8Model(Bf16Model):
         return self.model(batch) if memory is None else self.model(batch, memory=memory)
 
 
-def with_precision(model: nn.Module, precision: str, calibration: list[dict] | None = None) -> nn.Module:
+def with_precision(model: nn.Module, precision: str, calibration: list[dict] | None = None,
+                   compile_backbone: bool = False) -> nn.Module:
     """``model`` to run in ``precision`` (resolved: fp32, bf16 or int8; int8 calibrates on ``calibration``);
-    fp32 returns it as it is. On the CPU, the process's allocator keeps the blocks a forward frees for the next
-    (``resources.reuse_freed_memory``)."""
+    fp32 returns it as it is. ``compile_backbone``: then its image backbone through ``torch.compile``
+    (``compile_backbone``, in place). On the CPU, the process's allocator keeps the blocks a forward frees for the
+    next (``resources.reuse_freed_memory``)."""
     if next(model.parameters(), torch.empty(0)).is_cpu:
         reuse_freed_memory()
-    if precision == "fp32":
-        return model
     if precision == "bf16":
-        return model if isinstance(model, Bf16Model) else Bf16Model(model)
-    if precision == "int8":
-        return model if isinstance(model, Int8Model) else Int8Model(model, calibration or [])
-    raise PrecisionError(f"with_precision: {precision!r} is not fp32, bf16 or int8 (resolve 'auto' first)")
+        model = model if isinstance(model, Bf16Model) else Bf16Model(model)
+    elif precision == "int8":
+        model = model if isinstance(model, Int8Model) else Int8Model(model, calibration or [])
+    elif precision != "fp32":
+        raise PrecisionError(f"with_precision: {precision!r} is not fp32, bf16 or int8 (resolve 'auto' first)")
+    return _compile_backbone(model) if compile_backbone else model
 
 
 def precision_of(model: nn.Module) -> str:
@@ -417,3 +419,6 @@ def compile_backbone(model: nn.Module) -> nn.Module:
     if not isinstance(inner.backbone, CompiledBackbone):
         inner.backbone = CompiledBackbone(inner.backbone.eval())
     return model
+
+
+_compile_backbone = compile_backbone  # with_precision's argument of the same name shadows the function
